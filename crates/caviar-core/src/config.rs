@@ -1,0 +1,456 @@
+//! The experiment description: one TOML file.
+//!
+//! ```toml
+//! [episode]
+//! ts = 0.1                 # sampling interval Ts, seconds of virtual time
+//! duration = 60.0          # or `steps = 600`; neither: until a module ends the episode
+//! seed = 7
+//! stages = ["mobility", "communications", "ai"]
+//!
+//! [modules.uav]
+//! stage = "mobility"
+//! plugin = "caviar_plugins.mobility:WaypointFlight"   # or an entry-point name
+//! every = 1                # run every k-th step (default 1), starting at `offset`
+//! subscribe = ["mission.>"]
+//! [modules.uav.params]     # the plugin's own parameters
+//! speed = 5.0
+//! ```
+//!
+//! Every error names the file, the line and the key. Relative paths in the file are
+//! relative to the file's directory.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use indexmap::IndexMap;
+use serde::Deserialize;
+
+use crate::topic::Pattern;
+
+/// A configuration error: file, line (when known), key (when known) and what was expected.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConfigError {
+    pub file: String,
+    pub line: Option<usize>,
+    pub key: Option<String>,
+    pub message: String,
+}
+
+impl fmt::Display for ConfigError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}", self.file)?;
+        if let Some(line) = self.line {
+            write!(f, ":{line}")?;
+        }
+        if let Some(key) = &self.key {
+            write!(f, ": {key}")?;
+        }
+        write!(f, ": {}", self.message)
+    }
+}
+
+impl std::error::Error for ConfigError {}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    pub episode: Episode,
+    #[serde(default)]
+    pub transport: Transport,
+    #[serde(default)]
+    pub output: Output,
+    pub modules: IndexMap<String, ModuleConfig>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Episode {
+    /// Sampling interval Ts in seconds of virtual time.
+    pub ts: f64,
+    pub steps: Option<u64>,
+    /// Virtual duration in seconds; `steps = ceil(duration / ts)`.
+    pub duration: Option<f64>,
+    #[serde(default)]
+    pub seed: u64,
+    /// Stage names in execution order.
+    pub stages: Vec<String>,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Transport {
+    #[serde(default)]
+    pub kind: TransportKind,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TransportKind {
+    /// Every module in this process (Python plugins through pyo3). No server needed.
+    #[default]
+    Inprocess,
+    /// Each module in its own process over NATS.
+    Nats,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Output {
+    /// Parent directory of run directories (default: `runs` in the current directory).
+    pub dir: Option<PathBuf>,
+    /// Run name prefix (default: the config file's stem). Runs go to `DIR/NAME-NNN`.
+    pub name: Option<String>,
+    /// Topic patterns that are routed but not recorded.
+    #[serde(default)]
+    pub exclude: Vec<String>,
+    /// Wall-clock seconds between recorder flushes. 0 (default) flushes after every
+    /// step, so a killed process loses at most the step in progress.
+    #[serde(default)]
+    pub flush_interval: f64,
+}
+
+fn one() -> u64 {
+    1
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModuleConfig {
+    pub stage: String,
+    /// `package.module:Class`, an entry-point name of group `caviar.plugins`, or a
+    /// built-in (`caviar.replay`).
+    pub plugin: String,
+    #[serde(default = "one")]
+    pub every: u64,
+    #[serde(default)]
+    pub offset: u64,
+    /// Subscription patterns; when absent the plugin's own default applies.
+    pub subscribe: Option<Vec<String>>,
+    #[serde(default)]
+    pub params: toml::Table,
+}
+
+/// A validated configuration together with where it came from.
+#[derive(Debug, Clone)]
+pub struct LoadedConfig {
+    pub config: Config,
+    /// The file as given (for messages).
+    pub file: String,
+    /// Directory that relative paths are resolved against.
+    pub base_dir: PathBuf,
+    /// The TOML text after `--set` overrides: saved into the run directory.
+    pub text: String,
+    pub overrides: Vec<String>,
+}
+
+impl LoadedConfig {
+    /// Number of steps, or `None` when the episode runs until a module ends it.
+    pub fn steps(&self) -> Option<u64> {
+        let e = &self.config.episode;
+        e.steps.or_else(|| e.duration.map(|d| (d / e.ts - 1e-9).ceil().max(0.0) as u64))
+    }
+
+    pub fn resolve(&self, path: &Path) -> PathBuf {
+        if path.is_absolute() {
+            path.to_path_buf()
+        } else {
+            self.base_dir.join(path)
+        }
+    }
+
+    /// An error about `key` (dotted path), located at its line in the file.
+    pub fn error_at(&self, key: &str, message: impl Into<String>) -> ConfigError {
+        let path: Vec<&str> = key.split('.').collect();
+        ConfigError {
+            file: self.file.clone(),
+            line: line_of_key(&self.text, &path),
+            key: Some(key.to_string()),
+            message: message.into(),
+        }
+    }
+
+    /// The module's parameters as JSON, for plugins.
+    pub fn params_json(&self, module: &str) -> serde_json::Value {
+        serde_json::to_value(&self.config.modules[module].params).expect("TOML is valid JSON")
+    }
+}
+
+/// Reads, overrides and validates a configuration file.
+pub fn load(path: &Path, overrides: &[String]) -> Result<LoadedConfig, ConfigError> {
+    let file = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|e| ConfigError {
+        file: file.clone(),
+        line: None,
+        key: None,
+        message: format!("cannot read the configuration file: {e}"),
+    })?;
+    let base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+    parse(&text, &file, &base_dir, overrides)
+}
+
+/// Like [`load`], from text; `file` is only used in messages.
+pub fn parse(
+    text: &str,
+    file: &str,
+    base_dir: &Path,
+    overrides: &[String],
+) -> Result<LoadedConfig, ConfigError> {
+    let error = |line, key: Option<String>, message: String| ConfigError {
+        file: file.to_string(),
+        line,
+        key,
+        message,
+    };
+    let text = if overrides.is_empty() {
+        text.to_string()
+    } else {
+        apply_overrides(text, overrides).map_err(|e| error(None, None, e))?
+    };
+    let de = toml::Deserializer::new(&text);
+    let config: Config = serde_path_to_error::deserialize(de).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        let line = inner.span().map(|s| line_at(&text, s.start));
+        let key = (path != "." && !path.is_empty()).then_some(path);
+        let mut message = inner.message().to_string();
+        if !overrides.is_empty() {
+            message.push_str(" (after --set overrides)");
+        }
+        error(line, key, message)
+    })?;
+    let loaded = LoadedConfig {
+        config,
+        file: file.to_string(),
+        base_dir: base_dir.to_path_buf(),
+        text,
+        overrides: overrides.to_vec(),
+    };
+    validate(&loaded)?;
+    Ok(loaded)
+}
+
+/// Checks what types alone cannot express.
+fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
+    let cfg = &c.config;
+    let ep = &cfg.episode;
+    if !(ep.ts.is_finite() && ep.ts > 0.0) {
+        return Err(c.error_at("episode.ts", format!("expected a positive number of seconds, got {}", ep.ts)));
+    }
+    if ep.steps.is_some() && ep.duration.is_some() {
+        return Err(c.error_at("episode.duration", "give either `steps` or `duration`, not both"));
+    }
+    if let Some(d) = ep.duration {
+        if !(d.is_finite() && d > 0.0) {
+            return Err(c.error_at("episode.duration", format!("expected a positive number of seconds, got {d}")));
+        }
+    }
+    if ep.stages.is_empty() {
+        return Err(c.error_at("episode.stages", "expected at least one stage name"));
+    }
+    for (i, s) in ep.stages.iter().enumerate() {
+        if ep.stages[..i].contains(s) {
+            return Err(c.error_at("episode.stages", format!("stage '{s}' is listed twice")));
+        }
+    }
+    if cfg.modules.is_empty() {
+        return Err(ConfigError {
+            file: c.file.clone(),
+            line: None,
+            key: Some("modules".into()),
+            message: "expected at least one [modules.NAME] table".into(),
+        });
+    }
+    for (name, m) in &cfg.modules {
+        let key = |k: &str| format!("modules.{name}.{k}");
+        if name.is_empty() || !name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-') {
+            return Err(c.error_at(
+                &format!("modules.{name}"),
+                "module names may use only letters, digits, '_' and '-' (they become NATS subject tokens)",
+            ));
+        }
+        if !ep.stages.contains(&m.stage) {
+            return Err(c.error_at(
+                &key("stage"),
+                format!("unknown stage '{}', expected one of {:?} (episode.stages)", m.stage, ep.stages),
+            ));
+        }
+        if m.every == 0 {
+            return Err(c.error_at(&key("every"), "expected a period of at least 1 step"));
+        }
+        if m.offset >= m.every {
+            return Err(c.error_at(
+                &key("offset"),
+                format!("expected an offset below `every` ({}), got {}", m.every, m.offset),
+            ));
+        }
+        if m.plugin.trim().is_empty() {
+            return Err(c.error_at(&key("plugin"), "expected `package.module:Class` or an entry-point name"));
+        }
+        for p in m.subscribe.iter().flatten() {
+            Pattern::new(p).map_err(|e| c.error_at(&key("subscribe"), e.to_string()))?;
+        }
+    }
+    for p in &cfg.output.exclude {
+        Pattern::new(p).map_err(|e| c.error_at("output.exclude", e.to_string()))?;
+    }
+    if !(cfg.output.flush_interval.is_finite() && cfg.output.flush_interval >= 0.0) {
+        return Err(c.error_at("output.flush_interval", "expected a number of seconds >= 0"));
+    }
+    if cfg.transport.kind == TransportKind::Nats {
+        return Err(c.error_at(
+            "transport.kind",
+            "the NATS transport is not available in this version; use \"inprocess\"",
+        ));
+    }
+    Ok(())
+}
+
+/// Applies `key.path=value` overrides. The value is read as a TOML value
+/// (`3`, `2.5`, `true`, `"text"`, `[1, 2]`); anything else is taken as a string.
+fn apply_overrides(text: &str, overrides: &[String]) -> Result<String, String> {
+    let mut doc: toml_edit::DocumentMut = text.parse().map_err(|e: toml_edit::TomlError| e.to_string())?;
+    for ov in overrides {
+        let (key, raw) = ov
+            .split_once('=')
+            .ok_or_else(|| format!("--set '{ov}': expected KEY=VALUE, e.g. episode.steps=10"))?;
+        let path: Vec<&str> = key.trim().split('.').collect();
+        if path.iter().any(|p| p.is_empty()) {
+            return Err(format!("--set '{ov}': '{key}' is not a dotted key path"));
+        }
+        let value: toml_edit::Value = raw
+            .trim()
+            .parse()
+            .unwrap_or_else(|_| toml_edit::Value::from(raw.trim()));
+        let mut table = doc.as_table_mut() as &mut dyn toml_edit::TableLike;
+        for part in &path[..path.len() - 1] {
+            let entry = table.entry(part).or_insert(toml_edit::table());
+            table = entry
+                .as_table_like_mut()
+                .ok_or_else(|| format!("--set '{ov}': '{part}' is a value, not a table"))?;
+        }
+        table.insert(path[path.len() - 1], toml_edit::Item::Value(value));
+    }
+    Ok(doc.to_string())
+}
+
+/// 1-based line of byte offset `pos`.
+fn line_at(text: &str, pos: usize) -> usize {
+    text[..pos.min(text.len())].bytes().filter(|&b| b == b'\n').count() + 1
+}
+
+/// 1-based line where the key path is written (its value, or the deepest part found).
+pub fn line_of_key(text: &str, path: &[&str]) -> Option<usize> {
+    let doc = toml_edit::ImDocument::parse(text).ok()?;
+    let mut table: &dyn toml_edit::TableLike = doc.as_table();
+    let mut line = None;
+    for (i, part) in path.iter().enumerate() {
+        let Some((k, item)) = table.get_key_value(part) else { break };
+        if let Some(span) = item.span().or_else(|| k.span()) {
+            line = Some(line_at(text, span.start));
+        }
+        if i + 1 == path.len() {
+            break;
+        }
+        match item.as_table_like() {
+            Some(t) => table = t,
+            None => break,
+        }
+    }
+    line
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GOOD: &str = r#"
+[episode]
+ts = 0.5
+steps = 4
+seed = 3
+stages = ["a", "b"]
+
+[modules.second]
+stage = "b"
+plugin = "x:Y"
+
+[modules.first]
+stage = "a"
+plugin = "x:Z"
+every = 2
+offset = 1
+subscribe = ["3D.>"]
+[modules.first.params]
+speed = 5.0
+"#;
+
+    fn parse_str(text: &str, ov: &[&str]) -> Result<LoadedConfig, ConfigError> {
+        let ov: Vec<String> = ov.iter().map(|s| s.to_string()).collect();
+        parse(text, "exp.toml", Path::new("."), &ov)
+    }
+
+    #[test]
+    fn a_good_file_parses_and_keeps_module_order() {
+        let c = parse_str(GOOD, &[]).unwrap();
+        let names: Vec<&String> = c.config.modules.keys().collect();
+        assert_eq!(names, ["second", "first"]);
+        assert_eq!(c.steps(), Some(4));
+        assert_eq!(c.config.modules["first"].every, 2);
+        assert_eq!(c.params_json("first")["speed"], 5.0);
+    }
+
+    #[test]
+    fn unknown_keys_name_file_line_and_key() {
+        let text = GOOD.replace("every = 2", "evry = 2");
+        let e = parse_str(&text, &[]).unwrap_err();
+        assert_eq!(e.file, "exp.toml");
+        assert_eq!(e.line, Some(15), "{e}");
+        assert!(e.message.contains("unknown field `evry`"), "{e}");
+        assert_eq!(e.key.as_deref(), Some("modules.first.evry"), "{e}");
+    }
+
+    #[test]
+    fn wrong_types_name_the_key() {
+        let text = GOOD.replace("ts = 0.5", "ts = \"fast\"");
+        let e = parse_str(&text, &[]).unwrap_err();
+        assert_eq!(e.key.as_deref(), Some("episode.ts"), "{e}");
+        assert_eq!(e.line, Some(3), "{e}");
+        assert!(e.message.contains("invalid type"), "{e}");
+    }
+
+    #[test]
+    fn semantic_errors_point_at_the_key() {
+        let e = parse_str(&GOOD.replace("stage = \"b\"", "stage = \"c\""), &[]).unwrap_err();
+        assert_eq!(e.key.as_deref(), Some("modules.second.stage"));
+        assert_eq!(e.line, Some(9));
+        assert!(e.message.contains("unknown stage 'c'"));
+        let e = parse_str(&GOOD.replace("offset = 1", "offset = 2"), &[]).unwrap_err();
+        assert_eq!(e.key.as_deref(), Some("modules.first.offset"));
+        let e = parse_str(&GOOD.replace("\"3D.>\"", "\"3D.>.x\""), &[]).unwrap_err();
+        assert!(e.message.contains("last token"), "{e}");
+        let e = parse_str(&GOOD.replace("steps = 4", "steps = 4\nduration = 2.0"), &[]).unwrap_err();
+        assert_eq!(e.key.as_deref(), Some("episode.duration"));
+        let e = parse_str(&GOOD.replace("ts = 0.5", "ts = -1.0"), &[]).unwrap_err();
+        assert_eq!(e.to_string(), "exp.toml:3: episode.ts: expected a positive number of seconds, got -1");
+    }
+
+    #[test]
+    fn overrides_replace_and_add_values() {
+        let c = parse_str(GOOD, &["episode.steps=10", "modules.first.params.speed=2", "modules.first.params.label=uav one"])
+            .unwrap();
+        assert_eq!(c.steps(), Some(10));
+        assert_eq!(c.params_json("first")["speed"], 2);
+        assert_eq!(c.params_json("first")["label"], "uav one");
+        let e = parse_str(GOOD, &["episode.steps=many"]).unwrap_err();
+        assert!(e.message.contains("after --set"), "{e}");
+        assert!(parse_str(GOOD, &["nonsense"]).unwrap_err().message.contains("KEY=VALUE"));
+    }
+
+    #[test]
+    fn duration_gives_the_step_count() {
+        let c = parse_str(&GOOD.replace("steps = 4", "duration = 1.2"), &[]).unwrap();
+        assert_eq!(c.steps(), Some(3)); // 1.2 / 0.5 -> 2.4 -> 3 steps
+        let c = parse_str(&GOOD.replace("ts = 0.5\nsteps = 4", "ts = 0.1\nduration = 0.3"), &[]).unwrap();
+        assert_eq!(c.steps(), Some(3)); // no extra step from rounding noise
+    }
+}

@@ -1,0 +1,121 @@
+//! The contract between the core and a module: Gymnasium-small.
+//!
+//! The core calls `setup` once, then `step` at each of the module's steps with the
+//! messages it received since its previous step, then `teardown` once. Where a
+//! module runs (this process, a Python plugin, another machine) is not its concern.
+
+use std::path::PathBuf;
+
+use crate::message::{Outgoing, SharedMessage};
+
+/// A module's failure. `trace` carries a traceback or backtrace when there is one.
+#[derive(Debug, Clone)]
+pub struct ModuleError {
+    pub message: String,
+    pub trace: Option<String>,
+}
+
+impl ModuleError {
+    pub fn new(message: impl Into<String>) -> Self {
+        ModuleError { message: message.into(), trace: None }
+    }
+}
+
+impl std::fmt::Display for ModuleError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.message)
+    }
+}
+
+impl<E: std::error::Error> From<E> for ModuleError {
+    fn from(e: E) -> Self {
+        ModuleError::new(e.to_string())
+    }
+}
+
+/// What a module learns once, before its first step.
+#[derive(Debug, Clone)]
+pub struct SetupContext {
+    pub name: String,
+    /// The module's own seed, derived from the episode seed and the module name:
+    /// adding or renaming another module does not change it.
+    pub seed: u64,
+    /// Sampling interval Ts in seconds.
+    pub ts: f64,
+    /// Steps in the episode, if known in advance.
+    pub steps: Option<u64>,
+    pub every: u64,
+    pub offset: u64,
+    pub run_dir: PathBuf,
+    /// Directory of the configuration file, for the plugin's relative paths.
+    pub config_dir: PathBuf,
+    /// The plugin's `[modules.NAME.params]` table.
+    pub params: serde_json::Value,
+}
+
+/// Where a step happens.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepInfo {
+    pub step: u64,
+    /// Virtual time t = step * Ts.
+    pub time: f64,
+}
+
+pub trait Module: Send {
+    /// Subscription patterns used when the config gives none.
+    fn default_subscriptions(&self) -> Vec<String> {
+        Vec::new()
+    }
+
+    fn setup(&mut self, _ctx: &SetupContext) -> Result<(), ModuleError> {
+        Ok(())
+    }
+
+    /// One step: read `inbox`, push what to publish onto `out`.
+    fn step(
+        &mut self,
+        at: StepInfo,
+        inbox: &[SharedMessage],
+        out: &mut Vec<Outgoing>,
+    ) -> Result<(), ModuleError>;
+
+    fn teardown(&mut self) -> Result<(), ModuleError> {
+        Ok(())
+    }
+
+    /// Whether `step` may run on a worker thread beside the other modules of its
+    /// stage. Python plugins say no: they share one interpreter lock anyway and
+    /// running them on the calling thread keeps tracebacks and signals simple.
+    fn concurrent(&self) -> bool {
+        true
+    }
+}
+
+/// Seed of one module: SplitMix64 of the episode seed mixed with an FNV-1a hash of
+/// the module name. Stable across platforms and releases.
+pub fn module_seed(episode_seed: u64, name: &str) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in name.bytes() {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0100_0000_01b3);
+    }
+    let mut z = episode_seed ^ h;
+    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    (z ^ (z >> 31)) >> 1 // keep it within i64 for Python and Parquet consumers
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn module_seeds_differ_by_name_and_episode_seed_and_are_stable() {
+        let a = module_seed(1, "uav");
+        assert_eq!(a, module_seed(1, "uav"));
+        assert_ne!(a, module_seed(2, "uav"));
+        assert_ne!(a, module_seed(1, "uav2"));
+        assert!(a <= i64::MAX as u64);
+    }
+}

@@ -1,0 +1,437 @@
+//! The episode recorder: every message and every module's per-step timing, as Parquet.
+//!
+//! While a run goes, the recorder writes small Parquet files (`messages/part-NNNNNN.parquet`,
+//! `timings/part-NNNNNN.parquet`), each complete and readable on its own, after every
+//! step (or every `output.flush_interval` seconds). A killed process thus loses at most
+//! what was not yet flushed. At the end of a run the parts are compacted into
+//! `messages.parquet` and `timings.parquet`. Readers accept either form.
+
+use std::fs::{self, File};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use arrow_array::builder::{BinaryBuilder, Float64Builder, StringBuilder, UInt32Builder, UInt64Builder};
+use arrow_array::{Array, ArrayRef, BinaryArray, Float64Array, RecordBatch, StringArray, UInt32Array, UInt64Array};
+use arrow_schema::{DataType, Field, Schema, SchemaRef};
+use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+use parquet::arrow::ArrowWriter;
+use parquet::basic::Compression;
+use parquet::file::properties::WriterProperties;
+
+use crate::message::{Message, Payload, PayloadKind};
+use crate::topic::Pattern;
+
+pub const MESSAGES: &str = "messages";
+pub const TIMINGS: &str = "timings";
+
+#[derive(Debug, thiserror::Error)]
+pub enum RecordError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {source}")]
+    Parquet { path: PathBuf, source: parquet::errors::ParquetError },
+    #[error("{path}: {message}")]
+    Format { path: PathBuf, message: String },
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RecordError + '_ {
+    move |source| RecordError::Io { path: path.to_path_buf(), source }
+}
+
+fn pq_err(path: &Path) -> impl FnOnce(parquet::errors::ParquetError) -> RecordError + '_ {
+    move |source| RecordError::Parquet { path: path.to_path_buf(), source }
+}
+
+pub fn messages_schema() -> SchemaRef {
+    Arc::new(Schema::new(vec![
+        Field::new("step", DataType::UInt64, false),
+        Field::new("time", DataType::Float64, false),
+        Field::new("seq", DataType::UInt32, false),
+        Field::new("source", DataType::Utf8, false),
+        Field::new("topic", DataType::Utf8, false),
+        Field::new("kind", DataType::Utf8, false),
+        // JSON text, or the artifact's path relative to the run directory.
+        Field::new("text", DataType::Utf8, true),
+        // For binary payloads: JSON description (dtype, shape, content type).
+        Field::new("meta", DataType::Utf8, true),
+        Field::new("data", DataType::Binary, true),
+    ]))
+}
+
+pub fn timings_schema() -> SchemaRef {
+    Arc::new(Schema::new(vec![
+        Field::new("step", DataType::UInt64, false),
+        Field::new("time", DataType::Float64, false),
+        Field::new("module", DataType::Utf8, false),
+        Field::new("wall_s", DataType::Float64, false),
+        Field::new("cpu_s", DataType::Float64, false),
+        Field::new("msgs_in", DataType::UInt32, false),
+        Field::new("msgs_out", DataType::UInt32, false),
+    ]))
+}
+
+/// One module's cost in one step. The core's own share of a step is recorded under
+/// the module name [`CORE`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct TimingRow {
+    pub step: u64,
+    pub time: f64,
+    pub module: String,
+    pub wall_s: f64,
+    pub cpu_s: f64,
+    pub msgs_in: u32,
+    pub msgs_out: u32,
+}
+
+/// Module name under which the core's own per-step overhead is recorded.
+pub const CORE: &str = "caviar.core";
+
+#[derive(Default)]
+struct MessageColumns {
+    step: UInt64Builder,
+    time: Float64Builder,
+    seq: UInt32Builder,
+    source: StringBuilder,
+    topic: StringBuilder,
+    kind: StringBuilder,
+    text: StringBuilder,
+    meta: StringBuilder,
+    data: BinaryBuilder,
+    rows: usize,
+}
+
+impl MessageColumns {
+    fn push(&mut self, seq: u32, m: &Message) {
+        self.step.append_value(m.step);
+        self.time.append_value(m.time);
+        self.seq.append_value(seq);
+        self.source.append_value(&m.source);
+        self.topic.append_value(&m.topic);
+        self.kind.append_value(m.payload.kind().as_str());
+        match &m.payload {
+            Payload::Json(text) | Payload::Artifact(text) => {
+                self.text.append_value(text);
+                self.meta.append_null();
+                self.data.append_null();
+            }
+            Payload::Binary { meta, data } => {
+                self.text.append_null();
+                self.meta.append_value(meta);
+                self.data.append_value(data);
+            }
+        }
+        self.rows += 1;
+    }
+
+    fn finish(&mut self) -> RecordBatch {
+        self.rows = 0;
+        let cols: Vec<ArrayRef> = vec![
+            Arc::new(self.step.finish()),
+            Arc::new(self.time.finish()),
+            Arc::new(self.seq.finish()),
+            Arc::new(self.source.finish()),
+            Arc::new(self.topic.finish()),
+            Arc::new(self.kind.finish()),
+            Arc::new(self.text.finish()),
+            Arc::new(self.meta.finish()),
+            Arc::new(self.data.finish()),
+        ];
+        RecordBatch::try_new(messages_schema(), cols).expect("columns match the schema")
+    }
+}
+
+#[derive(Default)]
+struct TimingColumns {
+    step: UInt64Builder,
+    time: Float64Builder,
+    module: StringBuilder,
+    wall: Float64Builder,
+    cpu: Float64Builder,
+    msgs_in: UInt32Builder,
+    msgs_out: UInt32Builder,
+    rows: usize,
+}
+
+impl TimingColumns {
+    fn push(&mut self, r: &TimingRow) {
+        self.step.append_value(r.step);
+        self.time.append_value(r.time);
+        self.module.append_value(&r.module);
+        self.wall.append_value(r.wall_s);
+        self.cpu.append_value(r.cpu_s);
+        self.msgs_in.append_value(r.msgs_in);
+        self.msgs_out.append_value(r.msgs_out);
+        self.rows += 1;
+    }
+
+    fn finish(&mut self) -> RecordBatch {
+        self.rows = 0;
+        let cols: Vec<ArrayRef> = vec![
+            Arc::new(self.step.finish()),
+            Arc::new(self.time.finish()),
+            Arc::new(self.module.finish()),
+            Arc::new(self.wall.finish()),
+            Arc::new(self.cpu.finish()),
+            Arc::new(self.msgs_in.finish()),
+            Arc::new(self.msgs_out.finish()),
+        ];
+        RecordBatch::try_new(timings_schema(), cols).expect("columns match the schema")
+    }
+}
+
+pub struct Recorder {
+    run_dir: PathBuf,
+    exclude: Vec<Pattern>,
+    flush_interval: Duration,
+    last_flush: Instant,
+    messages: MessageColumns,
+    timings: TimingColumns,
+    next_part: usize,
+    /// Sequence number of the next message within the current step.
+    seq: u32,
+    seq_step: u64,
+}
+
+fn writer_props() -> WriterProperties {
+    WriterProperties::builder().set_compression(Compression::SNAPPY).build()
+}
+
+fn write_parquet(path: &Path, schema: SchemaRef, batches: &[RecordBatch]) -> Result<(), RecordError> {
+    // Write beside, then rename: a reader never sees a half-written file.
+    let tmp = path.with_extension("parquet.tmp");
+    let file = File::create(&tmp).map_err(io_err(&tmp))?;
+    let mut w = ArrowWriter::try_new(file, schema, Some(writer_props())).map_err(pq_err(&tmp))?;
+    for b in batches {
+        w.write(b).map_err(pq_err(&tmp))?;
+    }
+    w.close().map_err(pq_err(&tmp))?;
+    fs::rename(&tmp, path).map_err(io_err(path))
+}
+
+impl Recorder {
+    /// Starts recording into `run_dir` (which must exist).
+    pub fn create(run_dir: &Path, exclude: Vec<Pattern>, flush_interval: Duration) -> Result<Self, RecordError> {
+        for table in [MESSAGES, TIMINGS] {
+            let d = run_dir.join(table);
+            fs::create_dir_all(&d).map_err(io_err(&d))?;
+        }
+        Ok(Recorder {
+            run_dir: run_dir.to_path_buf(),
+            exclude,
+            flush_interval,
+            last_flush: Instant::now(),
+            messages: MessageColumns::default(),
+            timings: TimingColumns::default(),
+            next_part: 0,
+            seq: 0,
+            seq_step: 0,
+        })
+    }
+
+    pub fn is_recorded(&self, topic: &str) -> bool {
+        !self.exclude.iter().any(|p| p.matches(topic))
+    }
+
+    pub fn record_message(&mut self, m: &Message) {
+        if m.step != self.seq_step {
+            self.seq_step = m.step;
+            self.seq = 0;
+        }
+        if self.is_recorded(&m.topic) {
+            self.messages.push(self.seq, m);
+        }
+        self.seq += 1;
+    }
+
+    pub fn record_timing(&mut self, row: &TimingRow) {
+        self.timings.push(row);
+    }
+
+    /// Called after each step: flushes when the flush interval has passed.
+    pub fn end_step(&mut self) -> Result<(), RecordError> {
+        if self.last_flush.elapsed() >= self.flush_interval {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    /// Writes what is buffered as one part file per table.
+    pub fn flush(&mut self) -> Result<(), RecordError> {
+        self.last_flush = Instant::now();
+        if self.messages.rows == 0 && self.timings.rows == 0 {
+            return Ok(());
+        }
+        let name = format!("part-{:06}.parquet", self.next_part);
+        self.next_part += 1;
+        let batch = self.messages.finish();
+        write_parquet(&self.run_dir.join(MESSAGES).join(&name), messages_schema(), &[batch])?;
+        let batch = self.timings.finish();
+        write_parquet(&self.run_dir.join(TIMINGS).join(&name), timings_schema(), &[batch])
+    }
+
+    /// Flushes and compacts the parts into one file per table.
+    pub fn finish(mut self) -> Result<(), RecordError> {
+        self.flush()?;
+        for (table, schema) in [(MESSAGES, messages_schema()), (TIMINGS, timings_schema())] {
+            compact(&self.run_dir, table, schema)?;
+        }
+        Ok(())
+    }
+}
+
+fn part_files(dir: &Path) -> Result<Vec<PathBuf>, RecordError> {
+    let mut parts: Vec<PathBuf> = fs::read_dir(dir)
+        .map_err(io_err(dir))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "parquet"))
+        .collect();
+    parts.sort();
+    Ok(parts)
+}
+
+fn compact(run_dir: &Path, table: &str, schema: SchemaRef) -> Result<(), RecordError> {
+    let parts_dir = run_dir.join(table);
+    let batches = read_table(run_dir, table)?;
+    write_parquet(&run_dir.join(format!("{table}.parquet")), schema, &batches)?;
+    fs::remove_dir_all(&parts_dir).map_err(io_err(&parts_dir))
+}
+
+fn read_file(path: &Path, out: &mut Vec<RecordBatch>) -> Result<(), RecordError> {
+    let file = File::open(path).map_err(io_err(path))?;
+    let reader = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(path))?.build().map_err(pq_err(path))?;
+    for batch in reader {
+        out.push(batch.map_err(|e| RecordError::Format { path: path.to_path_buf(), message: e.to_string() })?);
+    }
+    Ok(())
+}
+
+/// Reads a recorded table (`messages` or `timings`) of a run, finished or not.
+pub fn read_table(run_dir: &Path, table: &str) -> Result<Vec<RecordBatch>, RecordError> {
+    let single = run_dir.join(format!("{table}.parquet"));
+    let mut out = Vec::new();
+    if single.exists() {
+        read_file(&single, &mut out)?;
+        return Ok(out);
+    }
+    let parts_dir = run_dir.join(table);
+    if !parts_dir.is_dir() {
+        return Err(RecordError::Format {
+            path: run_dir.to_path_buf(),
+            message: format!("not a run directory: neither {table}.parquet nor {table}/ is there"),
+        });
+    }
+    for part in part_files(&parts_dir)? {
+        read_file(&part, &mut out)?;
+    }
+    Ok(out)
+}
+
+fn column<'a, T: 'static>(batch: &'a RecordBatch, name: &str) -> &'a T {
+    batch
+        .column_by_name(name)
+        .and_then(|c| c.as_any().downcast_ref::<T>())
+        .unwrap_or_else(|| panic!("recorded table lacks column {name}"))
+}
+
+/// All recorded messages of a run, in recording order.
+pub fn read_messages(run_dir: &Path) -> Result<Vec<Message>, RecordError> {
+    let mut out = Vec::new();
+    for b in read_table(run_dir, MESSAGES)? {
+        let step = column::<UInt64Array>(&b, "step");
+        let time = column::<Float64Array>(&b, "time");
+        let source = column::<StringArray>(&b, "source");
+        let topic = column::<StringArray>(&b, "topic");
+        let kind = column::<StringArray>(&b, "kind");
+        let text = column::<StringArray>(&b, "text");
+        let meta = column::<StringArray>(&b, "meta");
+        let data = column::<BinaryArray>(&b, "data");
+        for i in 0..b.num_rows() {
+            let payload = match PayloadKind::parse(kind.value(i)) {
+                Some(PayloadKind::Json) => Payload::Json(text.value(i).to_string()),
+                Some(PayloadKind::Artifact) => Payload::Artifact(text.value(i).to_string()),
+                Some(PayloadKind::Binary) => Payload::Binary {
+                    meta: meta.value(i).to_string(),
+                    data: data.value(i).to_vec(),
+                },
+                None => {
+                    return Err(RecordError::Format {
+                        path: run_dir.to_path_buf(),
+                        message: format!("unknown payload kind '{}'", kind.value(i)),
+                    })
+                }
+            };
+            out.push(Message {
+                step: step.value(i),
+                time: time.value(i),
+                topic: topic.value(i).to_string(),
+                source: source.value(i).to_string(),
+                payload,
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// All timing rows of a run.
+pub fn read_timings(run_dir: &Path) -> Result<Vec<TimingRow>, RecordError> {
+    let mut out = Vec::new();
+    for b in read_table(run_dir, TIMINGS)? {
+        let step = column::<UInt64Array>(&b, "step");
+        let time = column::<Float64Array>(&b, "time");
+        let module = column::<StringArray>(&b, "module");
+        let wall = column::<Float64Array>(&b, "wall_s");
+        let cpu = column::<Float64Array>(&b, "cpu_s");
+        let msgs_in = column::<UInt32Array>(&b, "msgs_in");
+        let msgs_out = column::<UInt32Array>(&b, "msgs_out");
+        for i in 0..b.num_rows() {
+            out.push(TimingRow {
+                step: step.value(i),
+                time: time.value(i),
+                module: module.value(i).to_string(),
+                wall_s: wall.value(i),
+                cpu_s: cpu.value(i),
+                msgs_in: msgs_in.value(i),
+                msgs_out: msgs_out.value(i),
+            });
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn msg(step: u64, topic: &str, payload: Payload) -> Message {
+        Message { step, time: step as f64 * 0.5, topic: topic.into(), source: "m".into(), payload }
+    }
+
+    #[test]
+    fn parts_are_readable_before_finish_and_compacted_after() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut r = Recorder::create(dir.path(), vec![Pattern::new("debug.>").unwrap()], Duration::ZERO).unwrap();
+        let a = msg(0, "a.b", Payload::Json("{\"x\":1}".into()));
+        let b = msg(0, "bin", Payload::Binary { meta: "{\"dtype\":\"|u1\"}".into(), data: vec![0, 255, 7] });
+        r.record_message(&a);
+        r.record_message(&msg(0, "debug.noise", Payload::Json("1".into())));
+        r.record_message(&b);
+        r.end_step().unwrap();
+        let c = msg(1, "file", Payload::Artifact("images/0001.png".into()));
+        r.record_message(&c);
+        r.end_step().unwrap();
+        // As after a crash: parts only.
+        assert_eq!(read_messages(dir.path()).unwrap(), vec![a.clone(), b.clone(), c.clone()]);
+        r.finish().unwrap();
+        assert!(dir.path().join("messages.parquet").exists());
+        assert!(!dir.path().join("messages").exists());
+        assert_eq!(read_messages(dir.path()).unwrap(), vec![a, b, c]);
+    }
+
+    #[test]
+    fn a_missing_run_directory_is_a_clear_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = read_messages(&dir.path().join("nope")).unwrap_err().to_string();
+        assert!(e.contains("not a run directory"), "{e}");
+    }
+}

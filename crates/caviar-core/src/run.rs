@@ -1,0 +1,153 @@
+//! From a configuration to a running engine, and the run directory around it.
+//!
+//! A run directory holds `config.toml` (the exact configuration, overrides applied),
+//! `run.json` (status, counts, error), `messages.parquet`, `timings.parquet` and
+//! whatever artifacts modules wrote.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use crate::config::{ConfigError, LoadedConfig};
+use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec};
+use crate::module::Module;
+use crate::recorder::Recorder;
+use crate::replay::{self, Replay};
+use crate::topic::Pattern;
+
+/// Builds the module of a `[modules.NAME]` table. Loading and checking parameters
+/// happens here, before any run directory exists: a config error never starts a run.
+pub trait PluginLoader {
+    fn load(&self, cfg: &LoadedConfig, name: &str) -> Result<Box<dyn Module>, ConfigError>;
+}
+
+/// The loader of a build without Python: only built-in modules.
+pub struct BuiltinsOnly;
+
+impl PluginLoader for BuiltinsOnly {
+    fn load(&self, cfg: &LoadedConfig, name: &str) -> Result<Box<dyn Module>, ConfigError> {
+        Err(cfg.error_at(
+            &format!("modules.{name}.plugin"),
+            format!(
+                "'{}' is not a built-in module ({}) and this caviar-core binary has no Python; \
+                 run the `caviar-core` installed with the Python package (pip install .)",
+                cfg.config.modules[name].plugin,
+                replay::PLUGIN
+            ),
+        ))
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum PrepareError {
+    #[error("{0}")]
+    Config(#[from] ConfigError),
+    #[error("{0}")]
+    Io(String),
+}
+
+/// Loads every module of the configuration (what `validate` checks).
+pub fn load_modules(cfg: &LoadedConfig, loader: &dyn PluginLoader) -> Result<Vec<ModuleSpec>, ConfigError> {
+    let mut specs = Vec::new();
+    for (name, m) in &cfg.config.modules {
+        let module: Box<dyn Module> =
+            if m.plugin == replay::PLUGIN { Box::new(Replay::from_config(cfg, name)?) } else { loader.load(cfg, name)? };
+        specs.push(ModuleSpec {
+            name: name.clone(),
+            stage: m.stage.clone(),
+            every: m.every,
+            offset: m.offset,
+            subscribe: m.subscribe.clone(),
+            params: cfg.params_json(name),
+            module,
+        });
+    }
+    Ok(specs)
+}
+
+/// Loads every module, creates the run directory and the engine.
+/// `out`: the run directory to use instead of `output.dir/NAME-NNN`.
+pub fn prepare(cfg: &LoadedConfig, loader: &dyn PluginLoader, out: Option<&Path>) -> Result<Engine, PrepareError> {
+    let specs = load_modules(cfg, loader)?;
+    let run_dir = match out {
+        Some(dir) => create_exact(dir)?,
+        None => create_numbered(cfg)?,
+    };
+    let io = |e: std::io::Error| PrepareError::Io(format!("{}: {e}", run_dir.display()));
+    fs::write(run_dir.join("config.toml"), &cfg.text).map_err(io)?;
+    let exclude = cfg.config.output.exclude.iter().map(|p| Pattern::new(p).expect("validated")).collect();
+    let recorder = Recorder::create(&run_dir, exclude, Duration::from_secs_f64(cfg.config.output.flush_interval))
+        .map_err(|e| PrepareError::Io(e.to_string()))?;
+    let ep = &cfg.config.episode;
+    let opts = EngineOptions {
+        ts: ep.ts,
+        steps: cfg.steps(),
+        seed: ep.seed,
+        stages: ep.stages.clone(),
+        run_dir: run_dir.clone(),
+        config_dir: cfg.base_dir.clone(),
+    };
+    let engine = Engine::new(opts, specs, Some(recorder)).map_err(PrepareError::Io)?;
+    write_status(cfg, &engine, "running", None).map_err(PrepareError::Io)?;
+    Ok(engine)
+}
+
+fn create_exact(dir: &Path) -> Result<PathBuf, PrepareError> {
+    if dir.exists() && fs::read_dir(dir).map(|mut d| d.next().is_some()).unwrap_or(true) {
+        return Err(PrepareError::Io(format!("{}: the run directory exists and is not empty", dir.display())));
+    }
+    fs::create_dir_all(dir).map_err(|e| PrepareError::Io(format!("{}: {e}", dir.display())))?;
+    Ok(dir.to_path_buf())
+}
+
+/// `output.dir/NAME-001`, `NAME-002`, …: the first free one.
+fn create_numbered(cfg: &LoadedConfig) -> Result<PathBuf, PrepareError> {
+    let parent = match &cfg.config.output.dir {
+        Some(d) => cfg.resolve(d),
+        None => PathBuf::from("runs"),
+    };
+    let name = cfg.config.output.name.clone().unwrap_or_else(|| {
+        Path::new(&cfg.file).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "run".into())
+    });
+    fs::create_dir_all(&parent).map_err(|e| PrepareError::Io(format!("{}: {e}", parent.display())))?;
+    for n in 1.. {
+        let dir = parent.join(format!("{name}-{n:03}"));
+        // create_dir (not _all) fails if it exists: two runs never share a directory.
+        match fs::create_dir(&dir) {
+            Ok(()) => return Ok(dir),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => return Err(PrepareError::Io(format!("{}: {e}", dir.display()))),
+        }
+    }
+    unreachable!()
+}
+
+/// Writes `run.json`: what ran, how far it got and how it ended.
+pub fn write_status(cfg: &LoadedConfig, engine: &Engine, status: &str, error: Option<&EngineError>) -> Result<(), String> {
+    let virtual_s = engine.steps_done() as f64 * engine.ts();
+    let error_json = error.map(|e| match e {
+        EngineError::Module { module, phase, step, time, error } => serde_json::json!({
+            "module": module, "phase": phase, "step": step, "time": time,
+            "message": error.message, "trace": error.trace,
+        }),
+        other => serde_json::json!({ "message": other.to_string() }),
+    });
+    let doc = serde_json::json!({
+        "caviar_version": env!("CARGO_PKG_VERSION"),
+        "status": status,
+        "config_file": cfg.file,
+        "overrides": cfg.overrides,
+        "seed": cfg.config.episode.seed,
+        "ts": engine.ts(),
+        "steps_planned": engine.planned_steps(),
+        "steps_done": engine.steps_done(),
+        "virtual_time_s": virtual_s,
+        "wall_s": engine.wall_s(),
+        "rtf": if engine.wall_s() > 0.0 { Some(virtual_s / engine.wall_s()) } else { None },
+        "modules": engine.module_names().collect::<Vec<_>>(),
+        "error": error_json,
+    });
+    let path = engine.run_dir().join("run.json");
+    let text = serde_json::to_string_pretty(&doc).expect("json");
+    fs::write(&path, text + "\n").map_err(|e| format!("{}: {e}", path.display()))
+}
