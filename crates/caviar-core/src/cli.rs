@@ -197,7 +197,8 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
     writeln!(s, "run       {}  ({})", run_dir.display(), get("status").as_str().unwrap_or("?")).unwrap();
     writeln!(s, "steps     {steps_done} of {planned}, Ts = {} s, {virt:.3} s virtual", get("ts")).unwrap();
     let rtf = if wall > 0.0 { format!("{:.3}", virt / wall) } else { "-".into() };
-    writeln!(s, "wall      {wall:.3} s in steps, RTF {rtf} (virtual seconds per wall second)").unwrap();
+    let record = get("record_s").as_f64().unwrap_or(0.0);
+    writeln!(s, "wall      {wall:.3} s in steps ({record:.3} s of it recording), RTF {rtf} (virtual s per wall s)").unwrap();
     let total_bytes: u64 = messages.iter().map(|m| m.payload.len() as u64).sum();
     writeln!(s, "messages  {} ({})", messages.len(), human_bytes(total_bytes)).unwrap();
     if let Some(err) = get("error").as_object() {

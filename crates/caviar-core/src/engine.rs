@@ -116,6 +116,7 @@ pub struct Engine {
     ended: bool,
     started: Option<Instant>,
     wall_s: f64,
+    record_s: f64,
 }
 
 fn thread_cpu_seconds() -> f64 {
@@ -179,6 +180,7 @@ impl Engine {
             ended: false,
             started: None,
             wall_s: 0.0,
+            record_s: 0.0,
         })
     }
 
@@ -203,9 +205,14 @@ impl Engine {
         self.ended || self.opts.steps.is_some_and(|n| self.next_step >= n)
     }
 
-    /// Wall-clock seconds spent in steps so far.
+    /// Wall-clock seconds spent in steps so far, recording included.
     pub fn wall_s(&self) -> f64 {
         self.wall_s
+    }
+
+    /// Of [`Engine::wall_s`], the seconds spent writing the recording.
+    pub fn record_s(&self) -> f64 {
+        self.record_s
     }
 
     pub fn module_names(&self) -> impl Iterator<Item = &str> {
@@ -321,8 +328,8 @@ impl Engine {
         }
 
         let wall_s = t_step.elapsed().as_secs_f64();
-        self.wall_s += wall_s;
         self.next_step += 1;
+        let t_record = Instant::now();
         if let Some(rec) = &mut self.recorder {
             rec.record_timing(&TimingRow {
                 step,
@@ -339,6 +346,10 @@ impl Engine {
                 rec.end_step()?;
             }
         }
+        let record_s = t_record.elapsed().as_secs_f64();
+        self.record_s += record_s;
+        let wall_s = wall_s + record_s;
+        self.wall_s += wall_s;
         if let Some(f) = failure {
             self.ended = true;
             return Err(f);

@@ -143,6 +143,7 @@ pub fn write_status(cfg: &LoadedConfig, engine: &Engine, status: &str, error: Op
         "steps_done": engine.steps_done(),
         "virtual_time_s": virtual_s,
         "wall_s": engine.wall_s(),
+        "record_s": engine.record_s(),
         "rtf": if engine.wall_s() > 0.0 { Some(virtual_s / engine.wall_s()) } else { None },
         "modules": engine.module_names().collect::<Vec<_>>(),
         "error": error_json,

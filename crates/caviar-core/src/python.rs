@@ -1,0 +1,307 @@
+//! The `caviar._core` extension: hosts Python plugins in-process and exposes the
+//! engine to Python. The Python side of the bridge is `caviar/_host.py`; this file
+//! only moves tuples across and turns Python exceptions into module errors.
+
+use std::path::PathBuf;
+
+use pyo3::exceptions::PyRuntimeError;
+use pyo3::prelude::*;
+use pyo3::types::{PyBytes, PyList, PyTuple};
+
+use crate::config::{self, ConfigError, LoadedConfig};
+use crate::engine::{Engine, EngineError};
+use crate::message::{Outgoing, Payload, SharedMessage};
+use crate::module::{Module, ModuleError, SetupContext, StepInfo};
+use crate::run::{prepare, write_status, PluginLoader, PrepareError};
+
+fn host(py: Python<'_>) -> PyResult<Bound<'_, PyModule>> {
+    py.import("caviar._host")
+}
+
+/// "Type: message" and the formatted traceback of a Python exception.
+fn module_error(py: Python<'_>, err: PyErr) -> ModuleError {
+    let message = err.to_string();
+    let trace = host(py)
+        .and_then(|h| h.call_method1("format_exception", (err.value(py), err.traceback(py))))
+        .and_then(|t| t.extract::<String>())
+        .ok();
+    ModuleError { message, trace }
+}
+
+/// A Python plugin, wrapped by `caviar._host.Hosted`.
+struct PyPlugin {
+    hosted: Py<PyAny>,
+    subscriptions: Vec<String>,
+}
+
+impl Module for PyPlugin {
+    fn default_subscriptions(&self) -> Vec<String> {
+        self.subscriptions.clone()
+    }
+
+    fn setup(&mut self, ctx: &SetupContext) -> Result<(), ModuleError> {
+        Python::with_gil(|py| {
+            let args = (
+                ctx.seed,
+                ctx.ts,
+                ctx.steps,
+                ctx.every,
+                ctx.offset,
+                ctx.run_dir.to_string_lossy().into_owned(),
+                ctx.config_dir.to_string_lossy().into_owned(),
+            );
+            self.hosted.call_method1(py, "setup", args).map(drop).map_err(|e| module_error(py, e))
+        })
+    }
+
+    fn step(&mut self, at: StepInfo, inbox: &[SharedMessage], out: &mut Vec<Outgoing>) -> Result<(), ModuleError> {
+        Python::with_gil(|py| {
+            let raw = inbox_to_python(py, inbox).map_err(|e| module_error(py, e))?;
+            let result = self.hosted.call_method1(py, "step", (at.step, at.time, raw)).map_err(|e| module_error(py, e))?;
+            outgoing_from_python(result.bind(py), out).map_err(|e| module_error(py, e))
+        })
+    }
+
+    fn teardown(&mut self) -> Result<(), ModuleError> {
+        Python::with_gil(|py| self.hosted.call_method0(py, "teardown").map(drop).map_err(|e| module_error(py, e)))
+    }
+
+    fn concurrent(&self) -> bool {
+        false
+    }
+}
+
+/// Messages as tuples `(step, time, topic, source, kind, body, meta)`; `_host` makes
+/// `caviar.Message` objects of them and decodes payloads only when asked.
+fn inbox_to_python<'py>(py: Python<'py>, inbox: &[SharedMessage]) -> PyResult<Bound<'py, PyList>> {
+    let items = inbox.iter().map(|m| message_tuple(py, m)).collect::<PyResult<Vec<_>>>()?;
+    PyList::new(py, items)
+}
+
+fn message_tuple<'py>(py: Python<'py>, m: &SharedMessage) -> PyResult<Bound<'py, PyTuple>> {
+    let kind = m.payload.kind().as_str();
+    let (body, meta): (Bound<'py, PyAny>, Option<&str>) = match &m.payload {
+        Payload::Json(text) | Payload::Artifact(text) => (text.into_pyobject(py)?.into_any(), None),
+        Payload::Binary { meta, data } => (PyBytes::new(py, data).into_any(), Some(meta.as_str())),
+    };
+    PyTuple::new(py, [
+        m.step.into_pyobject(py)?.into_any(),
+        m.time.into_pyobject(py)?.into_any(),
+        m.topic.as_str().into_pyobject(py)?.into_any(),
+        m.source.as_str().into_pyobject(py)?.into_any(),
+        kind.into_pyobject(py)?.into_any(),
+        body,
+        meta.into_pyobject(py)?.into_any(),
+    ])
+}
+
+/// `_host` normalises a plugin's return value to a list of `(topic, kind, body, meta)`.
+fn outgoing_from_python(result: &Bound<'_, PyAny>, out: &mut Vec<Outgoing>) -> PyResult<()> {
+    for item in result.try_iter()? {
+        let (topic, kind, body, meta): (String, String, Bound<'_, PyAny>, Option<String>) = item?.extract()?;
+        let payload = match kind.as_str() {
+            "json" => Payload::Json(body.extract()?),
+            "artifact" => Payload::Artifact(body.extract()?),
+            "binary" => Payload::Binary { meta: meta.unwrap_or_else(|| "{}".into()), data: body.extract::<Vec<u8>>()? },
+            other => return Err(PyRuntimeError::new_err(format!("unknown payload kind '{other}' from caviar._host"))),
+        };
+        out.push(Outgoing { topic, payload });
+    }
+    Ok(())
+}
+
+/// Loads plugins through `caviar._host.load_plugin`.
+struct PyLoader;
+
+impl PluginLoader for PyLoader {
+    fn load(&self, cfg: &LoadedConfig, name: &str) -> Result<Box<dyn Module>, ConfigError> {
+        Python::with_gil(|py| {
+            let m = &cfg.config.modules[name];
+            let params = serde_json::to_string(&cfg.params_json(name)).expect("json");
+            let result = host(py)
+                .and_then(|h| h.call_method1("load_plugin", (name, m.plugin.as_str(), params, cfg.base_dir.to_string_lossy().into_owned())));
+            match result {
+                Ok(tuple) => {
+                    let (hosted, subscriptions): (Py<PyAny>, Vec<String>) =
+                        tuple.extract().map_err(|e| cfg.error_at(&format!("modules.{name}.plugin"), e.to_string()))?;
+                    Ok(Box::new(PyPlugin { hosted, subscriptions }) as Box<dyn Module>)
+                }
+                Err(e) => {
+                    // `_host` raises caviar.ConfigError with the key relative to the module table.
+                    let key: Option<String> = e.value(py).getattr("key").ok().and_then(|k| k.extract().ok());
+                    let message: String = e
+                        .value(py)
+                        .getattr("message")
+                        .and_then(|m| m.extract())
+                        .unwrap_or_else(|_| e.to_string());
+                    let key = format!("modules.{name}.{}", key.unwrap_or_else(|| "plugin".into()));
+                    Err(cfg.error_at(&key, message))
+                }
+            }
+        })
+    }
+}
+
+/// Instantiates an exception class of `caviar.errors` (or reports why it could not).
+fn caviar_error<'py>(py: Python<'py>, class: &str, args: impl pyo3::call::PyCallArgs<'py>) -> PyErr {
+    py.import("caviar.errors")
+        .and_then(|m| m.getattr(class))
+        .and_then(|cls| cls.call1(args))
+        .map(PyErr::from_value)
+        .unwrap_or_else(|err| err)
+}
+
+fn config_error(py: Python<'_>, e: impl ToString) -> PyErr {
+    caviar_error(py, "ConfigError", (e.to_string(),))
+}
+
+/// Raises `caviar.errors.RunError` carrying module, phase and step.
+fn run_error(py: Python<'_>, e: &EngineError, run_dir: &std::path::Path) -> PyErr {
+    let (module, phase, step) = match e {
+        EngineError::Module { module, phase, step, .. } => (Some(module.clone()), Some(*phase), *step),
+        EngineError::Publish { module, step, .. } => (Some(module.clone()), Some("step"), Some(*step)),
+        EngineError::Interrupted { step } => (None, None, Some(*step)),
+        EngineError::Record(_) => (None, None, None),
+    };
+    caviar_error(py, "RunError", (e.to_string(), module, phase, step, run_dir.to_string_lossy().into_owned()))
+}
+
+/// An episode driven from Python. `caviar.Simulation` wraps it.
+#[pyclass(unsendable, module = "caviar._core")]
+struct Episode {
+    cfg: LoadedConfig,
+    engine: Engine,
+    closed: bool,
+}
+
+#[pymethods]
+impl Episode {
+    #[new]
+    #[pyo3(signature = (path, overrides, out=None))]
+    fn new(py: Python<'_>, path: PathBuf, overrides: Vec<String>, out: Option<PathBuf>) -> PyResult<Self> {
+        let cfg = config::load(&path, &overrides).map_err(|e| config_error(py, e))?;
+        let engine = prepare(&cfg, &PyLoader, out.as_deref()).map_err(|e| match e {
+            PrepareError::Config(c) => config_error(py, c),
+            PrepareError::Io(s) => pyo3::exceptions::PyOSError::new_err(s),
+        })?;
+        Ok(Episode { cfg, engine, closed: false })
+    }
+
+    /// Runs one step; returns its messages as tuples, or None when the episode is over.
+    fn step<'py>(&mut self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyList>>> {
+        if self.closed {
+            return Ok(None);
+        }
+        let engine = &mut self.engine;
+        match py.allow_threads(|| engine.step()) {
+            Ok(Some(report)) => Ok(Some(inbox_to_python(py, &report.messages)?)),
+            Ok(None) => Ok(None),
+            Err(e) => Err(self.fail(py, e)),
+        }
+    }
+
+    /// Runs to the end. `progress` is called with (steps done, planned or None, wall s)
+    /// after every step; Ctrl-C interrupts the run cleanly.
+    #[pyo3(signature = (progress=None))]
+    fn run(&mut self, py: Python<'_>, progress: Option<Py<PyAny>>) -> PyResult<()> {
+        if self.closed {
+            return Ok(());
+        }
+        let engine = &mut self.engine;
+        let result = py.allow_threads(|| {
+            engine.run(|e, _| {
+                Python::with_gil(|py| {
+                    if let Some(cb) = &progress {
+                        if cb.call1(py, (e.steps_done(), e.planned_steps(), e.wall_s())).is_err() {
+                            return false;
+                        }
+                    }
+                    py.check_signals().is_ok()
+                })
+            })
+        });
+        match result {
+            Ok(()) => self.close(py),
+            Err(e) => Err(self.fail(py, e)),
+        }
+    }
+
+    /// Tears down the modules, compacts the recording and writes run.json.
+    fn close(&mut self, py: Python<'_>) -> PyResult<()> {
+        if self.closed {
+            return Ok(());
+        }
+        self.closed = true;
+        let engine = &mut self.engine;
+        match py.allow_threads(|| engine.close()) {
+            Ok(()) => {
+                write_status(&self.cfg, &self.engine, "completed", None).map_err(PyRuntimeError::new_err)?;
+                Ok(())
+            }
+            Err(e) => {
+                let _ = write_status(&self.cfg, &self.engine, "failed", Some(&e));
+                Err(run_error(py, &e, self.engine.run_dir()))
+            }
+        }
+    }
+
+    #[getter]
+    fn run_dir(&self) -> PathBuf {
+        self.engine.run_dir().to_path_buf()
+    }
+    #[getter]
+    fn steps_done(&self) -> u64 {
+        self.engine.steps_done()
+    }
+    #[getter]
+    fn planned_steps(&self) -> Option<u64> {
+        self.engine.planned_steps()
+    }
+    #[getter]
+    fn ts(&self) -> f64 {
+        self.engine.ts()
+    }
+    #[getter]
+    fn done(&self) -> bool {
+        self.closed || self.engine.is_done()
+    }
+    #[getter]
+    fn wall_s(&self) -> f64 {
+        self.engine.wall_s()
+    }
+}
+
+impl Episode {
+    /// After a failed step: close what can be closed, write run.json, raise RunError.
+    fn fail(&mut self, py: Python<'_>, e: EngineError) -> PyErr {
+        self.closed = true;
+        let engine = &mut self.engine;
+        let _ = py.allow_threads(|| engine.close());
+        let status = if matches!(e, EngineError::Interrupted { .. }) { "interrupted" } else { "failed" };
+        let _ = write_status(&self.cfg, &self.engine, status, Some(&e));
+        run_error(py, &e, self.engine.run_dir())
+    }
+}
+
+/// The `caviar-core` command line; returns the exit code.
+#[pyfunction]
+fn main(py: Python<'_>, argv: Vec<String>) -> i32 {
+    py.allow_threads(|| {
+        crate::cli::main(argv, &PyLoader, &|| Python::with_gil(|py| py.check_signals().is_err()))
+    })
+}
+
+/// The text of `caviar-core inspect RUN_DIR`.
+#[pyfunction]
+fn inspect(run_dir: PathBuf) -> PyResult<String> {
+    crate::cli::inspect(&run_dir).map_err(pyo3::exceptions::PyValueError::new_err)
+}
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_class::<Episode>()?;
+    m.add_function(wrap_pyfunction!(main, m)?)?;
+    m.add_function(wrap_pyfunction!(inspect, m)?)?;
+    Ok(())
+}

@@ -1,0 +1,57 @@
+"""A free-space communications model: the quickstart's stand-in for ray tracing.
+
+Friis path gain from the rooftop transmitter to every UE, ideal beamforming gains
+of the Tx and Rx arrays (N_tx · N_rx), and the paper's link budget. Cheap and
+exact where the line of sight is clear; the Sionna RT module replaces it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+import caviar
+from caviar_plugins.linkbudget import LinkBudget, friis_path_gain
+
+POSITIONS = "3D.mobility.positions"
+THROUGHPUT = "communications.throughput"
+STATE = "communications.state"
+
+
+class FreeSpaceLink(caviar.Plugin):
+    subscribe = [POSITIONS]
+
+    @dataclasses.dataclass
+    class Params:
+        tx_position: list[float] = dataclasses.field(default_factory=lambda: [-154.0, 64.0, 120.0])
+        frequency_hz: float = 40e9
+        tx_array: list[int] = dataclasses.field(default_factory=lambda: [8, 8])
+        rx_array: list[int] = dataclasses.field(default_factory=lambda: [2, 2])
+        bandwidth_hz: float = 40e6
+        tx_power_w: float = 0.5
+        interference_dbw: float = -130.0
+
+        def __post_init__(self):
+            if len(self.tx_position) != 3:
+                raise ValueError(f"tx_position: expected [x, y, z], got {self.tx_position}")
+
+    def setup(self, ctx):
+        p = ctx.params
+        self.p = p
+        self.tx = np.asarray(p.tx_position, dtype=float)
+        self.array_gain = float(np.prod(p.tx_array) * np.prod(p.rx_array))
+        self.budget = LinkBudget(bandwidth_hz=p.bandwidth_hz, tx_power_w=p.tx_power_w,
+                                 interference_dbw=p.interference_dbw)
+
+    def step(self, t, inbox):
+        latest = {}
+        for m in inbox.on(POSITIONS):
+            latest[(m.data["UE_type"], m.data["UE_Id"])] = m.data["position"]
+        for (ue_type, ue_id), pos in latest.items():
+            d = float(np.linalg.norm(np.array([pos["x"], pos["y"], pos["z"]]) - self.tx))
+            gain = friis_path_gain(d, self.p.frequency_hz) * self.array_gain
+            yield THROUGHPUT, {"UE_type": ue_type, "UE_Id": ue_id,
+                               "throughput": float(self.budget.throughput_mbps(gain))}
+        if latest:
+            yield STATE, "Ready"

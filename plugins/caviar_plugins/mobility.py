@@ -1,0 +1,83 @@
+"""UAV flight along waypoints."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+import caviar
+from caviar_plugins import DATA
+from caviar_plugins.frames import airsim_ned_to_scene, read_waypoints
+
+POSITIONS = "3D.mobility.positions"
+HOVER = "mission.hover"
+
+
+class Path:
+    """A polyline walked at constant speed, parametrised by arc length."""
+
+    def __init__(self, points: np.ndarray):
+        self.points = np.asarray(points, dtype=float)
+        seg = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+        self.cum = np.concatenate([[0.0], np.cumsum(seg)])
+
+    @property
+    def length(self) -> float:
+        return float(self.cum[-1])
+
+    def at(self, s: float) -> np.ndarray:
+        s = min(max(s, 0.0), self.length)
+        i = int(np.searchsorted(self.cum, s, side="right") - 1)
+        i = min(i, len(self.points) - 2)
+        seg = self.cum[i + 1] - self.cum[i]
+        f = 0.0 if seg == 0 else (s - self.cum[i]) / seg
+        return self.points[i] + f * (self.points[i + 1] - self.points[i])
+
+
+class WaypointFlight(caviar.Plugin):
+    """Flies one UAV along waypoints at constant speed and publishes its position
+    (paper schema) every step. It hovers while a ``mission.hover`` message for it
+    says so, and ends the episode at the last waypoint if ``end_at_last``."""
+
+    subscribe = [HOVER]
+
+    @dataclasses.dataclass
+    class Params:
+        waypoints: str = str(DATA / "central_park_path0.csv")
+        """CSV with header X,Y,Z (relative to the config file)."""
+        frame: str = "airsim_ned"
+        """``airsim_ned`` (converted to the scene frame) or ``scene``."""
+        speed: float = 5.0
+        """m/s"""
+        ue_id: str = "uav1"
+        end_at_last: bool = True
+
+        def __post_init__(self):
+            if self.frame not in ("airsim_ned", "scene"):
+                raise ValueError(f"frame: expected 'airsim_ned' or 'scene', got {self.frame!r}")
+            if not self.speed > 0:
+                raise ValueError(f"speed: expected a positive number of m/s, got {self.speed}")
+
+    def setup(self, ctx):
+        p = ctx.params
+        pts = read_waypoints(ctx.resolve(p.waypoints))
+        if p.frame == "airsim_ned":
+            pts = airsim_ned_to_scene(pts)
+        self.path = Path(pts)
+        self.p = p
+        self.s = 0.0          # arc length flown
+        self.hover_until = -1.0
+        self.ts = ctx.ts
+
+    def step(self, t, inbox):
+        for m in inbox.on(HOVER):
+            if m.data.get("UE_Id") == self.p.ue_id:
+                self.hover_until = max(self.hover_until, t + float(m.data["seconds"]))
+        pos = self.path.at(self.s)
+        yield POSITIONS, {"UE_type": "UAV", "UE_Id": self.p.ue_id,
+                          "position": {"x": float(pos[0]), "y": float(pos[1]), "z": float(pos[2])}}
+        if self.s >= self.path.length and self.p.end_at_last:
+            yield caviar.END_TOPIC, {"reason": f"{self.p.ue_id} reached its last waypoint"}
+        if t + 1e-9 >= self.hover_until:
+            self.s += self.p.speed * self.ts

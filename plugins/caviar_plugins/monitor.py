@@ -1,0 +1,69 @@
+"""Collects throughput per UE and, at the end of the episode, writes a CSV and a
+plot of throughput against time into the run directory (as artifacts)."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+
+import caviar
+
+THROUGHPUT = "communications.throughput"
+POSITIONS = "3D.mobility.positions"
+REPORT = "ai.link.report"
+
+
+class LinkMonitor(caviar.Plugin):
+    subscribe = [THROUGHPUT, POSITIONS, caviar.END_TOPIC]
+
+    @dataclasses.dataclass
+    class Params:
+        plot: bool = True
+
+    def setup(self, ctx):
+        self.ctx = ctx
+        self.rows = []  # (time, UE_Id, throughput, x, y, z)
+        self.pos = {}
+
+    def step(self, t, inbox):
+        for m in inbox:
+            if m.topic == POSITIONS:
+                self.pos[m.data["UE_Id"]] = m.data["position"]
+            elif m.topic == THROUGHPUT:
+                p = self.pos.get(m.data["UE_Id"], {"x": None, "y": None, "z": None})
+                self.rows.append((m.time, m.data["UE_Id"], m.data["throughput"], p["x"], p["y"], p["z"]))
+        last = self.ctx.steps is not None and self.ctx.step + 1 >= self.ctx.steps
+        if inbox.latest(caviar.END_TOPIC) or last:
+            yield REPORT, caviar.Artifact(self.write_report())
+            if self.ctx.params.plot:
+                yield REPORT, caviar.Artifact(self.write_plot())
+
+    def write_report(self):
+        path = self.ctx.artifact_dir / "throughput.csv"
+        with path.open("w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["time_s", "UE_Id", "throughput_mbps", "x", "y", "z"])
+            w.writerows(self.rows)
+        return path
+
+    def write_plot(self):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+        for ue in sorted({r[1] for r in self.rows}):
+            rows = [r for r in self.rows if r[1] == ue]
+            ax1.plot([r[0] for r in rows], [r[2] for r in rows], label=ue)
+            ax2.plot([r[3] for r in rows], [r[4] for r in rows], label=ue)
+        ax1.set(xlabel="virtual time (s)", ylabel="throughput (Mbit/s)", title="Throughput")
+        ax2.set(xlabel="x (m)", ylabel="y (m)", title="Flight (scene frame)", aspect="equal")
+        ax1.grid(True)
+        ax2.grid(True)
+        ax1.legend()
+        fig.tight_layout()
+        path = self.ctx.artifact_dir / "throughput.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        return path

@@ -1,0 +1,167 @@
+"""The Python half of the in-process bridge; the core calls these functions.
+
+Kept in Python so that plugin loading, parameter checks and payload encoding are
+the same code whatever the transport.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+import pathlib
+import traceback
+import types
+import typing
+from importlib import metadata
+from typing import Any
+
+from caviar.errors import ConfigError
+from caviar.plugin import Context, Inbox, Message, Plugin, encode
+
+ENTRY_POINT_GROUP = "caviar.plugins"
+
+
+def format_exception(exc: BaseException, tb=None) -> str:
+    return "".join(traceback.format_exception(type(exc), exc, tb or exc.__traceback__))
+
+
+def resolve_plugin(spec: str) -> type:
+    """``package.module:Class`` or an entry-point name of group ``caviar.plugins``."""
+    if ":" in spec:
+        module_name, _, attr = spec.partition(":")
+        try:
+            module = importlib.import_module(module_name)
+        except ImportError as e:
+            raise ConfigError(f"cannot import '{module_name}' for plugin '{spec}': {e}", "plugin") from None
+        cls = module
+        for part in attr.split("."):
+            cls = getattr(cls, part, None)
+            if cls is None:
+                raise ConfigError(f"module '{module_name}' has no '{attr}' (plugin '{spec}')", "plugin")
+    else:
+        eps = metadata.entry_points(group=ENTRY_POINT_GROUP)
+        found = [ep for ep in eps if ep.name == spec]
+        if not found:
+            known = ", ".join(sorted(ep.name for ep in eps)) or "none installed"
+            raise ConfigError(
+                f"no plugin named '{spec}': expected 'package.module:Class' or an entry point "
+                f"of group '{ENTRY_POINT_GROUP}' ({known})", "plugin")
+        try:
+            cls = found[0].load()
+        except ImportError as e:
+            raise ConfigError(f"cannot load plugin '{spec}' ({found[0].value}): {e}", "plugin") from None
+    if not (isinstance(cls, type) and issubclass(cls, Plugin)):
+        raise ConfigError(f"'{spec}' is not a subclass of caviar.Plugin", "plugin")
+    return cls
+
+
+def _type_ok(value: Any, hint: Any) -> bool:
+    if hint is Any:
+        return True
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_type_ok(value, h) for h in typing.get_args(hint))
+    if hint is type(None):
+        return value is None
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if origin in (list, tuple, typing.Sequence):
+        args = typing.get_args(hint)
+        if not isinstance(value, list):
+            return False
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            return len(args) == len(value) and all(_type_ok(v, h) for v, h in zip(value, args))
+        return not args or all(_type_ok(v, args[0]) for v in value)
+    if origin is dict:
+        return isinstance(value, dict)
+    if isinstance(hint, type):
+        return isinstance(value, hint)
+    return True
+
+
+def _type_name(hint: Any) -> str:
+    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
+
+
+def check_params(cls: type, params: dict) -> Any:
+    """Builds the plugin's ``Params`` dataclass from the config table, or explains why not."""
+    schema = cls.Params
+    if schema is None:
+        return params
+    if not dataclasses.is_dataclass(schema):
+        raise TypeError(f"{cls.__name__}.Params must be a dataclass")
+    hints = typing.get_type_hints(schema)
+    fields = {f.name: f for f in dataclasses.fields(schema) if f.init}
+    for key, value in params.items():
+        if key not in fields:
+            raise ConfigError(f"unknown parameter '{key}' of {cls.__name__}, expected one of: "
+                              f"{', '.join(fields) or 'none'}", f"params.{key}")
+        hint = hints.get(key, Any)
+        if not _type_ok(value, hint):
+            raise ConfigError(f"expected {_type_name(hint)}, got {type(value).__name__} {value!r}",
+                              f"params.{key}")
+    missing = [n for n, f in fields.items() if n not in params
+               and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+    if missing:
+        raise ConfigError(f"missing required parameter(s) of {cls.__name__}: {', '.join(missing)}", "params")
+    values = {k: (float(v) if hints.get(k) is float else v) for k, v in params.items()}
+    try:
+        return schema(**values)
+    except (TypeError, ValueError) as e:  # __post_init__ checks of the plugin
+        raise ConfigError(str(e), "params") from None
+
+
+class Hosted:
+    """One plugin instance and its context, as the core sees it."""
+
+    def __init__(self, name: str, plugin: Plugin, params: Any):
+        self.name = name
+        self.plugin = plugin
+        self.params = params
+        self.ctx: Context | None = None
+        self.run_dir: pathlib.Path | None = None
+
+    def setup(self, seed, ts, steps, every, offset, run_dir, config_dir) -> None:
+        self.run_dir = pathlib.Path(run_dir)
+        self.ctx = Context(name=self.name, params=self.params, seed=seed, ts=ts, steps=steps,
+                           every=every, offset=offset, run_dir=self.run_dir,
+                           config_dir=pathlib.Path(config_dir))
+        self.plugin.setup(self.ctx)
+
+    def step(self, step: int, t: float, raw: list) -> list:
+        self.ctx.step = step
+        run_dir = self.run_dir
+        inbox = Inbox([Message._from_wire(r, run_dir) for r in raw])
+        result = self.plugin.step(t, inbox)
+        out = []
+        if result is None:
+            return out
+        # A single message may be returned bare.
+        if isinstance(result, Message) or (isinstance(result, tuple) and len(result) == 2 and isinstance(result[0], str)):
+            result = [result]
+        for item in result:
+            if isinstance(item, Message):
+                topic, value = item.topic, item.data
+            else:
+                try:
+                    topic, value = item
+                except (TypeError, ValueError):
+                    raise TypeError(f"{type(self.plugin).__name__}.step must return messages as "
+                                    f"(topic, payload) pairs or caviar.Message, got {item!r}") from None
+            if not isinstance(topic, str):
+                raise TypeError(f"topic must be a str, got {topic!r}")
+            out.append((topic, *encode(topic, value, run_dir)))
+        return out
+
+    def teardown(self) -> None:
+        self.plugin.teardown()
+
+
+def load_plugin(name: str, spec: str, params_json: str, config_dir: str) -> tuple[Hosted, list[str]]:
+    cls = resolve_plugin(spec)
+    params = check_params(cls, json.loads(params_json))
+    plugin = cls()
+    return Hosted(name, plugin, params), list(cls.subscribe)

@@ -1,0 +1,247 @@
+"""The plugin API: what a module written in Python implements.
+
+A plugin is a class with three methods, in the spirit of Gymnasium's ``step()``::
+
+    class Echo(caviar.Plugin):
+        subscribe = ["3D.mobility.positions"]      # default subscriptions
+
+        @dataclasses.dataclass
+        class Params:                              # checked against [modules.NAME.params]
+            gain: float = 1.0
+
+        def setup(self, ctx):
+            self.gain = ctx.params.gain
+
+        def step(self, t, inbox):
+            for m in inbox.on("3D.mobility.positions"):
+                yield "echo.positions", {"x": m.data["position"]["x"] * self.gain}
+
+``step`` returns (or yields) messages: ``(topic, payload)`` pairs or
+:class:`Message` objects. The payload's type decides how it travels:
+
+* ``dict``, ``list``, ``str``, numbers, ``bool``, ``None``: JSON;
+* ``numpy.ndarray``: binary, with its dtype and shape (never through JSON);
+* ``bytes``: binary;
+* :class:`Artifact` or :class:`pathlib.Path` (a file in the run directory): its path.
+
+A plugin knows nothing of transports: the same class runs in-process or elsewhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+from typing import Any, ClassVar, Iterable, Iterator, Sequence
+
+from caviar.topics import matches
+
+
+class Artifact:
+    """A file in the run directory, passed to subscribers by its path."""
+
+    __slots__ = ("path",)
+
+    def __init__(self, path: str | pathlib.Path):
+        self.path = pathlib.Path(path)
+
+    def __repr__(self) -> str:
+        return f"Artifact({str(self.path)!r})"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Artifact) and other.path == self.path
+
+
+class Message:
+    """A message: topic, payload and, once routed, who published it and when.
+
+    ``data`` is decoded on first access: JSON to Python objects, arrays to read-only
+    ``numpy.ndarray`` views, artifacts to :class:`pathlib.Path` in the run directory.
+    """
+
+    __slots__ = ("topic", "source", "step", "time", "_data", "_raw", "_kind")
+
+    def __init__(self, topic: str, data: Any = None, *, source: str | None = None,
+                 step: int | None = None, time: float | None = None):
+        self.topic = topic
+        self.source = source
+        self.step = step
+        self.time = time
+        self._data = data
+        self._raw = None
+        self._kind = None
+
+    @classmethod
+    def _from_wire(cls, raw: tuple, run_dir: pathlib.Path | None) -> "Message":
+        step, time, topic, source, kind, body, meta = raw
+        m = cls(topic, source=source, step=step, time=time)
+        m._raw = (kind, body, meta, run_dir)
+        m._kind = kind
+        return m
+
+    @property
+    def kind(self) -> str:
+        """``"json"``, ``"binary"`` or ``"artifact"``."""
+        if self._kind is None:
+            self._kind = encode(self.topic, self._data, None)[0]
+        return self._kind
+
+    @property
+    def data(self) -> Any:
+        if self._raw is not None:
+            self._data = decode(*self._raw)
+            self._raw = None
+        return self._data
+
+    def __repr__(self) -> str:
+        where = f" from {self.source} at step {self.step}" if self.source else ""
+        return f"Message({self.topic!r}{where})"
+
+
+class Inbox(Sequence[Message]):
+    """The messages a module received since its previous step, in delivery order."""
+
+    def __init__(self, messages: list[Message]):
+        self._messages = messages
+
+    def __getitem__(self, i):  # type: ignore[override]
+        return self._messages[i]
+
+    def __len__(self) -> int:
+        return len(self._messages)
+
+    def __iter__(self) -> Iterator[Message]:
+        return iter(self._messages)
+
+    def on(self, pattern: str) -> list[Message]:
+        """Messages whose topic matches ``pattern`` (NATS wildcards allowed)."""
+        return [m for m in self._messages if matches(pattern, m.topic)]
+
+    def latest(self, pattern: str) -> Message | None:
+        """The last message matching ``pattern``, or None."""
+        for m in reversed(self._messages):
+            if matches(pattern, m.topic):
+                return m
+        return None
+
+    def __repr__(self) -> str:
+        return f"Inbox({len(self)} messages)"
+
+
+@dataclasses.dataclass
+class Context:
+    """What a plugin learns in ``setup``."""
+
+    name: str
+    """The module's name in the configuration."""
+    params: Any
+    """The ``Params`` dataclass instance (or a dict if the plugin declares none)."""
+    seed: int
+    """The module's own seed (derived from the episode seed and the module name)."""
+    ts: float
+    """Sampling interval Ts in seconds."""
+    steps: int | None
+    """Steps in the episode, or None when a module ends it."""
+    every: int
+    offset: int
+    run_dir: pathlib.Path
+    config_dir: pathlib.Path
+    step: int = 0
+    """The step being run (updated before each ``step`` call)."""
+
+    @property
+    def rng(self):
+        """A ``numpy.random.Generator`` seeded with :attr:`seed` (created once)."""
+        rng = self.__dict__.get("_rng")
+        if rng is None:
+            import numpy as np
+
+            rng = self.__dict__["_rng"] = np.random.default_rng(self.seed)
+        return rng
+
+    def resolve(self, path: str | pathlib.Path) -> pathlib.Path:
+        """A path from the parameters, relative to the configuration file."""
+        p = pathlib.Path(path)
+        return p if p.is_absolute() else self.config_dir / p
+
+    @property
+    def artifact_dir(self) -> pathlib.Path:
+        """``RUN_DIR/artifacts/NAME``, created on first use."""
+        d = self.run_dir / "artifacts" / self.name
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+
+class Plugin:
+    """Base class of Python modules. Override what you need; ``step`` is the one
+    most plugins implement."""
+
+    subscribe: ClassVar[list[str]] = []
+    """Default subscription patterns; ``subscribe`` in the config replaces them."""
+
+    Params: ClassVar[type | None] = None
+    """A dataclass describing ``[modules.NAME.params]``: unknown keys, missing
+    values and wrong types become configuration errors naming the key."""
+
+    def setup(self, ctx: Context) -> None:
+        self.ctx = ctx
+
+    def step(self, t: float, inbox: Inbox) -> Iterable[Message | tuple[str, Any]] | None:
+        return None
+
+    def teardown(self) -> None:
+        pass
+
+
+# ---------------------------------------------------------------------------
+# Payload encoding (Python object <-> wire tuple)
+
+def _check_json(topic: str, value: Any) -> str:
+    try:
+        return json.dumps(value, separators=(",", ":"), allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise TypeError(
+            f"payload on topic '{topic}' is not JSON-serialisable ({e}); send numpy arrays "
+            "or bytes as binary payloads, files as caviar.Artifact"
+        ) from None
+
+
+def encode(topic: str, value: Any, run_dir: pathlib.Path | None) -> tuple[str, Any, str | None]:
+    """(kind, body, meta) of a payload."""
+    if isinstance(value, (Artifact, pathlib.PurePath)):
+        path = pathlib.Path(value.path if isinstance(value, Artifact) else value)
+        if path.is_absolute():
+            if run_dir is None:
+                raise ValueError(f"artifact on topic '{topic}': no run directory to relate {path} to")
+            try:
+                path = path.resolve().relative_to(run_dir.resolve())
+            except ValueError:
+                raise ValueError(f"artifact on topic '{topic}': {path} is not inside the run directory {run_dir}") from None
+        return "artifact", path.as_posix(), None
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return "binary", bytes(value), '{"content_type":"application/octet-stream"}'
+    if type(value).__module__ == "numpy" and hasattr(value, "dtype"):
+        import numpy as np
+
+        arr = np.ascontiguousarray(value)
+        if arr.dtype.hasobject:
+            raise TypeError(f"payload on topic '{topic}': object arrays cannot travel as binary")
+        meta = json.dumps({"dtype": arr.dtype.str, "shape": list(arr.shape)}, separators=(",", ":"))
+        return "binary", arr.tobytes(), meta
+    if isinstance(value, float) and not math.isfinite(value):
+        raise TypeError(f"payload on topic '{topic}' is {value}, which JSON cannot carry")
+    return "json", _check_json(topic, value), None
+
+
+def decode(kind: str, body: Any, meta: str | None, run_dir: pathlib.Path | None) -> Any:
+    if kind == "json":
+        return json.loads(body)
+    if kind == "artifact":
+        return (run_dir / body) if run_dir is not None else pathlib.Path(body)
+    info = json.loads(meta) if meta else {}
+    if "dtype" in info:
+        import numpy as np
+
+        return np.frombuffer(body, dtype=np.dtype(info["dtype"])).reshape(info["shape"])
+    return body

@@ -1,0 +1,107 @@
+"""Reading a recorded run into polars (or pandas)."""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+from typing import Any
+
+from caviar.plugin import Message
+from caviar.topics import matches
+
+
+def _read(run_dir: pathlib.Path, table: str):
+    import polars as pl
+
+    single = run_dir / f"{table}.parquet"
+    if single.exists():
+        return pl.read_parquet(single)
+    parts = sorted((run_dir / table).glob("*.parquet"))
+    if not parts:
+        if not (run_dir / table).is_dir():
+            raise FileNotFoundError(f"{run_dir}: not a run directory (no {table}.parquet)")
+        from caviar import _core  # noqa: F401  (empty run: an empty frame with the schema)
+        return pl.DataFrame()
+    # Parts are what a run that crashed or is still going leaves: each is complete.
+    return pl.concat([pl.read_parquet(p) for p in parts])
+
+
+class RunLog:
+    """A recorded run: ``messages`` and ``timings`` as polars DataFrames.
+
+    Works on finished runs and on runs that crashed or are still going.
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = pathlib.Path(path)
+        status = self.path / "run.json"
+        if not status.exists():
+            raise FileNotFoundError(f"{self.path}: not a run directory (no run.json)")
+        self.status: dict = json.loads(status.read_text())
+        self.messages = _read(self.path, "messages")
+        self.timings = _read(self.path, "timings")
+
+    @property
+    def config_text(self) -> str:
+        return (self.path / "config.toml").read_text()
+
+    def _select(self, pattern: str):
+        import polars as pl
+
+        if self.messages.is_empty():
+            return self.messages
+        topics = [t for t in self.messages["topic"].unique().to_list() if matches(pattern, t)]
+        return self.messages.filter(pl.col("topic").is_in(topics))
+
+    def topic(self, pattern: str):
+        """JSON messages on matching topics, one row each: step, time, topic, source and
+        the payload's fields as columns (nested objects stay structs; a payload field
+        named like one of the first four becomes ``payload.NAME``)."""
+        import polars as pl
+
+        rows = self._select(pattern).filter(pl.col("kind") == "json")
+        records = [json.loads(t) for t in rows["text"].to_list()] if rows.height else []
+        base = rows.select("step", "time", "topic", "source")
+        if records and all(isinstance(r, dict) for r in records):
+            fields = pl.DataFrame(records)
+            fields = fields.rename({c: f"payload.{c}" for c in fields.columns if c in base.columns})
+            return pl.concat([base, fields], how="horizontal")
+        return base.with_columns(pl.Series("value", records, dtype=pl.Object) if records else pl.lit(None).alias("value"))
+
+    def decoded(self, pattern: str) -> list[Message]:
+        """Messages on matching topics as :class:`caviar.Message` (arrays decoded lazily)."""
+        out = []
+        for r in self._select(pattern).iter_rows(named=True):
+            body = r["text"] if r["kind"] != "binary" else r["data"]
+            out.append(Message._from_wire(
+                (r["step"], r["time"], r["topic"], r["source"], r["kind"], body, r["meta"]), self.path))
+        return out
+
+    def module_times(self):
+        """Per module: steps run, total and mean wall time, CPU time, share of the run."""
+        import polars as pl
+
+        t = self.timings.group_by("module", maintain_order=True).agg(
+            pl.len().alias("steps"), pl.col("wall_s").sum(), pl.col("wall_s").mean().alias("mean_wall_s"),
+            pl.col("cpu_s").sum())
+        return t.with_columns((pl.col("wall_s") / pl.col("wall_s").sum()).alias("share"))
+
+    def to_pandas(self, table: str = "messages"):
+        """``messages`` or ``timings`` as a pandas DataFrame (needs pandas and pyarrow)."""
+        import pandas as pd
+
+        single = self.path / f"{table}.parquet"
+        if single.exists():
+            return pd.read_parquet(single)
+        parts = sorted((self.path / table).glob("*.parquet"))
+        return pd.concat([pd.read_parquet(p) for p in parts], ignore_index=True)
+
+    def __repr__(self) -> str:
+        return (f"RunLog({str(self.path)!r}, status={self.status.get('status')!r}, "
+                f"steps={self.status.get('steps_done')}, messages={self.messages.height})")
+
+
+def load_run(path: str | os.PathLike) -> RunLog:
+    """Loads a run directory written by ``caviar-core run``."""
+    return RunLog(path)

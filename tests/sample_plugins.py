@@ -1,0 +1,80 @@
+"""Small plugins used by the tests."""
+
+import dataclasses
+
+import numpy as np
+
+import caviar
+
+
+class Counter(caviar.Plugin):
+    """Publishes its step count and remembers what it received."""
+
+    @dataclasses.dataclass
+    class Params:
+        topic: str = "count"
+        label: str = ""
+        scale: float = 1.0
+
+    def setup(self, ctx):
+        self.ctx = ctx
+        self.received = []
+
+    def step(self, t, inbox):
+        self.received.append([(m.topic, m.source, m.step) for m in inbox])
+        return [(self.ctx.params.topic, {"step": self.ctx.step, "t": t, "label": self.ctx.params.label,
+                                         "seen": len(inbox), "value": self.ctx.params.scale * self.ctx.step})]
+
+
+class Noise(caviar.Plugin):
+    """Random numbers from the module's seeded generator, as JSON and as an array."""
+
+    def step(self, t, inbox):
+        x = self.ctx.rng.normal(size=4)
+        yield "noise.json", {"x": x.tolist()}
+        yield "noise.array", x.astype(np.complex64) * 1j
+
+
+class Crash(caviar.Plugin):
+    @dataclasses.dataclass
+    class Params:
+        at_step: int = 3
+
+    def step(self, t, inbox):
+        if self.ctx.step == self.ctx.params.at_step:
+            return 1 / 0
+        return [("crash.alive", {"step": self.ctx.step})]
+
+
+class Echo(caviar.Plugin):
+    """Republishes what it receives, decoded and re-encoded, under echo.<topic>."""
+
+    subscribe = ["noise.>"]
+
+    def step(self, t, inbox):
+        for m in inbox:
+            yield caviar.Message("echo." + m.topic, m.data)
+
+
+class WritesFile(caviar.Plugin):
+    def step(self, t, inbox):
+        path = self.ctx.artifact_dir / f"frame-{self.ctx.step:03d}.txt"
+        path.write_text(f"t={t}")
+        yield "files.frame", caviar.Artifact(path)
+
+
+class Reader(caviar.Plugin):
+    subscribe = ["files.frame"]
+
+    def step(self, t, inbox):
+        for m in inbox:
+            yield "files.read", {"text": m.data.read_text(), "kind": m.kind}
+
+
+class BadPayload(caviar.Plugin):
+    def step(self, t, inbox):
+        return [("bad.payload", {"value": object()})]
+
+
+class NotAPlugin:
+    pass

@@ -1,0 +1,167 @@
+"""The `caviar-core` command line, the quickstart blueprint and replay."""
+
+import json
+import math
+import shutil
+
+import numpy as np
+
+import caviar
+from conftest import ROOT, write_config
+
+QUICKSTART = ROOT / "blueprints" / "quickstart" / "config.toml"
+
+CRASHING = """
+[episode]
+ts = 0.1
+steps = 100
+stages = ["a"]
+
+[modules.alive]
+stage = "a"
+plugin = "sample_plugins:Counter"
+
+[modules.crash]
+stage = "a"
+plugin = "sample_plugins:Crash"
+params = { at_step = 7 }
+"""
+
+
+def test_quickstart_runs_and_shows_the_three_paper_topics(tmp_path, cli):
+    p = cli("run", QUICKSTART, "--quiet", "--out", "qs", check=0)
+    assert "qs: completed" in p.stdout
+    log = caviar.load_run(tmp_path / "qs")
+    topics = set(log.messages["topic"].unique())
+    assert {"3D.mobility.positions", "communications.throughput", "communications.state",
+            "caviar.episode.end", "ai.link.report"} <= topics
+
+    pos = log.topic("3D.mobility.positions")
+    assert set(pos["UE_type"]) == {"UAV"} and set(pos["UE_Id"]) == {"uav1"}
+    xyz = np.array([[p["x"], p["y"], p["z"]] for p in pos["position"].to_list()])
+    # 5 m/s at Ts = 0.1 s: 0.5 m of path per step until the last waypoint.
+    ned = np.loadtxt(ROOT / "plugins" / "caviar_plugins" / "data" / "central_park_path0.csv", delimiter=",",
+                     skiprows=1)
+    length = np.linalg.norm(np.diff(ned, axis=0), axis=1).sum()
+    assert len(pos) == math.ceil(length / 0.5) + 1
+    hops = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
+    assert np.all(hops <= 0.5 + 1e-9)
+    assert np.sum(np.isclose(hops, 0.5)) >= len(hops) - len(ned)  # shorter only across corners
+    # First position: the first waypoint mapped from AirSim NED to the scene frame.
+    assert np.allclose(xyz[0], [23.34 - 320.34, -3.42 + 206.58, 137.23 - 128])
+
+    # Throughput against an independent link budget computation.
+    thr = log.topic("communications.throughput")
+    assert thr["step"].to_list() == pos["step"].to_list()
+    d = np.linalg.norm(xyz - np.array([-154.0, 64.0, 120.0]), axis=1)
+    lam = 299_792_458.0 / 40e9
+    gain_db = 20 * np.log10(lam / (4 * math.pi * d)) + 10 * np.log10(64 * 4)
+    noise_dbw = 10 * np.log10(1.380649e-23 * (290 + 298.15) * 40e6)
+    sinr_db = 10 * np.log10(0.5) + gain_db - 10 * np.log10(10 ** (noise_dbw / 10) + 10 ** (-130 / 10))
+    expected_mbps = 40 * np.log2(1 + 10 ** (sinr_db / 10))
+    assert np.allclose(thr["throughput"].to_numpy(), expected_mbps, rtol=1e-9)
+    assert log.topic("communications.state")["value"].to_list() == ["Ready"] * len(pos)
+
+    # The episode ended at the last waypoint, and the monitor wrote its plot.
+    assert log.status["status"] == "completed" and log.status["steps_planned"] is None
+    assert (tmp_path / "qs" / "artifacts" / "monitor" / "throughput.png").stat().st_size > 10_000
+
+    text = cli("inspect", "qs", check=0).stdout
+    assert "communications.throughput" in text and "(completed)" in text and "RTF" in text
+    for module in ("uav", "comm", "monitor", "caviar.core"):
+        assert f"\n{module} " in text
+
+
+def test_numbered_run_directories_and_overrides(tmp_path, cli):
+    shutil.copy(QUICKSTART, tmp_path / "qs.toml")
+    cli("run", "qs.toml", "-q", "--set", "episode.steps=5", "--set", "output.name=short", check=0)
+    cli("run", "qs.toml", "-q", "--set", "episode.steps=7", "--set", "output.name=short", check=0)
+    a, b = caviar.load_run(tmp_path / "runs" / "short-001"), caviar.load_run(tmp_path / "runs" / "short-002")
+    assert (a.status["steps_done"], b.status["steps_done"]) == (5, 7)
+    assert "steps = 7" in b.config_text  # the exact configuration of the run is kept
+    assert b.status["overrides"] == ["episode.steps=7", "output.name=short"]
+
+
+def test_validate_reports_errors_without_running(tmp_path, cli):
+    good = write_config(tmp_path, CRASHING)
+    assert "ok (2 modules in 1 stages, Ts = 0.1 s, 100 steps)" in cli("validate", good, check=0).stdout
+    bad = write_config(tmp_path, CRASHING.replace("steps = 100", "steps = -3"), "bad.toml")
+    p = cli("validate", bad, check=2)
+    assert "bad.toml:4: episode.steps: invalid value: integer `-3`" in p.stderr
+    p = cli("run", bad, check=2)
+    assert "episode.steps" in p.stderr
+    assert not (tmp_path / "runs").exists()
+    p = cli("run", good, "--set", "modules.alive.params.scale=fast", check=2)
+    assert "modules.alive.params.scale: expected float, got str 'fast'" in p.stderr
+    p = cli("run", good, "--set", "modules.alive.every=0", check=2)
+    assert "modules.alive.every: expected a period of at least 1 step" in p.stderr
+
+
+def test_a_crashing_plugin_stops_the_cli_with_module_step_and_traceback(tmp_path, cli):
+    write_config(tmp_path, CRASHING)
+    p = cli("run", "exp.toml", "--quiet", check=1)
+    assert "module 'crash' failed at step 7 (t = 0.700 s): ZeroDivisionError: division by zero" in p.stderr
+    assert "Traceback (most recent call last)" in p.stderr and "sample_plugins.py" in p.stderr
+    log = caviar.load_run(tmp_path / "runs" / "exp-001")
+    assert log.status["status"] == "failed" and log.status["steps_done"] == 8
+    assert log.topic("count")["step"].to_list() == list(range(8))  # module 'alive' ran in step 7 too
+    assert log.topic("crash.alive")["step"].to_list() == list(range(7))
+    assert "failed" in cli("inspect", "runs/exp-001", check=0).stdout
+
+
+def test_parts_of_an_unfinished_run_are_readable(tmp_path):
+    """A killed process leaves per-step parts; the readers take them as they are."""
+    cfg = write_config(tmp_path, CRASHING.replace("at_step = 7", "at_step = 1000"))
+    sim = caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
+    for _ in range(5):
+        sim.step()
+    parts = sorted((tmp_path / "run" / "messages").glob("part-*.parquet"))
+    assert len(parts) == 5  # flushed after every step
+    log = caviar.load_run(tmp_path / "run")
+    assert log.status["status"] == "running"
+    assert log.topic("count")["step"].to_list() == [0, 1, 2, 3, 4]
+    assert log.to_pandas()["step"].tolist() == [0, 0, 1, 1, 2, 2, 3, 3, 4, 4]
+    sim.close()
+    assert (tmp_path / "run" / "messages.parquet").exists() and not (tmp_path / "run" / "messages").exists()
+    assert caviar.load_run(tmp_path / "run").status["status"] == "completed"
+
+
+def test_replay_reproduces_the_throughput_from_recorded_mobility(tmp_path, cli):
+    cli("run", QUICKSTART, "-q", "--out", "original", "--set", "episode.steps=40", check=0)
+    write_config(tmp_path, f"""
+[episode]
+ts = 0.1
+steps = 40
+stages = ["mobility", "communications"]
+
+[modules.mobility]
+stage = "mobility"
+plugin = "caviar.replay"
+params = {{ run = "original", topics = ["3D.mobility.>"] }}
+
+[modules.comm]
+stage = "communications"
+plugin = "free-space-link"
+""", "replay.toml")
+    cli("run", "replay.toml", "-q", "--out", "replayed", check=0)
+    original, replayed = caviar.load_run(tmp_path / "original"), caviar.load_run(tmp_path / "replayed")
+    assert set(replayed.topic("3D.mobility.positions")["source"]) == {"mobility"}
+    for topic in ("3D.mobility.positions", "communications.throughput"):
+        a = original.topic(topic).drop("source")
+        b = replayed.topic(topic).drop("source")
+        assert a.equals(b), topic
+
+    write_config(tmp_path, (tmp_path / "replay.toml").read_text().replace('"3D.mobility.>"', '"nothing.here"'),
+                 "empty.toml")
+    p = cli("run", "empty.toml", check=2)
+    assert "modules.mobility.params.topics: no recorded message" in p.stderr
+
+
+def test_run_json_is_complete(tmp_path, cli):
+    cli("run", QUICKSTART, "-q", "--out", "r", "--set", "episode.steps=3", check=0)
+    status = json.loads((tmp_path / "r" / "run.json").read_text())
+    assert status["status"] == "completed"
+    assert status["steps_done"] == 3 and status["ts"] == 0.1
+    assert math.isclose(status["virtual_time_s"], 0.3)
+    assert status["modules"] == ["uav", "comm", "monitor"]
+    assert status["rtf"] > 0 and status["error"] is None

@@ -1,0 +1,194 @@
+"""The Python face of the engine: plugins in-process, stepping, payloads, errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+import caviar
+from conftest import write_config
+
+BASE = """
+[episode]
+ts = 0.5
+steps = 4
+seed = 11
+stages = ["first", "second"]
+"""
+
+
+def test_step_by_step_visibility_between_stages(tmp_path):
+    cfg = write_config(tmp_path, BASE + """
+[modules.b]
+stage = "second"
+plugin = "sample_plugins:Counter"
+subscribe = ["count.a"]
+params = { topic = "count.b" }
+
+[modules.a]
+stage = "first"
+plugin = "sample_plugins:Counter"
+subscribe = ["count.b"]
+params = { topic = "count.a", label = "A" }
+""")
+    with caviar.Simulation.from_toml(cfg, out=tmp_path / "run") as sim:
+        first = sim.step()
+        assert [(m.topic, m.source, m.step) for m in first] == [("count.a", "a", 0), ("count.b", "b", 0)]
+        # b (later stage) saw a's message of the same step; a sees b's only next step.
+        assert first[1].data["seen"] == 1
+        assert first[0].data == {"step": 0, "t": 0.0, "label": "A", "seen": 0, "value": 0.0}
+        second = sim.step()
+        assert second[0].data["seen"] == 1 and second[1].data["seen"] == 1
+        assert sim.steps_done == 2 and sim.time == 1.0
+        log = sim.run()
+    assert sim.done and sim.step() is None
+    assert log.status["status"] == "completed"
+    assert log.messages.height == 8
+    frame = log.topic("count.*")
+    assert frame["step"].to_list() == [0, 0, 1, 1, 2, 2, 3, 3]
+    assert frame["payload.step"].to_list() == frame["step"].to_list()
+    assert frame["value"].to_list() == [0.0, 0.0, 1.0, 1.0, 2.0, 2.0, 3.0, 3.0]
+
+
+def test_periods_and_offsets_for_python_plugins(tmp_path):
+    cfg = write_config(tmp_path, BASE.replace("steps = 4", "steps = 7") + """
+[modules.fast]
+stage = "first"
+plugin = "sample_plugins:Counter"
+params = { topic = "fast" }
+
+[modules.slow]
+stage = "second"
+plugin = "sample_plugins:Counter"
+every = 3
+offset = 2
+subscribe = ["fast"]
+params = { topic = "slow" }
+""")
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    slow = log.topic("slow")
+    assert slow["step"].to_list() == [2, 5]
+    # At step 2 it has fast's messages of steps 0, 1, 2; at step 5 those of 3, 4, 5.
+    assert slow["seen"].to_list() == [3, 3]
+    times = log.module_times()
+    assert dict(zip(times["module"], times["steps"])) == {"fast": 7, "slow": 2, "caviar.core": 7}
+
+
+def test_binary_payloads_keep_dtype_and_shape_and_never_touch_json(tmp_path):
+    cfg = write_config(tmp_path, BASE + """
+[modules.noise]
+stage = "first"
+plugin = "sample_plugins:Noise"
+
+[modules.echo]
+stage = "second"
+plugin = "sample_plugins:Echo"
+""")
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    arrays = log.decoded("noise.array")
+    echoed = log.decoded("echo.noise.array")
+    assert len(arrays) == len(echoed) == 4
+    for a, e, j in zip(arrays, echoed, log.decoded("noise.json")):
+        assert a.kind == "binary" and a.data.dtype == np.complex64 and a.data.shape == (4,)
+        np.testing.assert_array_equal(a.data, e.data)
+        np.testing.assert_allclose(a.data, np.asarray(j.data["x"], dtype=np.complex64) * 1j)
+    kinds = dict(zip(log.messages["topic"], log.messages["kind"]))
+    assert kinds == {"noise.json": "json", "noise.array": "binary", "echo.noise.json": "json",
+                     "echo.noise.array": "binary"}
+    row = log.messages.filter(log.messages["topic"] == "noise.array").row(0, named=True)
+    assert row["text"] is None and json.loads(row["meta"]) == {"dtype": "<c8", "shape": [4]}
+
+
+def test_artifacts_travel_as_paths_relative_to_the_run_directory(tmp_path):
+    cfg = write_config(tmp_path, BASE + """
+[modules.writer]
+stage = "first"
+plugin = "sample_plugins:WritesFile"
+
+[modules.reader]
+stage = "second"
+plugin = "sample_plugins:Reader"
+""")
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    assert log.messages.filter(log.messages["topic"] == "files.frame")["text"].to_list()[0] == \
+        "artifacts/writer/frame-000.txt"
+    assert log.topic("files.read")["text"].to_list() == [f"t={0.5 * k}" for k in range(4)]
+
+
+def test_same_seed_same_messages_other_seed_other_messages(tmp_path):
+    cfg = write_config(tmp_path, BASE + """
+[modules.noise]
+stage = "first"
+plugin = "sample_plugins:Noise"
+[modules.echo]
+stage = "second"
+plugin = "sample_plugins:Echo"
+""")
+    runs = [caviar.Simulation.from_toml(cfg, out=tmp_path / f"r{i}").run().messages for i in range(2)]
+    assert runs[0].equals(runs[1])
+    other = caviar.Simulation.from_toml(cfg, overrides={"episode.seed": 12}, out=tmp_path / "r3").run().messages
+    assert not other.equals(runs[0])
+    assert other.select("step", "topic", "source").equals(runs[0].select("step", "topic", "source"))
+
+
+def test_a_crashing_plugin_raises_run_error_and_keeps_the_log(tmp_path):
+    cfg = write_config(tmp_path, BASE.replace("steps = 4", "steps = 50") + """
+[modules.crash]
+stage = "second"
+plugin = "sample_plugins:Crash"
+params = { at_step = 3 }
+""")
+    sim = caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
+    with pytest.raises(caviar.RunError) as err:
+        sim.run()
+    e = err.value
+    assert (e.module, e.phase, e.step) == ("crash", "step", 3)
+    assert "ZeroDivisionError" in str(e) and "sample_plugins.py" in str(e)  # the traceback
+    log = caviar.load_run(e.run_dir)
+    assert log.status["status"] == "failed"
+    assert log.status["error"]["module"] == "crash" and log.status["error"]["step"] == 3
+    assert "ZeroDivisionError" in log.status["error"]["trace"]
+    assert log.topic("crash.alive")["step"].to_list() == [0, 1, 2]
+
+
+def test_a_bad_payload_names_the_topic(tmp_path):
+    cfg = write_config(tmp_path, BASE + """
+[modules.bad]
+stage = "first"
+plugin = "sample_plugins:BadPayload"
+""")
+    with pytest.raises(caviar.RunError, match="payload on topic 'bad.payload' is not JSON-serialisable"):
+        caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+
+
+@pytest.mark.parametrize("module_table, key, line, expected", [
+    ('plugin = "sample_plugins:Counter"\nparams = { topc = "x" }', "modules.m.params.topc", 11,
+     "unknown parameter 'topc' of Counter"),
+    ('plugin = "sample_plugins:Counter"\n[modules.m.params]\nscale = "big"', "modules.m.params.scale", 12,
+     "expected float, got str 'big'"),
+    ('plugin = "sample_plugins:Nope"', "modules.m.plugin", 10, "has no 'Nope'"),
+    ('plugin = "no_such_package.mod:X"', "modules.m.plugin", 10, "cannot import 'no_such_package.mod'"),
+    ('plugin = "sample_plugins:NotAPlugin"', "modules.m.plugin", 10, "not a subclass of caviar.Plugin"),
+    ('plugin = "not-installed-entry-point"', "modules.m.plugin", 10, "no plugin named 'not-installed-entry-point'"),
+])
+def test_plugin_config_errors_name_file_line_and_key(tmp_path, module_table, key, line, expected):
+    cfg = write_config(tmp_path, BASE + f'\n[modules.m]\nstage = "first"\n{module_table}\n')
+    with pytest.raises(caviar.ConfigError) as err:
+        caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
+    text = str(err.value)
+    assert text.startswith(f"{cfg}:{line}: {key}: "), text
+    assert expected in text, text
+    assert not (tmp_path / "run").exists(), "a config error must not start a run"
+
+
+def test_entry_point_plugins_are_found_by_name(tmp_path):
+    cfg = write_config(tmp_path, BASE + """
+[modules.uav]
+stage = "first"
+plugin = "waypoint-flight"
+params = { frame = "scene", waypoints = "path.csv", speed = 2.0, end_at_last = false }
+""")
+    (tmp_path / "path.csv").write_text("X,Y,Z\n0,0,10\n10,0,10\n")
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    pos = log.topic("3D.mobility.positions")["position"].struct.field("x").to_list()
+    assert pos == [0.0, 1.0, 2.0, 3.0]  # 2 m/s at Ts = 0.5 s
