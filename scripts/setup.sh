@@ -12,6 +12,19 @@ if ! command -v cargo >/dev/null 2>&1; then
     exit 1
 fi
 
+# Sionna RT runs on Dr.Jit; without a GPU it uses the LLVM backend, which needs
+# libLLVM >= 16 (Debian bookworm's default LLVM 14 fails). caviar_plugins.radio
+# finds it; DRJIT_LIBLLVM_PATH overrides.
+if ! ls /usr/lib/*-linux-gnu/libLLVM.so.19* >/dev/null 2>&1; then
+    if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+        log "system packages (libllvm19 for Dr.Jit)"
+        apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null
+    else
+        echo "warning: install libLLVM >= 16 (Debian: apt-get install libllvm19) for Sionna RT on CPU" >&2
+    fi
+fi
+
 PYTHON=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
     log "creating .venv with $($PYTHON --version)"
@@ -22,6 +35,6 @@ log "Python packages"
 .venv/bin/pip install --quiet --upgrade pip maturin
 # Builds the Rust extension caviar._core (release) and installs caviar in editable mode.
 .venv/bin/pip install --quiet -e ".[test]"
-.venv/bin/pip install --quiet -e plugins
+.venv/bin/pip install --quiet -e "plugins[radio]"
 
 log "ready: $(.venv/bin/caviar-core --version)"

@@ -78,3 +78,18 @@ class BadPayload(caviar.Plugin):
 
 class NotAPlugin:
     pass
+
+
+class FixedBeam(caviar.Plugin):
+    """A beam selector that always picks the same pair for one UE."""
+
+    subscribe = ["3D.mobility.positions"]
+
+    @dataclasses.dataclass
+    class Params:
+        ue_id: str = "uav1"
+        beam_pair: int = 0
+
+    def step(self, t, inbox):
+        if inbox.on("3D.mobility.positions"):
+            yield "ai.beam.selection", {"UE_Id": self.ctx.params.ue_id, "beam_pair": self.ctx.params.beam_pair}

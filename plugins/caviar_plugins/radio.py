@@ -1,0 +1,206 @@
+"""Ray-traced MIMO links with Sionna RT: the scene is loaded once and kept in memory;
+between steps only receivers and UAV meshes move.
+
+This module knows nothing of caviar: :class:`RadioScene` is what the communications
+plugin and the benchmarks call.
+
+Sionna RT 2.x runs on Dr.Jit. Without a GPU it uses the LLVM backend, which needs
+libLLVM >= 16 (Debian: ``libllvm19``); :func:`configure_drjit` points Dr.Jit at it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import os
+import pathlib
+
+import numpy as np
+
+from caviar_plugins.beams import beam_gains, dft_codebook
+
+SCENES = pathlib.Path(__file__).parent / "scenes"
+UAV_BODY = SCENES / "central_park" / "meshes" / "Cube.ply"  # a 2 m cube
+
+
+def configure_drjit() -> None:
+    """Sets DRJIT_LIBLLVM_PATH to the newest libLLVM >= 16 found, unless already set.
+    Must run before sionna/mitsuba/drjit are imported."""
+    if os.environ.get("DRJIT_LIBLLVM_PATH"):
+        return
+    candidates = []
+    for path in glob.glob("/usr/lib/*-linux-gnu/libLLVM.so.*") + glob.glob("/usr/lib/*-linux-gnu/libLLVM-*.so"):
+        digits = "".join(ch if ch.isdigit() else " " for ch in os.path.basename(path)).split()
+        if digits and int(digits[0]) >= 16:
+            candidates.append((int(digits[0]), path))
+    if candidates:
+        os.environ["DRJIT_LIBLLVM_PATH"] = max(candidates)[1]
+
+
+def scene_path(name: str, base: pathlib.Path | None = None) -> pathlib.Path | None:
+    """A shipped scene by name (``central_park``), or a path to a Mitsuba XML file.
+    ``empty`` gives None: free space."""
+    if name == "empty":
+        return None
+    shipped = SCENES / name / f"{name}.xml"
+    if shipped.exists():
+        return shipped
+    p = pathlib.Path(name)
+    if not p.is_absolute() and base is not None:
+        p = base / p
+    if not p.exists():
+        known = ", ".join(sorted(d.name for d in SCENES.iterdir() if d.is_dir()))
+        raise FileNotFoundError(f"scene '{name}': neither a shipped scene ({known}, empty) nor an existing file")
+    return p
+
+
+@dataclasses.dataclass
+class RadioConfig:
+    """The paper's communications parameters (Table "Communications parameters")."""
+
+    scene: str = "central_park"
+    frequency_hz: float = 40e9
+    tx_position: list[float] = dataclasses.field(default_factory=lambda: [-154.0, 64.0, 120.0])
+    tx_orientation: list[float] = dataclasses.field(default_factory=lambda: [-2.0944, 0.785398, 0.0])
+    """Yaw, pitch, roll in radians."""
+    tx_array: list[int] = dataclasses.field(default_factory=lambda: [8, 8])
+    """Rows (along z) × columns (along y)."""
+    rx_array: list[int] = dataclasses.field(default_factory=lambda: [2, 2])
+    spacing: float = 0.5
+    """Element spacing in wavelengths, both axes."""
+    pattern: str = "tr38901"
+    polarization: str = "V"
+    max_depth: int = 5
+    samples_per_src: int = 1_000_000
+    los: bool = True
+    specular_reflection: bool = True
+    diffuse_reflection: bool = True
+    diffraction: bool = True
+    refraction: bool = True
+    uav_mesh: bool = True
+    """Put a metal UAV body (the scene's 2 m cube) at each UAV's position."""
+    antenna_offset: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 1.5])
+    """Receive antenna relative to the UAV body's centre (above the 2 m cube)."""
+
+    def __post_init__(self):
+        for name in ("tx_position", "tx_orientation", "antenna_offset"):
+            if len(getattr(self, name)) != 3:
+                raise ValueError(f"{name}: expected three numbers, got {getattr(self, name)}")
+        for name in ("tx_array", "rx_array"):
+            if len(getattr(self, name)) != 2 or min(getattr(self, name)) < 1:
+                raise ValueError(f"{name}: expected [rows, columns], got {getattr(self, name)}")
+        if self.max_depth < 0 or self.samples_per_src < 1:
+            raise ValueError("max_depth must be >= 0 and samples_per_src >= 1")
+
+
+@dataclasses.dataclass
+class Link:
+    """One receiver's result of a solve."""
+
+    h: np.ndarray
+    """Narrowband MIMO channel at the carrier, (N_rx_ant, N_tx_ant) complex."""
+    gains: np.ndarray
+    """Beam-pair gains |w_rx^H H w_tx|², (C_rx, C_tx)."""
+    los: bool
+    n_paths: int
+
+    @property
+    def path_gain(self) -> float:
+        """Mean power gain over antenna pairs (element patterns included)."""
+        return float(np.mean(np.abs(self.h) ** 2))
+
+    @property
+    def best_pair(self) -> int:
+        """Flat index rx_beam · C_tx + tx_beam of the strongest pair."""
+        return int(np.argmax(self.gains))
+
+
+class RadioScene:
+    def __init__(self, cfg: RadioConfig, seed: int = 0, base_dir: pathlib.Path | None = None):
+        configure_drjit()
+        import sionna.rt as rt
+
+        self.rt = rt
+        self.cfg = cfg
+        self.seed = int(seed) % (2**31)
+        path = scene_path(cfg.scene, base_dir)
+        self.scene = rt.load_scene(str(path)) if path else rt.load_scene()
+        s = self.scene
+        s.frequency = cfg.frequency_hz
+        s.tx_array = self._array(cfg.tx_array)
+        s.rx_array = self._array(cfg.rx_array)
+        s.add(rt.Transmitter("tx", position=cfg.tx_position, orientation=cfg.tx_orientation))
+        self.solver = rt.PathSolver()
+        self.w_tx = dft_codebook(np.array(s.tx_array.positions(s.wavelength)))
+        self.w_rx = dft_codebook(np.array(s.rx_array.positions(s.wavelength)))
+        self.receivers: dict[str, object] = {}
+        self.bodies: dict[str, object] = {}
+        self._body_template = s.objects.get("Cube")
+        self._bodies_on = cfg.uav_mesh
+
+    def _array(self, shape):
+        return self.rt.PlanarArray(num_rows=shape[0], num_cols=shape[1], vertical_spacing=self.cfg.spacing,
+                                   horizontal_spacing=self.cfg.spacing, pattern=self.cfg.pattern,
+                                   polarization=self.cfg.polarization)
+
+    @property
+    def n_tx_beams(self) -> int:
+        return self.w_tx.shape[1]
+
+    def place(self, positions: dict[str, np.ndarray]) -> None:
+        """Moves (creating on first sight) each UAV's receiver and body."""
+        new = [k for k in positions if k not in self.receivers]
+        if new and self._bodies_on:
+            self._add_bodies(new)
+        for key, pos in positions.items():
+            pos = np.asarray(pos, dtype=float)
+            if key not in self.receivers:
+                rx = self.rt.Receiver(f"rx-{key}", position=(pos + self.cfg.antenna_offset).tolist())
+                self.scene.add(rx)
+                self.receivers[key] = rx
+            else:
+                self.receivers[key].position = (pos + self.cfg.antenna_offset).tolist()
+            if key in self.bodies:
+                self.bodies[key].position = pos.tolist()
+
+    def _add_bodies(self, keys: list[str]) -> None:
+        # The scene's own UAV cube serves the first UAV; more UAVs (and scenes without
+        # one) get a copy of the shipped 2 m cube in ITU metal, added in one edit: an
+        # edit recompiles kernels, so it happens only when UAVs appear.
+        extra = []
+        for key in keys:
+            template = self._body_template
+            if template is not None and all(b is not template for b in self.bodies.values()):
+                self.bodies[key] = template
+                continue
+            material = template.radio_material if template is not None else self._metal()
+            obj = self.rt.SceneObject(fname=str(UAV_BODY), name=f"uav-body-{key}", radio_material=material)
+            extra.append(obj)
+            self.bodies[key] = obj
+        if extra:
+            self.scene.edit(add=extra)
+
+    def _metal(self):
+        if not hasattr(self, "_metal_material"):
+            self._metal_material = self.rt.ITURadioMaterial("uav-metal", "metal", thickness=0.1)
+        return self._metal_material
+
+    def solve(self) -> dict[str, Link]:
+        """Ray traces every receiver in one call."""
+        c = self.cfg
+        paths = self.solver(self.scene, max_depth=c.max_depth, samples_per_src=c.samples_per_src,
+                            synthetic_array=True, los=c.los, specular_reflection=c.specular_reflection,
+                            diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
+                            diffraction=c.diffraction, seed=self.seed)
+        # paths.a lacks the carrier phase: the CFR at the carrier includes it.
+        cfr = paths.cfr(frequencies=np.array([c.frequency_hz]), normalize_delays=False, out_type="numpy")
+        valid = np.array(paths.valid).reshape(len(self.receivers), 1, -1)  # [rx, tx, paths]
+        interactions = np.array(paths.interactions).reshape(-1, len(self.receivers), 1, valid.shape[-1])
+        # A line-of-sight path is a valid path without any interaction.
+        los = np.any(valid & np.all(interactions == 0, axis=0), axis=-1)[:, 0]
+        out = {}
+        for i, key in enumerate(self.receivers):
+            h = cfr[i, :, 0, :, 0, 0]
+            out[key] = Link(h=h, gains=beam_gains(h, self.w_tx, self.w_rx), los=bool(los[i]),
+                            n_paths=int(valid[i].sum()))
+        return out
