@@ -155,5 +155,41 @@ params = { samples_per_src = 10000 }
             # Throughput from the link budget of the used pair, computed here independently.
             sinr = 0.5 * g.flat[pair] / (1.380649e-23 * (290 + 298.15) * 40e6 + 1e-13)
             assert t == pytest.approx(40 * math.log2(1 + sinr), rel=1e-5)
-            assert t <= budget.throughput_mbps(g.max()) + 1e-9
+            assert t <= budget.throughput_mbps(g.max()) * (1 + 1e-6)  # gains travel as float32
             assert row["path_gain_db"] == pytest.approx(10 * math.log10(np.mean(np.abs(h) ** 2)), abs=1e-3)
+
+
+def test_los_flag_agrees_with_an_independent_visibility_test():
+    import mitsuba as mi
+
+    radio = RadioScene(RadioConfig(samples_per_src=10_000, uav_mesh=False))
+    path = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
+    points = {f"p{i}": path.at(s) for i, s in enumerate(np.arange(0.0, path.length, 20.0))}
+    radio.place(points)
+    links = radio.solve()
+    rx = np.array(list(points.values())) + radio.cfg.antenna_offset
+    tx = np.array(radio.cfg.tx_position)
+    d = np.linalg.norm(tx - rx, axis=1)
+    u = (tx - rx) / d[:, None]
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(rx[:, i]) for i in range(3)]), mi.Vector3f(*[mi.Float(u[:, i]) for i in range(3)]))
+    ray.maxt = mi.Float(d - 0.01)
+    visible = ~np.array(radio.scene.mi_scene.ray_test(ray))
+    flags = np.array([links[k].los for k in points])
+    assert visible.any() and (~visible).any()  # the flight has both kinds of link
+    assert np.sum(flags != visible) <= 1, (flags, visible)
+
+
+def test_a_step_without_movement_reuses_the_last_solve():
+    radio = free_space()
+    calls = []
+    solver = radio.solver
+    radio.solver = lambda *a, **k: calls.append(1) or solver(*a, **k)
+    pos = {"uav1": np.array([30.0, 5.0, 10.0]), "uav2": np.array([-40.0, 5.0, 10.0])}
+    radio.place(pos)
+    first = radio.solve()
+    radio.place({k: v.copy() for k, v in pos.items()})  # hovering
+    assert radio.solve() is first and len(calls) == 1
+    radio.place({"uav1": pos["uav1"] + [0.5, 0, 0], "uav2": pos["uav2"]})
+    moved = radio.solve()
+    assert len(calls) == 2 and moved is not first
+    np.testing.assert_allclose(moved["uav2"].h, first["uav2"].h, rtol=1e-6)

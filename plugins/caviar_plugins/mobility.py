@@ -44,8 +44,10 @@ class WaypointFlight(caviar.Plugin):
 
     @dataclasses.dataclass
     class Params:
-        waypoints: str = str(DATA / "central_park_path0.csv")
-        """CSV with header X,Y,Z (relative to the config file)."""
+        waypoints: str = "central_park_path0.csv"
+        """CSV with header X,Y,Z: a path relative to the config file, or the name of a
+        shipped trajectory (central_park_path0.csv: the paper's, AirSim NED;
+        central_park_path0_scene.csv: scene frame, spur stopped before the building)."""
         frame: str = "airsim_ned"
         """``airsim_ned`` (converted to the scene frame) or ``scene``."""
         speed: float = 5.0
@@ -61,7 +63,10 @@ class WaypointFlight(caviar.Plugin):
 
     def setup(self, ctx):
         p = ctx.params
-        pts = read_waypoints(ctx.resolve(p.waypoints))
+        path = ctx.resolve(p.waypoints)
+        if not path.exists() and (DATA / p.waypoints).exists():
+            path = DATA / p.waypoints
+        pts = read_waypoints(path)
         if p.frame == "airsim_ned":
             pts = airsim_ned_to_scene(pts)
         self.path = Path(pts)

@@ -18,6 +18,7 @@ import pathlib
 import numpy as np
 
 from caviar_plugins.beams import beam_gains, dft_codebook
+from caviar_plugins.linkbudget import SPEED_OF_LIGHT
 
 SCENES = pathlib.Path(__file__).parent / "scenes"
 UAV_BODY = SCENES / "central_park" / "meshes" / "Cube.ply"  # a 2 m cube
@@ -135,6 +136,10 @@ class RadioScene:
         self.w_rx = dft_codebook(np.array(s.rx_array.positions(s.wavelength)))
         self.receivers: dict[str, object] = {}
         self.bodies: dict[str, object] = {}
+        # The scene is static and the solver seeded: the same positions give the same
+        # paths, so a step in which no UAV moved (hovering) reuses the last solve.
+        self._placed: tuple = ()
+        self._solved: tuple[tuple, dict] | None = None
         self._body_template = s.objects.get("Cube")
         self._bodies_on = cfg.uav_mesh
 
@@ -162,6 +167,7 @@ class RadioScene:
                 self.receivers[key].position = (pos + self.cfg.antenna_offset).tolist()
             if key in self.bodies:
                 self.bodies[key].position = pos.tolist()
+        self._placed = tuple((k, tuple(np.asarray(p, dtype=float))) for k, p in positions.items())
 
     def _add_bodies(self, keys: list[str]) -> None:
         # The scene's own UAV cube serves the first UAV; more UAVs (and scenes without
@@ -186,7 +192,9 @@ class RadioScene:
         return self._metal_material
 
     def solve(self) -> dict[str, Link]:
-        """Ray traces every receiver in one call."""
+        """Ray traces every receiver in one call (or reuses the last result if nothing moved)."""
+        if self._solved is not None and self._solved[0] == self._placed:
+            return self._solved[1]
         c = self.cfg
         paths = self.solver(self.scene, max_depth=c.max_depth, samples_per_src=c.samples_per_src,
                             synthetic_array=True, los=c.los, specular_reflection=c.specular_reflection,
@@ -194,13 +202,17 @@ class RadioScene:
                             diffraction=c.diffraction, seed=self.seed)
         # paths.a lacks the carrier phase: the CFR at the carrier includes it.
         cfr = paths.cfr(frequencies=np.array([c.frequency_hz]), normalize_delays=False, out_type="numpy")
-        valid = np.array(paths.valid).reshape(len(self.receivers), 1, -1)  # [rx, tx, paths]
-        interactions = np.array(paths.interactions).reshape(-1, len(self.receivers), 1, valid.shape[-1])
-        # A line-of-sight path is a valid path without any interaction.
-        los = np.any(valid & np.all(interactions == 0, axis=0), axis=-1)[:, 0]
+        valid = np.array(paths.valid).reshape(len(self.receivers), -1)  # [rx, paths] (one tx)
+        tau = np.array(paths.tau).reshape(len(self.receivers), -1)
+        # The line-of-sight path is the one as long as the straight line (1 cm tolerance;
+        # cheaper than asking the solver for the interaction types of every path).
+        rx_pos = np.array([p for _, p in self._placed]) + np.asarray(c.antenna_offset, dtype=float)
+        direct = np.linalg.norm(rx_pos - np.asarray(c.tx_position, dtype=float), axis=1)
+        los = np.any(valid & (np.abs(tau * SPEED_OF_LIGHT - direct[:, None]) < 0.01), axis=1)
         out = {}
         for i, key in enumerate(self.receivers):
             h = cfr[i, :, 0, :, 0, 0]
             out[key] = Link(h=h, gains=beam_gains(h, self.w_tx, self.w_rx), los=bool(los[i]),
                             n_paths=int(valid[i].sum()))
+        self._solved = (self._placed, out)
         return out

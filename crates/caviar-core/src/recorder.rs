@@ -327,25 +327,37 @@ pub fn read_table(run_dir: &Path, table: &str) -> Result<Vec<RecordBatch>, Recor
     Ok(out)
 }
 
-fn column<'a, T: 'static>(batch: &'a RecordBatch, name: &str) -> &'a T {
-    batch
-        .column_by_name(name)
-        .and_then(|c| c.as_any().downcast_ref::<T>())
-        .unwrap_or_else(|| panic!("recorded table lacks column {name}"))
+/// A column as the expected Arrow type. Parquet written by other tools (polars writes
+/// `Utf8View`, pandas `LargeUtf8`) is cast rather than rejected.
+fn column(batch: &RecordBatch, name: &str, path: &Path, to: &DataType) -> Result<ArrayRef, RecordError> {
+    let format = |message: String| RecordError::Format { path: path.to_path_buf(), message };
+    let col = batch.column_by_name(name).ok_or_else(|| format(format!("recorded table lacks column '{name}'")))?;
+    if col.data_type() == to {
+        return Ok(col.clone());
+    }
+    arrow_cast::cast(col, to).map_err(|e| format(format!("column '{name}': {e}")))
+}
+
+macro_rules! typed {
+    ($batch:expr, $name:expr, $path:expr, $array:ty, $dtype:expr) => {{
+        let col = column($batch, $name, $path, &$dtype)?;
+        col.as_any().downcast_ref::<$array>().expect("cast to the matching type").clone()
+    }};
 }
 
 /// All recorded messages of a run, in recording order.
 pub fn read_messages(run_dir: &Path) -> Result<Vec<Message>, RecordError> {
     let mut out = Vec::new();
     for b in read_table(run_dir, MESSAGES)? {
-        let step = column::<UInt64Array>(&b, "step");
-        let time = column::<Float64Array>(&b, "time");
-        let source = column::<StringArray>(&b, "source");
-        let topic = column::<StringArray>(&b, "topic");
-        let kind = column::<StringArray>(&b, "kind");
-        let text = column::<StringArray>(&b, "text");
-        let meta = column::<StringArray>(&b, "meta");
-        let data = column::<BinaryArray>(&b, "data");
+        let p = run_dir;
+        let step = typed!(&b, "step", p, UInt64Array, DataType::UInt64);
+        let time = typed!(&b, "time", p, Float64Array, DataType::Float64);
+        let source = typed!(&b, "source", p, StringArray, DataType::Utf8);
+        let topic = typed!(&b, "topic", p, StringArray, DataType::Utf8);
+        let kind = typed!(&b, "kind", p, StringArray, DataType::Utf8);
+        let text = typed!(&b, "text", p, StringArray, DataType::Utf8);
+        let meta = typed!(&b, "meta", p, StringArray, DataType::Utf8);
+        let data = typed!(&b, "data", p, BinaryArray, DataType::Binary);
         for i in 0..b.num_rows() {
             let payload = match PayloadKind::parse(kind.value(i)) {
                 Some(PayloadKind::Json) => Payload::Json(text.value(i).to_string()),
@@ -377,13 +389,14 @@ pub fn read_messages(run_dir: &Path) -> Result<Vec<Message>, RecordError> {
 pub fn read_timings(run_dir: &Path) -> Result<Vec<TimingRow>, RecordError> {
     let mut out = Vec::new();
     for b in read_table(run_dir, TIMINGS)? {
-        let step = column::<UInt64Array>(&b, "step");
-        let time = column::<Float64Array>(&b, "time");
-        let module = column::<StringArray>(&b, "module");
-        let wall = column::<Float64Array>(&b, "wall_s");
-        let cpu = column::<Float64Array>(&b, "cpu_s");
-        let msgs_in = column::<UInt32Array>(&b, "msgs_in");
-        let msgs_out = column::<UInt32Array>(&b, "msgs_out");
+        let p = run_dir;
+        let step = typed!(&b, "step", p, UInt64Array, DataType::UInt64);
+        let time = typed!(&b, "time", p, Float64Array, DataType::Float64);
+        let module = typed!(&b, "module", p, StringArray, DataType::Utf8);
+        let wall = typed!(&b, "wall_s", p, Float64Array, DataType::Float64);
+        let cpu = typed!(&b, "cpu_s", p, Float64Array, DataType::Float64);
+        let msgs_in = typed!(&b, "msgs_in", p, UInt32Array, DataType::UInt32);
+        let msgs_out = typed!(&b, "msgs_out", p, UInt32Array, DataType::UInt32);
         for i in 0..b.num_rows() {
             out.push(TimingRow {
                 step: step.value(i),
