@@ -93,3 +93,16 @@ class FixedBeam(caviar.Plugin):
     def step(self, t, inbox):
         if inbox.on("3D.mobility.positions"):
             yield "ai.beam.selection", {"UE_Id": self.ctx.params.ue_id, "beam_pair": self.ctx.params.beam_pair}
+
+
+class ScriptedDetections(caviar.Plugin):
+    """Throughput and detections as a detector would send them, on a fixed script."""
+
+    def step(self, t, inbox):
+        step = self.ctx.step
+        yield "communications.throughput", {"UE_type": "UAV", "UE_Id": "uav1", "throughput": 80.0 if step >= 3 else 40.0}
+        ground = {1: [(10.0, 10.0)], 2: [(12.0, 12.0)], 3: [(50.0, 10.0)]}.get(step, [])
+        yield "ai.detections", {"UE_Id": "uav1", "count": len(ground),
+                                "detections": [{"ground": {"x": x, "y": y}} for x, y in ground]}
+        if step == 5:
+            yield caviar.END_TOPIC, {"reason": "script"}

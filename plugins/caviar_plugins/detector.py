@@ -1,0 +1,262 @@
+"""Person detector for UAV images, trained by the project on its own renders.
+
+No pretrained weights can be downloaded, so the detector is learned from frames the
+camera module renders, with exact labels from the renderer (each pixel's shape):
+a random forest classifies pixels from their colour and neighbourhood, and
+connected regions of person pixels of plausible size are the detections. Training
+includes packet-loss-degraded frames, so the detector meets the images it gets in
+the loop.
+
+    python -m caviar_plugins.detector train      # trains, evaluates on held-out frames
+
+The ``builtin`` model is trained on first use (about half a minute) and cached under
+``$CAVIAR_CACHE`` (default ``~/.cache/caviar``); ``model = "PATH.pkl"`` loads another.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import pathlib
+import pickle
+
+import numpy as np
+
+import caviar
+from caviar_plugins.degrade import packet_loss
+
+TRAINING_SEED = 1234
+MODEL_VERSION = 1
+
+
+def features(image: np.ndarray) -> np.ndarray:
+    """Per-pixel features (H·W, 10): colour, 5×5 mean colour, chroma, 9×9 mean chroma."""
+    from scipy.ndimage import uniform_filter
+
+    x = image.astype(np.float32) / 255.0
+    local = uniform_filter(x, size=(5, 5, 1))
+    chroma = (x.max(axis=2) - x.min(axis=2))[..., None]
+    wide = uniform_filter(chroma, size=(9, 9, 1))
+    return np.concatenate([x, local, chroma, wide, x[..., :1] - x[..., 1:2], x[..., 2:3] - x[..., 1:2]],
+                          axis=2).reshape(-1, 10)
+
+
+@dataclasses.dataclass
+class Detection:
+    row: float
+    col: float
+    pixels: int
+    score: float
+
+
+class PixelDetector:
+    def __init__(self, forest, min_pixels: int = 12, threshold: float = 0.5):
+        self.forest = forest
+        self.min_pixels = min_pixels
+        self.threshold = threshold
+
+    def mask(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        from scipy.ndimage import binary_dilation
+
+        prob = self.forest.predict_proba(features(image))[:, 1].reshape(image.shape[:2])
+        # Lost packets arrive as zero bytes: pixels that are exactly black, and their
+        # neighbours (whose features saw the hole), are not evidence of anything.
+        missing = binary_dilation(np.all(image == 0, axis=2), iterations=2)
+        return (prob >= self.threshold) & ~missing, prob
+
+    def detect(self, image: np.ndarray) -> list[Detection]:
+        from scipy.ndimage import label
+
+        mask, prob = self.mask(image)
+        regions, n = label(mask)
+        out = []
+        for k in range(1, n + 1):
+            rows, cols = np.nonzero(regions == k)
+            if len(rows) >= self.min_pixels:
+                out.append(Detection(float(rows.mean()), float(cols.mean()), int(len(rows)),
+                                     float(prob[rows, cols].mean())))
+        return out
+
+    def save(self, path: pathlib.Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_bytes(pickle.dumps({"version": MODEL_VERSION, "detector": self}))
+        tmp.replace(path)
+
+    @staticmethod
+    def load(path: pathlib.Path) -> "PixelDetector":
+        data = pickle.loads(pathlib.Path(path).read_bytes())
+        if not isinstance(data, dict) or not isinstance(data.get("detector"), PixelDetector):
+            raise ValueError(f"{path}: not a caviar person detector")
+        return data["detector"]
+
+
+def frames(count: int, seed: int, loss_rates=(0.0, 0.0, 0.01, 0.25, 0.5)):
+    """Rendered frames with labels: half over a target (at random offsets and
+    altitudes), half anywhere along the route; each with a random packet loss."""
+    from caviar_plugins.camera import VisualConfig, VisualScene
+    from caviar_plugins.frames import read_waypoints
+    from caviar_plugins.mobility import Path
+    from caviar_plugins import DATA
+
+    rng = np.random.default_rng(seed)
+    visual = VisualScene(VisualConfig(), seed=seed)
+    path = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
+    targets = np.array(visual.cfg.targets)
+    for i in range(count):
+        if i % 2 == 0:
+            xy = targets[rng.integers(len(targets))] + rng.normal(0, 2.5, 2)
+        else:
+            xy = path.at(rng.uniform(0, path.length))[:2] + rng.normal(0, 3, 2)
+        z = rng.uniform(7.0, 12.0)
+        image, labels = visual.render_labelled([xy[0], xy[1], z])
+        rate = float(rng.choice(loss_rates))
+        if rate:
+            image = packet_loss(image, rate, rng)
+        yield image, labels, rate
+
+
+def train(count: int = 240, seed: int = TRAINING_SEED, pixels_per_frame: int = 600) -> PixelDetector:
+    from sklearn.ensemble import RandomForestClassifier
+
+    rng = np.random.default_rng(seed)
+    xs, ys = [], []
+    for image, labels, _ in frames(count, seed):
+        f = features(image)
+        y = (labels.reshape(-1) >= 0).astype(np.int8)
+        pos, neg = np.flatnonzero(y), np.flatnonzero(y == 0)
+        take = np.concatenate([pos, rng.choice(neg, min(len(neg), pixels_per_frame), replace=False)])
+        xs.append(f[take])
+        ys.append(y[take])
+    forest = RandomForestClassifier(n_estimators=40, max_depth=14, min_samples_leaf=3, n_jobs=1,
+                                    random_state=seed, class_weight="balanced")
+    forest.fit(np.concatenate(xs), np.concatenate(ys))
+    return PixelDetector(forest)
+
+
+def evaluate(detector: PixelDetector, count: int = 120, seed: int = TRAINING_SEED + 1, min_visible: int = 12) -> dict:
+    """Object-level precision and recall on frames not seen in training, per loss rate.
+    A target counts when at least ``min_visible`` of its pixels are in the frame; a
+    detection is correct when its region overlaps a target's pixels."""
+    from scipy.ndimage import label
+
+    stats: dict[float, dict[str, int]] = {}
+    for image, labels, rate in frames(count, seed):
+        s = stats.setdefault(rate, {"tp": 0, "fp": 0, "fn": 0, "frames": 0})
+        s["frames"] += 1
+        mask, _ = detector.mask(image)
+        regions, n = label(mask)
+        found = set()
+        for k in range(1, n + 1):
+            region = regions == k
+            if region.sum() < detector.min_pixels:
+                continue
+            hit = labels[region]
+            hit = hit[hit >= 0]
+            if len(hit):
+                s["tp"] += 1
+                found.update(np.unique(hit).tolist())
+            else:
+                s["fp"] += 1
+        visible = [p for p in np.unique(labels[labels >= 0]) if (labels == p).sum() >= min_visible]
+        s["fn"] += sum(1 for p in visible if p not in found)
+    out = {}
+    for rate, s in sorted(stats.items()):
+        out[f"{rate:.2f}"] = {**s, "precision": s["tp"] / max(1, s["tp"] + s["fp"]),
+                              "recall": (s["tp"] and (s["tp"] / max(1, s["tp"] + s["fn"]))) or 0.0}
+    return out
+
+
+def cache_dir() -> pathlib.Path:
+    return pathlib.Path(os.environ.get("CAVIAR_CACHE", pathlib.Path.home() / ".cache" / "caviar"))
+
+
+def builtin_model() -> PixelDetector:
+    """The project's detector, trained on first use and cached."""
+    import sklearn
+
+    path = cache_dir() / f"person-detector-v{MODEL_VERSION}-sklearn{sklearn.__version__}.pkl"
+    if path.exists():
+        return PixelDetector.load(path)
+    detector = train()
+    detector.save(path)
+    return detector
+
+
+class PersonDetector(caviar.Plugin):
+    """Detects people in received images (``ai.images.<UE_Id>``, or camera images
+    directly) and publishes ``ai.detections`` with each detection's estimated
+    ground position, from the UAV's position and the nadir camera's geometry."""
+
+    subscribe = ["ai.images.*", "3D.mobility.positions"]
+
+    @dataclasses.dataclass
+    class Params:
+        model: str = "builtin"
+        fov_deg: float = 70.0
+        """Horizontal field of view of the camera (as in the camera module)."""
+
+    def setup(self, ctx):
+        self.ctx = ctx
+        p = ctx.params
+        self.detector = builtin_model() if p.model == "builtin" else PixelDetector.load(ctx.resolve(p.model))
+        self.positions: dict[str, dict] = {}
+
+    def step(self, t, inbox):
+        for m in inbox.on("3D.mobility.positions"):
+            self.positions[m.data["UE_Id"]] = m.data["position"]
+        for m in inbox.on("ai.images.*"):
+            ue = m.topic.rsplit(".", 1)[1]
+            image = m.data
+            pos = self.positions.get(ue)
+            found = []
+            for d in self.detector.detect(image):
+                item = {"row": d.row, "col": d.col, "pixels": d.pixels, "score": round(d.score, 4)}
+                if pos is not None:
+                    item["ground"] = pixel_to_ground(d.row, d.col, image.shape, pos, self.ctx.params.fov_deg)
+                found.append(item)
+            yield "ai.detections", {"UE_Id": ue, "image_step": m.step, "count": len(found), "detections": found}
+
+
+def pixel_to_ground(row: float, col: float, shape, position: dict, fov_deg: float) -> dict:
+    """Ground point (z = 0) seen at a pixel of a nadir camera with image-up = +y."""
+    h, w = shape[:2]
+    half = position["z"] * math.tan(math.radians(fov_deg) / 2)  # half the footprint width
+    metres_per_px = 2 * half / w
+    dx = (col + 0.5 - w / 2) * metres_per_px
+    dy = (h / 2 - row - 0.5) * metres_per_px
+    return {"x": position["x"] + X_SIGN * dx, "y": position["y"] + dy}
+
+
+# Whether image columns grow with +x or -x (Mitsuba's look_at with up = +y looking
+# down); checked by tests/test_sar.py against a rendered target.
+X_SIGN = 1.0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description="Train and evaluate the person detector.")
+    ap.add_argument("command", choices=["train"])
+    ap.add_argument("--frames", type=int, default=240)
+    ap.add_argument("--eval-frames", type=int, default=120)
+    ap.add_argument("--out", type=pathlib.Path, default=None, help="model file (default: the builtin cache)")
+    ap.add_argument("--report", type=pathlib.Path, default=pathlib.Path("docs/results/detector.json"))
+    args = ap.parse_args()
+    import sklearn
+
+    detector = train(args.frames)
+    out = args.out or cache_dir() / f"person-detector-v{MODEL_VERSION}-sklearn{sklearn.__version__}.pkl"
+    detector.save(out)
+    report = {"training_frames": args.frames, "eval_frames": args.eval_frames, "by_loss_rate": evaluate(detector, args.eval_frames)}
+    args.report.parent.mkdir(parents=True, exist_ok=True)
+    args.report.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"model: {out}")
+    print("| packet loss | frames | precision | recall |\n|---:|---:|---:|---:|")
+    for rate, s in report["by_loss_rate"].items():
+        print(f"| {float(rate):.0%} | {s['frames']} | {s['precision']:.3f} | {s['recall']:.3f} |")
+
+
+if __name__ == "__main__":
+    main()

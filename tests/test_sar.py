@@ -1,0 +1,198 @@
+"""Search-and-rescue plugins, each alone with small settings, and a short all-in-loop episode."""
+
+import math
+
+import numpy as np
+import pytest
+
+import caviar
+from conftest import write_config
+from caviar_plugins import beam_selection, detector
+from caviar_plugins.camera import VisualConfig, VisualScene
+from caviar_plugins.degrade import loss_for_throughput, packet_loss, psnr
+from caviar_plugins.radio import RadioConfig, RadioScene
+
+
+@pytest.fixture(scope="module")
+def visual():
+    return VisualScene(VisualConfig(), seed=1)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A detector trained on 60 rendered frames (the builtin one uses 240)."""
+    model = detector.train(count=60, seed=7)
+    path = tmp_path_factory.mktemp("model") / "detector.pkl"
+    model.save(path)
+    return model, path
+
+
+def test_camera_sees_a_target_where_the_geometry_says(visual):
+    tx, ty = visual.cfg.targets[2]
+    image, labels = visual.render_labelled([tx + 2.0, ty - 1.5, 9.0])
+    assert image.dtype == np.uint8 and image.shape == (120, 160, 3)
+    rows, cols = np.nonzero(labels == 2)
+    assert len(rows) > 50
+    # The person's pixels map back to its ground position through the nadir camera model.
+    g = detector.pixel_to_ground(rows.mean(), cols.mean(), image.shape, {"x": tx + 2.0, "y": ty - 1.5, "z": 9.0}, 70.0)
+    assert math.dist((g["x"], g["y"]), (tx, ty)) < 0.4
+    # Far from every target no person is in view.
+    _, empty = visual.render_labelled([tx + 40.0, ty + 40.0, 9.0])
+    assert (empty >= 0).sum() == 0
+
+
+def test_packet_loss_follows_the_paper_table_and_psnr(visual):
+    assert [loss_for_throughput(x) for x in (90, 60.01, 60, 30.01, 30, 0)] == [0.01, 0.01, 0.25, 0.25, 0.5, 0.5]
+    image = visual.render(visual.cfg.targets[0] + [9.0])
+    rng = np.random.default_rng(0)
+    assert psnr(image, packet_loss(image, 0.0, rng)) == float("inf")
+    results = {}
+    for rate in (0.01, 0.25, 0.5):
+        values = [packet_loss(image, rate, rng) for _ in range(40)]
+        lost = np.mean([np.mean(np.all(v == 0, axis=2)) for v in values])
+        assert lost == pytest.approx(rate, abs=0.35 * rate + 0.01)
+        # A 160 x 120 frame is only 42 packets: pool the error over the trials.
+        mse = np.mean([np.mean((image.astype(float) - v) ** 2) for v in values])
+        results[rate] = 10 * np.log10(255**2 / mse)
+    # The paper: ~26.4, ~12.4 and ~9.4 dB.
+    assert 21 < results[0.01] < 32 and 10 < results[0.25] < 15 and 7 < results[0.5] < 12
+
+
+def test_detector_precision_and_recall_on_held_out_frames(trained):
+    model, path = trained
+    report = detector.evaluate(detector.PixelDetector.load(path), count=40, seed=99)
+    clean = report["0.00"]
+    assert clean["precision"] >= 0.9 and clean["recall"] >= 0.9, report
+    assert all(r["precision"] >= 0.8 for r in report.values()), report
+
+
+def test_mission_stops_for_the_upload_and_counts_each_person_once(tmp_path):
+    cfg = write_config(tmp_path, """
+[episode]
+ts = 1.0
+steps = 6
+stages = ["sensors", "mission"]
+
+[modules.script]
+stage = "sensors"
+plugin = "sample_plugins:ScriptedDetections"
+
+[modules.mission]
+stage = "mission"
+plugin = "mission"
+""")
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    hover = log.topic("mission.hover")
+    # Detections at steps 1 (person A), 2 (A again, 3 m away: same), 3 (person B at 80 Mbit/s).
+    assert hover["step"].to_list() == [1, 3]
+    assert hover["seconds"].to_list() == pytest.approx([320 / 40.0, 320 / 80.0])
+    result = log.topic("mission.result").row(0, named=True)
+    assert result["rescued"] == 2 and result["mission_time_s"] == 5.0
+
+
+def test_beam_selection_methods(tmp_path):
+    radio = RadioScene(RadioConfig(samples_per_src=10_000, uav_mesh=False))
+    rng = np.random.default_rng(3)
+    pts = np.c_[rng.uniform(-250, 250, 60), rng.uniform(-100, 200, 60), np.full(60, 9.23)]
+    radio.place({f"p{i}": p for i, p in enumerate(pts)})
+    best = np.array([link.best_pair for link in radio.solve().values()])
+    tree = beam_selection.train(pts, best)
+    assert tree.get_depth() <= 15 and np.mean(tree.predict(pts) == best) > 0.9  # fits its training set
+    scores = tree.predict_proba(pts)
+    top = beam_selection.top_k_accuracy(scores, tree.classes_, best, [1, 5, 256])
+    assert top[1] <= top[5] <= top[256] == 1.0
+    beam_selection.save(tree, tmp_path / "tree.pkl")
+
+    base = """
+[episode]
+ts = 0.5
+steps = 4
+seed = 9
+stages = ["mobility", "ai"]
+[modules.uav]
+stage = "mobility"
+plugin = "waypoint-flight"
+params = { waypoints = "central_park_path0_scene.csv", frame = "scene" }
+[modules.beams]
+stage = "ai"
+plugin = "beam-selector"
+"""
+    for method, extra in (("random", ""), ("tree", ', model = "tree.pkl"'), ("oracle", "")):
+        cfg = write_config(tmp_path, base + f'params = {{ method = "{method}"{extra} }}\n', f"{method}.toml")
+        log = caviar.Simulation.from_toml(cfg, out=tmp_path / method).run()
+        picks = log.topic("ai.beam.selection") if method != "oracle" else None
+        if method == "oracle":
+            assert "ai.beam.selection" not in set(log.messages["topic"])
+        else:
+            assert picks.height == 4 and all(0 <= p < 256 for p in picks["beam_pair"])
+        if method == "tree":
+            pos = log.topic("3D.mobility.positions")["position"].to_list()
+            xyz = np.array([[p["x"], p["y"], p["z"]] for p in pos])
+            assert picks["beam_pair"].to_list() == tree.predict(xyz).tolist()
+    again = caviar.Simulation.from_toml(tmp_path / "random.toml", out=tmp_path / "random2").run()
+    assert again.topic("ai.beam.selection")["beam_pair"].to_list() == \
+        caviar.load_run(tmp_path / "random").topic("ai.beam.selection")["beam_pair"].to_list()
+    with pytest.raises(caviar.ConfigError, match="modules.beams.params: method 'tree' needs `model`"):
+        caviar.Simulation.from_toml(write_config(tmp_path, base + 'params = { method = "tree" }\n', "bad.toml"))
+
+
+def test_short_all_in_loop_episode_rescues_the_person_in_view(tmp_path, trained, visual):
+    _, model = trained
+    tx, ty = visual.cfg.targets[1]
+    (tmp_path / "route.csv").write_text(f"X,Y,Z\n{tx - 8:.2f},{ty:.2f},9.23\n{tx + 8:.2f},{ty:.2f},9.23\n")
+    cfg = write_config(tmp_path, f"""
+[episode]
+ts = 0.5
+seed = 2
+stages = ["mobility", "camera", "ai", "communications", "link", "detection", "mission"]
+
+[modules.uav]
+stage = "mobility"
+plugin = "waypoint-flight"
+params = {{ waypoints = "route.csv", frame = "scene", speed = 5.0 }}
+
+[modules.camera]
+stage = "camera"
+plugin = "camera"
+params = {{ save = true }}
+
+[modules.beams]
+stage = "ai"
+plugin = "beam-selector"
+params = {{ method = "oracle" }}
+
+[modules.comm]
+stage = "communications"
+plugin = "sionna-link"
+params = {{ samples_per_src = 10000, publish_channels = false }}
+
+[modules.link]
+stage = "link"
+plugin = "image-link"
+
+[modules.detector]
+stage = "detection"
+plugin = "person-detector"
+params = {{ model = "{model.as_posix()}" }}
+
+[modules.mission]
+stage = "mission"
+plugin = "mission"
+""")
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    assert log.status["status"] == "completed"
+    rescues = log.topic("mission.rescue")
+    quality = log.topic("ai.image_quality")
+    assert quality.height == log.status["steps_done"]
+    assert set(quality["loss_rate"]) <= {0.01, 0.25, 0.5}
+    assert rescues.height == 1, rescues
+    r = rescues.row(0, named=True)
+    assert math.dist((r["x"], r["y"]), (tx, ty)) < 1.5
+    assert r["hover_s"] == pytest.approx(min(320 / r["throughput"], 600.0))
+    # The hover shows in the flight: the UAV stood still after the rescue.
+    xs = [p["x"] for p in log.topic("3D.mobility.positions")["position"].to_list()]
+    assert sum(1 for a, b in zip(xs, xs[1:]) if a == b) >= 2
+    result = log.topic("mission.result").row(0, named=True)
+    flight = 16.0 / 5.0
+    assert result["rescued"] == 1 and result["mission_time_s"] >= flight + min(r["hover_s"], 600) - 1.0
+    assert len(list((tmp_path / "run" / "artifacts" / "camera").glob("uav1-*.png"))) == log.status["steps_done"]
