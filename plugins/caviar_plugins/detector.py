@@ -29,7 +29,7 @@ import caviar
 from caviar_plugins.degrade import packet_loss
 
 TRAINING_SEED = 1234
-MODEL_VERSION = 1
+MODEL_VERSION = 2
 
 
 def features(image: np.ndarray) -> np.ndarray:
