@@ -197,3 +197,33 @@ plugin = "mission"
     flight = 16.0 / 5.0
     assert result["rescued"] == 1 and result["mission_time_s"] >= flight + min(r["hover_s"], 600) - 1.0
     assert len(list((tmp_path / "run" / "artifacts" / "camera").glob("uav1-*.png"))) == log.status["steps_done"]
+
+
+def test_beam_dataset_blueprint_and_tree_training(tmp_path, cli):
+    import json
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    from caviar_plugins.beam_dataset import load
+
+    bp = ROOT / "blueprints" / "beam-dataset"
+    small = ["--set", "modules.comm.params.samples_per_src=10000", "-q"]
+    cli("run", bp / "config.toml", "--out", "train", "--set", "episode.steps=24", *small, check=0)
+    cli("run", bp / "test-flight.toml", "--out", "test", "--set", "episode.steps=8", *small, check=0)
+    data = load(tmp_path / "train")
+    assert data["position"].shape == (24, 3) and data["gains"].shape == (24, 4, 64)
+    assert np.array_equal(data["best_pair"], data["gains"].reshape(24, -1).argmax(axis=1))
+    hops = np.linalg.norm(np.diff(data["position"], axis=0), axis=1)
+    assert np.all(hops <= 2.5 + 1e-9)  # 5 m/s at Ts = 0.5 s, through random waypoints
+    p = subprocess.run([sys.executable, "-m", "caviar_plugins.beam_selection", "train", "--train", "train",
+                        "--test", "test", "--out", "tree.pkl", "--report-dir", "report"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    report = json.loads((tmp_path / "report" / "topk.json").read_text())
+    val = [report["validation_topk"][str(k)] for k in beam_selection.K_VALUES]
+    test = [report["test_topk"][str(k)] for k in beam_selection.K_VALUES]
+    assert val == sorted(val) and test == sorted(test)  # top-K grows with K
+    assert report["fit"] + report["validation"] == report["nlos_samples"] == int((~data["los"].astype(bool)).sum())
+    assert (tmp_path / "report" / "topk.png").exists() and "| 100 |" in (tmp_path / "report" / "topk.md").read_text()

@@ -81,17 +81,24 @@ class PixelDetector:
         return out
 
     def save(self, path: pathlib.Path) -> None:
+        # The forest and plain settings only: the file does not depend on where this
+        # class lives (e.g. __main__ when trained with `python -m`).
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
-        tmp.write_bytes(pickle.dumps({"version": MODEL_VERSION, "detector": self}))
+        tmp.write_bytes(pickle.dumps({"format": "caviar-person-detector", "version": MODEL_VERSION,
+                                      "forest": self.forest, "min_pixels": self.min_pixels,
+                                      "threshold": self.threshold}))
         tmp.replace(path)
 
     @staticmethod
     def load(path: pathlib.Path) -> "PixelDetector":
-        data = pickle.loads(pathlib.Path(path).read_bytes())
-        if not isinstance(data, dict) or not isinstance(data.get("detector"), PixelDetector):
-            raise ValueError(f"{path}: not a caviar person detector")
-        return data["detector"]
+        try:
+            data = pickle.loads(pathlib.Path(path).read_bytes())
+        except (OSError, pickle.UnpicklingError, AttributeError, EOFError) as e:
+            raise ValueError(f"{path}: cannot read the detector model: {e}") from None
+        if not isinstance(data, dict) or data.get("format") != "caviar-person-detector":
+            raise ValueError(f"{path}: not a caviar person detector model")
+        return PixelDetector(data["forest"], data["min_pixels"], data["threshold"])
 
 
 def frames(count: int, seed: int, loss_rates=(0.0, 0.0, 0.01, 0.25, 0.5)):
@@ -180,7 +187,10 @@ def builtin_model() -> PixelDetector:
 
     path = cache_dir() / f"person-detector-v{MODEL_VERSION}-sklearn{sklearn.__version__}.pkl"
     if path.exists():
-        return PixelDetector.load(path)
+        try:
+            return PixelDetector.load(path)
+        except ValueError:
+            pass  # unreadable or stale: train again
     detector = train()
     detector.save(path)
     return detector

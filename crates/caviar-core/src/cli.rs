@@ -93,6 +93,35 @@ fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
     }
 }
 
+/// Progress for logs (stderr is not a terminal): a line every 10 s of wall time.
+struct LogProgress {
+    enabled: bool,
+    last: Instant,
+}
+
+impl LogProgress {
+    fn new(quiet: bool) -> Self {
+        use std::io::IsTerminal;
+        LogProgress { enabled: !quiet && !std::io::stderr().is_terminal(), last: Instant::now() }
+    }
+
+    fn update(&mut self, engine: &Engine, report: &StepReport) {
+        if !self.enabled || (self.last.elapsed().as_secs_f64() < 10.0 && !report.ended) {
+            return;
+        }
+        self.last = Instant::now();
+        let done = report.step + 1;
+        let virtual_s = done as f64 * engine.ts();
+        let wall = engine.wall_s().max(1e-12);
+        let eta = engine
+            .planned_steps()
+            .map(|n| format!(", ETA {:.0} s", wall / done as f64 * n.saturating_sub(done) as f64))
+            .unwrap_or_default();
+        let of = engine.planned_steps().map(|n| format!("/{n}")).unwrap_or_default();
+        eprintln!("step {done}{of}, t = {virtual_s:.2} s, wall {wall:.1} s, RTF {:.3}{eta}", virtual_s / wall);
+    }
+}
+
 fn progress_bar(engine: &Engine, quiet: bool) -> ProgressBar {
     let bar = match engine.planned_steps() {
         Some(n) => ProgressBar::new(n).with_style(
@@ -131,8 +160,10 @@ fn run(path: &Path, set: &[String], out: Option<&Path>, quiet: bool, loader: &dy
     };
     let started = Instant::now();
     let bar = progress_bar(&engine, quiet);
+    let mut log = LogProgress::new(quiet);
     let result = engine.run(|engine, report| {
         show_progress(&bar, engine, report);
+        log.update(engine, report);
         !interrupted()
     });
     bar.finish_and_clear();
