@@ -17,11 +17,10 @@ def _read(run_dir: pathlib.Path, table: str):
     single = run_dir / f"{table}.parquet"
     if single.exists():
         return pl.read_parquet(single)
+    if not (run_dir / table).is_dir():
+        raise FileNotFoundError(f"{run_dir}: not a run directory (no {table}.parquet)")
     parts = sorted((run_dir / table).glob("*.parquet"))
-    if not parts:
-        if not (run_dir / table).is_dir():
-            raise FileNotFoundError(f"{run_dir}: not a run directory (no {table}.parquet)")
-        from caviar import _core  # noqa: F401  (empty run: an empty frame with the schema)
+    if not parts:  # a run that failed before its first step
         return pl.DataFrame()
     # Parts are what a run that crashed or is still going leaves: each is complete.
     return pl.concat([pl.read_parquet(p) for p in parts])
