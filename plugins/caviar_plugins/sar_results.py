@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import shutil
 
@@ -28,7 +29,8 @@ def run_all(config: pathlib.Path, tree: pathlib.Path, runs: pathlib.Path, method
             shutil.rmtree(out)
         sets = {"modules.beams.params.method": method, "output.name": f"sar-{method}"}
         if method == "tree":
-            sets["modules.beams.params.model"] = str(tree.resolve())
+            # Relative to the config file, as paths in it are: the saved config stays portable.
+            sets["modules.beams.params.model"] = os.path.relpath(tree.resolve(), config.resolve().parent)
         sim = caviar.Simulation.from_toml(config, overrides=[f"{k}={json.dumps(v)}" for k, v in sets.items()]
                                           + list(overrides), out=out)
         print(f"running {method} -> {out}", flush=True)
