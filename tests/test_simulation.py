@@ -72,6 +72,9 @@ params = { topic = "slow" }
     assert slow["seen"].to_list() == [3, 3]
     times = log.module_times()
     assert dict(zip(times["module"], times["steps"])) == {"fast": 7, "slow": 2, "caviar.core": 7}
+    # Resident memory of this (Python + numpy + polars) process: tens of MiB at least, below 20 GiB.
+    assert all(20 < m < 20_000 for m in times["max_rss_mib"]), times
+    assert (times["cpu_s"] >= 0).all() and (times["wall_s"] > 0).all()
 
 
 def test_binary_payloads_keep_dtype_and_shape_and_never_touch_json(tmp_path):

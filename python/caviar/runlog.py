@@ -78,12 +78,13 @@ class RunLog:
         return out
 
     def module_times(self):
-        """Per module: steps run, total and mean wall time, CPU time, share of the run."""
+        """Per module: steps run, total and mean wall time, CPU time, the largest resident
+        memory of its process after its stage (MiB), share of the run."""
         import polars as pl
 
         t = self.timings.group_by("module", maintain_order=True).agg(
             pl.len().alias("steps"), pl.col("wall_s").sum(), pl.col("wall_s").mean().alias("mean_wall_s"),
-            pl.col("cpu_s").sum())
+            pl.col("cpu_s").sum(), pl.col("rss_mib").max().alias("max_rss_mib"))
         return t.with_columns((pl.col("wall_s") / pl.col("wall_s").sum()).alias("share"))
 
     def to_pandas(self, table: str = "messages"):

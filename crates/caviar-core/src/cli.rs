@@ -284,6 +284,7 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
         runs: u64,
         wall: f64,
         cpu: f64,
+        rss_max: f64,
         msgs_in: u64,
         msgs_out: u64,
     }
@@ -300,6 +301,7 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
         r.runs += 1;
         r.wall += t.wall_s;
         r.cpu += t.cpu_s;
+        r.rss_max = r.rss_max.max(t.rss_mib);
         r.msgs_in += t.msgs_in as u64;
         r.msgs_out += t.msgs_out as u64;
     }
@@ -309,19 +311,20 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
     let w = modules.iter().map(|(n, _)| n.len()).max().unwrap_or(6).max(6);
     writeln!(
         s,
-        "\n{:<w$}  {:>6} {:>10} {:>7} {:>10} {:>9} {:>8} {:>8}",
-        "module", "steps", "wall s", "share", "mean ms", "cpu s", "in", "out"
+        "\n{:<w$}  {:>6} {:>10} {:>7} {:>10} {:>9} {:>11} {:>8} {:>8}",
+        "module", "steps", "wall s", "share", "mean ms", "cpu s", "max RSS MiB", "in", "out"
     )
     .unwrap();
     for (n, r) in &modules {
         writeln!(
             s,
-            "{n:<w$}  {:>6} {:>10.4} {:>6.1}% {:>10.3} {:>9.4} {:>8} {:>8}",
+            "{n:<w$}  {:>6} {:>10.4} {:>6.1}% {:>10.3} {:>9.4} {:>11.1} {:>8} {:>8}",
             r.runs,
             r.wall,
             100.0 * r.wall / total,
             1e3 * r.wall / r.runs.max(1) as f64,
             r.cpu,
+            r.rss_max,
             r.msgs_in,
             r.msgs_out
         )

@@ -126,6 +126,16 @@ fn thread_cpu_seconds() -> f64 {
     ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
 }
 
+/// Resident set size of this process in MiB (Linux; NaN elsewhere).
+fn resident_mib() -> f64 {
+    let pages = std::fs::read_to_string("/proc/self/statm")
+        .ok()
+        .and_then(|t| t.split_whitespace().nth(1).and_then(|v| v.parse::<f64>().ok()));
+    // SAFETY: sysconf has no preconditions.
+    let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) } as f64;
+    pages.map_or(f64::NAN, |p| p * page / (1024.0 * 1024.0))
+}
+
 struct Ran {
     slot: usize,
     result: Result<Vec<Outgoing>, ModuleError>,
@@ -277,6 +287,9 @@ impl Engine {
             let t_stage = Instant::now();
             let mut ran = self.run_stage(stage, at);
             let stage_wall = t_stage.elapsed().as_secs_f64();
+            // Modules of one process share its memory: the process's size after the stage
+            // is what each module of the stage is charged with (NATS workers report their own).
+            let rss_mib = if self.recorder.is_some() && !ran.is_empty() { resident_mib() } else { f64::NAN };
             // The stage's share of module work is its slowest member (they ran side by side).
             module_wall += ran.iter().map(|r| r.wall_s).fold(0.0, f64::max).min(stage_wall);
             ran.sort_by_key(|r| r.slot);
@@ -302,6 +315,7 @@ impl Engine {
                         module: name.clone(),
                         wall_s: r.wall_s,
                         cpu_s: r.cpu_s,
+                        rss_mib,
                         msgs_in: r.msgs_in,
                         msgs_out: outgoing.len() as u32,
                     });
@@ -337,6 +351,7 @@ impl Engine {
                 module: CORE.into(),
                 wall_s: (wall_s - module_wall).max(0.0),
                 cpu_s: 0.0,
+                rss_mib: resident_mib(),
                 msgs_in: 0,
                 msgs_out: 0,
             });

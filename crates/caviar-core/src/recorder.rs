@@ -66,6 +66,7 @@ pub fn timings_schema() -> SchemaRef {
         Field::new("module", DataType::Utf8, false),
         Field::new("wall_s", DataType::Float64, false),
         Field::new("cpu_s", DataType::Float64, false),
+        Field::new("rss_mib", DataType::Float64, false),
         Field::new("msgs_in", DataType::UInt32, false),
         Field::new("msgs_out", DataType::UInt32, false),
     ]))
@@ -80,6 +81,8 @@ pub struct TimingRow {
     pub module: String,
     pub wall_s: f64,
     pub cpu_s: f64,
+    /// Resident memory of the module's process after its stage, MiB.
+    pub rss_mib: f64,
     pub msgs_in: u32,
     pub msgs_out: u32,
 }
@@ -148,6 +151,7 @@ struct TimingColumns {
     module: StringBuilder,
     wall: Float64Builder,
     cpu: Float64Builder,
+    rss: Float64Builder,
     msgs_in: UInt32Builder,
     msgs_out: UInt32Builder,
     rows: usize,
@@ -160,6 +164,7 @@ impl TimingColumns {
         self.module.append_value(&r.module);
         self.wall.append_value(r.wall_s);
         self.cpu.append_value(r.cpu_s);
+        self.rss.append_value(r.rss_mib);
         self.msgs_in.append_value(r.msgs_in);
         self.msgs_out.append_value(r.msgs_out);
         self.rows += 1;
@@ -173,6 +178,7 @@ impl TimingColumns {
             Arc::new(self.module.finish()),
             Arc::new(self.wall.finish()),
             Arc::new(self.cpu.finish()),
+            Arc::new(self.rss.finish()),
             Arc::new(self.msgs_in.finish()),
             Arc::new(self.msgs_out.finish()),
         ];
@@ -395,6 +401,7 @@ pub fn read_timings(run_dir: &Path) -> Result<Vec<TimingRow>, RecordError> {
         let module = typed!(&b, "module", p, StringArray, DataType::Utf8);
         let wall = typed!(&b, "wall_s", p, Float64Array, DataType::Float64);
         let cpu = typed!(&b, "cpu_s", p, Float64Array, DataType::Float64);
+        let rss = typed!(&b, "rss_mib", p, Float64Array, DataType::Float64);
         let msgs_in = typed!(&b, "msgs_in", p, UInt32Array, DataType::UInt32);
         let msgs_out = typed!(&b, "msgs_out", p, UInt32Array, DataType::UInt32);
         for i in 0..b.num_rows() {
@@ -404,6 +411,7 @@ pub fn read_timings(run_dir: &Path) -> Result<Vec<TimingRow>, RecordError> {
                 module: module.value(i).to_string(),
                 wall_s: wall.value(i),
                 cpu_s: cpu.value(i),
+                rss_mib: rss.value(i),
                 msgs_in: msgs_in.value(i),
                 msgs_out: msgs_out.value(i),
             });
