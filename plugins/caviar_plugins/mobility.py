@@ -54,6 +54,8 @@ class WaypointFlight(caviar.Plugin):
         """m/s"""
         ue_id: str = "uav1"
         end_at_last: bool = True
+        start_m: float = 0.0
+        """Distance along the route at which the UAV starts (to spread several UAVs)."""
 
         def __post_init__(self):
             if self.frame not in ("airsim_ned", "scene"):
@@ -71,7 +73,7 @@ class WaypointFlight(caviar.Plugin):
             pts = airsim_ned_to_scene(pts)
         self.path = Path(pts)
         self.p = p
-        self.s = 0.0          # arc length flown
+        self.s = min(max(p.start_m, 0.0), self.path.length)  # arc length flown
         self.hover_until = -1.0
         self.ts = ctx.ts
 

@@ -1,4 +1,5 @@
-"""Console entry point of ``caviar-core`` / ``caviar``: the command line is the core's."""
+"""Console entry point of ``caviar-core`` / ``caviar``: the command line is the core's
+(Rust); ``report``, which draws figures with matplotlib, is the Python side's."""
 
 from __future__ import annotations
 
@@ -6,10 +7,14 @@ import sys
 
 
 def main() -> None:
-    from caviar import _core
-
     argv = list(sys.argv)
     argv[0] = "caviar-core"
+    if len(argv) > 1 and argv[1] == "report":
+        from caviar.report import main as report
+
+        sys.exit(report(argv[2:]))
+    from caviar import _core
+
     sys.exit(_core.main(argv))
 
 

@@ -1,0 +1,111 @@
+"""Resource and scaling benchmark, as the paper's last section: the SAR loop with
+1, 3, 5, 10 (then 20, 50 …) UAVs, all capturing images for the detector, no rescue
+stops; per-module wall, CPU and memory, and the total wall clock.
+
+    .venv/bin/python benches/bench_scaling.py [--uavs 1 3 5 10] [--duration 60] [--samples 1000000]
+
+Writes bench-results/scaling/{report.json,modules.png,wall_clock.png} (via
+``caviar-core report``) and prints a table. The paper ran 60 s of virtual time at
+Ts = 0.5 s with 1e6 samples per source on a GPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import shutil
+
+import caviar
+from caviar.report import draw, summary
+from caviar_plugins import DATA
+from caviar_plugins.frames import read_waypoints
+from caviar_plugins.mobility import Path
+
+ROUTE = "central_park_path0_scene.csv"
+
+
+def config(n: int, duration: float, samples: int) -> str:
+    length = Path(read_waypoints(DATA / ROUTE)).length
+    text = f"""
+[episode]
+ts = 0.5
+duration = {duration}
+seed = 1
+stages = ["mobility", "camera", "communications", "link", "detection"]
+
+[output]
+exclude = ["3D.camera.>", "ai.images.>"]
+"""
+    for i in range(n):
+        # Spread along the route; each flies on (and stays at the end) without stopping.
+        text += f"""
+[modules.uav{i + 1}]
+stage = "mobility"
+plugin = "waypoint-flight"
+params = {{ waypoints = "{ROUTE}", frame = "scene", ue_id = "uav{i + 1}", end_at_last = false, start_m = {i * length / n:.1f} }}
+"""
+    text += f"""
+[modules.camera]
+stage = "camera"
+plugin = "camera"
+
+[modules.comm]
+stage = "communications"
+plugin = "sionna-link"
+params = {{ samples_per_src = {samples}, publish_channels = false }}
+
+[modules.link]
+stage = "link"
+plugin = "image-link"
+
+[modules.detector]
+stage = "detection"
+plugin = "person-detector"
+"""
+    return text
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--uavs", nargs="+", type=int, default=[1, 3, 5, 10])
+    ap.add_argument("--duration", type=float, default=60.0)
+    ap.add_argument("--samples", type=int, default=1_000_000)
+    ap.add_argument("--out", type=pathlib.Path, default=pathlib.Path("bench-results/scaling"))
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    summaries = []
+    for n in args.uavs:
+        cfg = args.out / f"uavs-{n}.toml"
+        cfg.write_text(config(n, args.duration, args.samples))
+        run = args.out / f"run-{n}"
+        if run.exists():
+            shutil.rmtree(run)
+        print(f"{n} UAVs ...", flush=True)
+        caviar.Simulation.from_toml(cfg, out=run).run()
+        s = summary(run)
+        s["uavs"] = n
+        summaries.append(s)
+        m = s["modules"]
+        print(f"{n:3d} UAVs: wall {s['wall_s']:.1f} s for {s['virtual_time_s']:.0f} s virtual; "
+              f"comm {1e3 * m['comm']['wall_s_per_step']:.0f} ms/step, camera {1e3 * m['camera']['wall_s_per_step']:.0f}, "
+              f"detector {1e3 * m['detector']['wall_s_per_step']:.0f}, engine {1e3 * m['caviar.core']['wall_s_per_step']:.2f}; "
+              f"RSS {max(v['max_rss_mib'] for v in m.values()):.0f} MiB", flush=True)
+    draw(summaries, [str(n) for n in args.uavs], args.out, xlabel="UAVs")
+    base = summaries[0]
+    print("\n| UAVs | wall clock (s) | × 1 UAV | ray tracing (ms/step) | camera (ms/step) | detector (ms/step) | "
+          "engine (ms/step) | engine share | max RSS (MiB) |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for s in summaries:
+        m = s["modules"]
+        engine = m["caviar.core"]["wall_s_per_step"]
+        print(f"| {s['uavs']} | {s['wall_s']:.1f} | {s['wall_s'] / base['wall_s']:.2f} | "
+              f"{1e3 * m['comm']['wall_s_per_step']:.0f} | {1e3 * m['camera']['wall_s_per_step']:.0f} | "
+              f"{1e3 * m['detector']['wall_s_per_step']:.0f} | {1e3 * engine:.2f} | "
+              f"{100 * m['caviar.core']['share']:.3f} % | {max(v['max_rss_mib'] for v in m.values()):.0f} |")
+    (args.out / "sweep.json").write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
+                                                     "runs": summaries}, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

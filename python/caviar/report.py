@@ -1,0 +1,89 @@
+"""Figures of recorded runs, as in the paper's benchmarking section: per-module
+resource bars for each run, and total wall clock across runs.
+
+    caviar-core report RUN_DIR [RUN_DIR ...] [--labels 1 3 5 10] [--out report/]
+
+Writes ``modules.png`` (per module and run: mean wall time per step, CPU time per
+step, largest resident memory) and ``wall_clock.png`` (total wall clock per run),
+plus ``report.json`` with the numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+from caviar.runlog import load_run
+
+
+def summary(run_dir) -> dict:
+    log = load_run(run_dir)
+    times = log.module_times()
+    steps = max(1, int(log.status.get("steps_done") or 0))
+    modules = {r["module"]: {"wall_s_per_step": r["wall_s"] / steps, "cpu_s_per_step": r["cpu_s"] / steps,
+                             "max_rss_mib": r["max_rss_mib"], "share": r["share"]}
+               for r in times.iter_rows(named=True)}
+    return {"run": str(run_dir), "steps": steps, "wall_s": log.status.get("wall_s"),
+            "virtual_time_s": log.status.get("virtual_time_s"), "rtf": log.status.get("rtf"), "modules": modules}
+
+
+def draw(summaries: list[dict], labels: list[str], out: pathlib.Path, xlabel: str = "run") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    out.mkdir(parents=True, exist_ok=True)
+    modules = list(dict.fromkeys(m for s in summaries for m in s["modules"]))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    width = 0.8 / max(1, len(summaries))
+    x = np.arange(len(modules))
+    for i, (s, label) in enumerate(zip(summaries, labels)):
+        for ax, key, scale in ((axes[0], "wall_s_per_step", 1e3), (axes[1], "cpu_s_per_step", 1e3),
+                               (axes[2], "max_rss_mib", 1.0)):
+            ax.bar(x + i * width, [scale * s["modules"].get(m, {}).get(key, 0.0) for m in modules], width, label=label)
+    for ax, title in zip(axes, ("wall time per step (ms)", "CPU time per step (ms)", "resident memory (MiB)")):
+        ax.set_xticks(x + width * (len(summaries) - 1) / 2, modules, rotation=30, ha="right")
+        ax.set_title(title)
+        ax.grid(True, axis="y")
+    axes[0].legend(title=xlabel)
+    fig.tight_layout()
+    fig.savefig(out / "modules.png", dpi=100)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    try:
+        xs = [float(label) for label in labels]
+    except ValueError:
+        xs = list(range(len(labels)))
+        ax.set_xticks(xs, labels)
+    ax.plot(xs, [s["wall_s"] for s in summaries], "o-")
+    ax.set(xlabel=xlabel, ylabel="total wall clock (s)", title="Wall clock")
+    ax.grid(True)
+    fig.tight_layout()
+    fig.savefig(out / "wall_clock.png", dpi=100)
+    plt.close(fig)
+    (out / "report.json").write_text(json.dumps({"labels": labels, "runs": summaries}, indent=2) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="caviar-core report", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="+", type=pathlib.Path)
+    ap.add_argument("--labels", nargs="+", help="one per run (default: directory names)")
+    ap.add_argument("--xlabel", default="run")
+    ap.add_argument("--out", type=pathlib.Path, default=pathlib.Path("report"))
+    args = ap.parse_args(argv)
+    labels = args.labels or [r.name for r in args.runs]
+    if len(labels) != len(args.runs):
+        ap.error(f"--labels: expected {len(args.runs)} labels, got {len(labels)}")
+    try:
+        summaries = [summary(r) for r in args.runs]
+    except FileNotFoundError as e:
+        print(f"error: {e}")
+        return 2
+    draw(summaries, labels, args.out, args.xlabel)
+    print(f"{args.out}/modules.png, {args.out}/wall_clock.png, {args.out}/report.json")
+    return 0
