@@ -165,3 +165,24 @@ def test_run_json_is_complete(tmp_path, cli):
     assert math.isclose(status["virtual_time_s"], 0.3)
     assert status["modules"] == ["uav", "comm", "monitor"]
     assert status["rtf"] > 0 and status["error"] is None
+
+
+def test_report_draws_resource_figures_across_runs(tmp_path, cli):
+    for n, steps in ((1, 5), (2, 9)):
+        cli("run", QUICKSTART, "-q", "--out", f"r{n}", "--set", f"episode.steps={steps}",
+            "--set", f"modules.uav.params.start_m={100 * n}", check=0)
+    p = cli("report", "r1", "r2", "--labels", "1", "2", "--xlabel", "UAVs", "--out", "rep", check=0)
+    assert "modules.png" in p.stdout
+    report = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert report["labels"] == ["1", "2"] and [r["steps"] for r in report["runs"]] == [5, 9]
+    for r in report["runs"]:
+        assert set(r["modules"]) == {"uav", "comm", "monitor", "caviar.core"}
+        assert all(m["max_rss_mib"] > 20 and m["wall_s_per_step"] >= 0 for m in r["modules"].values())
+    for png in ("modules.png", "wall_clock.png"):
+        assert (tmp_path / "rep" / png).stat().st_size > 5_000
+    first = caviar.load_run(tmp_path / "r2").topic("3D.mobility.positions")["position"].to_list()[0]
+    ned = np.loadtxt(ROOT / "plugins" / "caviar_plugins" / "data" / "central_park_path0.csv", delimiter=",",
+                     skiprows=1)
+    start = np.array([23.34, -3.42, 137.23]) + np.array([1, -1, -1]) * ned[0]
+    assert math.dist([first["x"], first["y"], first["z"]], start) > 150  # started 200 m along the route
+    assert cli("report", "nothing-here", check=2)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import re
 
 from caviar.runlog import load_run
 
@@ -28,6 +29,19 @@ def summary(run_dir) -> dict:
             "virtual_time_s": log.status.get("virtual_time_s"), "rtf": log.status.get("rtf"), "modules": modules}
 
 
+def grouped(modules: dict) -> dict:
+    """Modules named alike but for a trailing number (uav1 … uav20) as one bar: summed
+    times, largest memory."""
+    out: dict[str, dict] = {}
+    for name, m in modules.items():
+        key = re.sub(r"\d+$", "*", name) if re.search(r"\d+$", name) else name
+        g = out.setdefault(key, {"wall_s_per_step": 0.0, "cpu_s_per_step": 0.0, "max_rss_mib": 0.0})
+        g["wall_s_per_step"] += m["wall_s_per_step"]
+        g["cpu_s_per_step"] += m["cpu_s_per_step"]
+        g["max_rss_mib"] = max(g["max_rss_mib"], m["max_rss_mib"])
+    return out
+
+
 def draw(summaries: list[dict], labels: list[str], out: pathlib.Path, xlabel: str = "run") -> None:
     import matplotlib
 
@@ -36,15 +50,18 @@ def draw(summaries: list[dict], labels: list[str], out: pathlib.Path, xlabel: st
     import numpy as np
 
     out.mkdir(parents=True, exist_ok=True)
-    modules = list(dict.fromkeys(m for s in summaries for m in s["modules"]))
+    groups = [grouped(s["modules"]) for s in summaries]
+    modules = list(dict.fromkeys(m for g in groups for m in g))
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     width = 0.8 / max(1, len(summaries))
     x = np.arange(len(modules))
-    for i, (s, label) in enumerate(zip(summaries, labels)):
+    for i, (g, label) in enumerate(zip(groups, labels)):
         for ax, key, scale in ((axes[0], "wall_s_per_step", 1e3), (axes[1], "cpu_s_per_step", 1e3),
                                (axes[2], "max_rss_mib", 1.0)):
-            ax.bar(x + i * width, [scale * s["modules"].get(m, {}).get(key, 0.0) for m in modules], width, label=label)
-    for ax, title in zip(axes, ("wall time per step (ms)", "CPU time per step (ms)", "resident memory (MiB)")):
+            ax.bar(x + i * width, [scale * g.get(m, {}).get(key, 0.0) for m in modules], width, label=label)
+    axes[0].set_yscale("symlog", linthresh=1.0)
+    axes[1].set_yscale("symlog", linthresh=1.0)
+    for ax, title in zip(axes, ("wall time per step (ms)", "CPU time per step (ms)", "resident memory of the process (MiB)")):
         ax.set_xticks(x + width * (len(summaries) - 1) / 2, modules, rotation=30, ha="right")
         ax.set_title(title)
         ax.grid(True, axis="y")
