@@ -227,3 +227,20 @@ def test_beam_dataset_blueprint_and_tree_training(tmp_path, cli):
     assert val == sorted(val) and test == sorted(test)  # top-K grows with K
     assert report["fit"] + report["validation"] == report["nlos_samples"] == int((~data["los"].astype(bool)).sum())
     assert (tmp_path / "report" / "topk.png").exists() and "| 100 |" in (tmp_path / "report" / "topk.md").read_text()
+
+
+def test_a_user_supplied_onnx_model_detects_like_the_original(tmp_path, trained, visual):
+    model, _ = trained
+    path = tmp_path / "detector.onnx"
+    detector.export_onnx(model, path)
+    onnx = detector.PixelDetector.load(path)
+    agree, persons = [], 0
+    for i, (x, y) in enumerate(visual.cfg.targets):
+        image = visual.render([x + 1.0, y - 1.0, 9.0])
+        a, b = model.mask(image)[0], onnx.mask(image)[0]
+        agree.append(np.mean(a == b))
+        persons += len(onnx.detect(image)) > 0
+    assert min(agree) > 0.999 and persons == len(visual.cfg.targets)
+    (tmp_path / "bad.onnx").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="cannot load the ONNX model"):
+        detector.PixelDetector.load(tmp_path / "bad.onnx")

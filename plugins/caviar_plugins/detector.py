@@ -10,7 +10,8 @@ the loop.
     python -m caviar_plugins.detector train      # trains, evaluates on held-out frames
 
 The ``builtin`` model is trained on first use (about half a minute) and cached under
-``$CAVIAR_CACHE`` (default ``~/.cache/caviar``); ``model = "PATH.pkl"`` loads another.
+``$CAVIAR_CACHE`` (default ``~/.cache/caviar``); ``model = "PATH.pkl"`` loads another,
+``model = "PATH.onnx"`` a user-supplied ONNX pixel classifier (see :class:`OnnxPixelModel`).
 """
 
 from __future__ import annotations
@@ -92,6 +93,8 @@ class PixelDetector:
 
     @staticmethod
     def load(path: pathlib.Path) -> "PixelDetector":
+        if pathlib.Path(path).suffix == ".onnx":
+            return PixelDetector(OnnxPixelModel(path))
         try:
             data = pickle.loads(pathlib.Path(path).read_bytes())
         except (OSError, pickle.UnpicklingError, AttributeError, EOFError) as e:
@@ -99,6 +102,49 @@ class PixelDetector:
         if not isinstance(data, dict) or data.get("format") != "caviar-person-detector":
             raise ValueError(f"{path}: not a caviar person detector model")
         return PixelDetector(data["forest"], data["min_pixels"], data["threshold"])
+
+
+class OnnxPixelModel:
+    """A user-supplied ONNX pixel classifier: input (N, 10) float32 features as
+    :func:`features` computes them, output per-pixel person probabilities, either
+    (N, 2) class probabilities or (N,) / (N, 1) person probabilities. Runs with
+    onnxruntime (``pip install caviar-plugins[onnx]``); ``python -m caviar_plugins.detector
+    export-onnx`` writes the project's detector in this form."""
+
+    def __init__(self, path):
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            raise ValueError(f"{path}: ONNX models need onnxruntime (pip install 'caviar-plugins[onnx]')") from None
+        try:
+            self.session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own exception types
+            raise ValueError(f"{path}: cannot load the ONNX model: {e}") from None
+        inputs = self.session.get_inputs()
+        width = inputs[0].shape[-1] if len(inputs) == 1 and inputs[0].shape else None
+        if len(inputs) != 1 or (isinstance(width, int) and width != 10):
+            raise ValueError(f"{path}: expected one input of shape (N, 10), got "
+                             f"{[(i.name, i.shape) for i in inputs]}")
+        self.input = inputs[0].name
+
+    def predict_proba(self, x: np.ndarray) -> np.ndarray:
+        for out in reversed(self.session.run(None, {self.input: x.astype(np.float32)})):
+            out = np.asarray(out)
+            if out.dtype.kind == "f" and out.ndim == 2 and out.shape[1] == 2:
+                return out
+            if out.dtype.kind == "f" and (out.ndim == 1 or out.shape[-1] == 1):
+                p = out.reshape(-1)
+                return np.stack([1 - p, p], axis=1)
+        raise ValueError("the ONNX model has no output of person probabilities ((N, 2) or (N,))")
+
+
+def export_onnx(detector: PixelDetector, path: pathlib.Path) -> None:
+    from skl2onnx import to_onnx
+
+    model = to_onnx(detector.forest, np.zeros((1, 10), dtype=np.float32),
+                    options={id(detector.forest): {"zipmap": False}}, target_opset=17)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(model.SerializeToString())
 
 
 def frames(count: int, seed: int, loss_rates=(0.0, 0.0, 0.01, 0.25, 0.5)):
@@ -248,7 +294,7 @@ X_SIGN = 1.0
 
 def main() -> None:
     ap = argparse.ArgumentParser(description="Train and evaluate the person detector.")
-    ap.add_argument("command", choices=["train"])
+    ap.add_argument("command", choices=["train", "export-onnx"])
     ap.add_argument("--frames", type=int, default=240)
     ap.add_argument("--eval-frames", type=int, default=120)
     ap.add_argument("--out", type=pathlib.Path, default=None, help="model file (default: the builtin cache)")
@@ -256,6 +302,11 @@ def main() -> None:
     args = ap.parse_args()
     import sklearn
 
+    if args.command == "export-onnx":
+        out = args.out or pathlib.Path("person-detector.onnx")
+        export_onnx(builtin_model(), out)
+        print(f"model: {out}")
+        return
     detector = train(args.frames)
     out = args.out or cache_dir() / f"person-detector-v{MODEL_VERSION}-sklearn{sklearn.__version__}.pkl"
     detector.save(out)
