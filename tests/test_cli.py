@@ -128,7 +128,7 @@ def test_parts_of_an_unfinished_run_are_readable(tmp_path):
 
 def test_replay_reproduces_the_throughput_from_recorded_mobility(tmp_path, cli):
     cli("run", QUICKSTART, "-q", "--out", "original", "--set", "episode.steps=40", check=0)
-    write_config(tmp_path, f"""
+    write_config(tmp_path, """
 [episode]
 ts = 0.1
 steps = 40
@@ -137,7 +137,7 @@ stages = ["mobility", "communications"]
 [modules.mobility]
 stage = "mobility"
 plugin = "caviar.replay"
-params = {{ run = "original", topics = ["3D.mobility.>"] }}
+params = { run = "original", topics = ["3D.mobility.>"] }
 
 [modules.comm]
 stage = "communications"

@@ -9,7 +9,7 @@ import pytest
 import caviar
 from conftest import write_config
 from caviar_plugins import DATA
-from caviar_plugins.beams import beam_gains, dft_codebook, element_grid
+from caviar_plugins.beams import dft_codebook, element_grid
 from caviar_plugins.frames import airsim_ned_to_scene, read_waypoints
 from caviar_plugins.linkbudget import LinkBudget
 from caviar_plugins.mobility import Path

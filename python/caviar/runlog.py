@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import os
 import pathlib
-from typing import Any
 
 from caviar.plugin import Message
 from caviar.topics import matches

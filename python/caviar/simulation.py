@@ -116,7 +116,7 @@ class _Progress:
         self.stream = stream
         self.last = 0.0
 
-    def __call__(self, done: int, planned: int | None, wall: float, ts: float | None = None) -> None:
+    def __call__(self, done: int, planned: int | None, wall: float) -> None:
         now = time.monotonic()
         if now - self.last < 0.2 and done != planned:
             return

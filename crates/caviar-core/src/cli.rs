@@ -111,7 +111,7 @@ impl LogProgress {
         }
         self.last = Instant::now();
         let done = report.step + 1;
-        let virtual_s = done as f64 * engine.ts();
+        let virtual_s = engine.virtual_time_s();
         let wall = engine.wall_s().max(1e-12);
         let eta = engine
             .planned_steps()
@@ -138,7 +138,7 @@ fn progress_bar(engine: &Engine, quiet: bool) -> ProgressBar {
 
 fn show_progress(bar: &ProgressBar, engine: &Engine, report: &StepReport) {
     bar.set_position(report.step + 1);
-    let virtual_s = (report.step + 1) as f64 * engine.ts();
+    let virtual_s = engine.virtual_time_s();
     let rtf = virtual_s / engine.wall_s().max(1e-12);
     bar.set_message(format!("t = {virtual_s:.2} s  RTF {rtf:.3}"));
 }
@@ -177,7 +177,7 @@ fn run(path: &Path, set: &[String], out: Option<&Path>, quiet: bool, loader: &dy
     if let Err(e) = write_status(&cfg, &engine, status, error.as_ref()) {
         eprintln!("error: {e}");
     }
-    let virtual_s = engine.steps_done() as f64 * engine.ts();
+    let virtual_s = engine.virtual_time_s();
     let wall = started.elapsed().as_secs_f64();
     let dir = engine.run_dir().display();
     match error {

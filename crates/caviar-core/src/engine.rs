@@ -81,7 +81,7 @@ struct Slot {
 
 impl Slot {
     fn runs_at(&self, step: u64) -> bool {
-        step >= self.offset && (step - self.offset) % self.every == 0
+        step >= self.offset && (step - self.offset).is_multiple_of(self.every)
     }
 }
 
@@ -132,8 +132,12 @@ fn resident_mib() -> f64 {
     use std::sync::OnceLock;
     // Opened once and read with pread: one system call per reading (open + read + close
     // cost about 6 µs, three times per step).
-    static STATM: OnceLock<Option<std::fs::File>> = OnceLock::new();
-    let Some(file) = STATM.get_or_init(|| std::fs::File::open("/proc/self/statm").ok()) else {
+    static STATM: OnceLock<Option<(std::fs::File, f64)>> = OnceLock::new();
+    let Some((file, page_mib)) = STATM.get_or_init(|| {
+        // SAFETY: sysconf has no preconditions.
+        let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) } as f64;
+        std::fs::File::open("/proc/self/statm").ok().map(|f| (f, page / (1024.0 * 1024.0)))
+    }) else {
         return f64::NAN;
     };
     let mut buf = [0u8; 128];
@@ -141,10 +145,11 @@ fn resident_mib() -> f64 {
     let pages = std::str::from_utf8(&buf[..n])
         .ok()
         .and_then(|t| t.split_whitespace().nth(1).and_then(|v| v.parse::<f64>().ok()));
-    // SAFETY: sysconf has no preconditions.
-    let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) } as f64;
-    pages.map_or(f64::NAN, |p| p * page / (1024.0 * 1024.0))
+    pages.map_or(f64::NAN, |p| p * page_mib)
 }
+
+/// A module slot with its index, as a stage runs it.
+type Indexed<'a> = (usize, &'a mut Slot);
 
 struct Ran {
     slot: usize,
@@ -223,6 +228,11 @@ impl Engine {
 
     pub fn is_done(&self) -> bool {
         self.ended || self.opts.steps.is_some_and(|n| self.next_step >= n)
+    }
+
+    /// Virtual time covered by the steps done so far, in seconds.
+    pub fn virtual_time_s(&self) -> f64 {
+        self.next_step as f64 * self.opts.ts
     }
 
     /// Wall-clock seconds spent in steps so far, recording included.
@@ -384,7 +394,7 @@ impl Engine {
     }
 
     fn run_stage(&mut self, stage: usize, at: StepInfo) -> Vec<Ran> {
-        let (mut parallel, mut serial): (Vec<(usize, &mut Slot)>, Vec<(usize, &mut Slot)>) = self
+        let (mut parallel, mut serial): (Vec<Indexed>, Vec<Indexed>) = self
             .slots
             .iter_mut()
             .enumerate()

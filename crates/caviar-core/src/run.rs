@@ -124,7 +124,7 @@ fn create_numbered(cfg: &LoadedConfig) -> Result<PathBuf, PrepareError> {
 
 /// Writes `run.json`: what ran, how far it got and how it ended.
 pub fn write_status(cfg: &LoadedConfig, engine: &Engine, status: &str, error: Option<&EngineError>) -> Result<(), String> {
-    let virtual_s = engine.steps_done() as f64 * engine.ts();
+    let virtual_s = engine.virtual_time_s();
     let error_json = error.map(|e| match e {
         EngineError::Module { module, phase, step, time, error } => serde_json::json!({
             "module": module, "phase": phase, "step": step, "time": time,
