@@ -124,15 +124,19 @@ class Hosted:
         self.ctx: Context | None = None
         self.run_dir: pathlib.Path | None = None
 
-    def setup(self, seed, ts, steps, every, offset, run_dir, config_dir) -> None:
+    def setup(self, seed, ts, steps, every, offset, run_dir, config_dir, shards=1) -> None:
+        if shards > 1 and not type(self.plugin).shardable:
+            raise ConfigError(f"{type(self.plugin).__name__} cannot split a step into shards "
+                              f"(it does not declare shardable = True)", "shards")
         self.run_dir = pathlib.Path(run_dir)
         self.ctx = Context(name=self.name, params=self.params, seed=seed, ts=ts, steps=steps,
                            every=every, offset=offset, run_dir=self.run_dir,
-                           config_dir=pathlib.Path(config_dir))
+                           config_dir=pathlib.Path(config_dir), shards=shards)
         self.plugin.setup(self.ctx)
 
-    def step(self, step: int, t: float, raw: list) -> list:
+    def step(self, step: int, t: float, raw: list, shard: int = 0) -> list:
         self.ctx.step = step
+        self.ctx.shard = shard
         run_dir = self.run_dir
         inbox = Inbox([Message._from_wire(r, run_dir) for r in raw])
         result = self.plugin.step(t, inbox)

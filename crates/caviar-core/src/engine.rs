@@ -24,7 +24,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::message::{Message, Outgoing, SharedMessage};
-use crate::module::{module_seed, Module, ModuleError, SetupContext, StepInfo};
+use crate::module::{module_seed, Module, ModuleError, SetupContext, StepInfo, Usage};
 use crate::recorder::{RecordError, Recorder, TimingRow, CORE};
 use crate::topic::{validate_topic, Pattern};
 
@@ -53,6 +53,10 @@ fn place(phase: &str, step: &Option<u64>, time: &Option<f64>) -> String {
 fn trace(e: &ModuleError) -> String {
     e.trace.as_ref().map(|t| format!("\n{}", t.trim_end())).unwrap_or_default()
 }
+
+/// Sees every step's messages after routing, in delivery order (e.g. to mirror them
+/// onto a message bus for observers).
+pub type Tap = Box<dyn FnMut(&[SharedMessage]) + Send>;
 
 /// How a module takes part in an episode.
 pub struct ModuleSpec {
@@ -117,9 +121,10 @@ pub struct Engine {
     started: Option<Instant>,
     wall_s: f64,
     record_s: f64,
+    tap: Option<Tap>,
 }
 
-fn thread_cpu_seconds() -> f64 {
+pub(crate) fn thread_cpu_seconds() -> f64 {
     let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
     // SAFETY: clock_gettime writes into the timespec we own.
     unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
@@ -127,7 +132,7 @@ fn thread_cpu_seconds() -> f64 {
 }
 
 /// Resident set size of this process in MiB (Linux; NaN elsewhere).
-fn resident_mib() -> f64 {
+pub(crate) fn resident_mib() -> f64 {
     use std::os::unix::fs::FileExt;
     use std::sync::OnceLock;
     // Opened once and read with pread: one system call per reading (open + read + close
@@ -156,6 +161,8 @@ struct Ran {
     result: Result<Vec<Outgoing>, ModuleError>,
     wall_s: f64,
     cpu_s: f64,
+    /// Resident memory of the process that ran the module, when it is not this one.
+    rss_mib: Option<f64>,
     msgs_in: u32,
 }
 
@@ -164,7 +171,40 @@ fn run_slot(i: usize, slot: &mut Slot, at: StepInfo) -> Ran {
     let (t0, c0) = (Instant::now(), thread_cpu_seconds());
     let mut out = Vec::new();
     let result = slot.module.step(at, &inbox, &mut out).map(|()| out);
-    Ran { slot: i, result, wall_s: t0.elapsed().as_secs_f64(), cpu_s: thread_cpu_seconds() - c0, msgs_in: inbox.len() as u32 }
+    Ran {
+        slot: i,
+        result,
+        wall_s: t0.elapsed().as_secs_f64(),
+        cpu_s: thread_cpu_seconds() - c0,
+        rss_mib: None,
+        msgs_in: inbox.len() as u32,
+    }
+}
+
+/// A remote module's step, started and not yet finished.
+struct Started {
+    slot: usize,
+    msgs_in: u32,
+    started: Result<(), ModuleError>,
+}
+
+fn start_remote(i: usize, slot: &mut Slot, at: StepInfo) -> Started {
+    let inbox = std::mem::take(&mut slot.inbox);
+    Started { slot: i, msgs_in: inbox.len() as u32, started: slot.module.start_step(at, &inbox) }
+}
+
+fn finish_remote(s: Started, slot: &mut Slot) -> Ran {
+    let mut out = Vec::new();
+    let result = s.started.and_then(|()| slot.module.finish_step(&mut out));
+    let usage = result.as_ref().ok().copied().unwrap_or(Usage { wall_s: 0.0, cpu_s: 0.0, rss_mib: f64::NAN });
+    Ran {
+        slot: s.slot,
+        result: result.map(|_| out),
+        wall_s: usage.wall_s,
+        cpu_s: usage.cpu_s,
+        rss_mib: Some(usage.rss_mib),
+        msgs_in: s.msgs_in,
+    }
 }
 
 impl Engine {
@@ -206,7 +246,12 @@ impl Engine {
             started: None,
             wall_s: 0.0,
             record_s: 0.0,
+            tap: None,
         })
+    }
+
+    pub fn set_tap(&mut self, tap: Tap) {
+        self.tap = Some(tap);
     }
 
     pub fn run_dir(&self) -> &Path {
@@ -335,7 +380,7 @@ impl Engine {
                         module: name.clone(),
                         wall_s: r.wall_s,
                         cpu_s: r.cpu_s,
-                        rss_mib,
+                        rss_mib: r.rss_mib.unwrap_or(rss_mib),
                         msgs_in: r.msgs_in,
                         msgs_out: outgoing.len() as u32,
                     });
@@ -361,6 +406,9 @@ impl Engine {
             }
         }
 
+        if let Some(tap) = &mut self.tap {
+            tap(&published);
+        }
         let wall_s = t_step.elapsed().as_secs_f64();
         self.next_step += 1;
         let t_record = Instant::now();
@@ -394,23 +442,31 @@ impl Engine {
     }
 
     fn run_stage(&mut self, stage: usize, at: StepInfo) -> Vec<Ran> {
-        let (mut parallel, mut serial): (Vec<Indexed>, Vec<Indexed>) = self
+        let (remote, local): (Vec<Indexed>, Vec<Indexed>) = self
             .slots
             .iter_mut()
             .enumerate()
             .filter(|(_, s)| s.stage == stage && s.runs_at(at.step))
-            .partition(|(_, s)| s.module.concurrent());
-        if parallel.len() <= 1 {
+            .partition(|(_, s)| s.module.remote());
+        // Remote modules first: they work while this process runs the local ones.
+        let mut remote: Vec<(Started, &mut Slot)> =
+            remote.into_iter().map(|(i, s)| (start_remote(i, s, at), s)).collect();
+        let (mut parallel, mut serial): (Vec<Indexed>, Vec<Indexed>) =
+            local.into_iter().partition(|(_, s)| s.module.concurrent());
+        let mut ran = if parallel.len() <= 1 {
             // Not worth a thread hop.
             serial.append(&mut parallel);
-            return serial.into_iter().map(|(i, s)| run_slot(i, s, at)).collect();
-        }
-        let (mut a, b) = rayon::join(
-            || parallel.par_iter_mut().map(|(i, s)| run_slot(*i, s, at)).collect::<Vec<_>>(),
-            || serial.into_iter().map(|(i, s)| run_slot(i, s, at)).collect::<Vec<_>>(),
-        );
-        a.extend(b);
-        a
+            serial.into_iter().map(|(i, s)| run_slot(i, s, at)).collect()
+        } else {
+            let (mut a, b) = rayon::join(
+                || parallel.par_iter_mut().map(|(i, s)| run_slot(*i, s, at)).collect::<Vec<_>>(),
+                || serial.into_iter().map(|(i, s)| run_slot(i, s, at)).collect::<Vec<_>>(),
+            );
+            a.extend(b);
+            a
+        };
+        ran.extend(remote.drain(..).map(|(started, slot)| finish_remote(started, slot)));
+        ran
     }
 
     /// Runs steps until the episode ends. `after_step` sees each step; returning

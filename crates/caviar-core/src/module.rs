@@ -61,6 +61,15 @@ pub struct StepInfo {
     pub time: f64,
 }
 
+/// What a step cost where it ran, as a module elsewhere reports it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Usage {
+    pub wall_s: f64,
+    pub cpu_s: f64,
+    /// Resident memory of the process that ran the step, MiB.
+    pub rss_mib: f64,
+}
+
 pub trait Module: Send {
     /// Subscription patterns used when the config gives none.
     fn default_subscriptions(&self) -> Vec<String> {
@@ -88,6 +97,23 @@ pub trait Module: Send {
     /// running them on the calling thread keeps tracebacks and signals simple.
     fn concurrent(&self) -> bool {
         true
+    }
+
+    /// True for a module that runs elsewhere (a NATS worker). The engine then calls
+    /// `start_step` on every remote module of a stage before it waits for any of them
+    /// with `finish_step`: remote modules run side by side without a thread each.
+    fn remote(&self) -> bool {
+        false
+    }
+
+    /// Hands the step off and returns without waiting (remote modules only).
+    fn start_step(&mut self, _at: StepInfo, _inbox: &[SharedMessage]) -> Result<(), ModuleError> {
+        Err(ModuleError::new("start_step is only for remote modules"))
+    }
+
+    /// Waits for the step started by `start_step`; returns what it cost where it ran.
+    fn finish_step(&mut self, _out: &mut Vec<Outgoing>) -> Result<Usage, ModuleError> {
+        Err(ModuleError::new("finish_step is only for remote modules"))
     }
 }
 

@@ -12,6 +12,7 @@ use crate::config::{self, ConfigError, LoadedConfig};
 use crate::engine::{Engine, EngineError};
 use crate::message::{Outgoing, Payload, SharedMessage};
 use crate::module::{Module, ModuleError, SetupContext, StepInfo};
+use crate::nats::WorkerLauncher;
 use crate::run::{prepare, write_status, PluginLoader, PrepareError};
 
 fn host(py: Python<'_>) -> PyResult<Bound<'_, PyModule>> {
@@ -114,6 +115,14 @@ fn outgoing_from_python(result: &Bound<'_, PyAny>, out: &mut Vec<Outgoing>) -> P
 struct PyLoader;
 
 impl PluginLoader for PyLoader {
+    /// Workers run under this interpreter: the same environment, the same plugins.
+    fn worker_launcher(&self) -> Option<WorkerLauncher> {
+        Python::with_gil(|py| {
+            let exe: String = py.import("sys").ok()?.getattr("executable").ok()?.extract().ok()?;
+            (!exe.is_empty()).then(|| WorkerLauncher { command: vec![exe, "-m".into(), "caviar.worker".into()] })
+        })
+    }
+
     fn load(&self, cfg: &LoadedConfig, name: &str) -> Result<Box<dyn Module>, ConfigError> {
         Python::with_gil(|py| {
             let m = &cfg.config.modules[name];

@@ -8,9 +8,10 @@ use std::fs;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::config::{ConfigError, LoadedConfig};
+use crate::config::{ConfigError, LoadedConfig, TransportKind};
 use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec};
 use crate::module::Module;
+use crate::nats::{self, WorkerLauncher};
 use crate::recorder::Recorder;
 use crate::replay::{self, Replay};
 use crate::topic::Pattern;
@@ -19,6 +20,11 @@ use crate::topic::Pattern;
 /// happens here, before any run directory exists: a config error never starts a run.
 pub trait PluginLoader {
     fn load(&self, cfg: &LoadedConfig, name: &str) -> Result<Box<dyn Module>, ConfigError>;
+
+    /// How to start a `caviar worker` process for the NATS transport, if this host can.
+    fn worker_launcher(&self) -> Option<WorkerLauncher> {
+        None
+    }
 }
 
 /// The loader of a build without Python: only built-in modules.
@@ -50,6 +56,11 @@ pub enum PrepareError {
 pub fn load_modules(cfg: &LoadedConfig, loader: &dyn PluginLoader) -> Result<Vec<ModuleSpec>, ConfigError> {
     let mut specs = Vec::new();
     for (name, m) in &cfg.config.modules {
+        if m.plugin == nats::BRIDGE_PLUGIN {
+            // Needs a live NATS connection: built by `nats::prepare` (the config allows
+            // it only with the NATS transport, so only `validate` gets here).
+            continue;
+        }
         let module: Box<dyn Module> =
             if m.plugin == replay::PLUGIN { Box::new(Replay::from_config(cfg, name)?) } else { loader.load(cfg, name)? };
         specs.push(ModuleSpec {
@@ -67,14 +78,22 @@ pub fn load_modules(cfg: &LoadedConfig, loader: &dyn PluginLoader) -> Result<Vec
 
 /// Loads every module, creates the run directory and the engine.
 /// `out`: the run directory to use instead of `output.dir/NAME-NNN`.
+///
+/// With the NATS transport the plugins are loaded by their workers, not here: the run
+/// directory comes first (worker logs go into it), then the server and the workers.
 pub fn prepare(cfg: &LoadedConfig, loader: &dyn PluginLoader, out: Option<&Path>) -> Result<Engine, PrepareError> {
-    let specs = load_modules(cfg, loader)?;
+    let in_process = cfg.config.transport.kind == TransportKind::Inprocess;
+    let specs = if in_process { Some(load_modules(cfg, loader)?) } else { None };
     let run_dir = match out {
         Some(dir) => create_exact(dir)?,
         None => create_numbered(cfg)?,
     };
     let io = |e: std::io::Error| PrepareError::Io(format!("{}: {e}", run_dir.display()));
     fs::write(run_dir.join("config.toml"), &cfg.text).map_err(io)?;
+    let (specs, tap) = match specs {
+        Some(s) => (s, None),
+        None => nats::prepare(cfg, loader.worker_launcher(), &run_dir)?,
+    };
     let exclude = cfg.config.output.exclude.iter().map(|p| Pattern::new(p).expect("validated")).collect();
     let recorder = Recorder::create(&run_dir, exclude, Duration::from_secs_f64(cfg.config.output.flush_interval))
         .map_err(|e| PrepareError::Io(e.to_string()))?;
@@ -87,7 +106,10 @@ pub fn prepare(cfg: &LoadedConfig, loader: &dyn PluginLoader, out: Option<&Path>
         run_dir: run_dir.clone(),
         config_dir: cfg.base_dir.clone(),
     };
-    let engine = Engine::new(opts, specs, Some(recorder)).map_err(PrepareError::Io)?;
+    let mut engine = Engine::new(opts, specs, Some(recorder)).map_err(PrepareError::Io)?;
+    if let Some(tap) = tap {
+        engine.set_tap(tap);
+    }
     write_status(cfg, &engine, "running", None).map_err(PrepareError::Io)?;
     Ok(engine)
 }

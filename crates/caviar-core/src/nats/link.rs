@@ -1,0 +1,408 @@
+//! The core's connection to NATS for one run: the server (when we start it), the
+//! worker processes (when we start them), and the registry of workers that said hello.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use futures_util::StreamExt;
+use serde::Deserialize;
+use serde_json::json;
+
+use super::server::SpawnedServer;
+use super::wire::{WireError, PROTOCOL};
+use crate::config::NatsTransport;
+use crate::module::ModuleError;
+
+/// What a worker told us about itself.
+#[derive(Debug, Clone)]
+pub struct WorkerInfo {
+    pub id: String,
+    pub module: String,
+    pub host: String,
+    pub pid: u32,
+    pub last_beat: Instant,
+    /// After `loaded`: the plugin's default subscriptions, or why it could not load.
+    pub loaded: Option<Result<Vec<String>, WireError>>,
+}
+
+#[derive(Deserialize)]
+struct Hello {
+    protocol: u32,
+    module: String,
+    worker: String,
+    #[serde(default)]
+    host: String,
+    #[serde(default)]
+    pid: u32,
+}
+
+#[derive(Deserialize)]
+struct Loaded {
+    worker: String,
+    #[serde(default)]
+    subscribe: Vec<String>,
+    #[serde(default)]
+    error: Option<WireError>,
+}
+
+#[derive(Deserialize)]
+struct Beat {
+    worker: String,
+}
+
+/// A worker process this run started, and where its output goes.
+struct WorkerProcess {
+    module: String,
+    child: Child,
+    log: PathBuf,
+}
+
+pub struct Timeouts {
+    pub startup: Duration,
+    pub step: Duration,
+    pub heartbeat: Duration,
+    pub reconnect: Duration,
+}
+
+impl Timeouts {
+    pub fn from_config(n: &NatsTransport) -> Self {
+        Timeouts {
+            startup: Duration::from_secs_f64(n.startup_timeout),
+            step: Duration::from_secs_f64(n.step_timeout),
+            heartbeat: Duration::from_secs_f64(n.heartbeat_timeout),
+            reconnect: Duration::from_secs_f64(n.reconnect_timeout),
+        }
+    }
+}
+
+pub struct Link {
+    pub rt: tokio::runtime::Runtime,
+    pub client: async_nats::Client,
+    pub url: String,
+    pub run_id: String,
+    /// `caviar.<run_id>`: every control subject of the run starts with it.
+    pub prefix: String,
+    pub timeouts: Timeouts,
+    workers: Arc<Mutex<HashMap<String, WorkerInfo>>>,
+    /// Set once the engine has set the modules up: later workers are turned away.
+    started: Arc<std::sync::atomic::AtomicBool>,
+    processes: Mutex<Vec<WorkerProcess>>,
+    disconnected_since: Mutex<Option<Instant>>,
+    // Dropped last (fields drop in order): the workers and the client go before the server.
+    _server: Option<SpawnedServer>,
+}
+
+/// The module description a worker receives in reply to its hello.
+pub struct ModuleOffer {
+    pub plugin: String,
+    pub params: serde_json::Value,
+    pub shards: u64,
+}
+
+pub fn connect_options(n: &NatsTransport, resolve: &dyn Fn(&Path) -> PathBuf) -> Result<async_nats::ConnectOptions, String> {
+    let mut o = async_nats::ConnectOptions::new()
+        .name("caviar-core")
+        // Our own deadlines apply (step_timeout, heartbeats); the client's 10 s default would cut long steps.
+        .request_timeout(None)
+        .max_reconnects(None)
+        .connection_timeout(Duration::from_secs(5));
+    if let Some(c) = &n.credentials {
+        let text = std::fs::read_to_string(resolve(c)).map_err(|e| format!("transport.nats.credentials: {}: {e}", resolve(c).display()))?;
+        o = o.credentials(&text).map_err(|e| format!("transport.nats.credentials: {e}"))?;
+    }
+    if let Some(t) = &n.token {
+        o = o.token(t.clone());
+    }
+    if let (Some(u), Some(p)) = (&n.user, &n.password) {
+        o = o.user_and_password(u.clone(), p.clone());
+    }
+    if let Some(ca) = &n.tls_ca {
+        o = o.add_root_certificates(resolve(ca));
+    }
+    if let (Some(c), Some(k)) = (&n.tls_cert, &n.tls_key) {
+        o = o.add_client_certificate(resolve(c), resolve(k));
+    }
+    if n.tls_required {
+        o = o.require_tls(true);
+    }
+    Ok(o)
+}
+
+impl Link {
+    /// Connects and starts answering workers' hellos with `offers`.
+    pub fn connect(
+        url: &str,
+        options: async_nats::ConnectOptions,
+        run_id: &str,
+        offers: HashMap<String, ModuleOffer>,
+        base: serde_json::Value,
+        timeouts: Timeouts,
+        server: Option<SpawnedServer>,
+    ) -> Result<Arc<Link>, String> {
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .thread_name("caviar-nats")
+            .enable_all()
+            .build()
+            .map_err(|e| format!("tokio runtime: {e}"))?;
+        let client = rt
+            .block_on(options.connect(url))
+            .map_err(|e| format!("cannot connect to the NATS server at {url}: {e}"))?;
+        let prefix = format!("caviar.{run_id}");
+        let workers: Arc<Mutex<HashMap<String, WorkerInfo>>> = Arc::default();
+        let started = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let mut subs = rt
+            .block_on(async {
+                let hello = client.subscribe(format!("{prefix}.hello")).await.map_err(|e| e.to_string())?;
+                let loaded = client.subscribe(format!("{prefix}.loaded")).await.map_err(|e| e.to_string())?;
+                let beat = client.subscribe(format!("{prefix}.heartbeat")).await.map_err(|e| e.to_string())?;
+                client.flush().await.map_err(|e| e.to_string())?;
+                Ok::<_, String>(futures_util::stream::select_all([hello, loaded, beat]))
+            })
+            .map_err(|e| format!("NATS subscribe on {prefix}.*: {e}"))?;
+        let (c, w, s) = (client.clone(), workers.clone(), started.clone());
+        rt.spawn(async move {
+            while let Some(msg) = subs.next().await {
+                let subject = msg.subject.as_str();
+                if subject.ends_with(".hello") {
+                    let answer = answer_hello(&msg.payload, &offers, &base, &w, &s);
+                    if let Some(reply) = msg.reply {
+                        let _ = c.publish(reply, serde_json::to_vec(&answer).expect("json").into()).await;
+                    }
+                } else if subject.ends_with(".loaded") {
+                    if let Ok(l) = serde_json::from_slice::<Loaded>(&msg.payload) {
+                        if let Some(info) = w.lock().unwrap().get_mut(&l.worker) {
+                            info.last_beat = Instant::now();
+                            info.loaded = Some(l.error.map_or(Ok(l.subscribe), Err));
+                        }
+                    }
+                } else if let Ok(b) = serde_json::from_slice::<Beat>(&msg.payload) {
+                    if let Some(info) = w.lock().unwrap().get_mut(&b.worker) {
+                        info.last_beat = Instant::now();
+                    }
+                }
+            }
+        });
+        Ok(Arc::new(Link {
+            rt,
+            client,
+            url: url.to_string(),
+            run_id: run_id.to_string(),
+            prefix,
+            timeouts,
+            workers,
+            started,
+            processes: Mutex::new(Vec::new()),
+            disconnected_since: Mutex::new(None),
+            _server: server,
+        }))
+    }
+
+    /// Starts a worker process for `module`; its output goes to `log`.
+    pub fn spawn_worker(&self, module: &str, command: &[String], envs: &[(String, String)], log: &Path) -> Result<(), String> {
+        let file = std::fs::File::create(log).map_err(|e| format!("{}: {e}", log.display()))?;
+        let child = Command::new(&command[0])
+            .args(&command[1..])
+            .envs(envs.iter().map(|(k, v)| (k, v)))
+            .stdin(Stdio::null())
+            .stdout(file.try_clone().map_err(|e| e.to_string())?)
+            .stderr(file)
+            .spawn()
+            .map_err(|e| format!("cannot start the worker of module '{module}' ({}): {e}", command[0]))?;
+        self.processes.lock().unwrap().push(WorkerProcess { module: module.into(), child, log: log.into() });
+        Ok(())
+    }
+
+    pub fn mark_started(&self) {
+        self.started.store(true, std::sync::atomic::Ordering::SeqCst);
+    }
+
+    /// The workers of `module` that have said hello, in the order of their ids.
+    pub fn workers_of(&self, module: &str) -> Vec<WorkerInfo> {
+        let mut v: Vec<WorkerInfo> = self.workers.lock().unwrap().values().filter(|w| w.module == module).cloned().collect();
+        v.sort_by(|a, b| a.id.cmp(&b.id));
+        v
+    }
+
+    /// Why `module` can no longer answer, if we can tell: a worker process of it that
+    /// exited, workers that stopped beating, a connection that stayed down.
+    pub fn check_alive(&self, module: &str, expected: &[String]) -> Result<(), String> {
+        for p in self.processes.lock().unwrap().iter_mut().filter(|p| p.module == module) {
+            if let Ok(Some(status)) = p.child.try_wait() {
+                return Err(format!(
+                    "its worker process (pid {}) exited ({status}); last lines of {}:\n{}",
+                    p.child.id(),
+                    p.log.display(),
+                    tail(&p.log, 15)
+                ));
+            }
+        }
+        let silent: Vec<String> = {
+            let workers = self.workers.lock().unwrap();
+            expected
+                .iter()
+                .filter_map(|id| workers.get(id))
+                .filter(|w| w.last_beat.elapsed() > self.timeouts.heartbeat)
+                .map(|w| format!("{} (pid {} on {}), silent for {:.1} s", w.id, w.pid, w.host, w.last_beat.elapsed().as_secs_f64()))
+                .collect()
+        };
+        if !silent.is_empty() && silent.len() == expected.len() {
+            return Err(format!("its worker stopped answering (no heartbeat): {}", silent.join("; ")));
+        }
+        let mut since = self.disconnected_since.lock().unwrap();
+        if self.client.connection_state() == async_nats::connection::State::Disconnected {
+            let t = *since.get_or_insert_with(Instant::now);
+            if t.elapsed() > self.timeouts.reconnect {
+                return Err(format!(
+                    "the connection to the NATS server at {} dropped and was retried for {:.0} s without success",
+                    self.url,
+                    self.timeouts.reconnect.as_secs_f64()
+                ));
+            }
+        } else {
+            *since = None;
+        }
+        Ok(())
+    }
+
+    /// Waits for `task`, checking every 100 ms that `module` can still answer.
+    pub fn wait<T: Send + 'static>(
+        &self,
+        module: &str,
+        expected: &[String],
+        what: &str,
+        mut task: tokio::task::JoinHandle<T>,
+        timeout: Duration,
+    ) -> Result<T, ModuleError> {
+        let t0 = Instant::now();
+        loop {
+            let done = self.rt.block_on(async {
+                tokio::select! {
+                    r = &mut task => Some(r),
+                    _ = tokio::time::sleep(Duration::from_millis(100)) => None,
+                }
+            });
+            if let Some(r) = done {
+                return r.map_err(|e| ModuleError::new(format!("{what}: {e}")));
+            }
+            if let Err(why) = self.check_alive(module, expected) {
+                task.abort();
+                return Err(ModuleError::new(format!("{what}: {why}")));
+            }
+            if t0.elapsed() > timeout {
+                task.abort();
+                return Err(ModuleError::new(format!(
+                    "{what}: no reply within {:.0} s (transport.nats.step_timeout / startup_timeout)",
+                    timeout.as_secs_f64()
+                )));
+            }
+        }
+    }
+
+    /// Reaps the worker processes of `module` (they exit after teardown), killing any
+    /// still running after `grace`.
+    pub fn reap(&self, module: &str, grace: Duration) {
+        let mut procs = self.processes.lock().unwrap();
+        let deadline = Instant::now() + grace;
+        for p in procs.iter_mut().filter(|p| p.module == module) {
+            while Instant::now() < deadline {
+                if let Ok(Some(_)) = p.child.try_wait() {
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(10));
+            }
+            if let Ok(None) = p.child.try_wait() {
+                let _ = p.child.kill();
+                let _ = p.child.wait();
+            }
+        }
+    }
+
+    /// Checks that every spawned process is still running (during startup).
+    pub fn check_processes(&self) -> Result<(), String> {
+        for p in self.processes.lock().unwrap().iter_mut() {
+            if let Ok(Some(status)) = p.child.try_wait() {
+                return Err(format!(
+                    "the worker process of module '{}' exited during startup ({status}); last lines of {}:\n{}",
+                    p.module,
+                    p.log.display(),
+                    tail(&p.log, 15)
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Link {
+    fn drop(&mut self) {
+        // Tell every worker of the run to leave, then make sure the ones we started did.
+        let (c, subject) = (self.client.clone(), format!("{}.stop", self.prefix));
+        let _ = self.rt.block_on(async move {
+            let _ = c.publish(subject, "{}".into()).await;
+            tokio::time::timeout(Duration::from_secs(2), c.flush()).await
+        });
+        let modules: Vec<String> = self.processes.lock().unwrap().iter().map(|p| p.module.clone()).collect();
+        for m in modules {
+            self.reap(&m, Duration::from_secs(3));
+        }
+    }
+}
+
+fn answer_hello(
+    payload: &[u8],
+    offers: &HashMap<String, ModuleOffer>,
+    base: &serde_json::Value,
+    workers: &Mutex<HashMap<String, WorkerInfo>>,
+    started: &std::sync::atomic::AtomicBool,
+) -> serde_json::Value {
+    let hello: Hello = match serde_json::from_slice(payload) {
+        Ok(h) => h,
+        Err(e) => return json!({"ok": false, "error": format!("bad hello: {e}")}),
+    };
+    if hello.protocol != PROTOCOL {
+        return json!({"ok": false, "error": format!("this core speaks protocol {PROTOCOL}, the worker {}", hello.protocol)});
+    }
+    let Some(offer) = offers.get(&hello.module) else {
+        let mut known: Vec<&String> = offers.keys().collect();
+        known.sort();
+        return json!({"ok": false, "error": format!("this run has no remote module '{}' (remote modules: {known:?})", hello.module)});
+    };
+    if started.load(std::sync::atomic::Ordering::SeqCst) {
+        return json!({"ok": false, "error": "the run has already started; workers must join before the first step"});
+    }
+    let mut w = workers.lock().unwrap();
+    if w.contains_key(&hello.worker) {
+        return json!({"ok": false, "error": format!("a worker with id '{}' already joined", hello.worker)});
+    }
+    w.insert(
+        hello.worker.clone(),
+        WorkerInfo {
+            id: hello.worker,
+            module: hello.module.clone(),
+            host: hello.host,
+            pid: hello.pid,
+            last_beat: Instant::now(),
+            loaded: None,
+        },
+    );
+    let mut answer = base.clone();
+    let o = answer.as_object_mut().expect("object");
+    o.insert("ok".into(), true.into());
+    o.insert("protocol".into(), PROTOCOL.into());
+    o.insert("module".into(), hello.module.into());
+    o.insert("plugin".into(), offer.plugin.clone().into());
+    o.insert("params".into(), offer.params.clone());
+    o.insert("shards".into(), offer.shards.into());
+    answer
+}
+
+/// The last `n` lines of a log file.
+pub fn tail(path: &Path, n: usize) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(n)..].join("\n")
+}

