@@ -106,3 +106,34 @@ class ScriptedDetections(caviar.Plugin):
                                 "detections": [{"ground": {"x": x, "y": y}} for x, y in ground]}
         if step == 5:
             yield caviar.END_TOPIC, {"reason": "script"}
+
+
+class Slow(caviar.Plugin):
+    """Takes `seconds` of wall clock per step (to be killed mid-run)."""
+
+    @dataclasses.dataclass
+    class Params:
+        seconds: float = 0.1
+
+    def step(self, t, inbox):
+        import time
+
+        time.sleep(self.ctx.params.seconds)
+        return [("slow.tick", {"step": self.ctx.step})]
+
+
+class SplitWork(caviar.Plugin):
+    """Squares items 0..n-1; shard k of N takes the items i with i % N == k."""
+
+    shardable = True
+
+    @dataclasses.dataclass
+    class Params:
+        items: int = 10
+
+    def step(self, t, inbox):
+        import os
+
+        mine = [i for i in range(self.ctx.params.items) if i % self.ctx.shards == self.ctx.shard]
+        yield "work.part", {"step": self.ctx.step, "shard": self.ctx.shard, "squares": [i * i for i in mine]}
+        yield "work.pid", os.getpid()

@@ -128,7 +128,8 @@ class Hosted:
         if shards > 1 and not type(self.plugin).shardable:
             raise ConfigError(f"{type(self.plugin).__name__} cannot split a step into shards "
                               f"(it does not declare shardable = True)", "shards")
-        self.run_dir = pathlib.Path(run_dir)
+        # Absolute: artifact paths are recorded relative to it, whatever the current directory.
+        self.run_dir = pathlib.Path(run_dir).resolve()
         self.ctx = Context(name=self.name, params=self.params, seed=seed, ts=ts, steps=steps,
                            every=every, offset=offset, run_dir=self.run_dir,
                            config_dir=pathlib.Path(config_dir), shards=shards)

@@ -129,7 +129,8 @@ class Worker:
             self.done.set()
 
     async def _disconnected(self):
-        self.log("disconnected from the NATS server; retrying")
+        if not self.done.is_set():
+            self.log("disconnected from the NATS server; retrying")
 
     async def _reconnected(self):
         self.log("reconnected")

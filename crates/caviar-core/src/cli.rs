@@ -16,7 +16,11 @@ use crate::recorder::{read_messages, read_timings, CORE};
 use crate::run::{load_modules, prepare, write_status, PluginLoader};
 
 #[derive(Parser, Debug)]
-#[command(name = "caviar-core", version, about = "CAVIAR co-simulation of 6G communications, 3D scenarios and AI")]
+#[command(
+    name = "caviar-core",
+    version,
+    about = "CAVIAR co-simulation of 6G communications, 3D scenarios and AI"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -58,7 +62,12 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
         }
     };
     match cli.command {
-        Command::Run { config, set, out, quiet } => run(&config, &set, out.as_deref(), quiet, loader, interrupted),
+        Command::Run {
+            config,
+            set,
+            out,
+            quiet,
+        } => run(&config, &set, out.as_deref(), quiet, loader, interrupted),
         Command::Validate { config, set } => validate(&config, &set, loader),
         Command::Inspect { run_dir } => match inspect(&run_dir) {
             Ok(text) => {
@@ -74,10 +83,15 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
 }
 
 fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
-    let result = config::load(path, set).and_then(|cfg| load_modules(&cfg, loader).map(|m| (cfg, m.len())));
+    let result =
+        config::load(path, set).and_then(|cfg| load_modules(&cfg, loader).map(|m| (cfg, m.len())));
     match result {
         Ok((cfg, n)) => {
-            let steps = cfg.steps().map_or("until a module ends it".to_string(), |s| format!("{s} steps"));
+            let steps = cfg
+                .steps()
+                .map_or("until a module ends it".to_string(), |s| {
+                    format!("{s} steps")
+                });
             println!(
                 "{}: ok ({n} modules in {} stages, Ts = {} s, {steps})",
                 path.display(),
@@ -102,7 +116,10 @@ struct LogProgress {
 impl LogProgress {
     fn new(quiet: bool) -> Self {
         use std::io::IsTerminal;
-        LogProgress { enabled: !quiet && !std::io::stderr().is_terminal(), last: Instant::now() }
+        LogProgress {
+            enabled: !quiet && !std::io::stderr().is_terminal(),
+            last: Instant::now(),
+        }
     }
 
     fn update(&mut self, engine: &Engine, report: &StepReport) {
@@ -115,20 +132,33 @@ impl LogProgress {
         let wall = engine.wall_s().max(1e-12);
         let eta = engine
             .planned_steps()
-            .map(|n| format!(", ETA {:.0} s", wall / done as f64 * n.saturating_sub(done) as f64))
+            .map(|n| {
+                format!(
+                    ", ETA {:.0} s",
+                    wall / done as f64 * n.saturating_sub(done) as f64
+                )
+            })
             .unwrap_or_default();
-        let of = engine.planned_steps().map(|n| format!("/{n}")).unwrap_or_default();
-        eprintln!("step {done}{of}, t = {virtual_s:.2} s, wall {wall:.1} s, RTF {:.3}{eta}", virtual_s / wall);
+        let of = engine
+            .planned_steps()
+            .map(|n| format!("/{n}"))
+            .unwrap_or_default();
+        eprintln!(
+            "step {done}{of}, t = {virtual_s:.2} s, wall {wall:.1} s, RTF {:.3}{eta}",
+            virtual_s / wall
+        );
     }
 }
 
 fn progress_bar(engine: &Engine, quiet: bool) -> ProgressBar {
     let bar = match engine.planned_steps() {
         Some(n) => ProgressBar::new(n).with_style(
-            ProgressStyle::with_template("{bar:30.cyan/blue} {pos}/{len} steps  {msg}  ETA {eta}").expect("template"),
+            ProgressStyle::with_template("{bar:30.cyan/blue} {pos}/{len} steps  {msg}  ETA {eta}")
+                .expect("template"),
         ),
-        None => ProgressBar::new_spinner()
-            .with_style(ProgressStyle::with_template("{spinner} {pos} steps  {msg}").expect("template")),
+        None => ProgressBar::new_spinner().with_style(
+            ProgressStyle::with_template("{spinner} {pos} steps  {msg}").expect("template"),
+        ),
     };
     if quiet {
         bar.set_draw_target(ProgressDrawTarget::hidden());
@@ -143,7 +173,14 @@ fn show_progress(bar: &ProgressBar, engine: &Engine, report: &StepReport) {
     bar.set_message(format!("t = {virtual_s:.2} s  RTF {rtf:.3}"));
 }
 
-fn run(path: &Path, set: &[String], out: Option<&Path>, quiet: bool, loader: &dyn PluginLoader, interrupted: &dyn Fn() -> bool) -> i32 {
+fn run(
+    path: &Path,
+    set: &[String],
+    out: Option<&Path>,
+    quiet: bool,
+    loader: &dyn PluginLoader,
+    interrupted: &dyn Fn() -> bool,
+) -> i32 {
     let cfg = match config::load(path, set) {
         Ok(c) => c,
         Err(e) => {
@@ -191,7 +228,10 @@ fn run(path: &Path, set: &[String], out: Option<&Path>, quiet: bool, loader: &dy
         }
         Some(e) => {
             eprintln!("error: {e}");
-            eprintln!("{dir}: {status} after {} steps; what was recorded is in the run directory", engine.steps_done());
+            eprintln!(
+                "{dir}: {status} after {} steps; what was recorded is in the run directory",
+                engine.steps_done()
+            );
             if matches!(e, EngineError::Interrupted { .. }) {
                 130
             } else {
@@ -215,27 +255,64 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
     use std::fmt::Write;
     let status: serde_json::Value = std::fs::read_to_string(run_dir.join("run.json"))
         .map_err(|e| format!("{}: not a run directory ({e})", run_dir.display()))
-        .and_then(|t| serde_json::from_str(&t).map_err(|e| format!("{}: {e}", run_dir.join("run.json").display())))?;
+        .and_then(|t| {
+            serde_json::from_str(&t)
+                .map_err(|e| format!("{}: {e}", run_dir.join("run.json").display()))
+        })?;
     let messages = read_messages(run_dir).map_err(|e| e.to_string())?;
     let timings = read_timings(run_dir).map_err(|e| e.to_string())?;
 
     let mut s = String::new();
     let get = |k: &str| status.get(k).cloned().unwrap_or(serde_json::Value::Null);
     let steps_done = get("steps_done").as_u64().unwrap_or(0);
-    let planned = get("steps_planned").as_u64().map_or("open-ended".to_string(), |n| n.to_string());
+    let planned = get("steps_planned")
+        .as_u64()
+        .map_or("open-ended".to_string(), |n| n.to_string());
     let wall = get("wall_s").as_f64().unwrap_or(0.0);
     let virt = get("virtual_time_s").as_f64().unwrap_or(0.0);
-    writeln!(s, "run       {}  ({})", run_dir.display(), get("status").as_str().unwrap_or("?")).unwrap();
-    writeln!(s, "steps     {steps_done} of {planned}, Ts = {} s, {virt:.3} s virtual", get("ts")).unwrap();
-    let rtf = if wall > 0.0 { format!("{:.3}", virt / wall) } else { "-".into() };
+    writeln!(
+        s,
+        "run       {}  ({})",
+        run_dir.display(),
+        get("status").as_str().unwrap_or("?")
+    )
+    .unwrap();
+    writeln!(
+        s,
+        "steps     {steps_done} of {planned}, Ts = {} s, {virt:.3} s virtual",
+        get("ts")
+    )
+    .unwrap();
+    let rtf = if wall > 0.0 {
+        format!("{:.3}", virt / wall)
+    } else {
+        "-".into()
+    };
     let record = get("record_s").as_f64().unwrap_or(0.0);
     writeln!(s, "wall      {wall:.3} s in steps ({record:.3} s of it recording), RTF {rtf} (virtual s per wall s)").unwrap();
     let total_bytes: u64 = messages.iter().map(|m| m.payload.len() as u64).sum();
-    writeln!(s, "messages  {} ({})", messages.len(), human_bytes(total_bytes)).unwrap();
+    writeln!(
+        s,
+        "messages  {} ({})",
+        messages.len(),
+        human_bytes(total_bytes)
+    )
+    .unwrap();
     if let Some(err) = get("error").as_object() {
-        writeln!(s, "error     {}", err.get("message").and_then(|m| m.as_str()).unwrap_or("?")).unwrap();
+        writeln!(
+            s,
+            "error     {}",
+            err.get("message").and_then(|m| m.as_str()).unwrap_or("?")
+        )
+        .unwrap();
         if let Some(m) = err.get("module").and_then(|m| m.as_str()) {
-            writeln!(s, "          in module '{m}', {} at step {}", err["phase"].as_str().unwrap_or("?"), err["step"]).unwrap();
+            writeln!(
+                s,
+                "          in module '{m}', {} at step {}",
+                err["phase"].as_str().unwrap_or("?"),
+                err["step"]
+            )
+            .unwrap();
         }
     }
 
@@ -265,7 +342,12 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
         }
     }
     let w = topics.keys().map(|t| t.len()).max().unwrap_or(5).max(5);
-    writeln!(s, "\n{:<w$}  {:<8} {:>9} {:>13} {:>10}  from", "topic", "kind", "messages", "steps", "bytes").unwrap();
+    writeln!(
+        s,
+        "\n{:<w$}  {:<8} {:>9} {:>13} {:>10}  from",
+        "topic", "kind", "messages", "steps", "bytes"
+    )
+    .unwrap();
     for (t, r) in &topics {
         writeln!(
             s,
@@ -308,7 +390,12 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
     // The core's row last: it is the overhead of everything above it.
     modules.sort_by_key(|(n, _)| n == CORE);
     let total: f64 = modules.iter().map(|(_, r)| r.wall).sum::<f64>().max(1e-12);
-    let w = modules.iter().map(|(n, _)| n.len()).max().unwrap_or(6).max(6);
+    let w = modules
+        .iter()
+        .map(|(n, _)| n.len())
+        .max()
+        .unwrap_or(6)
+        .max(6);
     writeln!(
         s,
         "\n{:<w$}  {:>6} {:>10} {:>7} {:>10} {:>9} {:>11} {:>8} {:>8}",

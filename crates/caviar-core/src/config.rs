@@ -248,7 +248,8 @@ impl LoadedConfig {
     /// Number of steps, or `None` when the episode runs until a module ends it.
     pub fn steps(&self) -> Option<u64> {
         let e = &self.config.episode;
-        e.steps.or_else(|| e.duration.map(|d| (d / e.ts - 1e-9).ceil().max(0.0) as u64))
+        e.steps
+            .or_else(|| e.duration.map(|d| (d / e.ts - 1e-9).ceil().max(0.0) as u64))
     }
 
     pub fn resolve(&self, path: &Path) -> PathBuf {
@@ -335,14 +336,23 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
     let cfg = &c.config;
     let ep = &cfg.episode;
     if !(ep.ts.is_finite() && ep.ts > 0.0) {
-        return Err(c.error_at("episode.ts", format!("expected a positive number of seconds, got {}", ep.ts)));
+        return Err(c.error_at(
+            "episode.ts",
+            format!("expected a positive number of seconds, got {}", ep.ts),
+        ));
     }
     if ep.steps.is_some() && ep.duration.is_some() {
-        return Err(c.error_at("episode.duration", "give either `steps` or `duration`, not both"));
+        return Err(c.error_at(
+            "episode.duration",
+            "give either `steps` or `duration`, not both",
+        ));
     }
     if let Some(d) = ep.duration {
         if !(d.is_finite() && d > 0.0) {
-            return Err(c.error_at("episode.duration", format!("expected a positive number of seconds, got {d}")));
+            return Err(c.error_at(
+                "episode.duration",
+                format!("expected a positive number of seconds, got {d}"),
+            ));
         }
     }
     if ep.stages.is_empty() {
@@ -363,7 +373,11 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
     }
     for (name, m) in &cfg.modules {
         let key = |k: &str| format!("modules.{name}.{k}");
-        if name.is_empty() || !name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-') {
+        if name.is_empty()
+            || !name
+                .chars()
+                .all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-')
+        {
             return Err(c.error_at(
                 &format!("modules.{name}"),
                 "module names may use only letters, digits, '_' and '-' (they become NATS subject tokens)",
@@ -372,7 +386,10 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
         if !ep.stages.contains(&m.stage) {
             return Err(c.error_at(
                 &key("stage"),
-                format!("unknown stage '{}', expected one of {:?} (episode.stages)", m.stage, ep.stages),
+                format!(
+                    "unknown stage '{}', expected one of {:?} (episode.stages)",
+                    m.stage, ep.stages
+                ),
             ));
         }
         if m.every == 0 {
@@ -381,11 +398,17 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
         if m.offset >= m.every {
             return Err(c.error_at(
                 &key("offset"),
-                format!("expected an offset below `every` ({}), got {}", m.every, m.offset),
+                format!(
+                    "expected an offset below `every` ({}), got {}",
+                    m.every, m.offset
+                ),
             ));
         }
         if m.plugin.trim().is_empty() {
-            return Err(c.error_at(&key("plugin"), "expected `package.module:Class` or an entry-point name"));
+            return Err(c.error_at(
+                &key("plugin"),
+                "expected `package.module:Class` or an entry-point name",
+            ));
         }
         for p in m.subscribe.iter().flatten() {
             Pattern::new(p).map_err(|e| c.error_at(&key("subscribe"), e.to_string()))?;
@@ -410,10 +433,16 @@ fn validate_nats(c: &LoadedConfig) -> Result<(), ConfigError> {
         }
         if !nats && (m.shards > 1 || m.workers.is_some()) {
             let k = if m.shards > 1 { "shards" } else { "workers" };
-            return Err(c.error_at(&key(k), "needs the NATS transport (transport.kind = \"nats\")"));
+            return Err(c.error_at(
+                &key(k),
+                "needs the NATS transport (transport.kind = \"nats\")",
+            ));
         }
         if m.plugin == crate::nats::BRIDGE_PLUGIN && !nats {
-            return Err(c.error_at(&key("plugin"), "the NATS bridge needs the NATS transport (transport.kind = \"nats\")"));
+            return Err(c.error_at(
+                &key("plugin"),
+                "the NATS bridge needs the NATS transport (transport.kind = \"nats\")",
+            ));
         }
     }
     let n = &cfg.transport.nats;
@@ -425,19 +454,35 @@ fn validate_nats(c: &LoadedConfig) -> Result<(), ConfigError> {
     ];
     for (k, v) in seconds {
         if !(v.is_finite() && v > 0.0) {
-            return Err(c.error_at(&format!("transport.nats.{k}"), format!("expected a positive number of seconds, got {v}")));
+            return Err(c.error_at(
+                &format!("transport.nats.{k}"),
+                format!("expected a positive number of seconds, got {v}"),
+            ));
         }
     }
     if n.spawn == Some(true) && n.url.is_some() {
-        return Err(c.error_at("transport.nats.spawn", "give either `spawn = true` or `url`, not both"));
+        return Err(c.error_at(
+            "transport.nats.spawn",
+            "give either `spawn = true` or `url`, not both",
+        ));
     }
     if let Some(id) = &n.run_id {
-        if id.is_empty() || !id.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-') {
-            return Err(c.error_at("transport.nats.run_id", "expected letters, digits, '_' and '-' (it becomes a NATS subject token)"));
+        if id.is_empty()
+            || !id
+                .chars()
+                .all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-')
+        {
+            return Err(c.error_at(
+                "transport.nats.run_id",
+                "expected letters, digits, '_' and '-' (it becomes a NATS subject token)",
+            ));
         }
     }
     if n.tls_cert.is_some() != n.tls_key.is_some() {
-        return Err(c.error_at("transport.nats.tls_cert", "give `tls_cert` and `tls_key` together"));
+        return Err(c.error_at(
+            "transport.nats.tls_cert",
+            "give `tls_cert` and `tls_key` together",
+        ));
     }
     for p in &n.mirror {
         Pattern::new(p).map_err(|e| c.error_at("transport.nats.mirror", e.to_string()))?;
@@ -448,7 +493,9 @@ fn validate_nats(c: &LoadedConfig) -> Result<(), ConfigError> {
 /// Applies `key.path=value` overrides. The value is read as a TOML value
 /// (`3`, `2.5`, `true`, `"text"`, `[1, 2]`); anything else is taken as a string.
 fn apply_overrides(text: &str, overrides: &[String]) -> Result<String, String> {
-    let mut doc: toml_edit::DocumentMut = text.parse().map_err(|e: toml_edit::TomlError| e.to_string())?;
+    let mut doc: toml_edit::DocumentMut = text
+        .parse()
+        .map_err(|e: toml_edit::TomlError| e.to_string())?;
     for ov in overrides {
         let (key, raw) = ov
             .split_once('=')
@@ -475,7 +522,11 @@ fn apply_overrides(text: &str, overrides: &[String]) -> Result<String, String> {
 
 /// 1-based line of byte offset `pos`.
 fn line_at(text: &str, pos: usize) -> usize {
-    text[..pos.min(text.len())].bytes().filter(|&b| b == b'\n').count() + 1
+    text[..pos.min(text.len())]
+        .bytes()
+        .filter(|&b| b == b'\n')
+        .count()
+        + 1
 }
 
 /// 1-based line where the key path is written (its value, or the deepest part found).
@@ -484,7 +535,9 @@ pub fn line_of_key(text: &str, path: &[&str]) -> Option<usize> {
     let mut table: &dyn toml_edit::TableLike = doc.as_table();
     let mut line = None;
     for (i, part) in path.iter().enumerate() {
-        let Some((k, item)) = table.get_key_value(part) else { break };
+        let Some((k, item)) = table.get_key_value(part) else {
+            break;
+        };
         if let Some(span) = item.span().or_else(|| k.span()) {
             line = Some(line_at(text, span.start));
         }
@@ -568,29 +621,47 @@ speed = 5.0
         assert_eq!(e.key.as_deref(), Some("modules.first.offset"));
         let e = parse_str(&GOOD.replace("\"3D.>\"", "\"3D.>.x\""), &[]).unwrap_err();
         assert!(e.message.contains("last token"), "{e}");
-        let e = parse_str(&GOOD.replace("steps = 4", "steps = 4\nduration = 2.0"), &[]).unwrap_err();
+        let e =
+            parse_str(&GOOD.replace("steps = 4", "steps = 4\nduration = 2.0"), &[]).unwrap_err();
         assert_eq!(e.key.as_deref(), Some("episode.duration"));
         let e = parse_str(&GOOD.replace("ts = 0.5", "ts = -1.0"), &[]).unwrap_err();
-        assert_eq!(e.to_string(), "exp.toml:3: episode.ts: expected a positive number of seconds, got -1");
+        assert_eq!(
+            e.to_string(),
+            "exp.toml:3: episode.ts: expected a positive number of seconds, got -1"
+        );
     }
 
     #[test]
     fn overrides_replace_and_add_values() {
-        let c = parse_str(GOOD, &["episode.steps=10", "modules.first.params.speed=2", "modules.first.params.label=uav one"])
-            .unwrap();
+        let c = parse_str(
+            GOOD,
+            &[
+                "episode.steps=10",
+                "modules.first.params.speed=2",
+                "modules.first.params.label=uav one",
+            ],
+        )
+        .unwrap();
         assert_eq!(c.steps(), Some(10));
         assert_eq!(c.params_json("first")["speed"], 2);
         assert_eq!(c.params_json("first")["label"], "uav one");
         let e = parse_str(GOOD, &["episode.steps=many"]).unwrap_err();
         assert!(e.message.contains("after --set"), "{e}");
-        assert!(parse_str(GOOD, &["nonsense"]).unwrap_err().message.contains("KEY=VALUE"));
+        assert!(parse_str(GOOD, &["nonsense"])
+            .unwrap_err()
+            .message
+            .contains("KEY=VALUE"));
     }
 
     #[test]
     fn duration_gives_the_step_count() {
         let c = parse_str(&GOOD.replace("steps = 4", "duration = 1.2"), &[]).unwrap();
         assert_eq!(c.steps(), Some(3)); // 1.2 / 0.5 -> 2.4 -> 3 steps
-        let c = parse_str(&GOOD.replace("ts = 0.5\nsteps = 4", "ts = 0.1\nduration = 0.3"), &[]).unwrap();
+        let c = parse_str(
+            &GOOD.replace("ts = 0.5\nsteps = 4", "ts = 0.1\nduration = 0.3"),
+            &[],
+        )
+        .unwrap();
         assert_eq!(c.steps(), Some(3)); // no extra step from rounding noise
     }
 }

@@ -34,9 +34,20 @@ pub const END_TOPIC: &str = "caviar.episode.end";
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
     #[error("module '{module}' failed {}: {}{}", place(.phase, .step, .time), .error.message, trace(.error))]
-    Module { module: String, phase: &'static str, step: Option<u64>, time: Option<f64>, error: ModuleError },
+    Module {
+        module: String,
+        phase: &'static str,
+        step: Option<u64>,
+        time: Option<f64>,
+        error: ModuleError,
+    },
     #[error("module '{module}' published on topic '{topic}' in step {step}: {reason}")]
-    Publish { module: String, step: u64, topic: String, reason: String },
+    Publish {
+        module: String,
+        step: u64,
+        topic: String,
+        reason: String,
+    },
     #[error("recorder: {0}")]
     Record(#[from] RecordError),
     #[error("interrupted in step {step}")]
@@ -51,11 +62,14 @@ fn place(phase: &str, step: &Option<u64>, time: &Option<f64>) -> String {
 }
 
 fn trace(e: &ModuleError) -> String {
-    e.trace.as_ref().map(|t| format!("\n{}", t.trim_end())).unwrap_or_default()
+    e.trace
+        .as_ref()
+        .map(|t| format!("\n{}", t.trim_end()))
+        .unwrap_or_default()
 }
 
-/// Sees every step's messages after routing, in delivery order (e.g. to mirror them
-/// onto a message bus for observers).
+/// Sees each stage's messages when they are delivered, in delivery order (e.g. to
+/// mirror them onto a message bus, where a later stage's outside helper may answer).
 pub type Tap = Box<dyn FnMut(&[SharedMessage]) + Send>;
 
 /// How a module takes part in an episode.
@@ -125,7 +139,10 @@ pub struct Engine {
 }
 
 pub(crate) fn thread_cpu_seconds() -> f64 {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
     // SAFETY: clock_gettime writes into the timespec we own.
     unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
     ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
@@ -141,15 +158,21 @@ pub(crate) fn resident_mib() -> f64 {
     let Some((file, page_mib)) = STATM.get_or_init(|| {
         // SAFETY: sysconf has no preconditions.
         let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) } as f64;
-        std::fs::File::open("/proc/self/statm").ok().map(|f| (f, page / (1024.0 * 1024.0)))
+        std::fs::File::open("/proc/self/statm")
+            .ok()
+            .map(|f| (f, page / (1024.0 * 1024.0)))
     }) else {
         return f64::NAN;
     };
     let mut buf = [0u8; 128];
-    let Ok(n) = file.read_at(&mut buf, 0) else { return f64::NAN };
-    let pages = std::str::from_utf8(&buf[..n])
-        .ok()
-        .and_then(|t| t.split_whitespace().nth(1).and_then(|v| v.parse::<f64>().ok()));
+    let Ok(n) = file.read_at(&mut buf, 0) else {
+        return f64::NAN;
+    };
+    let pages = std::str::from_utf8(&buf[..n]).ok().and_then(|t| {
+        t.split_whitespace()
+            .nth(1)
+            .and_then(|v| v.parse::<f64>().ok())
+    });
     pages.map_or(f64::NAN, |p| p * page_mib)
 }
 
@@ -190,13 +213,21 @@ struct Started {
 
 fn start_remote(i: usize, slot: &mut Slot, at: StepInfo) -> Started {
     let inbox = std::mem::take(&mut slot.inbox);
-    Started { slot: i, msgs_in: inbox.len() as u32, started: slot.module.start_step(at, &inbox) }
+    Started {
+        slot: i,
+        msgs_in: inbox.len() as u32,
+        started: slot.module.start_step(at, &inbox),
+    }
 }
 
 fn finish_remote(s: Started, slot: &mut Slot) -> Ran {
     let mut out = Vec::new();
     let result = s.started.and_then(|()| slot.module.finish_step(&mut out));
-    let usage = result.as_ref().ok().copied().unwrap_or(Usage { wall_s: 0.0, cpu_s: 0.0, rss_mib: f64::NAN });
+    let usage = result.as_ref().ok().copied().unwrap_or(Usage {
+        wall_s: 0.0,
+        cpu_s: 0.0,
+        rss_mib: f64::NAN,
+    });
     Ran {
         slot: s.slot,
         result: result.map(|_| out),
@@ -210,7 +241,11 @@ fn finish_remote(s: Started, slot: &mut Slot) -> Ran {
 impl Engine {
     /// Builds an engine. Module order is kept: it fixes the order within a stage.
     /// `recorder` is optional so that benchmarks can measure the bare engine.
-    pub fn new(opts: EngineOptions, modules: Vec<ModuleSpec>, recorder: Option<Recorder>) -> Result<Self, String> {
+    pub fn new(
+        opts: EngineOptions,
+        modules: Vec<ModuleSpec>,
+        recorder: Option<Recorder>,
+    ) -> Result<Self, String> {
         let mut slots = Vec::with_capacity(modules.len());
         for spec in modules {
             let stage = opts
@@ -218,7 +253,9 @@ impl Engine {
                 .iter()
                 .position(|s| *s == spec.stage)
                 .ok_or_else(|| format!("module '{}': unknown stage '{}'", spec.name, spec.stage))?;
-            let patterns = spec.subscribe.unwrap_or_else(|| spec.module.default_subscriptions());
+            let patterns = spec
+                .subscribe
+                .unwrap_or_else(|| spec.module.default_subscriptions());
             let subs = patterns
                 .iter()
                 .map(|p| Pattern::new(p).map_err(|e| format!("module '{}': {e}", spec.name)))
@@ -312,13 +349,15 @@ impl Engine {
                 config_dir: self.opts.config_dir.clone(),
                 params: slot.params.clone(),
             };
-            slot.module.setup(&ctx).map_err(|error| EngineError::Module {
-                module: slot.name.clone(),
-                phase: "setup",
-                step: None,
-                time: None,
-                error,
-            })?;
+            slot.module
+                .setup(&ctx)
+                .map_err(|error| EngineError::Module {
+                    module: slot.name.clone(),
+                    phase: "setup",
+                    step: None,
+                    time: None,
+                    error,
+                })?;
             slot.set_up = true;
         }
         Ok(())
@@ -328,8 +367,13 @@ impl Engine {
         if let Some(r) = self.routes.get(topic) {
             return r.clone();
         }
-        let r: Arc<[usize]> =
-            self.slots.iter().enumerate().filter(|(_, s)| s.subs.iter().any(|p| p.matches(topic))).map(|(i, _)| i).collect();
+        let r: Arc<[usize]> = self
+            .slots
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.subs.iter().any(|p| p.matches(topic)))
+            .map(|(i, _)| i)
+            .collect();
         self.routes.insert(topic.to_string(), r.clone());
         r
     }
@@ -341,7 +385,10 @@ impl Engine {
         }
         self.setup()?;
         let step = self.next_step;
-        let at = StepInfo { step, time: step as f64 * self.opts.ts };
+        let at = StepInfo {
+            step,
+            time: step as f64 * self.opts.ts,
+        };
         let t_step = Instant::now();
         let mut published = Vec::new();
         let mut module_wall = 0.0;
@@ -349,14 +396,23 @@ impl Engine {
         let mut end = false;
 
         for stage in 0..self.opts.stages.len() {
+            let stage_start = published.len();
             let t_stage = Instant::now();
             let mut ran = self.run_stage(stage, at);
             let stage_wall = t_stage.elapsed().as_secs_f64();
             // Modules of one process share its memory: the process's size after the stage
             // is what each module of the stage is charged with (NATS workers report their own).
-            let rss_mib = if self.recorder.is_some() && !ran.is_empty() { resident_mib() } else { f64::NAN };
+            let rss_mib = if self.recorder.is_some() && !ran.is_empty() {
+                resident_mib()
+            } else {
+                f64::NAN
+            };
             // The stage's share of module work is its slowest member (they ran side by side).
-            module_wall += ran.iter().map(|r| r.wall_s).fold(0.0, f64::max).min(stage_wall);
+            module_wall += ran
+                .iter()
+                .map(|r| r.wall_s)
+                .fold(0.0, f64::max)
+                .min(stage_wall);
             ran.sort_by_key(|r| r.slot);
             for r in ran {
                 let name = self.slots[r.slot].name.clone();
@@ -387,11 +443,22 @@ impl Engine {
                 }
                 for o in outgoing {
                     if let Err(reason) = check_publish(&o.topic) {
-                        failure.get_or_insert(EngineError::Publish { module: name.clone(), step, topic: o.topic, reason });
+                        failure.get_or_insert(EngineError::Publish {
+                            module: name.clone(),
+                            step,
+                            topic: o.topic,
+                            reason,
+                        });
                         continue;
                     }
                     end |= o.topic == END_TOPIC;
-                    let msg = Arc::new(Message { step, time: at.time, topic: o.topic, source: name.clone(), payload: o.payload });
+                    let msg = Arc::new(Message {
+                        step,
+                        time: at.time,
+                        topic: o.topic,
+                        source: name.clone(),
+                        payload: o.payload,
+                    });
                     for &j in self.subscribers(&msg.topic).iter() {
                         self.slots[j].inbox.push(msg.clone());
                     }
@@ -401,14 +468,14 @@ impl Engine {
                     published.push(msg);
                 }
             }
+            if let Some(tap) = &mut self.tap {
+                tap(&published[stage_start..]);
+            }
             if failure.is_some() {
                 break;
             }
         }
 
-        if let Some(tap) = &mut self.tap {
-            tap(&published);
-        }
         let wall_s = t_step.elapsed().as_secs_f64();
         self.next_step += 1;
         let t_record = Instant::now();
@@ -438,7 +505,13 @@ impl Engine {
             return Err(f);
         }
         self.ended |= end;
-        Ok(Some(StepReport { step, time: at.time, messages: published, wall_s, ended: self.is_done() }))
+        Ok(Some(StepReport {
+            step,
+            time: at.time,
+            messages: published,
+            wall_s,
+            ended: self.is_done(),
+        }))
     }
 
     fn run_stage(&mut self, stage: usize, at: StepInfo) -> Vec<Ran> {
@@ -449,29 +522,51 @@ impl Engine {
             .filter(|(_, s)| s.stage == stage && s.runs_at(at.step))
             .partition(|(_, s)| s.module.remote());
         // Remote modules first: they work while this process runs the local ones.
-        let mut remote: Vec<(Started, &mut Slot)> =
-            remote.into_iter().map(|(i, s)| (start_remote(i, s, at), s)).collect();
+        let mut remote: Vec<(Started, &mut Slot)> = remote
+            .into_iter()
+            .map(|(i, s)| (start_remote(i, s, at), s))
+            .collect();
         let (mut parallel, mut serial): (Vec<Indexed>, Vec<Indexed>) =
             local.into_iter().partition(|(_, s)| s.module.concurrent());
         let mut ran = if parallel.len() <= 1 {
             // Not worth a thread hop.
             serial.append(&mut parallel);
-            serial.into_iter().map(|(i, s)| run_slot(i, s, at)).collect()
+            serial
+                .into_iter()
+                .map(|(i, s)| run_slot(i, s, at))
+                .collect()
         } else {
             let (mut a, b) = rayon::join(
-                || parallel.par_iter_mut().map(|(i, s)| run_slot(*i, s, at)).collect::<Vec<_>>(),
-                || serial.into_iter().map(|(i, s)| run_slot(i, s, at)).collect::<Vec<_>>(),
+                || {
+                    parallel
+                        .par_iter_mut()
+                        .map(|(i, s)| run_slot(*i, s, at))
+                        .collect::<Vec<_>>()
+                },
+                || {
+                    serial
+                        .into_iter()
+                        .map(|(i, s)| run_slot(i, s, at))
+                        .collect::<Vec<_>>()
+                },
             );
             a.extend(b);
             a
         };
-        ran.extend(remote.drain(..).map(|(started, slot)| finish_remote(started, slot)));
+        ran.extend(
+            remote
+                .drain(..)
+                .map(|(started, slot)| finish_remote(started, slot)),
+        );
         ran
     }
 
     /// Runs steps until the episode ends. `after_step` sees each step; returning
     /// `false` from it interrupts the run.
-    pub fn run(&mut self, mut after_step: impl FnMut(&Engine, &StepReport) -> bool) -> Result<(), EngineError> {
+    pub fn run(
+        &mut self,
+        mut after_step: impl FnMut(&Engine, &StepReport) -> bool,
+    ) -> Result<(), EngineError> {
         while let Some(report) = self.step()? {
             if !after_step(self, &report) && !report.ended {
                 self.ended = true;
@@ -507,7 +602,9 @@ impl Engine {
 fn check_publish(topic: &str) -> Result<(), String> {
     validate_topic(topic).map_err(|e| e.to_string())?;
     if topic.starts_with("caviar.") && topic != END_TOPIC {
-        return Err(format!("topics under 'caviar.' are reserved for the core (modules may publish '{END_TOPIC}')"));
+        return Err(format!(
+            "topics under 'caviar.' are reserved for the core (modules may publish '{END_TOPIC}')"
+        ));
     }
     Ok(())
 }

@@ -94,6 +94,9 @@ pub struct Outgoing {
 
 impl Outgoing {
     pub fn new(topic: impl Into<String>, payload: Payload) -> Self {
-        Outgoing { topic: topic.into(), payload }
+        Outgoing {
+            topic: topic.into(),
+            payload,
+        }
     }
 }

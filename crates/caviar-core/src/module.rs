@@ -17,7 +17,10 @@ pub struct ModuleError {
 
 impl ModuleError {
     pub fn new(message: impl Into<String>) -> Self {
-        ModuleError { message: message.into(), trace: None }
+        ModuleError {
+            message: message.into(),
+            trace: None,
+        }
     }
 }
 

@@ -51,20 +51,36 @@ impl Module for PyPlugin {
                 ctx.run_dir.to_string_lossy().into_owned(),
                 ctx.config_dir.to_string_lossy().into_owned(),
             );
-            self.hosted.call_method1(py, "setup", args).map(drop).map_err(|e| module_error(py, e))
+            self.hosted
+                .call_method1(py, "setup", args)
+                .map(drop)
+                .map_err(|e| module_error(py, e))
         })
     }
 
-    fn step(&mut self, at: StepInfo, inbox: &[SharedMessage], out: &mut Vec<Outgoing>) -> Result<(), ModuleError> {
+    fn step(
+        &mut self,
+        at: StepInfo,
+        inbox: &[SharedMessage],
+        out: &mut Vec<Outgoing>,
+    ) -> Result<(), ModuleError> {
         Python::with_gil(|py| {
             let raw = inbox_to_python(py, inbox).map_err(|e| module_error(py, e))?;
-            let result = self.hosted.call_method1(py, "step", (at.step, at.time, raw)).map_err(|e| module_error(py, e))?;
+            let result = self
+                .hosted
+                .call_method1(py, "step", (at.step, at.time, raw))
+                .map_err(|e| module_error(py, e))?;
             outgoing_from_python(result.bind(py), out).map_err(|e| module_error(py, e))
         })
     }
 
     fn teardown(&mut self) -> Result<(), ModuleError> {
-        Python::with_gil(|py| self.hosted.call_method0(py, "teardown").map(drop).map_err(|e| module_error(py, e)))
+        Python::with_gil(|py| {
+            self.hosted
+                .call_method0(py, "teardown")
+                .map(drop)
+                .map_err(|e| module_error(py, e))
+        })
     }
 
     fn concurrent(&self) -> bool {
@@ -75,7 +91,10 @@ impl Module for PyPlugin {
 /// Messages as tuples `(step, time, topic, source, kind, body, meta)`; `_host` makes
 /// `caviar.Message` objects of them and decodes payloads only when asked.
 fn inbox_to_python<'py>(py: Python<'py>, inbox: &[SharedMessage]) -> PyResult<Bound<'py, PyList>> {
-    let items = inbox.iter().map(|m| message_tuple(py, m)).collect::<PyResult<Vec<_>>>()?;
+    let items = inbox
+        .iter()
+        .map(|m| message_tuple(py, m))
+        .collect::<PyResult<Vec<_>>>()?;
     PyList::new(py, items)
 }
 
@@ -85,26 +104,37 @@ fn message_tuple<'py>(py: Python<'py>, m: &SharedMessage) -> PyResult<Bound<'py,
         Payload::Json(text) | Payload::Artifact(text) => (text.into_pyobject(py)?.into_any(), None),
         Payload::Binary { meta, data } => (PyBytes::new(py, data).into_any(), Some(meta.as_str())),
     };
-    PyTuple::new(py, [
-        m.step.into_pyobject(py)?.into_any(),
-        m.time.into_pyobject(py)?.into_any(),
-        m.topic.as_str().into_pyobject(py)?.into_any(),
-        m.source.as_str().into_pyobject(py)?.into_any(),
-        kind.into_pyobject(py)?.into_any(),
-        body,
-        meta.into_pyobject(py)?.into_any(),
-    ])
+    PyTuple::new(
+        py,
+        [
+            m.step.into_pyobject(py)?.into_any(),
+            m.time.into_pyobject(py)?.into_any(),
+            m.topic.as_str().into_pyobject(py)?.into_any(),
+            m.source.as_str().into_pyobject(py)?.into_any(),
+            kind.into_pyobject(py)?.into_any(),
+            body,
+            meta.into_pyobject(py)?.into_any(),
+        ],
+    )
 }
 
 /// `_host` normalises a plugin's return value to a list of `(topic, kind, body, meta)`.
 fn outgoing_from_python(result: &Bound<'_, PyAny>, out: &mut Vec<Outgoing>) -> PyResult<()> {
     for item in result.try_iter()? {
-        let (topic, kind, body, meta): (String, String, Bound<'_, PyAny>, Option<String>) = item?.extract()?;
+        let (topic, kind, body, meta): (String, String, Bound<'_, PyAny>, Option<String>) =
+            item?.extract()?;
         let payload = match kind.as_str() {
             "json" => Payload::Json(body.extract()?),
             "artifact" => Payload::Artifact(body.extract()?),
-            "binary" => Payload::Binary { meta: meta.unwrap_or_else(|| "{}".into()), data: body.extract::<Vec<u8>>()? },
-            other => return Err(PyRuntimeError::new_err(format!("unknown payload kind '{other}' from caviar._host"))),
+            "binary" => Payload::Binary {
+                meta: meta.unwrap_or_else(|| "{}".into()),
+                data: body.extract::<Vec<u8>>()?,
+            },
+            other => {
+                return Err(PyRuntimeError::new_err(format!(
+                    "unknown payload kind '{other}' from caviar._host"
+                )))
+            }
         };
         out.push(Outgoing { topic, payload });
     }
@@ -118,8 +148,16 @@ impl PluginLoader for PyLoader {
     /// Workers run under this interpreter: the same environment, the same plugins.
     fn worker_launcher(&self) -> Option<WorkerLauncher> {
         Python::with_gil(|py| {
-            let exe: String = py.import("sys").ok()?.getattr("executable").ok()?.extract().ok()?;
-            (!exe.is_empty()).then(|| WorkerLauncher { command: vec![exe, "-m".into(), "caviar.worker".into()] })
+            let exe: String = py
+                .import("sys")
+                .ok()?
+                .getattr("executable")
+                .ok()?
+                .extract()
+                .ok()?;
+            (!exe.is_empty()).then(|| WorkerLauncher {
+                command: vec![exe, "-m".into(), "caviar.worker".into()],
+            })
         })
     }
 
@@ -127,17 +165,35 @@ impl PluginLoader for PyLoader {
         Python::with_gil(|py| {
             let m = &cfg.config.modules[name];
             let params = serde_json::to_string(&cfg.params_json(name)).expect("json");
-            let result = host(py)
-                .and_then(|h| h.call_method1("load_plugin", (name, m.plugin.as_str(), params, cfg.base_dir.to_string_lossy().into_owned())));
+            let result = host(py).and_then(|h| {
+                h.call_method1(
+                    "load_plugin",
+                    (
+                        name,
+                        m.plugin.as_str(),
+                        params,
+                        cfg.base_dir.to_string_lossy().into_owned(),
+                    ),
+                )
+            });
             match result {
                 Ok(tuple) => {
                     let (hosted, subscriptions): (Py<PyAny>, Vec<String>) =
-                        tuple.extract().map_err(|e| cfg.error_at(&format!("modules.{name}.plugin"), e.to_string()))?;
-                    Ok(Box::new(PyPlugin { hosted, subscriptions }) as Box<dyn Module>)
+                        tuple.extract().map_err(|e| {
+                            cfg.error_at(&format!("modules.{name}.plugin"), e.to_string())
+                        })?;
+                    Ok(Box::new(PyPlugin {
+                        hosted,
+                        subscriptions,
+                    }) as Box<dyn Module>)
                 }
                 Err(e) => {
                     // `_host` raises caviar.ConfigError with the key relative to the module table.
-                    let key: Option<String> = e.value(py).getattr("key").ok().and_then(|k| k.extract().ok());
+                    let key: Option<String> = e
+                        .value(py)
+                        .getattr("key")
+                        .ok()
+                        .and_then(|k| k.extract().ok());
                     let message: String = e
                         .value(py)
                         .getattr("message")
@@ -152,7 +208,11 @@ impl PluginLoader for PyLoader {
 }
 
 /// Instantiates an exception class of `caviar.errors` (or reports why it could not).
-fn caviar_error<'py>(py: Python<'py>, class: &str, args: impl pyo3::call::PyCallArgs<'py>) -> PyErr {
+fn caviar_error<'py>(
+    py: Python<'py>,
+    class: &str,
+    args: impl pyo3::call::PyCallArgs<'py>,
+) -> PyErr {
     py.import("caviar.errors")
         .and_then(|m| m.getattr(class))
         .and_then(|cls| cls.call1(args))
@@ -167,12 +227,29 @@ fn config_error(py: Python<'_>, e: impl ToString) -> PyErr {
 /// Raises `caviar.errors.RunError` carrying module, phase and step.
 fn run_error(py: Python<'_>, e: &EngineError, run_dir: &std::path::Path) -> PyErr {
     let (module, phase, step) = match e {
-        EngineError::Module { module, phase, step, .. } => (Some(module.clone()), Some(*phase), *step),
-        EngineError::Publish { module, step, .. } => (Some(module.clone()), Some("step"), Some(*step)),
+        EngineError::Module {
+            module,
+            phase,
+            step,
+            ..
+        } => (Some(module.clone()), Some(*phase), *step),
+        EngineError::Publish { module, step, .. } => {
+            (Some(module.clone()), Some("step"), Some(*step))
+        }
         EngineError::Interrupted { step } => (None, None, Some(*step)),
         EngineError::Record(_) => (None, None, None),
     };
-    caviar_error(py, "RunError", (e.to_string(), module, phase, step, run_dir.to_string_lossy().into_owned()))
+    caviar_error(
+        py,
+        "RunError",
+        (
+            e.to_string(),
+            module,
+            phase,
+            step,
+            run_dir.to_string_lossy().into_owned(),
+        ),
+    )
 }
 
 /// An episode driven from Python. `caviar.Simulation` wraps it.
@@ -187,13 +264,22 @@ struct Episode {
 impl Episode {
     #[new]
     #[pyo3(signature = (path, overrides, out=None))]
-    fn new(py: Python<'_>, path: PathBuf, overrides: Vec<String>, out: Option<PathBuf>) -> PyResult<Self> {
+    fn new(
+        py: Python<'_>,
+        path: PathBuf,
+        overrides: Vec<String>,
+        out: Option<PathBuf>,
+    ) -> PyResult<Self> {
         let cfg = config::load(&path, &overrides).map_err(|e| config_error(py, e))?;
         let engine = prepare(&cfg, &PyLoader, out.as_deref()).map_err(|e| match e {
             PrepareError::Config(c) => config_error(py, c),
             PrepareError::Io(s) => pyo3::exceptions::PyOSError::new_err(s),
         })?;
-        Ok(Episode { cfg, engine, closed: false })
+        Ok(Episode {
+            cfg,
+            engine,
+            closed: false,
+        })
     }
 
     /// Runs one step; returns its messages as tuples, or None when the episode is over.
@@ -221,7 +307,10 @@ impl Episode {
             engine.run(|e, _| {
                 Python::with_gil(|py| {
                     if let Some(cb) = &progress {
-                        if cb.call1(py, (e.steps_done(), e.planned_steps(), e.wall_s())).is_err() {
+                        if cb
+                            .call1(py, (e.steps_done(), e.planned_steps(), e.wall_s()))
+                            .is_err()
+                        {
                             return false;
                         }
                     }
@@ -244,7 +333,8 @@ impl Episode {
         let engine = &mut self.engine;
         match py.allow_threads(|| engine.close()) {
             Ok(()) => {
-                write_status(&self.cfg, &self.engine, "completed", None).map_err(PyRuntimeError::new_err)?;
+                write_status(&self.cfg, &self.engine, "completed", None)
+                    .map_err(PyRuntimeError::new_err)?;
                 Ok(())
             }
             Err(e) => {
@@ -286,7 +376,11 @@ impl Episode {
         self.closed = true;
         let engine = &mut self.engine;
         let _ = py.allow_threads(|| engine.close());
-        let status = if matches!(e, EngineError::Interrupted { .. }) { "interrupted" } else { "failed" };
+        let status = if matches!(e, EngineError::Interrupted { .. }) {
+            "interrupted"
+        } else {
+            "failed"
+        };
         let _ = write_status(&self.cfg, &self.engine, status, Some(&e));
         run_error(py, &e, self.engine.run_dir())
     }
@@ -296,7 +390,9 @@ impl Episode {
 #[pyfunction]
 fn main(py: Python<'_>, argv: Vec<String>) -> i32 {
     py.allow_threads(|| {
-        crate::cli::main(argv, &PyLoader, &|| Python::with_gil(|py| py.check_signals().is_err()))
+        crate::cli::main(argv, &PyLoader, &|| {
+            Python::with_gil(|py| py.check_signals().is_err())
+        })
     })
 }
 

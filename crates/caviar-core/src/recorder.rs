@@ -11,8 +11,12 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use arrow_array::builder::{BinaryBuilder, Float64Builder, StringBuilder, UInt32Builder, UInt64Builder};
-use arrow_array::{Array, ArrayRef, BinaryArray, Float64Array, RecordBatch, StringArray, UInt32Array, UInt64Array};
+use arrow_array::builder::{
+    BinaryBuilder, Float64Builder, StringBuilder, UInt32Builder, UInt64Builder,
+};
+use arrow_array::{
+    Array, ArrayRef, BinaryArray, Float64Array, RecordBatch, StringArray, UInt32Array, UInt64Array,
+};
 use arrow_schema::{DataType, Field, Schema, SchemaRef};
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use parquet::arrow::ArrowWriter;
@@ -28,19 +32,31 @@ pub const TIMINGS: &str = "timings";
 #[derive(Debug, thiserror::Error)]
 pub enum RecordError {
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}: {source}")]
-    Parquet { path: PathBuf, source: parquet::errors::ParquetError },
+    Parquet {
+        path: PathBuf,
+        source: parquet::errors::ParquetError,
+    },
     #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RecordError + '_ {
-    move |source| RecordError::Io { path: path.to_path_buf(), source }
+    move |source| RecordError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
 }
 
 fn pq_err(path: &Path) -> impl FnOnce(parquet::errors::ParquetError) -> RecordError + '_ {
-    move |source| RecordError::Parquet { path: path.to_path_buf(), source }
+    move |source| RecordError::Parquet {
+        path: path.to_path_buf(),
+        source,
+    }
 }
 
 pub fn messages_schema() -> SchemaRef {
@@ -200,10 +216,16 @@ pub struct Recorder {
 }
 
 fn writer_props() -> WriterProperties {
-    WriterProperties::builder().set_compression(Compression::SNAPPY).build()
+    WriterProperties::builder()
+        .set_compression(Compression::SNAPPY)
+        .build()
 }
 
-fn write_parquet(path: &Path, schema: SchemaRef, batches: &[RecordBatch]) -> Result<(), RecordError> {
+fn write_parquet(
+    path: &Path,
+    schema: SchemaRef,
+    batches: &[RecordBatch],
+) -> Result<(), RecordError> {
     // Write beside, then rename: a reader never sees a half-written file.
     let tmp = path.with_extension("parquet.tmp");
     let file = File::create(&tmp).map_err(io_err(&tmp))?;
@@ -217,7 +239,11 @@ fn write_parquet(path: &Path, schema: SchemaRef, batches: &[RecordBatch]) -> Res
 
 impl Recorder {
     /// Starts recording into `run_dir` (which must exist).
-    pub fn create(run_dir: &Path, exclude: Vec<Pattern>, flush_interval: Duration) -> Result<Self, RecordError> {
+    pub fn create(
+        run_dir: &Path,
+        exclude: Vec<Pattern>,
+        flush_interval: Duration,
+    ) -> Result<Self, RecordError> {
         for table in [MESSAGES, TIMINGS] {
             let d = run_dir.join(table);
             fs::create_dir_all(&d).map_err(io_err(&d))?;
@@ -271,9 +297,17 @@ impl Recorder {
         let name = format!("part-{:06}.parquet", self.next_part);
         self.next_part += 1;
         let batch = self.messages.finish();
-        write_parquet(&self.run_dir.join(MESSAGES).join(&name), messages_schema(), &[batch])?;
+        write_parquet(
+            &self.run_dir.join(MESSAGES).join(&name),
+            messages_schema(),
+            &[batch],
+        )?;
         let batch = self.timings.finish();
-        write_parquet(&self.run_dir.join(TIMINGS).join(&name), timings_schema(), &[batch])
+        write_parquet(
+            &self.run_dir.join(TIMINGS).join(&name),
+            timings_schema(),
+            &[batch],
+        )
     }
 
     /// Flushes and compacts the parts into one file per table.
@@ -305,9 +339,15 @@ fn compact(run_dir: &Path, table: &str, schema: SchemaRef) -> Result<(), RecordE
 
 fn read_file(path: &Path, out: &mut Vec<RecordBatch>) -> Result<(), RecordError> {
     let file = File::open(path).map_err(io_err(path))?;
-    let reader = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(path))?.build().map_err(pq_err(path))?;
+    let reader = ParquetRecordBatchReaderBuilder::try_new(file)
+        .map_err(pq_err(path))?
+        .build()
+        .map_err(pq_err(path))?;
     for batch in reader {
-        out.push(batch.map_err(|e| RecordError::Format { path: path.to_path_buf(), message: e.to_string() })?);
+        out.push(batch.map_err(|e| RecordError::Format {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?);
     }
     Ok(())
 }
@@ -335,9 +375,19 @@ pub fn read_table(run_dir: &Path, table: &str) -> Result<Vec<RecordBatch>, Recor
 
 /// A column as the expected Arrow type. Parquet written by other tools (polars writes
 /// `Utf8View`, pandas `LargeUtf8`) is cast rather than rejected.
-fn column(batch: &RecordBatch, name: &str, path: &Path, to: &DataType) -> Result<ArrayRef, RecordError> {
-    let format = |message: String| RecordError::Format { path: path.to_path_buf(), message };
-    let col = batch.column_by_name(name).ok_or_else(|| format(format!("recorded table lacks column '{name}'")))?;
+fn column(
+    batch: &RecordBatch,
+    name: &str,
+    path: &Path,
+    to: &DataType,
+) -> Result<ArrayRef, RecordError> {
+    let format = |message: String| RecordError::Format {
+        path: path.to_path_buf(),
+        message,
+    };
+    let col = batch
+        .column_by_name(name)
+        .ok_or_else(|| format(format!("recorded table lacks column '{name}'")))?;
     if col.data_type() == to {
         return Ok(col.clone());
     }
@@ -347,7 +397,10 @@ fn column(batch: &RecordBatch, name: &str, path: &Path, to: &DataType) -> Result
 macro_rules! typed {
     ($batch:expr, $name:expr, $path:expr, $array:ty, $dtype:expr) => {{
         let col = column($batch, $name, $path, &$dtype)?;
-        col.as_any().downcast_ref::<$array>().expect("cast to the matching type").clone()
+        col.as_any()
+            .downcast_ref::<$array>()
+            .expect("cast to the matching type")
+            .clone()
     }};
 }
 
@@ -425,15 +478,33 @@ mod tests {
     use super::*;
 
     fn msg(step: u64, topic: &str, payload: Payload) -> Message {
-        Message { step, time: step as f64 * 0.5, topic: topic.into(), source: "m".into(), payload }
+        Message {
+            step,
+            time: step as f64 * 0.5,
+            topic: topic.into(),
+            source: "m".into(),
+            payload,
+        }
     }
 
     #[test]
     fn parts_are_readable_before_finish_and_compacted_after() {
         let dir = tempfile::tempdir().unwrap();
-        let mut r = Recorder::create(dir.path(), vec![Pattern::new("debug.>").unwrap()], Duration::ZERO).unwrap();
+        let mut r = Recorder::create(
+            dir.path(),
+            vec![Pattern::new("debug.>").unwrap()],
+            Duration::ZERO,
+        )
+        .unwrap();
         let a = msg(0, "a.b", Payload::Json("{\"x\":1}".into()));
-        let b = msg(0, "bin", Payload::Binary { meta: "{\"dtype\":\"|u1\"}".into(), data: vec![0, 255, 7] });
+        let b = msg(
+            0,
+            "bin",
+            Payload::Binary {
+                meta: "{\"dtype\":\"|u1\"}".into(),
+                data: vec![0, 255, 7],
+            },
+        );
         r.record_message(&a);
         r.record_message(&msg(0, "debug.noise", Payload::Json("1".into())));
         r.record_message(&b);
@@ -442,7 +513,10 @@ mod tests {
         r.record_message(&c);
         r.end_step().unwrap();
         // As after a crash: parts only.
-        assert_eq!(read_messages(dir.path()).unwrap(), vec![a.clone(), b.clone(), c.clone()]);
+        assert_eq!(
+            read_messages(dir.path()).unwrap(),
+            vec![a.clone(), b.clone(), c.clone()]
+        );
         r.finish().unwrap();
         assert!(dir.path().join("messages.parquet").exists());
         assert!(!dir.path().join("messages").exists());
@@ -452,7 +526,9 @@ mod tests {
     #[test]
     fn a_missing_run_directory_is_a_clear_error() {
         let dir = tempfile::tempdir().unwrap();
-        let e = read_messages(&dir.path().join("nope")).unwrap_err().to_string();
+        let e = read_messages(&dir.path().join("nope"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("not a run directory"), "{e}");
     }
 }

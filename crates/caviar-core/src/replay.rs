@@ -38,19 +38,28 @@ impl Replay {
         let params = &cfg.config.modules[name].params;
         for k in params.keys() {
             if !["run", "topics", "sources"].contains(&k.as_str()) {
-                return Err(cfg.error_at(&key(k), "unknown parameter of caviar.replay, expected one of run, topics, sources"));
+                return Err(cfg.error_at(
+                    &key(k),
+                    "unknown parameter of caviar.replay, expected one of run, topics, sources",
+                ));
             }
         }
-        let run = params
-            .get("run")
-            .and_then(|v| v.as_str())
-            .ok_or_else(|| cfg.error_at(&format!("modules.{name}.params"), "caviar.replay needs `run`, the path of a recorded run directory"))?;
+        let run = params.get("run").and_then(|v| v.as_str()).ok_or_else(|| {
+            cfg.error_at(
+                &format!("modules.{name}.params"),
+                "caviar.replay needs `run`, the path of a recorded run directory",
+            )
+        })?;
         let strings = |k: &str, default: Vec<String>| -> Result<Vec<String>, ConfigError> {
             match params.get(k) {
                 None => Ok(default),
                 Some(v) => v
                     .as_array()
-                    .and_then(|a| a.iter().map(|x| x.as_str().map(String::from)).collect::<Option<Vec<_>>>())
+                    .and_then(|a| {
+                        a.iter()
+                            .map(|x| x.as_str().map(String::from))
+                            .collect::<Option<Vec<_>>>()
+                    })
                     .ok_or_else(|| cfg.error_at(&key(k), "expected a list of strings")),
             }
         };
@@ -60,25 +69,40 @@ impl Replay {
             .collect::<Result<Vec<_>, _>>()?;
         let sources = strings("sources", Vec::new())?;
         let run_dir: PathBuf = cfg.resolve(run.as_ref());
-        let messages = read_messages(&run_dir).map_err(|e| cfg.error_at(&key("run"), format!("cannot read the recorded run: {e}")))?;
+        let messages = read_messages(&run_dir)
+            .map_err(|e| cfg.error_at(&key("run"), format!("cannot read the recorded run: {e}")))?;
         let queue: VecDeque<Message> = messages
             .into_iter()
             .filter(|m| topics.iter().any(|p| p.matches(&m.topic)))
             .filter(|m| sources.is_empty() || sources.contains(&m.source))
             .collect();
         if queue.is_empty() {
-            return Err(cfg.error_at(&key("topics"), format!("no recorded message in {} matches these topics and sources", run_dir.display())));
+            return Err(cfg.error_at(
+                &key("topics"),
+                format!(
+                    "no recorded message in {} matches these topics and sources",
+                    run_dir.display()
+                ),
+            ));
         }
         Ok(Replay { queue })
     }
 }
 
 impl Module for Replay {
-    fn step(&mut self, at: StepInfo, _inbox: &[SharedMessage], out: &mut Vec<Outgoing>) -> Result<(), ModuleError> {
+    fn step(
+        &mut self,
+        at: StepInfo,
+        _inbox: &[SharedMessage],
+        out: &mut Vec<Outgoing>,
+    ) -> Result<(), ModuleError> {
         let horizon = at.time + 1e-9 * at.time.abs().max(1.0);
         while self.queue.front().is_some_and(|m| m.time <= horizon) {
             let m = self.queue.pop_front().expect("front exists");
-            out.push(Outgoing { topic: m.topic, payload: m.payload });
+            out.push(Outgoing {
+                topic: m.topic,
+                payload: m.payload,
+            });
         }
         Ok(())
     }

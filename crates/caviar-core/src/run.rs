@@ -53,7 +53,10 @@ pub enum PrepareError {
 }
 
 /// Loads every module of the configuration (what `validate` checks).
-pub fn load_modules(cfg: &LoadedConfig, loader: &dyn PluginLoader) -> Result<Vec<ModuleSpec>, ConfigError> {
+pub fn load_modules(
+    cfg: &LoadedConfig,
+    loader: &dyn PluginLoader,
+) -> Result<Vec<ModuleSpec>, ConfigError> {
     let mut specs = Vec::new();
     for (name, m) in &cfg.config.modules {
         if m.plugin == nats::BRIDGE_PLUGIN {
@@ -61,8 +64,11 @@ pub fn load_modules(cfg: &LoadedConfig, loader: &dyn PluginLoader) -> Result<Vec
             // it only with the NATS transport, so only `validate` gets here).
             continue;
         }
-        let module: Box<dyn Module> =
-            if m.plugin == replay::PLUGIN { Box::new(Replay::from_config(cfg, name)?) } else { loader.load(cfg, name)? };
+        let module: Box<dyn Module> = if m.plugin == replay::PLUGIN {
+            Box::new(Replay::from_config(cfg, name)?)
+        } else {
+            loader.load(cfg, name)?
+        };
         specs.push(ModuleSpec {
             name: name.clone(),
             stage: m.stage.clone(),
@@ -81,9 +87,17 @@ pub fn load_modules(cfg: &LoadedConfig, loader: &dyn PluginLoader) -> Result<Vec
 ///
 /// With the NATS transport the plugins are loaded by their workers, not here: the run
 /// directory comes first (worker logs go into it), then the server and the workers.
-pub fn prepare(cfg: &LoadedConfig, loader: &dyn PluginLoader, out: Option<&Path>) -> Result<Engine, PrepareError> {
+pub fn prepare(
+    cfg: &LoadedConfig,
+    loader: &dyn PluginLoader,
+    out: Option<&Path>,
+) -> Result<Engine, PrepareError> {
     let in_process = cfg.config.transport.kind == TransportKind::Inprocess;
-    let specs = if in_process { Some(load_modules(cfg, loader)?) } else { None };
+    let specs = if in_process {
+        Some(load_modules(cfg, loader)?)
+    } else {
+        None
+    };
     let run_dir = match out {
         Some(dir) => create_exact(dir)?,
         None => create_numbered(cfg)?,
@@ -94,9 +108,19 @@ pub fn prepare(cfg: &LoadedConfig, loader: &dyn PluginLoader, out: Option<&Path>
         Some(s) => (s, None),
         None => nats::prepare(cfg, loader.worker_launcher(), &run_dir)?,
     };
-    let exclude = cfg.config.output.exclude.iter().map(|p| Pattern::new(p).expect("validated")).collect();
-    let recorder = Recorder::create(&run_dir, exclude, Duration::from_secs_f64(cfg.config.output.flush_interval))
-        .map_err(|e| PrepareError::Io(e.to_string()))?;
+    let exclude = cfg
+        .config
+        .output
+        .exclude
+        .iter()
+        .map(|p| Pattern::new(p).expect("validated"))
+        .collect();
+    let recorder = Recorder::create(
+        &run_dir,
+        exclude,
+        Duration::from_secs_f64(cfg.config.output.flush_interval),
+    )
+    .map_err(|e| PrepareError::Io(e.to_string()))?;
     let ep = &cfg.config.episode;
     let opts = EngineOptions {
         ts: ep.ts,
@@ -115,8 +139,15 @@ pub fn prepare(cfg: &LoadedConfig, loader: &dyn PluginLoader, out: Option<&Path>
 }
 
 fn create_exact(dir: &Path) -> Result<PathBuf, PrepareError> {
-    if dir.exists() && fs::read_dir(dir).map(|mut d| d.next().is_some()).unwrap_or(true) {
-        return Err(PrepareError::Io(format!("{}: the run directory exists and is not empty", dir.display())));
+    if dir.exists()
+        && fs::read_dir(dir)
+            .map(|mut d| d.next().is_some())
+            .unwrap_or(true)
+    {
+        return Err(PrepareError::Io(format!(
+            "{}: the run directory exists and is not empty",
+            dir.display()
+        )));
     }
     fs::create_dir_all(dir).map_err(|e| PrepareError::Io(format!("{}: {e}", dir.display())))?;
     Ok(dir.to_path_buf())
@@ -129,9 +160,13 @@ fn create_numbered(cfg: &LoadedConfig) -> Result<PathBuf, PrepareError> {
         None => PathBuf::from("runs"),
     };
     let name = cfg.config.output.name.clone().unwrap_or_else(|| {
-        Path::new(&cfg.file).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "run".into())
+        Path::new(&cfg.file)
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "run".into())
     });
-    fs::create_dir_all(&parent).map_err(|e| PrepareError::Io(format!("{}: {e}", parent.display())))?;
+    fs::create_dir_all(&parent)
+        .map_err(|e| PrepareError::Io(format!("{}: {e}", parent.display())))?;
     for n in 1.. {
         let dir = parent.join(format!("{name}-{n:03}"));
         // create_dir (not _all) fails if it exists: two runs never share a directory.
@@ -145,10 +180,21 @@ fn create_numbered(cfg: &LoadedConfig) -> Result<PathBuf, PrepareError> {
 }
 
 /// Writes `run.json`: what ran, how far it got and how it ended.
-pub fn write_status(cfg: &LoadedConfig, engine: &Engine, status: &str, error: Option<&EngineError>) -> Result<(), String> {
+pub fn write_status(
+    cfg: &LoadedConfig,
+    engine: &Engine,
+    status: &str,
+    error: Option<&EngineError>,
+) -> Result<(), String> {
     let virtual_s = engine.virtual_time_s();
     let error_json = error.map(|e| match e {
-        EngineError::Module { module, phase, step, time, error } => serde_json::json!({
+        EngineError::Module {
+            module,
+            phase,
+            step,
+            time,
+            error,
+        } => serde_json::json!({
             "module": module, "phase": phase, "step": step, "time": time,
             "message": error.message, "trace": error.trace,
         }),

@@ -18,24 +18,34 @@ pub struct TopicError {
 }
 
 fn check_tokens(text: &str, what: &'static str, wildcards: bool) -> Result<(), TopicError> {
-    let err = |reason| TopicError { what, text: text.to_string(), reason };
+    let err = |reason| TopicError {
+        what,
+        text: text.to_string(),
+        reason,
+    };
     if text.is_empty() {
         return Err(err("it is empty"));
     }
     let tokens: Vec<&str> = text.split('.').collect();
     for (i, token) in tokens.iter().enumerate() {
         if token.is_empty() {
-            return Err(err("it has an empty token (leading, trailing or double '.')"));
+            return Err(err(
+                "it has an empty token (leading, trailing or double '.')",
+            ));
         }
         if token.chars().any(|c| c.is_whitespace()) {
             return Err(err("tokens may not contain whitespace"));
         }
         let is_wild = *token == "*" || *token == ">";
         if !wildcards && (token.contains('*') || token.contains('>')) {
-            return Err(err("a published topic may not contain the wildcards '*' or '>'"));
+            return Err(err(
+                "a published topic may not contain the wildcards '*' or '>'",
+            ));
         }
         if wildcards && !is_wild && (token.contains('*') || token.contains('>')) {
-            return Err(err("a wildcard must be a whole token ('a.*.c', not 'a.b*')"));
+            return Err(err(
+                "a wildcard must be a whole token ('a.*.c', not 'a.b*')",
+            ));
         }
         if *token == ">" && i + 1 != tokens.len() {
             return Err(err("'>' may only be the last token"));
@@ -74,7 +84,10 @@ impl Pattern {
                 lit => Token::Literal(lit.to_string()),
             })
             .collect();
-        Ok(Pattern { text: text.to_string(), tokens })
+        Ok(Pattern {
+            text: text.to_string(),
+            tokens,
+        })
     }
 
     pub fn as_str(&self) -> &str {
@@ -153,7 +166,10 @@ mod tests {
     fn invalid_patterns_and_topics_are_rejected_with_a_reason() {
         assert!(Pattern::new("a.>.b").unwrap_err().reason.contains("last"));
         assert!(Pattern::new("a..b").unwrap_err().reason.contains("empty"));
-        assert!(Pattern::new("a.b*").unwrap_err().reason.contains("whole token"));
+        assert!(Pattern::new("a.b*")
+            .unwrap_err()
+            .reason
+            .contains("whole token"));
         assert!(Pattern::new("").is_err());
         assert!(validate_topic("a.*").is_err());
         assert!(validate_topic("a b").is_err());

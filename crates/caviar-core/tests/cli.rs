@@ -9,7 +9,10 @@ use caviar_core::run::BuiltinsOnly;
 use caviar_core::{Message, Payload};
 
 fn run(args: &[&str]) -> i32 {
-    let argv = std::iter::once("caviar-core").chain(args.iter().copied()).map(String::from).collect();
+    let argv = std::iter::once("caviar-core")
+        .chain(args.iter().copied())
+        .map(String::from)
+        .collect();
     cli::main(argv, &BuiltinsOnly, &|| false)
 }
 
@@ -52,25 +55,56 @@ params = { run = "original", topics = ["3D.>"] }
     )
     .unwrap();
     let out = dir.path().join("out");
-    assert_eq!(run(&["run", config.to_str().unwrap(), "--out", out.to_str().unwrap(), "-q"]), 0);
+    assert_eq!(
+        run(&[
+            "run",
+            config.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "-q"
+        ]),
+        0
+    );
     let replayed = read_messages(&out).unwrap();
     // Recorded at Ts = 0.5 s, replayed at Ts = 0.25 s: at the same virtual times.
     let at: Vec<(u64, f64)> = replayed.iter().map(|m| (m.step, m.time)).collect();
     assert_eq!(at, [(0, 0.0), (2, 0.5), (4, 1.0), (6, 1.5), (8, 2.0)]);
-    assert!(replayed.iter().all(|m| m.topic == "3D.mobility.positions" && m.source == "mobility"));
+    assert!(replayed
+        .iter()
+        .all(|m| m.topic == "3D.mobility.positions" && m.source == "mobility"));
     let status = fs::read_to_string(out.join("run.json")).unwrap();
     assert!(status.contains("\"status\": \"completed\""), "{status}");
-    assert!(cli::inspect(&out).unwrap().contains("3D.mobility.positions"));
+    assert!(cli::inspect(&out)
+        .unwrap()
+        .contains("3D.mobility.positions"));
 
     // A Python plugin needs the Python package's caviar-core; a config error is exit 2.
-    let text = fs::read_to_string(&config).unwrap().replace("caviar.replay", "pkg.mod:Plugin");
+    let text = fs::read_to_string(&config)
+        .unwrap()
+        .replace("caviar.replay", "pkg.mod:Plugin");
     fs::write(&config, text).unwrap();
     let out2 = dir.path().join("out2");
-    assert_eq!(run(&["run", config.to_str().unwrap(), "--out", out2.to_str().unwrap()]), 2);
-    assert!(!out2.exists(), "a config error must not create a run directory");
+    assert_eq!(
+        run(&[
+            "run",
+            config.to_str().unwrap(),
+            "--out",
+            out2.to_str().unwrap()
+        ]),
+        2
+    );
+    assert!(
+        !out2.exists(),
+        "a config error must not create a run directory"
+    );
     // Splitting a module into shards needs the NATS transport.
-    let text = fs::read_to_string(&config).unwrap().replace("[modules.mobility]", "[modules.mobility]\nshards = 2");
+    let text = fs::read_to_string(&config)
+        .unwrap()
+        .replace("[modules.mobility]", "[modules.mobility]\nshards = 2");
     fs::write(&config, text).unwrap();
     assert_eq!(run(&["validate", config.to_str().unwrap()]), 2);
-    assert_eq!(run(&["inspect", dir.path().join("nope").to_str().unwrap()]), 2);
+    assert_eq!(
+        run(&["inspect", dir.path().join("nope").to_str().unwrap()]),
+        2
+    );
 }

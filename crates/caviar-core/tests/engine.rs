@@ -5,7 +5,10 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 
 use caviar_core::recorder::{read_messages, read_timings, Recorder, CORE};
-use caviar_core::{Engine, EngineError, EngineOptions, Module, ModuleError, ModuleSpec, Outgoing, Payload, SharedMessage, StepInfo, END_TOPIC};
+use caviar_core::{
+    Engine, EngineError, EngineOptions, Module, ModuleError, ModuleSpec, Outgoing, Payload,
+    SharedMessage, StepInfo, END_TOPIC,
+};
 
 /// What a probe saw: (its step, topic, source, step the message was published in).
 type Seen = Arc<Mutex<Vec<(u64, String, String, u64)>>>;
@@ -19,16 +22,27 @@ struct Probe {
 }
 
 impl Module for Probe {
-    fn step(&mut self, at: StepInfo, inbox: &[SharedMessage], out: &mut Vec<Outgoing>) -> Result<(), ModuleError> {
+    fn step(
+        &mut self,
+        at: StepInfo,
+        inbox: &[SharedMessage],
+        out: &mut Vec<Outgoing>,
+    ) -> Result<(), ModuleError> {
         if Some(at.step) == self.fail_at {
-            return Err(ModuleError { message: "boom".into(), trace: Some("Traceback: probe.rs".into()) });
+            return Err(ModuleError {
+                message: "boom".into(),
+                trace: Some("Traceback: probe.rs".into()),
+            });
         }
         let mut seen = self.seen.lock().unwrap();
         for m in inbox {
             seen.push((at.step, m.topic.clone(), m.source.clone(), m.step));
         }
         for t in &self.topics {
-            out.push(Outgoing::new(t.clone(), Payload::json(&serde_json::json!({ "step": at.step, "t": at.time }))));
+            out.push(Outgoing::new(
+                t.clone(),
+                Payload::json(&serde_json::json!({ "step": at.step, "t": at.time })),
+            ));
         }
         if Some(at.step) == self.end_at {
             out.push(Outgoing::new(END_TOPIC, Payload::Json("{}".into())));
@@ -48,8 +62,22 @@ struct Spec {
     end_at: Option<u64>,
 }
 
-const fn spec(name: &'static str, stage: &'static str, publish: &'static [&'static str], subscribe: &'static [&'static str]) -> Spec {
-    Spec { name, stage, every: 1, offset: 0, publish, subscribe, fail_at: None, end_at: None }
+const fn spec(
+    name: &'static str,
+    stage: &'static str,
+    publish: &'static [&'static str],
+    subscribe: &'static [&'static str],
+) -> Spec {
+    Spec {
+        name,
+        stage,
+        every: 1,
+        offset: 0,
+        publish,
+        subscribe,
+        fail_at: None,
+        end_at: None,
+    }
 }
 
 fn build(dir: &Path, steps: Option<u64>, specs: Vec<Spec>) -> (Engine, Vec<(&'static str, Seen)>) {
@@ -88,7 +116,13 @@ fn build(dir: &Path, steps: Option<u64>, specs: Vec<Spec>) -> (Engine, Vec<(&'st
 }
 
 fn log_of(seen: &[(&str, Seen)], name: &str) -> Vec<(u64, String, String, u64)> {
-    seen.iter().find(|(n, _)| *n == name).unwrap().1.lock().unwrap().clone()
+    seen.iter()
+        .find(|(n, _)| *n == name)
+        .unwrap()
+        .1
+        .lock()
+        .unwrap()
+        .clone()
 }
 
 #[test]
@@ -106,7 +140,8 @@ fn later_stages_see_this_step_earlier_and_same_stages_see_it_next_step() {
     );
     e.run(|_, _| true).unwrap();
     e.close().unwrap();
-    let s = |step: u64, pub_step: u64| (step, "x.data".to_string(), "producer".to_string(), pub_step);
+    let s =
+        |step: u64, pub_step: u64| (step, "x.data".to_string(), "producer".to_string(), pub_step);
     // Stage c runs after b: it sees step k's message in step k.
     assert_eq!(log_of(&seen, "late"), vec![s(0, 0), s(1, 1)]);
     // Same stage and earlier stage: one step later.
@@ -121,18 +156,43 @@ fn wildcards_route_only_matching_topics_in_declaration_order() {
         dir.path(),
         Some(1),
         vec![
-            spec("p2", "a", &["communications.throughput", "communications.beam.gains"], &[]),
-            spec("p1", "a", &["3D.mobility.positions", "communications.state"], &[]),
+            spec(
+                "p2",
+                "a",
+                &["communications.throughput", "communications.beam.gains"],
+                &[],
+            ),
+            spec(
+                "p1",
+                "a",
+                &["3D.mobility.positions", "communications.state"],
+                &[],
+            ),
             spec("star", "b", &[], &["communications.*"]),
             spec("rest", "b", &[], &["communications.>"]),
             spec("mid", "b", &[], &["*.mobility.*"]),
         ],
     );
     e.run(|_, _| true).unwrap();
-    let topics = |n| log_of(&seen, n).into_iter().map(|x| x.1).collect::<Vec<_>>();
+    let topics = |n| {
+        log_of(&seen, n)
+            .into_iter()
+            .map(|x| x.1)
+            .collect::<Vec<_>>()
+    };
     // Module p2 is declared before p1, so its messages come first.
-    assert_eq!(topics("star"), ["communications.throughput", "communications.state"]);
-    assert_eq!(topics("rest"), ["communications.throughput", "communications.beam.gains", "communications.state"]);
+    assert_eq!(
+        topics("star"),
+        ["communications.throughput", "communications.state"]
+    );
+    assert_eq!(
+        topics("rest"),
+        [
+            "communications.throughput",
+            "communications.beam.gains",
+            "communications.state"
+        ]
+    );
     assert_eq!(topics("mid"), ["3D.mobility.positions"]);
 }
 
@@ -142,17 +202,41 @@ fn periodic_modules_run_every_kth_step_and_get_what_they_missed() {
     let mut slow = spec("slow", "b", &["slow.out"], &["fast.out"]);
     slow.every = 3;
     slow.offset = 1;
-    let (mut e, seen) = build(dir.path(), Some(8), vec![spec("fast", "a", &["fast.out"], &[]), slow]);
+    let (mut e, seen) = build(
+        dir.path(),
+        Some(8),
+        vec![spec("fast", "a", &["fast.out"], &[]), slow],
+    );
     let mut published_by_slow = Vec::new();
     e.run(|_, r| {
-        published_by_slow.extend(r.messages.iter().filter(|m| m.source == "slow").map(|m| m.step));
+        published_by_slow.extend(
+            r.messages
+                .iter()
+                .filter(|m| m.source == "slow")
+                .map(|m| m.step),
+        );
         true
     })
     .unwrap();
     assert_eq!(published_by_slow, [1, 4, 7]);
-    let got: Vec<(u64, u64)> = log_of(&seen, "slow").into_iter().map(|x| (x.0, x.3)).collect();
+    let got: Vec<(u64, u64)> = log_of(&seen, "slow")
+        .into_iter()
+        .map(|x| (x.0, x.3))
+        .collect();
     // At step 1 it gets steps 0 and 1; at step 4, steps 2..=4; at 7, steps 5..=7.
-    assert_eq!(got, [(1, 0), (1, 1), (4, 2), (4, 3), (4, 4), (7, 5), (7, 6), (7, 7)]);
+    assert_eq!(
+        got,
+        [
+            (1, 0),
+            (1, 1),
+            (4, 2),
+            (4, 3),
+            (4, 4),
+            (7, 5),
+            (7, 6),
+            (7, 7)
+        ]
+    );
 }
 
 #[test]
@@ -160,7 +244,11 @@ fn a_module_ends_the_episode_after_the_current_step() {
     let dir = tempfile::tempdir().unwrap();
     let mut ender = spec("mission", "a", &[], &[]);
     ender.end_at = Some(3);
-    let (mut e, seen) = build(dir.path(), None, vec![ender, spec("after", "b", &[], &[END_TOPIC])]);
+    let (mut e, seen) = build(
+        dir.path(),
+        None,
+        vec![ender, spec("after", "b", &[], &[END_TOPIC])],
+    );
     let mut last = None;
     e.run(|_, r| {
         last = Some((r.step, r.ended));
@@ -202,19 +290,38 @@ fn a_failing_module_stops_the_run_naming_module_and_step_and_the_log_stays_reada
     let dir = tempfile::tempdir().unwrap();
     let mut bad = spec("detector", "b", &[], &[]);
     bad.fail_at = Some(5);
-    let (mut e, _) = build(dir.path(), Some(100), vec![spec("uav", "a", &["3D.mobility.positions"], &[]), bad]);
+    let (mut e, _) = build(
+        dir.path(),
+        Some(100),
+        vec![spec("uav", "a", &["3D.mobility.positions"], &[]), bad],
+    );
     let err = e.run(|_, _| true).unwrap_err();
     match &err {
-        EngineError::Module { module, step, phase, .. } => {
-            assert_eq!((module.as_str(), *step, *phase), ("detector", Some(5), "step"));
+        EngineError::Module {
+            module,
+            step,
+            phase,
+            ..
+        } => {
+            assert_eq!(
+                (module.as_str(), *step, *phase),
+                ("detector", Some(5), "step")
+            );
         }
         other => panic!("unexpected {other}"),
     }
     let text = err.to_string();
-    assert!(text.contains("module 'detector' failed at step 5 (t = 2.500 s): boom"), "{text}");
+    assert!(
+        text.contains("module 'detector' failed at step 5 (t = 2.500 s): boom"),
+        "{text}"
+    );
     assert!(text.contains("Traceback: probe.rs"), "{text}");
     // Before close (as after a crash) the parts on disk hold steps 0..=5 of the positions.
-    let steps: Vec<u64> = read_messages(dir.path()).unwrap().iter().map(|m| m.step).collect();
+    let steps: Vec<u64> = read_messages(dir.path())
+        .unwrap()
+        .iter()
+        .map(|m| m.step)
+        .collect();
     assert_eq!(steps, [0, 1, 2, 3, 4, 5]);
     e.close().unwrap();
     assert_eq!(read_messages(dir.path()).unwrap().len(), 6);
@@ -227,9 +334,16 @@ fn publishing_a_wildcard_or_reserved_topic_is_an_error_naming_it() {
     let dir = tempfile::tempdir().unwrap();
     let (mut e, _) = build(dir.path(), Some(3), vec![spec("m", "a", &["bad.*"], &[])]);
     let err = e.run(|_, _| true).unwrap_err().to_string();
-    assert!(err.contains("module 'm' published on topic 'bad.*' in step 0"), "{err}");
+    assert!(
+        err.contains("module 'm' published on topic 'bad.*' in step 0"),
+        "{err}"
+    );
     let dir = tempfile::tempdir().unwrap();
-    let (mut e, _) = build(dir.path(), Some(3), vec![spec("m", "a", &["caviar.clock"], &[])]);
+    let (mut e, _) = build(
+        dir.path(),
+        Some(3),
+        vec![spec("m", "a", &["caviar.clock"], &[])],
+    );
     let err = e.run(|_, _| true).unwrap_err().to_string();
     assert!(err.contains("reserved"), "{err}");
 }

@@ -10,7 +10,10 @@ use caviar_core::nats::server::{find_server, SpawnedServer};
 use caviar_core::nats::worker;
 use caviar_core::recorder::{read_messages, read_timings};
 use caviar_core::run::{prepare, BuiltinsOnly};
-use caviar_core::{Engine, EngineError, Message, Module, ModuleError, ModuleSpec, Outgoing, Payload, SharedMessage, StepInfo};
+use caviar_core::{
+    Engine, EngineError, Message, Module, ModuleError, ModuleSpec, Outgoing, Payload,
+    SharedMessage, StepInfo,
+};
 
 /// Counts steps on `a.count`; fails at `fail_at`, sleeps `sleep` per step.
 struct Counter {
@@ -19,13 +22,27 @@ struct Counter {
 }
 
 impl Module for Counter {
-    fn step(&mut self, at: StepInfo, _inbox: &[SharedMessage], out: &mut Vec<Outgoing>) -> Result<(), ModuleError> {
+    fn step(
+        &mut self,
+        at: StepInfo,
+        _inbox: &[SharedMessage],
+        out: &mut Vec<Outgoing>,
+    ) -> Result<(), ModuleError> {
         if Some(at.step) == self.fail_at {
             return Err(ModuleError::new("counter broke"));
         }
         std::thread::sleep(self.sleep);
-        out.push(Outgoing::new("a.count", Payload::json(&serde_json::json!({ "n": at.step }))));
-        out.push(Outgoing::new("a.raw", Payload::Binary { meta: "{\"dtype\":\"|u1\"}".into(), data: vec![at.step as u8; 3] }));
+        out.push(Outgoing::new(
+            "a.count",
+            Payload::json(&serde_json::json!({ "n": at.step })),
+        ));
+        out.push(Outgoing::new(
+            "a.raw",
+            Payload::Binary {
+                meta: "{\"dtype\":\"|u1\"}".into(),
+                data: vec![at.step as u8; 3],
+            },
+        ));
         Ok(())
     }
 }
@@ -39,12 +56,24 @@ impl Module for Summer {
     fn default_subscriptions(&self) -> Vec<String> {
         vec!["a.*".into()]
     }
-    fn step(&mut self, _at: StepInfo, inbox: &[SharedMessage], out: &mut Vec<Outgoing>) -> Result<(), ModuleError> {
+    fn step(
+        &mut self,
+        _at: StepInfo,
+        inbox: &[SharedMessage],
+        out: &mut Vec<Outgoing>,
+    ) -> Result<(), ModuleError> {
         for m in inbox.iter().filter(|m| m.topic == "a.count") {
-            let Payload::Json(t) = &m.payload else { return Err(ModuleError::new("not json")) };
-            self.total += serde_json::from_str::<serde_json::Value>(t).unwrap()["n"].as_u64().unwrap();
+            let Payload::Json(t) = &m.payload else {
+                return Err(ModuleError::new("not json"));
+            };
+            self.total += serde_json::from_str::<serde_json::Value>(t).unwrap()["n"]
+                .as_u64()
+                .unwrap();
         }
-        out.push(Outgoing::new("b.sum", Payload::json(&serde_json::json!({ "total": self.total, "seen": inbox.len() }))));
+        out.push(Outgoing::new(
+            "b.sum",
+            Payload::json(&serde_json::json!({ "total": self.total, "seen": inbox.len() })),
+        ));
         Ok(())
     }
 }
@@ -86,13 +115,35 @@ workers = 0
     )
 }
 
-fn start_worker(url: &str, run_id: &str, name: &str, module: Box<dyn Module>) -> JoinHandle<Result<(), String>> {
+fn start_worker(
+    url: &str,
+    run_id: &str,
+    name: &str,
+    module: Box<dyn Module>,
+) -> JoinHandle<Result<(), String>> {
     let (url, run_id, name) = (url.to_string(), run_id.to_string(), name.to_string());
-    std::thread::spawn(move || worker::serve(&url, &run_id, &name, &format!("{name}-0"), module, Duration::from_secs(20)))
+    std::thread::spawn(move || {
+        worker::serve(
+            &url,
+            &run_id,
+            &name,
+            &format!("{name}-0"),
+            module,
+            Duration::from_secs(20),
+        )
+    })
 }
 
 /// Runs the config through `prepare` with Rust workers; returns the run directory and the result.
-fn run_nats(dir: &Path, text: &str, counter: Counter) -> (PathBuf, Result<(), EngineError>, Vec<JoinHandle<Result<(), String>>>) {
+fn run_nats(
+    dir: &Path,
+    text: &str,
+    counter: Counter,
+) -> (
+    PathBuf,
+    Result<(), EngineError>,
+    Vec<JoinHandle<Result<(), String>>>,
+) {
     let file = dir.join("config.toml");
     std::fs::write(&file, text).unwrap();
     let cfg = config::load(&file, &[]).unwrap();
@@ -103,7 +154,9 @@ fn run_nats(dir: &Path, text: &str, counter: Counter) -> (PathBuf, Result<(), En
         start_worker(&url, &id, "summer", Box::new(Summer { total: 0 })),
     ];
     let out = dir.join("run");
-    let mut engine = prepare(&cfg, &BuiltinsOnly, Some(&out)).map_err(|e| e.to_string()).unwrap();
+    let mut engine = prepare(&cfg, &BuiltinsOnly, Some(&out))
+        .map_err(|e| e.to_string())
+        .unwrap();
     let result = engine.run(|_, _| true);
     let closed = engine.close();
     drop(engine);
@@ -131,7 +184,14 @@ fn in_process(dir: &Path) -> Vec<Message> {
         module,
     };
     let modules = vec![
-        spec("counter", "a", Box::new(Counter { fail_at: None, sleep: Duration::ZERO })),
+        spec(
+            "counter",
+            "a",
+            Box::new(Counter {
+                fail_at: None,
+                sleep: Duration::ZERO,
+            }),
+        ),
         spec("summer", "b", Box::new(Summer { total: 0 })),
     ];
     let rec = caviar_core::recorder::Recorder::create(&out, vec![], Duration::ZERO).unwrap();
@@ -146,7 +206,14 @@ fn workers_over_nats_record_the_same_messages_as_in_process() {
     let dir = tempfile::tempdir().unwrap();
     let srv = server(dir.path());
     let text = config_text(&srv.url, "same", "");
-    let (out, result, workers) = run_nats(dir.path(), &text, Counter { fail_at: None, sleep: Duration::ZERO });
+    let (out, result, workers) = run_nats(
+        dir.path(),
+        &text,
+        Counter {
+            fail_at: None,
+            sleep: Duration::ZERO,
+        },
+    );
     result.unwrap();
     for w in workers {
         w.join().unwrap().unwrap();
@@ -156,10 +223,16 @@ fn workers_over_nats_record_the_same_messages_as_in_process() {
     assert_eq!(remote, in_process(dir.path()));
     // The summer saw every count: 0 + 1 + … + 5.
     let last = remote.iter().rev().find(|m| m.topic == "b.sum").unwrap();
-    assert_eq!(last.payload, Payload::Json("{\"seen\":2,\"total\":15}".into()));
+    assert_eq!(
+        last.payload,
+        Payload::Json("{\"seen\":2,\"total\":15}".into())
+    );
     // Timings carry what the workers reported for their own step.
     let timings = read_timings(&out).unwrap();
-    assert!(timings.iter().filter(|t| t.module == "counter").all(|t| t.wall_s >= 0.0 && t.wall_s < 1.0));
+    assert!(timings
+        .iter()
+        .filter(|t| t.module == "counter")
+        .all(|t| t.wall_s >= 0.0 && t.wall_s < 1.0));
 }
 
 #[test]
@@ -167,11 +240,29 @@ fn a_failing_worker_stops_the_run_naming_module_and_step_and_keeps_the_log() {
     let dir = tempfile::tempdir().unwrap();
     let srv = server(dir.path());
     let text = config_text(&srv.url, "fails", "");
-    let (out, result, _) = run_nats(dir.path(), &text, Counter { fail_at: Some(3), sleep: Duration::ZERO });
+    let (out, result, _) = run_nats(
+        dir.path(),
+        &text,
+        Counter {
+            fail_at: Some(3),
+            sleep: Duration::ZERO,
+        },
+    );
     let err = result.unwrap_err().to_string();
-    assert!(err.contains("module 'counter' failed at step 3") && err.contains("counter broke"), "{err}");
-    let steps: Vec<u64> = read_messages(&out).unwrap().iter().map(|m| m.step).collect();
-    assert_eq!(steps.iter().max(), Some(&2), "steps 0-2 recorded, nothing of step 3: {steps:?}");
+    assert!(
+        err.contains("module 'counter' failed at step 3") && err.contains("counter broke"),
+        "{err}"
+    );
+    let steps: Vec<u64> = read_messages(&out)
+        .unwrap()
+        .iter()
+        .map(|m| m.step)
+        .collect();
+    assert_eq!(
+        steps.iter().max(),
+        Some(&2),
+        "steps 0-2 recorded, nothing of step 3: {steps:?}"
+    );
 }
 
 #[test]
@@ -180,17 +271,32 @@ fn a_step_past_its_deadline_stops_the_run_within_the_deadline() {
     let srv = server(dir.path());
     let text = config_text(&srv.url, "slow", "step_timeout = 1.0");
     let t0 = Instant::now();
-    let (_, result, _) = run_nats(dir.path(), &text, Counter { fail_at: None, sleep: Duration::from_secs(3) });
+    let (_, result, _) = run_nats(
+        dir.path(),
+        &text,
+        Counter {
+            fail_at: None,
+            sleep: Duration::from_secs(3),
+        },
+    );
     let err = result.unwrap_err().to_string();
-    assert!(err.contains("module 'counter' failed at step 0") && err.contains("no reply within 1 s"), "{err}");
-    assert!(t0.elapsed() < Duration::from_secs(15), "took {:?}", t0.elapsed());
+    assert!(
+        err.contains("module 'counter' failed at step 0") && err.contains("no reply within 1 s"),
+        "{err}"
+    );
+    assert!(
+        t0.elapsed() < Duration::from_secs(15),
+        "took {:?}",
+        t0.elapsed()
+    );
 }
 
 #[test]
 fn a_worker_that_never_comes_is_named_after_the_startup_timeout() {
     let dir = tempfile::tempdir().unwrap();
     let srv = server(dir.path());
-    let text = config_text(&srv.url, "absent", "").replace("startup_timeout = 20", "startup_timeout = 1");
+    let text =
+        config_text(&srv.url, "absent", "").replace("startup_timeout = 20", "startup_timeout = 1");
     let file = dir.path().join("config.toml");
     std::fs::write(&file, text).unwrap();
     let cfg = config::load(&file, &[]).unwrap();
@@ -198,5 +304,8 @@ fn a_worker_that_never_comes_is_named_after_the_startup_timeout() {
         Ok(_) => panic!("started without workers"),
         Err(e) => e.to_string(),
     };
-    assert!(err.contains("module(s) counter, summer") && err.contains("run id 'absent'"), "{err}");
+    assert!(
+        err.contains("module(s) counter, summer") && err.contains("run id 'absent'"),
+        "{err}"
+    );
 }

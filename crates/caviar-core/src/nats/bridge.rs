@@ -35,55 +35,96 @@ pub struct Bridge {
 }
 
 impl Bridge {
-    pub fn from_config(cfg: &LoadedConfig, name: &str, link: Arc<Link>) -> Result<Self, ConfigError> {
+    pub fn from_config(
+        cfg: &LoadedConfig,
+        name: &str,
+        link: Arc<Link>,
+    ) -> Result<Self, ConfigError> {
         let params = cfg.params_json(name);
         let key = |k: &str| format!("modules.{name}.params.{k}");
         let table = params.as_object().cloned().unwrap_or_default();
         for k in table.keys() {
             if !["subjects", "wait_for", "timeout"].contains(&k.as_str()) {
-                return Err(cfg.error_at(&key(k), "unknown parameter of caviar.nats-bridge, expected subjects, wait_for, timeout"));
+                return Err(cfg.error_at(
+                    &key(k),
+                    "unknown parameter of caviar.nats-bridge, expected subjects, wait_for, timeout",
+                ));
             }
         }
         let subjects: Vec<String> = table
             .get("subjects")
             .and_then(|v| serde_json::from_value(v.clone()).ok())
-            .ok_or_else(|| cfg.error_at(&key("subjects"), "expected a list of NATS subjects, e.g. [\"communications.throughput\"]"))?;
+            .ok_or_else(|| {
+                cfg.error_at(
+                    &key("subjects"),
+                    "expected a list of NATS subjects, e.g. [\"communications.throughput\"]",
+                )
+            })?;
         for s in &subjects {
             Pattern::new(s).map_err(|e| cfg.error_at(&key("subjects"), e.to_string()))?;
         }
         let wait_for = match table.get("wait_for") {
             None => 0,
-            Some(v) => v.as_u64().ok_or_else(|| cfg.error_at(&key("wait_for"), "expected a number of messages >= 0"))? as usize,
+            Some(v) => v.as_u64().ok_or_else(|| {
+                cfg.error_at(&key("wait_for"), "expected a number of messages >= 0")
+            })? as usize,
         };
         let timeout = match table.get("timeout") {
             None => 10.0,
-            Some(v) => v.as_f64().filter(|t| *t > 0.0).ok_or_else(|| cfg.error_at(&key("timeout"), "expected seconds > 0"))?,
+            Some(v) => v
+                .as_f64()
+                .filter(|t| *t > 0.0)
+                .ok_or_else(|| cfg.error_at(&key("timeout"), "expected seconds > 0"))?,
         };
         let arrivals = Arc::new(Arrivals::default());
         for subject in &subjects {
             let mut sub = link
                 .rt
                 .block_on(link.client.subscribe(subject.clone()))
-                .map_err(|e| cfg.error_at(&key("subjects"), format!("cannot subscribe to '{subject}': {e}")))?;
+                .map_err(|e| {
+                    cfg.error_at(
+                        &key("subjects"),
+                        format!("cannot subscribe to '{subject}': {e}"),
+                    )
+                })?;
             let a = arrivals.clone();
             link.rt.spawn(async move {
                 while let Some(m) = sub.next().await {
                     // Our own mirror of episode messages would come straight back.
-                    if m.headers.as_ref().is_some_and(|h| h.get(MIRROR_SOURCE_HEADER).is_some()) {
+                    if m.headers
+                        .as_ref()
+                        .is_some_and(|h| h.get(MIRROR_SOURCE_HEADER).is_some())
+                    {
                         continue;
                     }
-                    a.messages.lock().unwrap().push((m.subject.to_string(), m.payload));
+                    a.messages
+                        .lock()
+                        .unwrap()
+                        .push((m.subject.to_string(), m.payload));
                     a.arrived.notify_all();
                 }
             });
         }
-        link.rt.block_on(link.client.flush()).map_err(|e| cfg.error_at(&key("subjects"), e.to_string()))?;
-        Ok(Bridge { subjects, wait_for, timeout: Duration::from_secs_f64(timeout), arrivals, _link: link })
+        link.rt
+            .block_on(link.client.flush())
+            .map_err(|e| cfg.error_at(&key("subjects"), e.to_string()))?;
+        Ok(Bridge {
+            subjects,
+            wait_for,
+            timeout: Duration::from_secs_f64(timeout),
+            arrivals,
+            _link: link,
+        })
     }
 }
 
 impl Module for Bridge {
-    fn step(&mut self, _at: StepInfo, _inbox: &[SharedMessage], out: &mut Vec<Outgoing>) -> Result<(), ModuleError> {
+    fn step(
+        &mut self,
+        _at: StepInfo,
+        _inbox: &[SharedMessage],
+        out: &mut Vec<Outgoing>,
+    ) -> Result<(), ModuleError> {
         let deadline = Instant::now() + self.timeout;
         let mut got = self.arrivals.messages.lock().unwrap();
         while got.len() < self.wait_for {
@@ -103,10 +144,18 @@ impl Module for Bridge {
             validate_topic(&subject).map_err(|e| ModuleError::new(e.to_string()))?;
             // JSON stays JSON (the paper's modules speak JSON); anything else is bytes.
             let payload = match std::str::from_utf8(&body) {
-                Ok(text) if serde_json::from_str::<serde_json::Value>(text).is_ok() => Payload::Json(text.to_string()),
-                _ => Payload::Binary { meta: "{}".into(), data: body.to_vec() },
+                Ok(text) if serde_json::from_str::<serde_json::Value>(text).is_ok() => {
+                    Payload::Json(text.to_string())
+                }
+                _ => Payload::Binary {
+                    meta: "{}".into(),
+                    data: body.to_vec(),
+                },
             };
-            out.push(Outgoing { topic: subject, payload });
+            out.push(Outgoing {
+                topic: subject,
+                payload,
+            });
         }
         Ok(())
     }

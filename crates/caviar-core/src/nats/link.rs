@@ -11,7 +11,7 @@ use futures_util::StreamExt;
 use serde::Deserialize;
 use serde_json::json;
 
-use super::server::SpawnedServer;
+use super::server::{DieWithParent, SpawnedServer};
 use super::wire::{WireError, PROTOCOL};
 use crate::config::NatsTransport;
 use crate::module::ModuleError;
@@ -102,7 +102,10 @@ pub struct ModuleOffer {
     pub shards: u64,
 }
 
-pub fn connect_options(n: &NatsTransport, resolve: &dyn Fn(&Path) -> PathBuf) -> Result<async_nats::ConnectOptions, String> {
+pub fn connect_options(
+    n: &NatsTransport,
+    resolve: &dyn Fn(&Path) -> PathBuf,
+) -> Result<async_nats::ConnectOptions, String> {
     let mut o = async_nats::ConnectOptions::new()
         .name("caviar-core")
         // Our own deadlines apply (step_timeout, heartbeats); the client's 10 s default would cut long steps.
@@ -110,8 +113,11 @@ pub fn connect_options(n: &NatsTransport, resolve: &dyn Fn(&Path) -> PathBuf) ->
         .max_reconnects(None)
         .connection_timeout(Duration::from_secs(5));
     if let Some(c) = &n.credentials {
-        let text = std::fs::read_to_string(resolve(c)).map_err(|e| format!("transport.nats.credentials: {}: {e}", resolve(c).display()))?;
-        o = o.credentials(&text).map_err(|e| format!("transport.nats.credentials: {e}"))?;
+        let text = std::fs::read_to_string(resolve(c))
+            .map_err(|e| format!("transport.nats.credentials: {}: {e}", resolve(c).display()))?;
+        o = o
+            .credentials(&text)
+            .map_err(|e| format!("transport.nats.credentials: {e}"))?;
     }
     if let Some(t) = &n.token {
         o = o.token(t.clone());
@@ -156,9 +162,18 @@ impl Link {
         let started = Arc::new(std::sync::atomic::AtomicBool::new(false));
         let mut subs = rt
             .block_on(async {
-                let hello = client.subscribe(format!("{prefix}.hello")).await.map_err(|e| e.to_string())?;
-                let loaded = client.subscribe(format!("{prefix}.loaded")).await.map_err(|e| e.to_string())?;
-                let beat = client.subscribe(format!("{prefix}.heartbeat")).await.map_err(|e| e.to_string())?;
+                let hello = client
+                    .subscribe(format!("{prefix}.hello"))
+                    .await
+                    .map_err(|e| e.to_string())?;
+                let loaded = client
+                    .subscribe(format!("{prefix}.loaded"))
+                    .await
+                    .map_err(|e| e.to_string())?;
+                let beat = client
+                    .subscribe(format!("{prefix}.heartbeat"))
+                    .await
+                    .map_err(|e| e.to_string())?;
                 client.flush().await.map_err(|e| e.to_string())?;
                 Ok::<_, String>(futures_util::stream::select_all([hello, loaded, beat]))
             })
@@ -170,7 +185,9 @@ impl Link {
                 if subject.ends_with(".hello") {
                     let answer = answer_hello(&msg.payload, &offers, &base, &w, &s);
                     if let Some(reply) = msg.reply {
-                        let _ = c.publish(reply, serde_json::to_vec(&answer).expect("json").into()).await;
+                        let _ = c
+                            .publish(reply, serde_json::to_vec(&answer).expect("json").into())
+                            .await;
                     }
                 } else if subject.ends_with(".loaded") {
                     if let Ok(l) = serde_json::from_slice::<Loaded>(&msg.payload) {
@@ -202,27 +219,51 @@ impl Link {
     }
 
     /// Starts a worker process for `module`; its output goes to `log`.
-    pub fn spawn_worker(&self, module: &str, command: &[String], envs: &[(String, String)], log: &Path) -> Result<(), String> {
+    pub fn spawn_worker(
+        &self,
+        module: &str,
+        command: &[String],
+        envs: &[(String, String)],
+        log: &Path,
+    ) -> Result<(), String> {
         let file = std::fs::File::create(log).map_err(|e| format!("{}: {e}", log.display()))?;
         let child = Command::new(&command[0])
+            .die_with_parent()
             .args(&command[1..])
             .envs(envs.iter().map(|(k, v)| (k, v)))
             .stdin(Stdio::null())
             .stdout(file.try_clone().map_err(|e| e.to_string())?)
             .stderr(file)
             .spawn()
-            .map_err(|e| format!("cannot start the worker of module '{module}' ({}): {e}", command[0]))?;
-        self.processes.lock().unwrap().push(WorkerProcess { module: module.into(), child, log: log.into() });
+            .map_err(|e| {
+                format!(
+                    "cannot start the worker of module '{module}' ({}): {e}",
+                    command[0]
+                )
+            })?;
+        self.processes.lock().unwrap().push(WorkerProcess {
+            module: module.into(),
+            child,
+            log: log.into(),
+        });
         Ok(())
     }
 
     pub fn mark_started(&self) {
-        self.started.store(true, std::sync::atomic::Ordering::SeqCst);
+        self.started
+            .store(true, std::sync::atomic::Ordering::SeqCst);
     }
 
     /// The workers of `module` that have said hello, in the order of their ids.
     pub fn workers_of(&self, module: &str) -> Vec<WorkerInfo> {
-        let mut v: Vec<WorkerInfo> = self.workers.lock().unwrap().values().filter(|w| w.module == module).cloned().collect();
+        let mut v: Vec<WorkerInfo> = self
+            .workers
+            .lock()
+            .unwrap()
+            .values()
+            .filter(|w| w.module == module)
+            .cloned()
+            .collect();
         v.sort_by(|a, b| a.id.cmp(&b.id));
         v
     }
@@ -230,7 +271,13 @@ impl Link {
     /// Why `module` can no longer answer, if we can tell: a worker process of it that
     /// exited, workers that stopped beating, a connection that stayed down.
     pub fn check_alive(&self, module: &str, expected: &[String]) -> Result<(), String> {
-        for p in self.processes.lock().unwrap().iter_mut().filter(|p| p.module == module) {
+        for p in self
+            .processes
+            .lock()
+            .unwrap()
+            .iter_mut()
+            .filter(|p| p.module == module)
+        {
             if let Ok(Some(status)) = p.child.try_wait() {
                 return Err(format!(
                     "its worker process (pid {}) exited ({status}); last lines of {}:\n{}",
@@ -246,11 +293,22 @@ impl Link {
                 .iter()
                 .filter_map(|id| workers.get(id))
                 .filter(|w| w.last_beat.elapsed() > self.timeouts.heartbeat)
-                .map(|w| format!("{} (pid {} on {}), silent for {:.1} s", w.id, w.pid, w.host, w.last_beat.elapsed().as_secs_f64()))
+                .map(|w| {
+                    format!(
+                        "{} (pid {} on {}), silent for {:.1} s",
+                        w.id,
+                        w.pid,
+                        w.host,
+                        w.last_beat.elapsed().as_secs_f64()
+                    )
+                })
                 .collect()
         };
         if !silent.is_empty() && silent.len() == expected.len() {
-            return Err(format!("its worker stopped answering (no heartbeat): {}", silent.join("; ")));
+            return Err(format!(
+                "its worker stopped answering (no heartbeat): {}",
+                silent.join("; ")
+            ));
         }
         let mut since = self.disconnected_since.lock().unwrap();
         if self.client.connection_state() == async_nats::connection::State::Disconnected {
@@ -345,7 +403,13 @@ impl Drop for Link {
             let _ = c.publish(subject, "{}".into()).await;
             tokio::time::timeout(Duration::from_secs(2), c.flush()).await
         });
-        let modules: Vec<String> = self.processes.lock().unwrap().iter().map(|p| p.module.clone()).collect();
+        let modules: Vec<String> = self
+            .processes
+            .lock()
+            .unwrap()
+            .iter()
+            .map(|p| p.module.clone())
+            .collect();
         for m in modules {
             self.reap(&m, Duration::from_secs(3));
         }

@@ -41,8 +41,19 @@ pub struct WorkerLauncher {
 /// The run id: the configured one, else the run directory's name made subject-safe.
 fn run_id(cfg: &LoadedConfig, run_dir: &Path) -> String {
     cfg.config.transport.nats.run_id.clone().unwrap_or_else(|| {
-        let name = run_dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "run".into());
-        name.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
+        let name = run_dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "run".into());
+        name.chars()
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .collect()
     })
 }
 
@@ -55,13 +66,22 @@ fn connection_args(cfg: &LoadedConfig) -> (Vec<String>, Vec<(String, String)>) {
     let n = &cfg.config.transport.nats;
     let mut args = Vec::new();
     let path = |p: &PathBuf| cfg.resolve(p).to_string_lossy().into_owned();
-    for (flag, value) in [("--creds", &n.credentials), ("--tls-ca", &n.tls_ca), ("--tls-cert", &n.tls_cert), ("--tls-key", &n.tls_key)] {
+    for (flag, value) in [
+        ("--creds", &n.credentials),
+        ("--tls-ca", &n.tls_ca),
+        ("--tls-cert", &n.tls_cert),
+        ("--tls-key", &n.tls_key),
+    ] {
         if let Some(v) = value {
             args.extend([flag.to_string(), path(v)]);
         }
     }
     let mut envs = Vec::new();
-    for (var, value) in [("NATS_TOKEN", &n.token), ("NATS_USER", &n.user), ("NATS_PASSWORD", &n.password)] {
+    for (var, value) in [
+        ("NATS_TOKEN", &n.token),
+        ("NATS_USER", &n.user),
+        ("NATS_PASSWORD", &n.password),
+    ] {
         if let Some(v) = value {
             envs.push((var.to_string(), v.clone()));
         }
@@ -81,28 +101,64 @@ pub fn prepare(
     let id = run_id(cfg, run_dir);
     let server = if n.spawns_server() {
         let python = launcher.as_ref().map(|l| PathBuf::from(&l.command[0]));
-        let bin = find_server(n.server.as_ref().map(|p| cfg.resolve(p)).as_deref(), python.as_deref())
-            .map_err(|e| cfg.error_at("transport.nats.spawn", e))?;
-        Some(SpawnedServer::start(&bin, "127.0.0.1", &run_dir.join("nats-server.log")).map_err(io)?)
+        let bin = find_server(
+            n.server.as_ref().map(|p| cfg.resolve(p)).as_deref(),
+            python.as_deref(),
+        )
+        .map_err(|e| cfg.error_at("transport.nats.spawn", e))?;
+        Some(
+            SpawnedServer::start(&bin, "127.0.0.1", &run_dir.join("nats-server.log"))
+                .map_err(io)?,
+        )
     } else {
         None
     };
-    let url = server.as_ref().map(|s| s.url.clone()).or_else(|| n.url.clone()).expect("validated: url or spawn");
+    let url = server
+        .as_ref()
+        .map(|s| s.url.clone())
+        .or_else(|| n.url.clone())
+        .expect("validated: url or spawn");
     let options = connect_options(n, &|p| cfg.resolve(p)).map_err(io)?;
     let mut offers = HashMap::new();
-    for (name, m) in cfg.config.modules.iter().filter(|(_, m)| !is_builtin(&m.plugin)) {
-        offers.insert(name.clone(), ModuleOffer { plugin: m.plugin.clone(), params: cfg.params_json(name), shards: m.shards });
+    for (name, m) in cfg
+        .config
+        .modules
+        .iter()
+        .filter(|(_, m)| !is_builtin(&m.plugin))
+    {
+        offers.insert(
+            name.clone(),
+            ModuleOffer {
+                plugin: m.plugin.clone(),
+                params: cfg.params_json(name),
+                shards: m.shards,
+            },
+        );
     }
     let base = serde_json::json!({
         "run_dir": run_dir.canonicalize().unwrap_or_else(|_| run_dir.to_path_buf()),
         "config_dir": cfg.base_dir.canonicalize().unwrap_or_else(|_| cfg.base_dir.clone()),
     });
-    let link = Link::connect(&url, options, &id, offers, base, Timeouts::from_config(n), server).map_err(io)?;
+    let link = Link::connect(
+        &url,
+        options,
+        &id,
+        offers,
+        base,
+        Timeouts::from_config(n),
+        server,
+    )
+    .map_err(io)?;
 
     // Start the workers this run owns; tell the user about the ones it waits for.
     let (extra_args, envs) = connection_args(cfg);
     let logs = run_dir.join("workers");
-    for (name, m) in cfg.config.modules.iter().filter(|(_, m)| !is_builtin(&m.plugin)) {
+    for (name, m) in cfg
+        .config
+        .modules
+        .iter()
+        .filter(|(_, m)| !is_builtin(&m.plugin))
+    {
         let count = m.workers.unwrap_or(m.shards);
         if count == 0 {
             eprintln!("caviar: waiting for module '{name}': start `caviar worker --nats {url} --run {id} --module {name}`");
@@ -120,10 +176,18 @@ pub fn prepare(
         std::fs::create_dir_all(&logs).map_err(|e| io(format!("{}: {e}", logs.display())))?;
         for i in 0..count {
             let mut cmd = l.command.clone();
-            cmd.extend(["--nats".into(), url.clone(), "--run".into(), id.clone(), "--module".into(), name.clone()]);
+            cmd.extend([
+                "--nats".into(),
+                url.clone(),
+                "--run".into(),
+                id.clone(),
+                "--module".into(),
+                name.clone(),
+            ]);
             cmd.extend(["--worker-id".into(), format!("{name}-{i}")]);
             cmd.extend(extra_args.iter().cloned());
-            link.spawn_worker(name, &cmd, &envs, &logs.join(format!("{name}-{i}.log"))).map_err(io)?;
+            link.spawn_worker(name, &cmd, &envs, &logs.join(format!("{name}-{i}.log")))
+                .map_err(io)?;
         }
     }
     let ready = wait_for_workers(cfg, &link)?;
@@ -153,18 +217,29 @@ pub fn prepare(
 
 /// Waits until each remote module has its workers connected with the plugin loaded;
 /// returns each module's default subscriptions and worker ids.
-fn wait_for_workers(cfg: &LoadedConfig, link: &Link) -> Result<HashMap<String, (Vec<String>, Vec<String>)>, PrepareError> {
+fn wait_for_workers(
+    cfg: &LoadedConfig,
+    link: &Link,
+) -> Result<HashMap<String, (Vec<String>, Vec<String>)>, PrepareError> {
     let timeout = link.timeouts.startup;
     let t0 = Instant::now();
     loop {
         link.check_processes().map_err(PrepareError::Io)?;
         let mut ready = HashMap::new();
         let mut missing = Vec::new();
-        for (name, m) in cfg.config.modules.iter().filter(|(_, m)| !is_builtin(&m.plugin)) {
+        for (name, m) in cfg
+            .config
+            .modules
+            .iter()
+            .filter(|(_, m)| !is_builtin(&m.plugin))
+        {
             let workers = link.workers_of(name);
             for w in &workers {
                 if let Some(Err(e)) = &w.loaded {
-                    let key = format!("modules.{name}.{}", e.key.clone().unwrap_or_else(|| "plugin".into()));
+                    let key = format!(
+                        "modules.{name}.{}",
+                        e.key.clone().unwrap_or_else(|| "plugin".into())
+                    );
                     let mut message = format!("worker {} on {}: {}", w.id, w.host, e.message);
                     if e.key.is_none() {
                         if let Some(t) = &e.trace {
@@ -174,13 +249,19 @@ fn wait_for_workers(cfg: &LoadedConfig, link: &Link) -> Result<HashMap<String, (
                     return Err(cfg.error_at(&key, message).into());
                 }
             }
-            let loaded: Vec<_> = workers.iter().filter(|w| matches!(w.loaded, Some(Ok(_)))).collect();
+            let loaded: Vec<_> = workers
+                .iter()
+                .filter(|w| matches!(w.loaded, Some(Ok(_))))
+                .collect();
             if loaded.len() >= m.workers.unwrap_or(m.shards).max(1) as usize {
                 let subs = match &loaded[0].loaded {
                     Some(Ok(s)) => s.clone(),
                     _ => unreachable!(),
                 };
-                ready.insert(name.clone(), (subs, loaded.iter().map(|w| w.id.clone()).collect()));
+                ready.insert(
+                    name.clone(),
+                    (subs, loaded.iter().map(|w| w.id.clone()).collect()),
+                );
             } else {
                 missing.push(name.as_str());
             }
@@ -204,14 +285,25 @@ fn wait_for_workers(cfg: &LoadedConfig, link: &Link) -> Result<HashMap<String, (
 
 /// Publishes the episode's data messages on their own subjects (the paper's names).
 fn mirror_tap(cfg: &LoadedConfig, link: Arc<Link>) -> Option<Tap> {
-    let patterns: Vec<Pattern> = cfg.config.transport.nats.mirror.iter().map(|p| Pattern::new(p).expect("validated")).collect();
+    let patterns: Vec<Pattern> = cfg
+        .config
+        .transport
+        .nats
+        .mirror
+        .iter()
+        .map(|p| Pattern::new(p).expect("validated"))
+        .collect();
     if patterns.is_empty() {
         // The link must still live as long as the engine: the remote modules hold it.
         return None;
     }
     Some(Box::new(move |messages: &[SharedMessage]| {
         let client = link.client.clone();
-        let batch: Vec<SharedMessage> = messages.iter().filter(|m| patterns.iter().any(|p| p.matches(&m.topic))).cloned().collect();
+        let batch: Vec<SharedMessage> = messages
+            .iter()
+            .filter(|m| patterns.iter().any(|p| p.matches(&m.topic)))
+            .cloned()
+            .collect();
         if batch.is_empty() {
             return;
         }
@@ -223,7 +315,9 @@ fn mirror_tap(cfg: &LoadedConfig, link: Arc<Link>) -> Option<Tap> {
                 h.insert("Caviar-Time", m.time.to_string().as_str());
                 h.insert("Caviar-Kind", m.payload.kind().as_str());
                 let body = match &m.payload {
-                    Payload::Json(t) | Payload::Artifact(t) => bytes::Bytes::from(t.clone().into_bytes()),
+                    Payload::Json(t) | Payload::Artifact(t) => {
+                        bytes::Bytes::from(t.clone().into_bytes())
+                    }
                     Payload::Binary { meta, data } => {
                         h.insert("Caviar-Meta", meta.as_str());
                         bytes::Bytes::from(data.clone())

@@ -32,8 +32,22 @@ struct Ack {
 }
 
 impl RemoteModule {
-    pub fn new(link: Arc<Link>, name: &str, subscriptions: Vec<String>, workers: Vec<String>, shards: u64) -> Self {
-        RemoteModule { link, name: name.into(), subscriptions, workers, shards, pending: Vec::new(), at: None }
+    pub fn new(
+        link: Arc<Link>,
+        name: &str,
+        subscriptions: Vec<String>,
+        workers: Vec<String>,
+        shards: u64,
+    ) -> Self {
+        RemoteModule {
+            link,
+            name: name.into(),
+            subscriptions,
+            workers,
+            shards,
+            pending: Vec::new(),
+            at: None,
+        }
     }
 
     fn subject(&self, leaf: &str) -> String {
@@ -43,25 +57,53 @@ impl RemoteModule {
     fn request(&self, subject: String, payload: Vec<u8>) -> Pending {
         let client = self.link.client.clone();
         self.link.rt.spawn(async move {
-            client.send_request(subject, async_nats::Request::new().payload(payload.into()).timeout(None)).await
+            client
+                .send_request(
+                    subject,
+                    async_nats::Request::new()
+                        .payload(payload.into())
+                        .timeout(None),
+                )
+                .await
         })
     }
 
     /// Sends a control request (setup, teardown) to every worker and checks each answer.
-    fn control(&self, leaf: &str, body: &serde_json::Value, timeout: Duration) -> Result<(), ModuleError> {
+    fn control(
+        &self,
+        leaf: &str,
+        body: &serde_json::Value,
+        timeout: Duration,
+    ) -> Result<(), ModuleError> {
         let payload = serde_json::to_vec(body).expect("json");
         let pending: Vec<(String, Pending)> = self
             .workers
             .iter()
-            .map(|w| (w.clone(), self.request(self.subject(&format!("{w}.{leaf}")), payload.clone())))
+            .map(|w| {
+                (
+                    w.clone(),
+                    self.request(self.subject(&format!("{w}.{leaf}")), payload.clone()),
+                )
+            })
             .collect();
         for (worker, task) in pending {
             let what = format!("{leaf} of worker {worker}");
-            let reply = self.link.wait(&self.name, &self.workers, &what, task, timeout)?.map_err(|e| request_error(&what, e))?;
-            let ack: Ack = serde_json::from_slice(&reply.payload).map_err(|e| ModuleError::new(format!("{what}: bad reply: {e}")))?;
+            let reply = self
+                .link
+                .wait(&self.name, &self.workers, &what, task, timeout)?
+                .map_err(|e| request_error(&what, e))?;
+            let ack: Ack = serde_json::from_slice(&reply.payload)
+                .map_err(|e| ModuleError::new(format!("{what}: bad reply: {e}")))?;
             if !ack.ok {
-                let e = ack.error.unwrap_or(WireError { message: "failed without details".into(), trace: None, key: None });
-                return Err(ModuleError { message: e.message, trace: e.trace });
+                let e = ack.error.unwrap_or(WireError {
+                    message: "failed without details".into(),
+                    trace: None,
+                    key: None,
+                });
+                return Err(ModuleError {
+                    message: e.message,
+                    trace: e.trace,
+                });
             }
         }
         Ok(())
@@ -70,7 +112,9 @@ impl RemoteModule {
 
 fn request_error(what: &str, e: async_nats::RequestError) -> ModuleError {
     ModuleError::new(match e.kind() {
-        RequestErrorKind::NoResponders => format!("{what}: no worker is listening (it exited or never subscribed)"),
+        RequestErrorKind::NoResponders => {
+            format!("{what}: no worker is listening (it exited or never subscribed)")
+        }
         RequestErrorKind::MaxPayloadExceeded => {
             format!("{what}: the request exceeds the NATS server's max_payload (raise it in the server's configuration)")
         }
@@ -91,7 +135,12 @@ impl Module for RemoteModule {
         self.control("setup", &body, self.link.timeouts.startup)
     }
 
-    fn step(&mut self, at: StepInfo, inbox: &[SharedMessage], out: &mut Vec<Outgoing>) -> Result<(), ModuleError> {
+    fn step(
+        &mut self,
+        at: StepInfo,
+        inbox: &[SharedMessage],
+        out: &mut Vec<Outgoing>,
+    ) -> Result<(), ModuleError> {
         self.start_step(at, inbox)?;
         self.finish_step(out).map(drop)
     }
@@ -124,11 +173,25 @@ impl Module for RemoteModule {
     /// Shard replies are merged in shard order: the run does not depend on which
     /// worker answered first.
     fn finish_step(&mut self, out: &mut Vec<Outgoing>) -> Result<Usage, ModuleError> {
-        let mut usage = Usage { wall_s: 0.0, cpu_s: 0.0, rss_mib: f64::NAN };
+        let mut usage = Usage {
+            wall_s: 0.0,
+            cpu_s: 0.0,
+            rss_mib: f64::NAN,
+        };
         let pending = std::mem::take(&mut self.pending);
         for (shard, task) in pending.into_iter().enumerate() {
-            let what = if self.shards > 1 { format!("shard {shard} of {}", self.shards) } else { "step".into() };
-            let reply = self.link.wait(&self.name, &self.workers, &what, task, self.link.timeouts.step)?;
+            let what = if self.shards > 1 {
+                format!("shard {shard} of {}", self.shards)
+            } else {
+                "step".into()
+            };
+            let reply = self.link.wait(
+                &self.name,
+                &self.workers,
+                &what,
+                task,
+                self.link.timeouts.step,
+            )?;
             let reply = reply.map_err(|e| request_error(&what, e))?;
             let u = wire::decode_reply(&reply.payload, out)?;
             // Shards run side by side: the step takes as long as the slowest; CPU adds up.
@@ -145,7 +208,11 @@ impl Module for RemoteModule {
         }
         // Workers that already died cannot tear down; the others get a few seconds.
         let alive = self.link.check_alive(&self.name, &self.workers).is_ok();
-        let result = if alive { self.control("teardown", &serde_json::json!({}), Duration::from_secs(30)) } else { Ok(()) };
+        let result = if alive {
+            self.control("teardown", &serde_json::json!({}), Duration::from_secs(30))
+        } else {
+            Ok(())
+        };
         self.link.reap(&self.name, Duration::from_secs(5));
         result
     }

@@ -5,6 +5,29 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// Children that end with the core even when it is killed (Linux: PR_SET_PDEATHSIG):
+/// a killed run must not leave a server or workers behind.
+pub trait DieWithParent {
+    fn die_with_parent(&mut self) -> &mut Self;
+}
+
+impl DieWithParent for Command {
+    fn die_with_parent(&mut self) -> &mut Self {
+        #[cfg(target_os = "linux")]
+        {
+            use std::os::unix::process::CommandExt;
+            // SAFETY: prctl is async-signal-safe; the closure allocates nothing.
+            unsafe {
+                self.pre_exec(|| {
+                    libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                    Ok(())
+                });
+            }
+        }
+        self
+    }
+}
+
 pub struct SpawnedServer {
     child: Child,
     pub url: String,
@@ -15,7 +38,14 @@ pub struct SpawnedServer {
 /// put beside the Python interpreter, or `nats-server` on PATH.
 pub fn find_server(configured: Option<&Path>, python: Option<&Path>) -> Result<PathBuf, String> {
     if let Some(p) = configured {
-        return if p.is_file() { Ok(p.to_path_buf()) } else { Err(format!("nats-server binary '{}' does not exist", p.display())) };
+        return if p.is_file() {
+            Ok(p.to_path_buf())
+        } else {
+            Err(format!(
+                "nats-server binary '{}' does not exist",
+                p.display()
+            ))
+        };
     }
     let beside_python = python.and_then(Path::parent).map(|d| d.join("nats-server"));
     let on_path = std::env::var_os("PATH")
@@ -41,12 +71,18 @@ impl SpawnedServer {
         let mut last = String::new();
         for _ in 0..3 {
             let port = free_port().map_err(|e| format!("no free port: {e}"))?;
-            let conf = std::env::temp_dir().join(format!("caviar-nats-{}-{port}.conf", std::process::id()));
+            let conf = std::env::temp_dir()
+                .join(format!("caviar-nats-{}-{port}.conf", std::process::id()));
             // Camera images and ray-traced channels exceed the 1 MiB default payload.
-            std::fs::write(&conf, format!("listen: \"{host}:{port}\"\nmax_payload: 67108864\n"))
-                .map_err(|e| format!("{}: {e}", conf.display()))?;
-            let log_file = std::fs::File::create(log).map_err(|e| format!("{}: {e}", log.display()))?;
+            std::fs::write(
+                &conf,
+                format!("listen: \"{host}:{port}\"\nmax_payload: 67108864\n"),
+            )
+            .map_err(|e| format!("{}: {e}", conf.display()))?;
+            let log_file =
+                std::fs::File::create(log).map_err(|e| format!("{}: {e}", log.display()))?;
             let mut child = Command::new(binary)
+                .die_with_parent()
                 .arg("-c")
                 .arg(&conf)
                 .stdin(Stdio::null())
@@ -57,11 +93,19 @@ impl SpawnedServer {
             let deadline = Instant::now() + Duration::from_secs(10);
             while Instant::now() < deadline {
                 if let Ok(Some(status)) = child.try_wait() {
-                    last = format!("{} exited with {status}; see {}", binary.display(), log.display());
+                    last = format!(
+                        "{} exited with {status}; see {}",
+                        binary.display(),
+                        log.display()
+                    );
                     break;
                 }
                 if TcpStream::connect((host, port)).is_ok() {
-                    return Ok(SpawnedServer { child, url: format!("nats://{host}:{port}"), conf });
+                    return Ok(SpawnedServer {
+                        child,
+                        url: format!("nats://{host}:{port}"),
+                        conf,
+                    });
                 }
                 std::thread::sleep(Duration::from_millis(20));
             }
@@ -69,7 +113,11 @@ impl SpawnedServer {
             let _ = child.wait();
             let _ = std::fs::remove_file(&conf);
             if last.is_empty() {
-                last = format!("{} did not listen on {host}:{port} within 10 s; see {}", binary.display(), log.display());
+                last = format!(
+                    "{} did not listen on {host}:{port} within 10 s; see {}",
+                    binary.display(),
+                    log.display()
+                );
             }
         }
         Err(last)

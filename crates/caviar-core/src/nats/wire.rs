@@ -76,7 +76,8 @@ fn body(p: &Payload) -> (&[u8], Option<&str>) {
 
 fn frame<H: Serialize>(header: &H, bodies: &[&[u8]]) -> Vec<u8> {
     let head = serde_json::to_vec(header).expect("serialisable header");
-    let mut buf = Vec::with_capacity(4 + head.len() + bodies.iter().map(|b| b.len()).sum::<usize>());
+    let mut buf =
+        Vec::with_capacity(4 + head.len() + bodies.iter().map(|b| b.len()).sum::<usize>());
     buf.extend_from_slice(&(head.len() as u32).to_le_bytes());
     buf.extend_from_slice(&head);
     for b in bodies {
@@ -88,15 +89,28 @@ fn frame<H: Serialize>(header: &H, bodies: &[&[u8]]) -> Vec<u8> {
 /// Splits a frame into its header and the bytes after it.
 pub fn split_frame<'a, H: Deserialize<'a>>(buf: &'a [u8]) -> Result<(H, &'a [u8]), String> {
     if buf.len() < 4 {
-        return Err(format!("frame of {} bytes is shorter than its length prefix", buf.len()));
+        return Err(format!(
+            "frame of {} bytes is shorter than its length prefix",
+            buf.len()
+        ));
     }
     let n = u32::from_le_bytes(buf[..4].try_into().expect("4 bytes")) as usize;
-    let head = buf.get(4..4 + n).ok_or_else(|| format!("frame header of {n} bytes overruns a frame of {}", buf.len()))?;
+    let head = buf.get(4..4 + n).ok_or_else(|| {
+        format!(
+            "frame header of {n} bytes overruns a frame of {}",
+            buf.len()
+        )
+    })?;
     let header = serde_json::from_slice(head).map_err(|e| format!("frame header: {e}"))?;
     Ok((header, &buf[4 + n..]))
 }
 
-pub fn encode_request(at: StepInfo, shard: u64, shards: u64, inbox: &[impl AsRef<Message>]) -> Vec<u8> {
+pub fn encode_request(
+    at: StepInfo,
+    shard: u64,
+    shards: u64,
+    inbox: &[impl AsRef<Message>],
+) -> Vec<u8> {
     let mut messages = Vec::with_capacity(inbox.len());
     let mut bodies = Vec::with_capacity(inbox.len());
     for m in inbox {
@@ -113,7 +127,14 @@ pub fn encode_request(at: StepInfo, shard: u64, shards: u64, inbox: &[impl AsRef
         });
         bodies.push(b);
     }
-    let header = StepRequest { protocol: PROTOCOL, step: at.step, time: at.time, shard, shards, messages };
+    let header = StepRequest {
+        protocol: PROTOCOL,
+        step: at.step,
+        time: at.time,
+        shard,
+        shards,
+        messages,
+    };
     frame(&header, &bodies)
 }
 
@@ -133,8 +154,7 @@ pub fn encode_reply(out: &[Outgoing], usage: Usage) -> Vec<u8> {
         });
         bodies.push(b);
     }
-    let header =
-        StepReply {
+    let header = StepReply {
         ok: true,
         messages,
         wall_s: usage.wall_s,
@@ -146,41 +166,78 @@ pub fn encode_reply(out: &[Outgoing], usage: Usage) -> Vec<u8> {
 }
 
 /// Reads the messages of a frame whose header was already parsed.
-fn payloads(messages: Vec<WireMessage>, mut rest: &[u8]) -> Result<Vec<(WireMessage, Payload)>, String> {
+fn payloads(
+    messages: Vec<WireMessage>,
+    mut rest: &[u8],
+) -> Result<Vec<(WireMessage, Payload)>, String> {
     let mut out = Vec::with_capacity(messages.len());
     for m in messages {
         if rest.len() < m.len {
-            return Err(format!("message on '{}' declares {} bytes, {} are left in the frame", m.topic, m.len, rest.len()));
+            return Err(format!(
+                "message on '{}' declares {} bytes, {} are left in the frame",
+                m.topic,
+                m.len,
+                rest.len()
+            ));
         }
         let (b, tail) = rest.split_at(m.len);
         rest = tail;
-        let text = || String::from_utf8(b.to_vec()).map_err(|_| format!("{} body on '{}' is not UTF-8", m.kind, m.topic));
+        let text = || {
+            String::from_utf8(b.to_vec())
+                .map_err(|_| format!("{} body on '{}' is not UTF-8", m.kind, m.topic))
+        };
         let payload = match PayloadKind::parse(&m.kind) {
             Some(PayloadKind::Json) => Payload::Json(text()?),
             Some(PayloadKind::Artifact) => Payload::Artifact(text()?),
-            Some(PayloadKind::Binary) => {
-                Payload::Binary { meta: m.meta.clone().unwrap_or_else(|| "{}".into()), data: b.to_vec() }
+            Some(PayloadKind::Binary) => Payload::Binary {
+                meta: m.meta.clone().unwrap_or_else(|| "{}".into()),
+                data: b.to_vec(),
+            },
+            None => {
+                return Err(format!(
+                    "unknown payload kind '{}' on '{}'",
+                    m.kind, m.topic
+                ))
             }
-            None => return Err(format!("unknown payload kind '{}' on '{}'", m.kind, m.topic)),
         };
         out.push((m, payload));
     }
     if !rest.is_empty() {
-        return Err(format!("{} bytes after the last message of the frame", rest.len()));
+        return Err(format!(
+            "{} bytes after the last message of the frame",
+            rest.len()
+        ));
     }
     Ok(out)
 }
 
 /// Decodes a step reply into the module's outgoing messages and what the step cost.
 pub fn decode_reply(buf: &[u8], out: &mut Vec<Outgoing>) -> Result<Usage, ModuleError> {
-    let (reply, rest): (StepReply, _) = split_frame(buf).map_err(|e| ModuleError::new(format!("bad step reply: {e}")))?;
+    let (reply, rest): (StepReply, _) =
+        split_frame(buf).map_err(|e| ModuleError::new(format!("bad step reply: {e}")))?;
     if !reply.ok {
-        let e = reply.error.unwrap_or(WireError { message: "the worker reported a failure without details".into(), trace: None, key: None });
-        return Err(ModuleError { message: e.message, trace: e.trace });
+        let e = reply.error.unwrap_or(WireError {
+            message: "the worker reported a failure without details".into(),
+            trace: None,
+            key: None,
+        });
+        return Err(ModuleError {
+            message: e.message,
+            trace: e.trace,
+        });
     }
-    let usage = Usage { wall_s: reply.wall_s, cpu_s: reply.cpu_s, rss_mib: reply.rss_mib.unwrap_or(f64::NAN) };
-    for (m, payload) in payloads(reply.messages, rest).map_err(|e| ModuleError::new(format!("bad step reply: {e}")))? {
-        out.push(Outgoing { topic: m.topic, payload });
+    let usage = Usage {
+        wall_s: reply.wall_s,
+        cpu_s: reply.cpu_s,
+        rss_mib: reply.rss_mib.unwrap_or(f64::NAN),
+    };
+    for (m, payload) in payloads(reply.messages, rest)
+        .map_err(|e| ModuleError::new(format!("bad step reply: {e}")))?
+    {
+        out.push(Outgoing {
+            topic: m.topic,
+            payload,
+        });
     }
     Ok(usage)
 }
@@ -189,7 +246,10 @@ pub fn decode_reply(buf: &[u8], out: &mut Vec<Outgoing>) -> Result<Usage, Module
 pub fn decode_request(buf: &[u8]) -> Result<(StepRequest, Vec<Message>), String> {
     let (mut req, rest): (StepRequest, _) = split_frame(buf)?;
     if req.protocol != PROTOCOL {
-        return Err(format!("protocol {} requested, this side speaks {PROTOCOL}", req.protocol));
+        return Err(format!(
+            "protocol {} requested, this side speaks {PROTOCOL}",
+            req.protocol
+        ));
     }
     let messages = std::mem::take(&mut req.messages);
     let inbox = payloads(messages, rest)?
@@ -212,37 +272,80 @@ mod tests {
     #[test]
     fn request_and_reply_round_trip_every_payload_kind() {
         let inbox = vec![
-            Message { step: 3, time: 0.3, topic: "a.b".into(), source: "m".into(), payload: Payload::Json("{\"x\":1}".into()) },
+            Message {
+                step: 3,
+                time: 0.3,
+                topic: "a.b".into(),
+                source: "m".into(),
+                payload: Payload::Json("{\"x\":1}".into()),
+            },
             Message {
                 step: 3,
                 time: 0.3,
                 topic: "img".into(),
                 source: "cam".into(),
-                payload: Payload::Binary { meta: "{\"shape\":[2]}".into(), data: vec![0, 255] },
+                payload: Payload::Binary {
+                    meta: "{\"shape\":[2]}".into(),
+                    data: vec![0, 255],
+                },
             },
-            Message { step: 2, time: 0.2, topic: "f".into(), source: "m".into(), payload: Payload::Artifact("x.png".into()) },
+            Message {
+                step: 2,
+                time: 0.2,
+                topic: "f".into(),
+                source: "m".into(),
+                payload: Payload::Artifact("x.png".into()),
+            },
         ];
         let at = StepInfo { step: 4, time: 0.4 };
-        let shared: Vec<std::sync::Arc<Message>> = inbox.iter().cloned().map(std::sync::Arc::new).collect();
+        let shared: Vec<std::sync::Arc<Message>> =
+            inbox.iter().cloned().map(std::sync::Arc::new).collect();
         let (req, back) = decode_request(&encode_request(at, 1, 3, &shared)).unwrap();
         assert_eq!((req.step, req.shard, req.shards), (4, 1, 3));
         assert_eq!(back, inbox);
 
-        let out: Vec<Outgoing> = inbox.iter().map(|m| Outgoing::new(m.topic.clone(), m.payload.clone())).collect();
-        let usage = Usage { wall_s: 0.5, cpu_s: 0.25, rss_mib: 100.0 };
+        let out: Vec<Outgoing> = inbox
+            .iter()
+            .map(|m| Outgoing::new(m.topic.clone(), m.payload.clone()))
+            .collect();
+        let usage = Usage {
+            wall_s: 0.5,
+            cpu_s: 0.25,
+            rss_mib: 100.0,
+        };
         let mut got = Vec::new();
-        assert_eq!(decode_reply(&encode_reply(&out, usage), &mut got).unwrap(), usage);
+        assert_eq!(
+            decode_reply(&encode_reply(&out, usage), &mut got).unwrap(),
+            usage
+        );
         assert_eq!(got, out);
     }
 
     #[test]
     fn truncated_and_failed_replies_are_errors_that_say_why() {
         let out = vec![Outgoing::new("t", Payload::Json("[1,2,3]".into()))];
-        let buf = encode_reply(&out, Usage { wall_s: 0.0, cpu_s: 0.0, rss_mib: 0.0 });
+        let buf = encode_reply(
+            &out,
+            Usage {
+                wall_s: 0.0,
+                cpu_s: 0.0,
+                rss_mib: 0.0,
+            },
+        );
         let err = decode_reply(&buf[..buf.len() - 2], &mut Vec::new()).unwrap_err();
-        assert!(err.message.contains("declares 7 bytes, 5 are left"), "{}", err.message);
-        let failed = frame(&serde_json::json!({"ok": false, "error": {"message": "ValueError: boom", "trace": "tb"}}), &[]);
+        assert!(
+            err.message.contains("declares 7 bytes, 5 are left"),
+            "{}",
+            err.message
+        );
+        let failed = frame(
+            &serde_json::json!({"ok": false, "error": {"message": "ValueError: boom", "trace": "tb"}}),
+            &[],
+        );
         let err = decode_reply(&failed, &mut Vec::new()).unwrap_err();
-        assert_eq!((err.message.as_str(), err.trace.as_deref()), ("ValueError: boom", Some("tb")));
+        assert_eq!(
+            (err.message.as_str(), err.trace.as_deref()),
+            ("ValueError: boom", Some("tb"))
+        );
     }
 }

@@ -14,9 +14,20 @@ use crate::module::{Module, SetupContext, StepInfo, Usage};
 
 /// Serves `module` as worker `worker_id` of module `name` in run `run_id` until the
 /// run ends. Waits up to `wait` for the core to answer its hello.
-pub fn serve(url: &str, run_id: &str, name: &str, worker_id: &str, mut module: Box<dyn Module>, wait: Duration) -> Result<(), String> {
+pub fn serve(
+    url: &str,
+    run_id: &str,
+    name: &str,
+    worker_id: &str,
+    mut module: Box<dyn Module>,
+    wait: Duration,
+) -> Result<(), String> {
     // Two threads: the heartbeat keeps beating while a step blocks the other.
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().map_err(|e| e.to_string())?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| e.to_string())?;
     rt.block_on(async move {
         let client = async_nats::ConnectOptions::new()
             .request_timeout(Some(Duration::from_secs(2)))
@@ -103,7 +114,8 @@ pub fn serve(url: &str, run_id: &str, name: &str, worker_id: &str, mut module: B
 
 fn step_reply(module: &mut dyn Module, payload: &[u8]) -> Vec<u8> {
     let failed = |message: String| {
-        let head = serde_json::to_vec(&json!({"ok": false, "error": {"message": message}})).expect("json");
+        let head =
+            serde_json::to_vec(&json!({"ok": false, "error": {"message": message}})).expect("json");
         let mut buf = (head.len() as u32).to_le_bytes().to_vec();
         buf.extend(head);
         buf
@@ -115,9 +127,20 @@ fn step_reply(module: &mut dyn Module, payload: &[u8]) -> Vec<u8> {
     let inbox: Vec<SharedMessage> = inbox.into_iter().map(std::sync::Arc::new).collect();
     let (t0, c0) = (Instant::now(), thread_cpu_seconds());
     let mut out = Vec::new();
-    match module.step(StepInfo { step: req.step, time: req.time }, &inbox, &mut out) {
+    match module.step(
+        StepInfo {
+            step: req.step,
+            time: req.time,
+        },
+        &inbox,
+        &mut out,
+    ) {
         Ok(()) => {
-            let usage = Usage { wall_s: t0.elapsed().as_secs_f64(), cpu_s: thread_cpu_seconds() - c0, rss_mib: resident_mib() };
+            let usage = Usage {
+                wall_s: t0.elapsed().as_secs_f64(),
+                cpu_s: thread_cpu_seconds() - c0,
+                rss_mib: resident_mib(),
+            };
             wire::encode_reply(&out, usage)
         }
         Err(e) => failed(e.message),
