@@ -83,8 +83,11 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
 }
 
 fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
-    let result =
-        config::load(path, set).and_then(|cfg| load_modules(&cfg, loader).map(|m| (cfg, m.len())));
+    let result = config::load(path, set).and_then(|cfg| {
+        load_modules(&cfg, loader)?;
+        let n = cfg.config.modules.len();
+        Ok((cfg, n))
+    });
     match result {
         Ok((cfg, n)) => {
             let steps = cfg
