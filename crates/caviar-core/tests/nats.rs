@@ -134,16 +134,14 @@ fn start_worker(
     })
 }
 
+type Workers = Vec<JoinHandle<Result<(), String>>>;
+
 /// Runs the config through `prepare` with Rust workers; returns the run directory and the result.
 fn run_nats(
     dir: &Path,
     text: &str,
     counter: Counter,
-) -> (
-    PathBuf,
-    Result<(), EngineError>,
-    Vec<JoinHandle<Result<(), String>>>,
-) {
+) -> (PathBuf, Result<(), EngineError>, Workers) {
     let file = dir.join("config.toml");
     std::fs::write(&file, text).unwrap();
     let cfg = config::load(&file, &[]).unwrap();

@@ -217,10 +217,10 @@ pub fn prepare(
 
 /// Waits until each remote module has its workers connected with the plugin loaded;
 /// returns each module's default subscriptions and worker ids.
-fn wait_for_workers(
-    cfg: &LoadedConfig,
-    link: &Link,
-) -> Result<HashMap<String, (Vec<String>, Vec<String>)>, PrepareError> {
+/// A module's default subscriptions and the ids of its workers, once they are ready.
+type Ready = HashMap<String, (Vec<String>, Vec<String>)>;
+
+fn wait_for_workers(cfg: &LoadedConfig, link: &Link) -> Result<Ready, PrepareError> {
     let timeout = link.timeouts.startup;
     let t0 = Instant::now();
     loop {
