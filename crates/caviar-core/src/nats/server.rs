@@ -6,7 +6,9 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 /// Children that end with the core even when it is killed (Linux: PR_SET_PDEATHSIG):
-/// a killed run must not leave a server or workers behind.
+/// a killed run must not leave a server or workers behind. The signal follows the
+/// *thread* that started them: start a run from a thread that outlives it (the CLI and
+/// `caviar.Simulation` on the main thread do).
 pub trait DieWithParent {
     fn die_with_parent(&mut self) -> &mut Self;
 }
