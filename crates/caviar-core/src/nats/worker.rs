@@ -22,9 +22,11 @@ pub fn serve(
     mut module: Box<dyn Module>,
     wait: Duration,
 ) -> Result<(), String> {
-    // Two threads: the heartbeat keeps beating while a step blocks the other.
+    // The select loop below (and so every step) runs on the calling thread; the
+    // connection and the heartbeat on the runtime's own thread, so a long step does
+    // not silence the heartbeat.
     let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
+        .worker_threads(1)
         .enable_all()
         .build()
         .map_err(|e| e.to_string())?;
@@ -93,7 +95,7 @@ pub fn serve(
                     if let Some(r) = m.reply { client.publish(r, answer.to_string().into()).await.map_err(|e| e.to_string())?; }
                 }
                 Some(m) = async { match steps.as_mut() { Some(s) => s.next().await, None => std::future::pending().await } } => {
-                    let reply = tokio::task::block_in_place(|| step_reply(module.as_mut(), &m.payload));
+                    let reply = step_reply(module.as_mut(), &m.payload);
                     if let Some(r) = m.reply { client.publish(r, reply.into()).await.map_err(|e| e.to_string())?; }
                 }
                 Some(m) = teardown.next() => {
