@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import concurrent.futures
 import json
 import os
 import socket
 import ssl
 import struct
 import sys
+import threading
 import time
 
 from caviar._host import format_exception, load_plugin
@@ -95,8 +95,6 @@ class Worker:
         self.run, self.module = args.run, args.module
         self.id = args.worker_id or f"{args.module}-{socket.gethostname()}-{os.getpid()}"
         self.prefix = f"caviar.{self.run}"
-        # One thread for every plugin call: libraries such as Dr.Jit keep per-thread state.
-        self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="plugin")
         self.hosted = None
         self.spec: dict = {}
         self.done = asyncio.Event()
@@ -120,7 +118,8 @@ class Worker:
                        max_reconnect_attempts=a.reconnect_attempts, reconnect_time_wait=1,
                        closed_cb=self._closed, disconnected_cb=self._disconnected,
                        reconnected_cb=self._reconnected)
-        self.nc = await nats.connect(**{k: v for k, v in options.items() if v is not None})
+        self.options = {k: v for k, v in options.items() if v is not None}
+        self.nc = await nats.connect(**self.options)
 
     async def _closed(self):
         if not self.done.is_set():
@@ -161,7 +160,10 @@ class Worker:
         return hosted, subscribe
 
     async def call(self, fn, *args):
-        return await asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
+        """Plugin calls run right here, on the event loop's thread: no thread hop per
+        step (the barrier's latency), one thread for libraries with per-thread state
+        such as Dr.Jit. The heartbeat has a thread and a connection of its own."""
+        return fn(*args)
 
     async def serve(self) -> int:
         await self.connect()
@@ -187,22 +189,36 @@ class Worker:
         await self.nc.subscribe(f"{self.prefix}.stop", cb=self.on_stop)
         await self.nc.publish(loaded, json.dumps({"worker": self.id, "subscribe": subscribe}).encode())
         await self.nc.flush()
-        beat = asyncio.create_task(self.heartbeat())
+        stop_beating = threading.Event()
+        beat = threading.Thread(target=self.heartbeat, args=(stop_beating,), name="heartbeat", daemon=True)
+        beat.start()
         await self.done.wait()
-        beat.cancel()
+        stop_beating.set()
         if not self.nc.is_closed:
             await self.nc.drain()
-        self.pool.shutdown(wait=False, cancel_futures=True)
+        beat.join(timeout=3)
         return self.exit_code
 
-    async def heartbeat(self):
-        body = json.dumps({"worker": self.id}).encode()
-        while True:
-            try:
-                await self.nc.publish(f"{self.prefix}.heartbeat", body)
-            except Exception as e:  # reconnecting: the core times us out if it lasts
-                self.log(f"heartbeat not sent: {e}")
-            await asyncio.sleep(HEARTBEAT_S)
+    def heartbeat(self, stop: threading.Event) -> None:
+        """Beats every second from its own thread and connection, also while a long
+        step keeps the main loop busy (Python code yields the interpreter lock every
+        few milliseconds; native code such as Dr.Jit releases it)."""
+        import nats
+
+        async def beat():
+            nc = await nats.connect(**dict(self.options, name=f"caviar-worker {self.id} heartbeat",
+                                           closed_cb=None, disconnected_cb=None, reconnected_cb=None))
+            body = json.dumps({"worker": self.id}).encode()
+            while not stop.is_set():
+                try:
+                    await nc.publish(f"{self.prefix}.heartbeat", body)
+                    await nc.flush(timeout=HEARTBEAT_S)
+                except Exception as e:  # reconnecting: the core times us out if it lasts
+                    self.log(f"heartbeat not sent: {e}")
+                await asyncio.sleep(HEARTBEAT_S)
+            await nc.close()
+
+        asyncio.run(beat())
 
     async def on_setup(self, msg):
         s, c = self.spec, json.loads(msg.data)
