@@ -7,6 +7,7 @@ import shutil
 import numpy as np
 
 import caviar
+from caviar._gpu import open_sampler
 from conftest import ROOT, write_config
 
 QUICKSTART = ROOT / "blueprints" / "quickstart" / "config.toml"
@@ -178,6 +179,9 @@ def test_report_draws_resource_figures_across_runs(tmp_path, cli):
     for r in report["runs"]:
         assert set(r["modules"]) == {"uav", "comm", "monitor", "caviar.core"}
         assert all(m["max_rss_mib"] > 20 and m["wall_s_per_step"] >= 0 for m in r["modules"].values())
+        # GPU columns are filled only where nvidia-ml-py sees a GPU (test_gpu_sampling_* below).
+        assert all((m["max_gpu_mem_mib"] is None) == (open_sampler() is None) for m in r["modules"].values()
+                   if m is not r["modules"]["caviar.core"])
     for png in ("modules.png", "wall_clock.png"):
         assert (tmp_path / "rep" / png).stat().st_size > 5_000
     first = caviar.load_run(tmp_path / "r2").topic("3D.mobility.positions")["position"].to_list()[0]
@@ -186,3 +190,20 @@ def test_report_draws_resource_figures_across_runs(tmp_path, cli):
     start = np.array([23.34, -3.42, 137.23]) + np.array([1, -1, -1]) * ned[0]
     assert math.dist([first["x"], first["y"], first["z"]], start) > 150  # started 200 m along the route
     assert cli("report", "nothing-here", check=2)
+
+
+def test_gpu_sampling_follows_what_nvidia_ml_py_sees():
+    """With an NVIDIA driver and GPU the sampler reports utilisation and this process's
+    GPU memory; without (this development machine), there is no sampler and no numbers."""
+    import pynvml
+
+    try:
+        pynvml.nvmlInit()
+        has_gpu = pynvml.nvmlDeviceGetCount() > 0
+    except pynvml.NVMLError:
+        has_gpu = False
+    sampler = open_sampler()
+    assert (sampler is not None) == has_gpu
+    if sampler is not None:
+        util, mem = sampler.sample()
+        assert 0.0 <= util <= 100.0 and mem >= 0.0

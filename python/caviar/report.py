@@ -23,7 +23,8 @@ def summary(run_dir) -> dict:
     times = log.module_times()
     steps = max(1, int(log.status.get("steps_done") or 0))
     modules = {r["module"]: {"wall_s_per_step": r["wall_s"] / steps, "cpu_s_per_step": r["cpu_s"] / steps,
-                             "max_rss_mib": r["max_rss_mib"], "share": r["share"]}
+                             "max_rss_mib": r["max_rss_mib"], "share": r["share"],
+                             "mean_gpu_util_pct": r["mean_gpu_util_pct"], "max_gpu_mem_mib": r["max_gpu_mem_mib"]}
                for r in times.iter_rows(named=True)}
     return {"run": str(run_dir), "steps": steps, "wall_s": log.status.get("wall_s"),
             "virtual_time_s": log.status.get("virtual_time_s"), "rtf": log.status.get("rtf"), "modules": modules}
@@ -39,6 +40,9 @@ def grouped(modules: dict) -> dict:
         g["wall_s_per_step"] += m["wall_s_per_step"]
         g["cpu_s_per_step"] += m["cpu_s_per_step"]
         g["max_rss_mib"] = max(g["max_rss_mib"], m["max_rss_mib"])
+        for k in ("mean_gpu_util_pct", "max_gpu_mem_mib"):  # absent without a GPU
+            if m.get(k) is not None:
+                g[k] = max(g.get(k, 0.0), m[k])
     return out
 
 
@@ -52,16 +56,19 @@ def draw(summaries: list[dict], labels: list[str], out: pathlib.Path, xlabel: st
     out.mkdir(parents=True, exist_ok=True)
     groups = [grouped(s["modules"]) for s in summaries]
     modules = list(dict.fromkeys(m for g in groups for m in g))
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    panels = [("wall_s_per_step", 1e3, "wall time per step (ms)"), ("cpu_s_per_step", 1e3, "CPU time per step (ms)"),
+              ("max_rss_mib", 1.0, "resident memory of the process (MiB)")]
+    if any("max_gpu_mem_mib" in m for g in groups for m in g.values()):  # the paper's GPU panels
+        panels += [("mean_gpu_util_pct", 1.0, "GPU utilisation (%)"), ("max_gpu_mem_mib", 1.0, "GPU memory (MiB)")]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4))
     width = 0.8 / max(1, len(summaries))
     x = np.arange(len(modules))
     for i, (g, label) in enumerate(zip(groups, labels)):
-        for ax, key, scale in ((axes[0], "wall_s_per_step", 1e3), (axes[1], "cpu_s_per_step", 1e3),
-                               (axes[2], "max_rss_mib", 1.0)):
+        for ax, (key, scale, _) in zip(axes, panels):
             ax.bar(x + i * width, [scale * g.get(m, {}).get(key, 0.0) for m in modules], width, label=label)
     axes[0].set_yscale("symlog", linthresh=1.0)
     axes[1].set_yscale("symlog", linthresh=1.0)
-    for ax, title in zip(axes, ("wall time per step (ms)", "CPU time per step (ms)", "resident memory of the process (MiB)")):
+    for ax, title in zip(axes, (p[2] for p in panels)):
         ax.set_xticks(x + width * (len(summaries) - 1) / 2, modules, rotation=30, ha="right")
         ax.set_title(title)
         ax.grid(True, axis="y")

@@ -78,12 +78,18 @@ class RunLog:
 
     def module_times(self):
         """Per module: steps run, total and mean wall time, CPU time, the largest resident
-        memory of its process after its stage (MiB), share of the run."""
+        memory of its process after its stage (MiB), mean GPU utilisation (%) and largest
+        GPU memory (MiB; null without an NVIDIA GPU), share of the run."""
         import polars as pl
 
-        t = self.timings.group_by("module", maintain_order=True).agg(
+        timings = self.timings
+        for c in ("gpu_util_pct", "gpu_mem_mib"):  # runs recorded before GPU accounting
+            if c not in timings.columns:
+                timings = timings.with_columns(pl.lit(None, dtype=pl.Float64).alias(c))
+        t = timings.group_by("module", maintain_order=True).agg(
             pl.len().alias("steps"), pl.col("wall_s").sum(), pl.col("wall_s").mean().alias("mean_wall_s"),
-            pl.col("cpu_s").sum(), pl.col("rss_mib").max().alias("max_rss_mib"))
+            pl.col("cpu_s").sum(), pl.col("rss_mib").max().alias("max_rss_mib"),
+            pl.col("gpu_util_pct").mean().alias("mean_gpu_util_pct"), pl.col("gpu_mem_mib").max().alias("max_gpu_mem_mib"))
         return t.with_columns((pl.col("wall_s") / pl.col("wall_s").sum()).alias("share"))
 
     def to_pandas(self, table: str = "messages"):

@@ -22,6 +22,7 @@ import sys
 import threading
 import time
 
+from caviar._gpu import open_sampler
 from caviar._host import format_exception, load_plugin
 from caviar.errors import ConfigError
 
@@ -57,7 +58,7 @@ def decode_request(buf: bytes) -> tuple[dict, list[tuple]]:
     return req, raw
 
 
-def encode_reply(out: list[tuple], wall_s: float, cpu_s: float) -> bytes:
+def encode_reply(out: list[tuple], wall_s: float, cpu_s: float, gpu: tuple[float, float] | None = None) -> bytes:
     messages, bodies = [], []
     for topic, kind, body, meta in out:
         b = body.encode() if isinstance(body, str) else bytes(body)
@@ -66,8 +67,10 @@ def encode_reply(out: list[tuple], wall_s: float, cpu_s: float) -> bytes:
             m["meta"] = meta
         messages.append(m)
         bodies.append(b)
-    return pack_frame({"ok": True, "messages": messages, "wall_s": wall_s, "cpu_s": cpu_s,
-                       "rss_mib": resident_mib()}, bodies)
+    header = {"ok": True, "messages": messages, "wall_s": wall_s, "cpu_s": cpu_s, "rss_mib": resident_mib()}
+    if gpu is not None:
+        header["gpu_util_pct"], header["gpu_mem_mib"] = gpu
+    return pack_frame(header, bodies)
 
 
 def error_reply(exc: BaseException) -> dict:
@@ -98,6 +101,7 @@ class Worker:
         self.hosted = None
         self.spec: dict = {}
         self.done = asyncio.Event()
+        self.gpu = open_sampler()
         self.exit_code = 0
 
     def log(self, text: str) -> None:
@@ -236,7 +240,8 @@ class Worker:
     def _step(self, req: dict, raw: list) -> bytes:
         t0, c0 = time.perf_counter(), time.thread_time()
         out = self.hosted.step(req["step"], req["time"], raw, req.get("shard", 0))
-        return encode_reply(out, time.perf_counter() - t0, time.thread_time() - c0)
+        wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
+        return encode_reply(out, wall, cpu, self.gpu.sample() if self.gpu else None)
 
     async def on_step(self, msg):
         try:

@@ -372,6 +372,9 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
         rss_max: f64,
         msgs_in: u64,
         msgs_out: u64,
+        gpu_util_sum: f64,
+        gpu_util_n: u64,
+        gpu_mem_max: Option<f64>,
     }
     let mut modules: Vec<(String, ModuleRow)> = Vec::new();
     for t in &timings {
@@ -389,7 +392,18 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
         r.rss_max = r.rss_max.max(t.rss_mib);
         r.msgs_in += t.msgs_in as u64;
         r.msgs_out += t.msgs_out as u64;
+        if let Some(u) = t.gpu_util_pct {
+            r.gpu_util_sum += u;
+            r.gpu_util_n += 1;
+        }
+        if let Some(m) = t.gpu_mem_mib {
+            r.gpu_mem_max = Some(r.gpu_mem_max.map_or(m, |x: f64| x.max(m)));
+        }
     }
+    // GPU columns only where a GPU was measured.
+    let gpu = modules
+        .iter()
+        .any(|(_, r)| r.gpu_util_n > 0 || r.gpu_mem_max.is_some());
     // The core's row last: it is the overhead of everything above it.
     modules.sort_by_key(|(n, _)| n == CORE);
     let total: f64 = modules.iter().map(|(_, r)| r.wall).sum::<f64>().max(1e-12);
@@ -401,8 +415,17 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
         .max(6);
     writeln!(
         s,
-        "\n{:<w$}  {:>6} {:>10} {:>7} {:>10} {:>9} {:>11} {:>8} {:>8}",
-        "module", "steps", "wall s", "share", "mean ms", "cpu s", "max RSS MiB", "in", "out"
+        "\n{:<w$}  {:>6} {:>10} {:>7} {:>10} {:>9} {:>11} {:>8} {:>8}{}",
+        "module",
+        "steps",
+        "wall s",
+        "share",
+        "mean ms",
+        "cpu s",
+        "max RSS MiB",
+        "in",
+        "out",
+        if gpu { "  mean GPU %  max GPU MiB" } else { "" }
     )
     .unwrap();
     for (n, r) in &modules {
@@ -419,6 +442,16 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
             r.msgs_out
         )
         .unwrap();
+        if gpu {
+            s.pop(); // the newline: the GPU columns continue the row
+            let util = if r.gpu_util_n > 0 {
+                format!("{:.1}", r.gpu_util_sum / r.gpu_util_n as f64)
+            } else {
+                "-".into()
+            };
+            let mem = r.gpu_mem_max.map_or("-".into(), |m| format!("{m:.0}"));
+            writeln!(s, "  {util:>10} {mem:>12}").unwrap();
+        }
     }
     Ok(s)
 }

@@ -24,7 +24,9 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::message::{Message, Outgoing, SharedMessage};
-use crate::module::{module_seed, Module, ModuleError, SetupContext, StepInfo, Usage};
+use crate::module::{
+    module_seed, Module, ModuleError, ResourceProbe, SetupContext, StepInfo, Usage,
+};
 use crate::recorder::{RecordError, Recorder, TimingRow, CORE};
 use crate::topic::{validate_topic, Pattern};
 
@@ -136,6 +138,7 @@ pub struct Engine {
     wall_s: f64,
     record_s: f64,
     tap: Option<Tap>,
+    probe: Option<Box<dyn ResourceProbe>>,
 }
 
 pub(crate) fn thread_cpu_seconds() -> f64 {
@@ -184,8 +187,8 @@ struct Ran {
     result: Result<Vec<Outgoing>, ModuleError>,
     wall_s: f64,
     cpu_s: f64,
-    /// Resident memory of the process that ran the module, when it is not this one.
-    rss_mib: Option<f64>,
+    /// What the module's own process reported (remote modules): memory and GPU.
+    reported: Option<Usage>,
     msgs_in: u32,
 }
 
@@ -199,7 +202,7 @@ fn run_slot(i: usize, slot: &mut Slot, at: StepInfo) -> Ran {
         result,
         wall_s: t0.elapsed().as_secs_f64(),
         cpu_s: thread_cpu_seconds() - c0,
-        rss_mib: None,
+        reported: None,
         msgs_in: inbox.len() as u32,
     }
 }
@@ -227,13 +230,15 @@ fn finish_remote(s: Started, slot: &mut Slot) -> Ran {
         wall_s: 0.0,
         cpu_s: 0.0,
         rss_mib: f64::NAN,
+        gpu_util_pct: None,
+        gpu_mem_mib: None,
     });
     Ran {
         slot: s.slot,
         result: result.map(|_| out),
         wall_s: usage.wall_s,
         cpu_s: usage.cpu_s,
-        rss_mib: Some(usage.rss_mib),
+        reported: Some(usage),
         msgs_in: s.msgs_in,
     }
 }
@@ -284,7 +289,13 @@ impl Engine {
             wall_s: 0.0,
             record_s: 0.0,
             tap: None,
+            probe: None,
         })
+    }
+
+    /// Samples GPU use after each stage for the in-process modules.
+    pub fn set_probe(&mut self, probe: Box<dyn ResourceProbe>) {
+        self.probe = Some(probe);
     }
 
     pub fn set_tap(&mut self, tap: Tap) {
@@ -402,10 +413,12 @@ impl Engine {
             let stage_wall = t_stage.elapsed().as_secs_f64();
             // Modules of one process share its memory: the process's size after the stage
             // is what each module of the stage is charged with (NATS workers report their own).
-            let rss_mib = if self.recorder.is_some() && !ran.is_empty() {
-                resident_mib()
+            let sampled = self.recorder.is_some() && !ran.is_empty();
+            let rss_mib = if sampled { resident_mib() } else { f64::NAN };
+            let gpu = if sampled {
+                self.probe.as_mut().and_then(|p| p.sample())
             } else {
-                f64::NAN
+                None
             };
             // The stage's share of module work is its slowest member (they ran side by side).
             module_wall += ran
@@ -430,15 +443,21 @@ impl Engine {
                     }
                 };
                 if let Some(rec) = &mut self.recorder {
+                    let (rss_mib, gpu_util_pct, gpu_mem_mib) = match r.reported {
+                        Some(u) => (u.rss_mib, u.gpu_util_pct, u.gpu_mem_mib),
+                        None => (rss_mib, gpu.map(|g| g.0), gpu.map(|g| g.1)),
+                    };
                     rec.record_timing(&TimingRow {
                         step,
                         time: at.time,
                         module: name.clone(),
                         wall_s: r.wall_s,
                         cpu_s: r.cpu_s,
-                        rss_mib: r.rss_mib.unwrap_or(rss_mib),
+                        rss_mib,
                         msgs_in: r.msgs_in,
                         msgs_out: outgoing.len() as u32,
+                        gpu_util_pct,
+                        gpu_mem_mib,
                     });
                 }
                 for o in outgoing {
@@ -489,6 +508,8 @@ impl Engine {
                 rss_mib: resident_mib(),
                 msgs_in: 0,
                 msgs_out: 0,
+                gpu_util_pct: None,
+                gpu_mem_mib: None,
             });
             if failure.is_some() {
                 rec.flush()?;

@@ -22,4 +22,4 @@ mod python;
 pub use config::{ConfigError, LoadedConfig};
 pub use engine::{Engine, EngineError, EngineOptions, ModuleSpec, StepReport, END_TOPIC};
 pub use message::{Message, Outgoing, Payload, SharedMessage};
-pub use module::{Module, ModuleError, SetupContext, StepInfo, Usage};
+pub use module::{Module, ModuleError, ResourceProbe, SetupContext, StepInfo, Usage};

@@ -71,6 +71,16 @@ pub struct Usage {
     pub cpu_s: f64,
     /// Resident memory of the process that ran the step, MiB.
     pub rss_mib: f64,
+    /// GPU utilisation (%) and the process's GPU memory (MiB), where it has a GPU.
+    pub gpu_util_pct: Option<f64>,
+    pub gpu_mem_mib: Option<f64>,
+}
+
+/// Samples GPU use of this process (the Python host provides one built on
+/// nvidia-ml-py); `None` from `sample` where there is nothing to measure.
+pub trait ResourceProbe: Send {
+    /// (utilisation %, this process's GPU memory MiB)
+    fn sample(&mut self) -> Option<(f64, f64)>;
 }
 
 pub trait Module: Send {

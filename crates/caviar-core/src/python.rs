@@ -11,7 +11,7 @@ use pyo3::types::{PyBytes, PyList, PyTuple};
 use crate::config::{self, ConfigError, LoadedConfig};
 use crate::engine::{Engine, EngineError};
 use crate::message::{Outgoing, Payload, SharedMessage};
-use crate::module::{Module, ModuleError, SetupContext, StepInfo};
+use crate::module::{Module, ModuleError, ResourceProbe, SetupContext, StepInfo};
 use crate::nats::WorkerLauncher;
 use crate::run::{prepare, write_status, PluginLoader, PrepareError};
 
@@ -144,7 +144,40 @@ fn outgoing_from_python(result: &Bound<'_, PyAny>, out: &mut Vec<Outgoing>) -> P
 /// Loads plugins through `caviar._host.load_plugin`.
 struct PyLoader;
 
+/// GPU use of this process through `caviar._gpu` (nvidia-ml-py).
+struct PyGpuProbe {
+    sampler: Py<PyAny>,
+}
+
+impl ResourceProbe for PyGpuProbe {
+    fn sample(&mut self) -> Option<(f64, f64)> {
+        Python::with_gil(|py| {
+            self.sampler
+                .call_method0(py, "sample")
+                .ok()?
+                .extract::<Option<(f64, f64)>>(py)
+                .ok()?
+        })
+    }
+}
+
 impl PluginLoader for PyLoader {
+    /// Present only where nvidia-ml-py finds an NVIDIA driver and a GPU.
+    fn resource_probe(&self) -> Option<Box<dyn ResourceProbe>> {
+        Python::with_gil(|py| {
+            let sampler = py
+                .import("caviar._gpu")
+                .ok()?
+                .call_method0("open_sampler")
+                .ok()?;
+            (!sampler.is_none()).then(|| {
+                Box::new(PyGpuProbe {
+                    sampler: sampler.unbind(),
+                }) as Box<dyn ResourceProbe>
+            })
+        })
+    }
+
     /// Workers run under this interpreter: the same environment, the same plugins.
     fn worker_launcher(&self) -> Option<WorkerLauncher> {
         Python::with_gil(|py| {

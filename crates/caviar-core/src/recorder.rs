@@ -85,6 +85,9 @@ pub fn timings_schema() -> SchemaRef {
         Field::new("rss_mib", DataType::Float64, false),
         Field::new("msgs_in", DataType::UInt32, false),
         Field::new("msgs_out", DataType::UInt32, false),
+        // Null where no NVIDIA GPU (or no nvidia-ml-py) was seen.
+        Field::new("gpu_util_pct", DataType::Float64, true),
+        Field::new("gpu_mem_mib", DataType::Float64, true),
     ]))
 }
 
@@ -101,6 +104,10 @@ pub struct TimingRow {
     pub rss_mib: f64,
     pub msgs_in: u32,
     pub msgs_out: u32,
+    /// GPU utilisation (%, of the devices the process uses) and the process's GPU
+    /// memory (MiB) after the module's stage, where an NVIDIA GPU is present.
+    pub gpu_util_pct: Option<f64>,
+    pub gpu_mem_mib: Option<f64>,
 }
 
 /// Module name under which the core's own per-step overhead is recorded.
@@ -170,6 +177,8 @@ struct TimingColumns {
     rss: Float64Builder,
     msgs_in: UInt32Builder,
     msgs_out: UInt32Builder,
+    gpu_util: Float64Builder,
+    gpu_mem: Float64Builder,
     rows: usize,
 }
 
@@ -183,6 +192,8 @@ impl TimingColumns {
         self.rss.append_value(r.rss_mib);
         self.msgs_in.append_value(r.msgs_in);
         self.msgs_out.append_value(r.msgs_out);
+        self.gpu_util.append_option(r.gpu_util_pct);
+        self.gpu_mem.append_option(r.gpu_mem_mib);
         self.rows += 1;
     }
 
@@ -197,6 +208,8 @@ impl TimingColumns {
             Arc::new(self.rss.finish()),
             Arc::new(self.msgs_in.finish()),
             Arc::new(self.msgs_out.finish()),
+            Arc::new(self.gpu_util.finish()),
+            Arc::new(self.gpu_mem.finish()),
         ];
         RecordBatch::try_new(timings_schema(), cols).expect("columns match the schema")
     }
@@ -457,6 +470,21 @@ pub fn read_timings(run_dir: &Path) -> Result<Vec<TimingRow>, RecordError> {
         let rss = typed!(&b, "rss_mib", p, Float64Array, DataType::Float64);
         let msgs_in = typed!(&b, "msgs_in", p, UInt32Array, DataType::UInt32);
         let msgs_out = typed!(&b, "msgs_out", p, UInt32Array, DataType::UInt32);
+        // Runs recorded before GPU accounting lack the columns.
+        let gpu = |name| {
+            b.column_by_name(name)
+                .and_then(|c| arrow_cast::cast(c, &DataType::Float64).ok())
+                .map(|c| {
+                    c.as_any()
+                        .downcast_ref::<Float64Array>()
+                        .expect("float64")
+                        .clone()
+                })
+        };
+        let (gpu_util, gpu_mem) = (gpu("gpu_util_pct"), gpu("gpu_mem_mib"));
+        let at = |a: &Option<Float64Array>, i: usize| {
+            a.as_ref().and_then(|a| (!a.is_null(i)).then(|| a.value(i)))
+        };
         for i in 0..b.num_rows() {
             out.push(TimingRow {
                 step: step.value(i),
@@ -467,6 +495,8 @@ pub fn read_timings(run_dir: &Path) -> Result<Vec<TimingRow>, RecordError> {
                 rss_mib: rss.value(i),
                 msgs_in: msgs_in.value(i),
                 msgs_out: msgs_out.value(i),
+                gpu_util_pct: at(&gpu_util, i),
+                gpu_mem_mib: at(&gpu_mem, i),
             });
         }
     }

@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use crate::config::{ConfigError, LoadedConfig, TransportKind};
 use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec};
-use crate::module::Module;
+use crate::module::{Module, ResourceProbe};
 use crate::nats::{self, WorkerLauncher};
 use crate::recorder::Recorder;
 use crate::replay::{self, Replay};
@@ -23,6 +23,11 @@ pub trait PluginLoader {
 
     /// How to start a `caviar worker` process for the NATS transport, if this host can.
     fn worker_launcher(&self) -> Option<WorkerLauncher> {
+        None
+    }
+
+    /// GPU sampling for the modules of this process, where a GPU can be measured.
+    fn resource_probe(&self) -> Option<Box<dyn ResourceProbe>> {
         None
     }
 }
@@ -133,6 +138,9 @@ pub fn prepare(
     let mut engine = Engine::new(opts, specs, Some(recorder)).map_err(PrepareError::Io)?;
     if let Some(tap) = tap {
         engine.set_tap(tap);
+    }
+    if let Some(probe) = loader.resource_probe() {
+        engine.set_probe(probe);
     }
     write_status(cfg, &engine, "running", None).map_err(PrepareError::Io)?;
     Ok(engine)

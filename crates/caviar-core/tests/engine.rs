@@ -347,3 +347,77 @@ fn publishing_a_wildcard_or_reserved_topic_is_an_error_naming_it() {
     let err = e.run(|_, _| true).unwrap_err().to_string();
     assert!(err.contains("reserved"), "{err}");
 }
+
+/// A stand-in for the nvidia-ml-py probe (no NVIDIA GPU on the test machine): a GPU
+/// whose memory grows by 100 MiB at every sample.
+struct FakeGpu {
+    samples: u32,
+}
+
+impl caviar_core::ResourceProbe for FakeGpu {
+    fn sample(&mut self) -> Option<(f64, f64)> {
+        self.samples += 1;
+        Some((50.0, 100.0 * self.samples as f64))
+    }
+}
+
+#[test]
+fn gpu_use_is_sampled_after_each_stage_and_charged_to_its_modules() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut e, _) = build(
+        dir.path(),
+        Some(2),
+        vec![
+            spec("uav", "a", &["x"], &[]),
+            spec("radio", "b", &["y"], &["x"]),
+            spec("ai", "b", &[], &["y"]),
+        ],
+    );
+    e.set_probe(Box::new(FakeGpu { samples: 0 }));
+    e.run(|_, _| true).unwrap();
+    e.close().unwrap();
+    let t = read_timings(dir.path()).unwrap();
+    let mem = |m: &str| {
+        t.iter()
+            .filter(|r| r.module == m)
+            .map(|r| r.gpu_mem_mib)
+            .collect::<Vec<_>>()
+    };
+    // Two stages ran per step (c is empty): samples 1-2 in step 0, 3-4 in step 1.
+    assert_eq!(mem("uav"), [Some(100.0), Some(300.0)]);
+    assert_eq!(mem("radio"), [Some(200.0), Some(400.0)]);
+    assert_eq!(
+        mem("ai"),
+        mem("radio"),
+        "modules of one stage share the process's sample"
+    );
+    assert_eq!(mem(CORE), [None, None]);
+    assert!(t
+        .iter()
+        .filter(|r| r.module != CORE)
+        .all(|r| r.gpu_util_pct == Some(50.0)));
+    std::fs::write(dir.path().join("run.json"), r#"{"status": "completed"}"#).unwrap();
+    let text = caviar_core::cli::inspect(dir.path()).unwrap();
+    assert!(text.contains("mean GPU %  max GPU MiB"), "{text}");
+    assert!(
+        text.lines()
+            .any(|l| l.starts_with("radio") && l.trim_end().ends_with("50.0          400")),
+        "{text}"
+    );
+}
+
+#[test]
+fn without_a_gpu_the_gpu_columns_are_empty_and_inspect_leaves_them_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut e, _) = build(dir.path(), Some(2), vec![spec("uav", "a", &["x"], &[])]);
+    e.run(|_, _| true).unwrap();
+    e.close().unwrap();
+    let t = read_timings(dir.path()).unwrap();
+    assert!(t
+        .iter()
+        .all(|r| r.gpu_util_pct.is_none() && r.gpu_mem_mib.is_none()));
+    std::fs::write(dir.path().join("run.json"), r#"{"status": "completed"}"#).unwrap();
+    assert!(!caviar_core::cli::inspect(dir.path())
+        .unwrap()
+        .contains("GPU"));
+}

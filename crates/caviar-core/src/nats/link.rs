@@ -339,7 +339,10 @@ impl Link {
         loop {
             // Replies of a stage arrive together: most are in before we ask, and need no timer.
             if task.is_finished() {
-                return self.rt.block_on(task).map_err(|e| ModuleError::new(format!("{what}: {e}")));
+                return self
+                    .rt
+                    .block_on(task)
+                    .map_err(|e| ModuleError::new(format!("{what}: {e}")));
             }
             let done = self.rt.block_on(async {
                 tokio::select! {

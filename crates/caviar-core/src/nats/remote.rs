@@ -177,6 +177,8 @@ impl Module for RemoteModule {
             wall_s: 0.0,
             cpu_s: 0.0,
             rss_mib: f64::NAN,
+            gpu_util_pct: None,
+            gpu_mem_mib: None,
         };
         let pending = std::mem::take(&mut self.pending);
         for (shard, task) in pending.into_iter().enumerate() {
@@ -198,6 +200,9 @@ impl Module for RemoteModule {
             usage.wall_s = usage.wall_s.max(u.wall_s);
             usage.cpu_s += u.cpu_s;
             usage.rss_mib = usage.rss_mib.max(u.rss_mib);
+            let max = |a: Option<f64>, b: Option<f64>| a.into_iter().chain(b).reduce(f64::max);
+            usage.gpu_util_pct = max(usage.gpu_util_pct, u.gpu_util_pct);
+            usage.gpu_mem_mib = max(usage.gpu_mem_mib, u.gpu_mem_mib);
         }
         Ok(usage)
     }

@@ -63,6 +63,11 @@ pub struct StepReply {
     /// Resident memory of the worker process, MiB (absent when it cannot tell).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rss_mib: Option<f64>,
+    /// GPU utilisation (%) and the worker process's GPU memory (MiB), where it has a GPU.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gpu_util_pct: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gpu_mem_mib: Option<f64>,
     #[serde(default)]
     pub error: Option<WireError>,
 }
@@ -160,6 +165,8 @@ pub fn encode_reply(out: &[Outgoing], usage: Usage) -> Vec<u8> {
         wall_s: usage.wall_s,
         cpu_s: usage.cpu_s,
         rss_mib: usage.rss_mib.is_finite().then_some(usage.rss_mib),
+        gpu_util_pct: usage.gpu_util_pct,
+        gpu_mem_mib: usage.gpu_mem_mib,
         error: None,
     };
     frame(&header, &bodies)
@@ -230,6 +237,8 @@ pub fn decode_reply(buf: &[u8], out: &mut Vec<Outgoing>) -> Result<Usage, Module
         wall_s: reply.wall_s,
         cpu_s: reply.cpu_s,
         rss_mib: reply.rss_mib.unwrap_or(f64::NAN),
+        gpu_util_pct: reply.gpu_util_pct,
+        gpu_mem_mib: reply.gpu_mem_mib,
     };
     for (m, payload) in payloads(reply.messages, rest)
         .map_err(|e| ModuleError::new(format!("bad step reply: {e}")))?
@@ -312,6 +321,8 @@ mod tests {
             wall_s: 0.5,
             cpu_s: 0.25,
             rss_mib: 100.0,
+            gpu_util_pct: Some(40.0),
+            gpu_mem_mib: Some(1024.0),
         };
         let mut got = Vec::new();
         assert_eq!(
@@ -330,6 +341,8 @@ mod tests {
                 wall_s: 0.0,
                 cpu_s: 0.0,
                 rss_mib: 0.0,
+                gpu_util_pct: None,
+                gpu_mem_mib: None,
             },
         );
         let err = decode_reply(&buf[..buf.len() - 2], &mut Vec::new()).unwrap_err();

@@ -142,6 +142,8 @@ fn step_reply(module: &mut dyn Module, payload: &[u8]) -> Vec<u8> {
                 wall_s: t0.elapsed().as_secs_f64(),
                 cpu_s: thread_cpu_seconds() - c0,
                 rss_mib: resident_mib(),
+                gpu_util_pct: None,
+                gpu_mem_mib: None,
             };
             wire::encode_reply(&out, usage)
         }
