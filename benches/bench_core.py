@@ -61,11 +61,10 @@ def config(modules: int, plugin: str) -> str:
     return text
 
 
-def caviar_step_us(modules: int, plugin: str, steps: int, tmp: pathlib.Path) -> float:
-    path = tmp / f"{plugin}-{modules}.toml"
-    path.write_text(config(modules, plugin))
+def step_us(path: pathlib.Path, steps: int, tmp: pathlib.Path, warm_up: int = 20) -> float:
+    """Mean wall time of one engine step of the experiment at `path`, in µs."""
     sim = caviar.Simulation.from_toml(path, out=tempfile.mkdtemp(dir=tmp))
-    for _ in range(20):  # warm up
+    for _ in range(warm_up):
         sim.step()
     t0 = time.perf_counter()
     for _ in range(steps):
@@ -73,6 +72,12 @@ def caviar_step_us(modules: int, plugin: str, steps: int, tmp: pathlib.Path) -> 
     elapsed = time.perf_counter() - t0
     sim.close()
     return elapsed / steps * 1e6
+
+
+def caviar_step_us(modules: int, plugin: str, steps: int, tmp: pathlib.Path) -> float:
+    path = tmp / f"{plugin}-{modules}.toml"
+    path.write_text(config(modules, plugin))
+    return step_us(path, steps, tmp)
 
 
 def repeat(fn, n=5):

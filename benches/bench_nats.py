@@ -28,6 +28,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import caviar  # noqa: E402
+from bench_core import step_us  # noqa: E402
 
 SERVER = pathlib.Path(sys.executable).parent / "nats-server"
 
@@ -98,15 +99,7 @@ def barrier_us(url: str, modules: int, steps: int, tmp: pathlib.Path) -> float:
     path = tmp / f"nats-{modules}.toml"
     path.write_text(text)
     os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])
-    sim = caviar.Simulation.from_toml(path, out=tempfile.mkdtemp(dir=tmp))
-    for _ in range(50):
-        sim.step()
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        sim.step()
-    elapsed = time.perf_counter() - t0
-    sim.close()
-    return elapsed / steps * 1e6
+    return step_us(path, steps, tmp, warm_up=50)
 
 
 def main() -> None:

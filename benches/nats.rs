@@ -39,20 +39,11 @@ fn server(dir: &Path) -> SpawnedServer {
     SpawnedServer::start(&bin, "127.0.0.1", &dir.join("server.log")).expect("nats-server")
 }
 
-fn raw_round_trip(c: &mut Criterion, url: &str) {
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let (client, responder) = rt.block_on(async {
-        (
-            async_nats::connect(url).await.unwrap(),
-            async_nats::connect(url).await.unwrap(),
-        )
-    });
+/// A responder on a connection of its own that echoes every request on `subject`.
+fn spawn_echo(rt: &tokio::runtime::Runtime, url: &str, subject: String) {
+    let responder = rt.block_on(async_nats::connect(url)).unwrap();
     let mut sub = rt.block_on(async {
-        let s = responder.subscribe("bench.echo").await.unwrap();
+        let s = responder.subscribe(subject).await.unwrap();
         responder.flush().await.unwrap();
         s
     });
@@ -63,6 +54,16 @@ fn raw_round_trip(c: &mut Criterion, url: &str) {
             }
         }
     });
+}
+
+fn raw_round_trip(c: &mut Criterion, url: &str) {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let client = rt.block_on(async_nats::connect(url)).unwrap();
+    spawn_echo(&rt, url, "bench.echo".into());
     c.bench_function("nats/raw_request_reply", |b| {
         b.iter(|| {
             rt.block_on(client.request("bench.echo", "x".into()))
@@ -72,19 +73,7 @@ fn raw_round_trip(c: &mut Criterion, url: &str) {
     // The same pattern a 10-module barrier has on the wire: 10 requests out, 10 replies
     // back, from 10 responders on connections of their own. No barrier can beat it.
     for i in 0..10 {
-        let responder = rt.block_on(async_nats::connect(url)).unwrap();
-        let mut sub = rt.block_on(async {
-            let s = responder.subscribe(format!("bench.echo{i}")).await.unwrap();
-            responder.flush().await.unwrap();
-            s
-        });
-        rt.spawn(async move {
-            while let Some(m) = sub.next().await {
-                if let Some(r) = m.reply {
-                    let _ = responder.publish(r, m.payload).await;
-                }
-            }
-        });
+        spawn_echo(&rt, url, format!("bench.echo{i}"));
     }
     c.bench_function("nats/raw_request_reply_10_concurrent", |b| {
         b.iter(|| {

@@ -94,6 +94,15 @@ plugin = "sample_plugins:Counter"
 """
 
 
+def wait_for_steps(run: subprocess.Popen, run_dir: pathlib.Path, steps: int) -> None:
+    """Until the running `run` has recorded `steps` steps (one part file each)."""
+    parts = run_dir / "messages"
+    deadline = time.monotonic() + 60
+    while len(list(parts.glob("part-*.parquet")) if parts.exists() else []) < steps:
+        assert run.poll() is None and time.monotonic() < deadline, run.communicate()
+        time.sleep(0.05)
+
+
 def worker_pids(module: str) -> list[int]:
     out = subprocess.run(["ps", "-ww", "-eo", "pid,args"], capture_output=True, text=True).stdout
     return [int(line.split()[0]) for line in out.splitlines()
@@ -105,11 +114,7 @@ def test_a_killed_worker_ends_the_run_within_seconds_naming_module_and_step(tmp_
     run = subprocess.Popen([str(BIN / "caviar-core"), "run", str(cfg), "--out", "run", "-q"], cwd=tmp_path,
                            env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        parts = tmp_path / "run" / "messages"
-        deadline = time.monotonic() + 60
-        while len(list(parts.glob("part-*.parquet")) if parts.exists() else []) < 10:
-            assert run.poll() is None and time.monotonic() < deadline, run.communicate()
-            time.sleep(0.05)
+        wait_for_steps(run, tmp_path / "run", 10)
         (pid,) = worker_pids("slow")
         os.kill(pid, signal.SIGKILL)
         killed = time.monotonic()
@@ -137,11 +142,7 @@ def test_a_worker_that_stops_answering_is_found_by_its_heartbeat(tmp_path, nats_
     run = subprocess.Popen([str(BIN / "caviar-core"), "run", str(cfg), "--out", "run", "-q"], cwd=tmp_path,
                            env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        parts = tmp_path / "run" / "messages"
-        deadline = time.monotonic() + 60
-        while len(list(parts.glob("part-*.parquet")) if parts.exists() else []) < 5:
-            assert run.poll() is None and time.monotonic() < deadline, run.communicate()
-            time.sleep(0.05)
+        wait_for_steps(run, tmp_path / "run", 5)
         worker.send_signal(signal.SIGSTOP)  # alive as a process, silent on the network
         stopped = time.monotonic()
         _, err = run.communicate(timeout=30)

@@ -93,6 +93,11 @@ def resident_mib() -> float:
 
 
 class Worker:
+    """Plugin calls (load, setup, step, teardown) run on the event loop's thread: no
+    thread hop per step (the barrier's latency) and one thread for libraries with
+    per-thread state such as Dr.Jit. The heartbeat has a thread and a connection of
+    its own, so it keeps beating through long steps."""
+
     def __init__(self, args: argparse.Namespace):
         self.args = args
         self.run, self.module = args.run, args.module
@@ -163,12 +168,6 @@ class Worker:
                               f"(it does not declare shardable = True)", "shards")
         return hosted, subscribe
 
-    async def call(self, fn, *args):
-        """Plugin calls run right here, on the event loop's thread: no thread hop per
-        step (the barrier's latency), one thread for libraries with per-thread state
-        such as Dr.Jit. The heartbeat has a thread and a connection of its own."""
-        return fn(*args)
-
     async def serve(self) -> int:
         await self.connect()
         try:
@@ -181,7 +180,7 @@ class Worker:
             return 2
         loaded = f"{self.prefix}.loaded"
         try:
-            self.hosted, subscribe = await self.call(self._load)
+            self.hosted, subscribe = self._load()
         except Exception as e:  # the core reports it as a configuration error
             await self.nc.publish(loaded, json.dumps({"worker": self.id, **error_reply(e)}).encode())
             await self.nc.flush()
@@ -227,8 +226,8 @@ class Worker:
     async def on_setup(self, msg):
         s, c = self.spec, json.loads(msg.data)
         try:
-            await self.call(self.hosted.setup, c["seed"], c["ts"], c["steps"], c["every"], c["offset"],
-                            s["run_dir"], s["config_dir"], s.get("shards", 1))
+            self.hosted.setup(c["seed"], c["ts"], c["steps"], c["every"], c["offset"],
+                              s["run_dir"], s["config_dir"], s.get("shards", 1))
         except Exception as e:
             await msg.respond(json.dumps(error_reply(e)).encode())
             return
@@ -246,14 +245,14 @@ class Worker:
     async def on_step(self, msg):
         try:
             req, raw = decode_request(msg.data)
-            reply = await self.call(self._step, req, raw)
+            reply = self._step(req, raw)
         except Exception as e:
             reply = pack_frame(error_reply(e), [])
         await msg.respond(reply)
 
     async def on_teardown(self, msg):
         try:
-            await self.call(self.hosted.teardown)
+            self.hosted.teardown()
             reply = b'{"ok":true}'
         except Exception as e:
             reply = json.dumps(error_reply(e)).encode()

@@ -8,7 +8,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::config::{ConfigError, LoadedConfig, TransportKind};
+use crate::config::{ConfigError, LoadedConfig, ModuleConfig, TransportKind};
 use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec};
 use crate::module::{Module, ResourceProbe};
 use crate::nats::{self, WorkerLauncher};
@@ -62,18 +62,31 @@ pub fn load_modules(
     cfg: &LoadedConfig,
     loader: &dyn PluginLoader,
 ) -> Result<Vec<ModuleSpec>, ConfigError> {
-    let mut specs = Vec::new();
-    for (name, m) in &cfg.config.modules {
+    build_modules(cfg, |name, m| {
         if m.plugin == nats::BRIDGE_PLUGIN {
             // Needs a live NATS connection: built by `nats::prepare` (the config allows
             // it only with the NATS transport, so only `validate` gets here).
-            continue;
+            return Ok(None);
         }
-        let module: Box<dyn Module> = if m.plugin == replay::PLUGIN {
-            Box::new(Replay::from_config(cfg, name)?)
+        loader.load(cfg, name).map(Some)
+    })
+}
+
+/// The modules of the configuration in its order, with their stage, period and
+/// subscriptions: built-in replays here, every other module by `make` (`None`
+/// leaves it out).
+pub(crate) fn build_modules(
+    cfg: &LoadedConfig,
+    mut make: impl FnMut(&str, &ModuleConfig) -> Result<Option<Box<dyn Module>>, ConfigError>,
+) -> Result<Vec<ModuleSpec>, ConfigError> {
+    let mut specs = Vec::new();
+    for (name, m) in &cfg.config.modules {
+        let module: Option<Box<dyn Module>> = if m.plugin == replay::PLUGIN {
+            Some(Box::new(Replay::from_config(cfg, name)?))
         } else {
-            loader.load(cfg, name)?
+            make(name, m)?
         };
+        let Some(module) = module else { continue };
         specs.push(ModuleSpec {
             name: name.clone(),
             stage: m.stage.clone(),

@@ -22,12 +22,12 @@ use link::{connect_options, Link, ModuleOffer, Timeouts};
 use remote::RemoteModule;
 use server::{find_server, SpawnedServer};
 
-use crate::config::LoadedConfig;
+use crate::config::{LoadedConfig, ModuleConfig};
 use crate::engine::{ModuleSpec, Tap};
 use crate::message::{Payload, SharedMessage};
 use crate::module::Module;
-use crate::replay::{self, Replay};
-use crate::run::PrepareError;
+use crate::replay;
+use crate::run::{build_modules, PrepareError};
 use crate::topic::Pattern;
 
 /// Header naming the source module on mirrored messages (and marking them as ours).
@@ -57,8 +57,13 @@ fn run_id(cfg: &LoadedConfig, run_dir: &Path) -> String {
     })
 }
 
-fn is_builtin(plugin: &str) -> bool {
-    plugin == replay::PLUGIN || plugin == BRIDGE_PLUGIN
+/// The modules run by workers: all but the built-ins.
+fn remote_modules(cfg: &LoadedConfig) -> impl Iterator<Item = (&String, &ModuleConfig)> {
+    let builtin = |p: &str| p == replay::PLUGIN || p == BRIDGE_PLUGIN;
+    cfg.config
+        .modules
+        .iter()
+        .filter(move |(_, m)| !builtin(&m.plugin))
 }
 
 /// Arguments that give a worker the run's connection settings (secrets go by environment).
@@ -120,12 +125,7 @@ pub fn prepare(
         .expect("validated: url or spawn");
     let options = connect_options(n, &|p| cfg.resolve(p)).map_err(io)?;
     let mut offers = HashMap::new();
-    for (name, m) in cfg
-        .config
-        .modules
-        .iter()
-        .filter(|(_, m)| !is_builtin(&m.plugin))
-    {
+    for (name, m) in remote_modules(cfg) {
         offers.insert(
             name.clone(),
             ModuleOffer {
@@ -153,12 +153,7 @@ pub fn prepare(
     // Start the workers this run owns; tell the user about the ones it waits for.
     let (extra_args, envs) = connection_args(cfg);
     let logs = run_dir.join("workers");
-    for (name, m) in cfg
-        .config
-        .modules
-        .iter()
-        .filter(|(_, m)| !is_builtin(&m.plugin))
-    {
+    for (name, m) in remote_modules(cfg) {
         let count = m.workers.unwrap_or(m.shards);
         if count == 0 {
             eprintln!("caviar: waiting for module '{name}': start `caviar worker --nats {url} --run {id} --module {name}`");
@@ -192,34 +187,23 @@ pub fn prepare(
     }
     let ready = wait_for_workers(cfg, &link)?;
 
-    let mut specs = Vec::new();
-    for (name, m) in &cfg.config.modules {
-        let module: Box<dyn Module> = if m.plugin == replay::PLUGIN {
-            Box::new(Replay::from_config(cfg, name)?)
-        } else if m.plugin == BRIDGE_PLUGIN {
+    let specs = build_modules(cfg, |name, m| {
+        let module: Box<dyn Module> = if m.plugin == BRIDGE_PLUGIN {
             Box::new(bridge::Bridge::from_config(cfg, name, link.clone())?)
         } else {
             let (subs, ids) = ready[name].clone();
             Box::new(RemoteModule::new(link.clone(), name, subs, ids, m.shards))
         };
-        specs.push(ModuleSpec {
-            name: name.clone(),
-            stage: m.stage.clone(),
-            every: m.every,
-            offset: m.offset,
-            subscribe: m.subscribe.clone(),
-            params: cfg.params_json(name),
-            module,
-        });
-    }
+        Ok(Some(module))
+    })?;
     Ok((specs, mirror_tap(cfg, link)))
 }
 
-/// Waits until each remote module has its workers connected with the plugin loaded;
-/// returns each module's default subscriptions and worker ids.
 /// A module's default subscriptions and the ids of its workers, once they are ready.
 type Ready = HashMap<String, (Vec<String>, Vec<String>)>;
 
+/// Waits until each remote module has its workers connected with the plugin loaded;
+/// returns each module's default subscriptions and worker ids.
 fn wait_for_workers(cfg: &LoadedConfig, link: &Link) -> Result<Ready, PrepareError> {
     let timeout = link.timeouts.startup;
     let t0 = Instant::now();
@@ -227,12 +211,7 @@ fn wait_for_workers(cfg: &LoadedConfig, link: &Link) -> Result<Ready, PrepareErr
         link.check_processes().map_err(PrepareError::Io)?;
         let mut ready = HashMap::new();
         let mut missing = Vec::new();
-        for (name, m) in cfg
-            .config
-            .modules
-            .iter()
-            .filter(|(_, m)| !is_builtin(&m.plugin))
-        {
+        for (name, m) in remote_modules(cfg) {
             let workers = link.workers_of(name);
             for w in &workers {
                 if let Some(Err(e)) = &w.loaded {

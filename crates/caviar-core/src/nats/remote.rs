@@ -95,15 +95,7 @@ impl RemoteModule {
             let ack: Ack = serde_json::from_slice(&reply.payload)
                 .map_err(|e| ModuleError::new(format!("{what}: bad reply: {e}")))?;
             if !ack.ok {
-                let e = ack.error.unwrap_or(WireError {
-                    message: "failed without details".into(),
-                    trace: None,
-                    key: None,
-                });
-                return Err(ModuleError {
-                    message: e.message,
-                    trace: e.trace,
-                });
+                return Err(wire::failure(ack.error));
             }
         }
         Ok(())

@@ -218,20 +218,23 @@ fn payloads(
     Ok(out)
 }
 
+/// The module error of a failed reply (setup, step or teardown).
+pub fn failure(error: Option<WireError>) -> ModuleError {
+    match error {
+        Some(e) => ModuleError {
+            message: e.message,
+            trace: e.trace,
+        },
+        None => ModuleError::new("the worker reported a failure without details"),
+    }
+}
+
 /// Decodes a step reply into the module's outgoing messages and what the step cost.
 pub fn decode_reply(buf: &[u8], out: &mut Vec<Outgoing>) -> Result<Usage, ModuleError> {
     let (reply, rest): (StepReply, _) =
         split_frame(buf).map_err(|e| ModuleError::new(format!("bad step reply: {e}")))?;
     if !reply.ok {
-        let e = reply.error.unwrap_or(WireError {
-            message: "the worker reported a failure without details".into(),
-            trace: None,
-            key: None,
-        });
-        return Err(ModuleError {
-            message: e.message,
-            trace: e.trace,
-        });
+        return Err(failure(reply.error));
     }
     let usage = Usage {
         wall_s: reply.wall_s,
