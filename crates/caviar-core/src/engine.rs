@@ -142,13 +142,52 @@ pub struct Engine {
 }
 
 pub(crate) fn thread_cpu_seconds() -> f64 {
+    cpu_clock(libc::CLOCK_THREAD_CPUTIME_ID)
+}
+
+/// CPU time of all threads of this process, in seconds.
+pub(crate) fn process_cpu_seconds() -> f64 {
+    cpu_clock(libc::CLOCK_PROCESS_CPUTIME_ID)
+}
+
+fn cpu_clock(clock: libc::clockid_t) -> f64 {
     let mut ts = libc::timespec {
         tv_sec: 0,
         tv_nsec: 0,
     };
     // SAFETY: clock_gettime writes into the timespec we own.
-    unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    unsafe { libc::clock_gettime(clock, &mut ts) };
     ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
+}
+
+/// Work that a module hands to threads of its own (Dr.Jit's pool, a plugin's thread
+/// pool) does not show on the thread that ran its step. The process's CPU time over the
+/// stage beyond what the in-process modules' own threads used is therefore shared among
+/// them, in proportion to their own CPU time (their wall time where that is all zero):
+/// a module alone in its stage is charged the process's CPU time of its step. Remote
+/// modules report their own process's time and take no share.
+fn charge_helper_threads(ran: &mut [Ran], process_cpu_s: f64) {
+    let mut local: Vec<&mut Ran> = ran.iter_mut().filter(|r| r.reported.is_none()).collect();
+    let own: f64 = local.iter().map(|r| r.cpu_s).sum();
+    let extra = process_cpu_s - own;
+    if local.is_empty() || extra <= 0.0 {
+        return;
+    }
+    let by_cpu = own > 0.0;
+    let total = if by_cpu {
+        own
+    } else {
+        local.iter().map(|r| r.wall_s).sum()
+    };
+    let count = local.len() as f64;
+    for r in local.iter_mut() {
+        let weight = if by_cpu { r.cpu_s } else { r.wall_s };
+        r.cpu_s += if total > 0.0 {
+            extra * weight / total
+        } else {
+            extra / count
+        };
+    }
 }
 
 /// Resident set size of this process in MiB (Linux; NaN elsewhere).
@@ -408,9 +447,10 @@ impl Engine {
 
         for stage in 0..self.opts.stages.len() {
             let stage_start = published.len();
-            let t_stage = Instant::now();
+            let (t_stage, cpu_stage) = (Instant::now(), process_cpu_seconds());
             let mut ran = self.run_stage(stage, at);
             let stage_wall = t_stage.elapsed().as_secs_f64();
+            charge_helper_threads(&mut ran, process_cpu_seconds() - cpu_stage);
             // Modules of one process share its memory: the process's size after the stage
             // is what each module of the stage is charged with (NATS workers report their own).
             let sampled = self.recorder.is_some() && !ran.is_empty();

@@ -8,7 +8,7 @@ use futures_util::StreamExt;
 use serde_json::json;
 
 use super::wire::{self, PROTOCOL};
-use crate::engine::{resident_mib, thread_cpu_seconds};
+use crate::engine::{process_cpu_seconds, resident_mib};
 use crate::message::SharedMessage;
 use crate::module::{Module, SetupContext, StepInfo, Usage};
 
@@ -127,7 +127,7 @@ fn step_reply(module: &mut dyn Module, payload: &[u8]) -> Vec<u8> {
         Err(e) => return failed(e),
     };
     let inbox: Vec<SharedMessage> = inbox.into_iter().map(std::sync::Arc::new).collect();
-    let (t0, c0) = (Instant::now(), thread_cpu_seconds());
+    let (t0, c0) = (Instant::now(), process_cpu_seconds());
     let mut out = Vec::new();
     match module.step(
         StepInfo {
@@ -140,7 +140,7 @@ fn step_reply(module: &mut dyn Module, payload: &[u8]) -> Vec<u8> {
         Ok(()) => {
             let usage = Usage {
                 wall_s: t0.elapsed().as_secs_f64(),
-                cpu_s: thread_cpu_seconds() - c0,
+                cpu_s: process_cpu_seconds() - c0,
                 rss_mib: resident_mib(),
                 gpu_util_pct: None,
                 gpu_mem_mib: None,
