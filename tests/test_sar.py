@@ -244,3 +244,53 @@ def test_a_user_supplied_onnx_model_detects_like_the_original(tmp_path, trained,
     (tmp_path / "bad.onnx").write_bytes(b"not a model")
     with pytest.raises(ValueError, match="cannot load the ONNX model"):
         detector.PixelDetector.load(tmp_path / "bad.onnx")
+
+
+def test_detector_threads_find_the_same_people_as_one_thread(tmp_path, trained, visual):
+    """Three UAVs over three targets: the detector's images of a step are classified side
+    by side, and the recorded detections are those of one thread."""
+    _, model = trained
+    uavs = ""
+    for i, (tx, ty) in enumerate(visual.cfg.targets[:3]):
+        (tmp_path / f"route{i}.csv").write_text(f"X,Y,Z\n{tx - 2:.2f},{ty:.2f},9.0\n{tx + 2:.2f},{ty:.2f},9.0\n")
+        uavs += f"""
+[modules.uav{i}]
+stage = "mobility"
+plugin = "waypoint-flight"
+params = {{ waypoints = "route{i}.csv", frame = "scene", speed = 2.0, ue_id = "uav{i}" }}
+"""
+    cfg = write_config(tmp_path, f"""
+[episode]
+ts = 0.5
+steps = 4
+seed = 3
+stages = ["mobility", "camera", "communications", "link", "detection"]
+{uavs}
+[modules.camera]
+stage = "camera"
+plugin = "camera"
+
+[modules.comm]
+stage = "communications"
+plugin = "free-space-link"
+
+[modules.link]
+stage = "link"
+plugin = "image-link"
+
+[modules.detector]
+stage = "detection"
+plugin = "person-detector"
+params = {{ model = "{model.as_posix()}", workers = 3 }}
+""")
+    runs = {}
+    for workers in (1, 3):
+        sim = caviar.Simulation.from_toml(cfg, out=tmp_path / f"run-{workers}",
+                                          overrides={"modules.detector.params.workers": workers})
+        runs[workers] = sim.run().topic("ai.detections")
+    assert runs[1].height == 4 * 3
+    assert runs[1]["count"].sum() >= 6  # the people below are found (through packet loss)
+    assert runs[1].equals(runs[3])
+    bad = write_config(tmp_path, cfg.read_text().replace("workers = 3", "workers = -1"), "bad.toml")
+    with pytest.raises(Exception, match="workers"):
+        caviar.Simulation.from_toml(bad, out=tmp_path / "bad").run()

@@ -23,6 +23,7 @@ import math
 import os
 import pathlib
 import pickle
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -254,22 +255,39 @@ class PersonDetector(caviar.Plugin):
         model: str = "builtin"
         fov_deg: float = 70.0
         """Horizontal field of view of the camera (as in the camera module)."""
+        workers: int = 0
+        """Threads that detect in a step's images side by side; 0 = one per CPU core.
+        Each image is classified whole by one thread (the forest's tree walk and the
+        filters release the GIL), so the detections do not depend on this number."""
 
     def setup(self, ctx):
         self.ctx = ctx
         p = ctx.params
+        if p.workers < 0:
+            raise ValueError(f"params.workers = {p.workers}: expected 0 (one per CPU core) or more")
         self.detector = builtin_model() if p.model == "builtin" else PixelDetector.load(ctx.resolve(p.model))
         self.positions: dict[str, dict] = {}
+        workers = p.workers or os.cpu_count() or 1
+        self.pool = ThreadPoolExecutor(workers, thread_name_prefix="detector") if workers > 1 else None
+
+    def teardown(self):
+        if self.pool is not None:
+            self.pool.shutdown()
 
     def step(self, t, inbox):
         for m in inbox.on("3D.mobility.positions"):
             self.positions[m.data["UE_Id"]] = m.data["position"]
-        for m in inbox.on("ai.images.*"):
+        images = list(inbox.on("ai.images.*"))
+        if self.pool is not None and len(images) > 1:
+            results = list(self.pool.map(lambda m: self.detector.detect(m.data), images))
+        else:
+            results = [self.detector.detect(m.data) for m in images]
+        for m, detections in zip(images, results):
             ue = m.topic.rsplit(".", 1)[1]
             image = m.data
             pos = self.positions.get(ue)
             found = []
-            for d in self.detector.detect(image):
+            for d in detections:
                 item = {"row": d.row, "col": d.col, "pixels": d.pixels, "score": round(d.score, 4)}
                 if pos is not None:
                     item["ground"] = pixel_to_ground(d.row, d.col, image.shape, pos, self.ctx.params.fov_deg)
