@@ -4,8 +4,9 @@ stops; per-module wall, CPU and memory, and the total wall clock.
 
     .venv/bin/python benches/bench_scaling.py [--uavs 1 3 5 10] [--duration 60] [--samples 1000000]
 
-Writes bench-results/scaling/{report.json,modules.png,wall_clock.png} (via
-``caviar-core report``) and prints a table. The paper ran 60 s of virtual time at
+Writes bench-results/scaling/{sweep.json,modules.png,wall_clock.png} (the figures of
+``caviar-core report``) and prints a table. ``--from-runs`` only summarises and draws the
+``run-N`` folders already under ``--out`` (a sweep recorded on another machine, say). The paper ran 60 s of virtual time at
 Ts = 0.5 s with 1e6 samples per source on a GPU.
 """
 
@@ -66,23 +67,46 @@ plugin = "person-detector"
     return text
 
 
+def table(summaries: list[dict]) -> str:
+    """The README's Markdown table; GPU columns where the runs recorded them."""
+    gpu = summaries[0]["modules"]["comm"].get("max_gpu_mem_mib") is not None
+    head = ("| UAVs | wall clock (s) | × 1 UAV | ray tracing (ms/step) | camera (ms/step) | detector (ms/step) | "
+            "engine (ms/step) | engine share | max RSS (MiB) |")
+    if gpu:
+        head += " ray tracing GPU util (%) | GPU memory (MiB) |"
+    lines = [head, "|" + "---:|" * (head.count("|") - 1)]
+    base = summaries[0]
+    for s in summaries:
+        m = s["modules"]
+        line = (f"| {s['uavs']} | {s['wall_s']:.1f} | {s['wall_s'] / base['wall_s']:.2f} | "
+                f"{1e3 * m['comm']['wall_s_per_step']:.0f} | {1e3 * m['camera']['wall_s_per_step']:.0f} | "
+                f"{1e3 * m['detector']['wall_s_per_step']:.0f} | {1e3 * m['caviar.core']['wall_s_per_step']:.2f} | "
+                f"{100 * m['caviar.core']['share']:.3f} % | {max(v['max_rss_mib'] for v in m.values()):.0f} |")
+        if gpu:
+            line += f" {m['comm']['mean_gpu_util_pct']:.1f} | {max(v['max_gpu_mem_mib'] or 0 for v in m.values()):.0f} |"
+        lines.append(line)
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--uavs", nargs="+", type=int, default=[1, 3, 5, 10])
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--out", type=pathlib.Path, default=pathlib.Path("bench-results/scaling"))
+    ap.add_argument("--from-runs", action="store_true", help="summarise the run-N folders under --out, run nothing")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     summaries = []
     for n in args.uavs:
-        cfg = args.out / f"uavs-{n}.toml"
-        cfg.write_text(config(n, args.duration, args.samples))
         run = args.out / f"run-{n}"
-        if run.exists():
-            shutil.rmtree(run)
-        print(f"{n} UAVs ...", flush=True)
-        caviar.Simulation.from_toml(cfg, out=run).run()
+        if not args.from_runs:
+            cfg = args.out / f"uavs-{n}.toml"
+            cfg.write_text(config(n, args.duration, args.samples))
+            if run.exists():
+                shutil.rmtree(run)
+            print(f"{n} UAVs ...", flush=True)
+            caviar.Simulation.from_toml(cfg, out=run).run()
         s = summary(run)
         s["uavs"] = n
         summaries.append(s)
@@ -92,17 +116,8 @@ def main() -> None:
               f"detector {1e3 * m['detector']['wall_s_per_step']:.0f}, engine {1e3 * m['caviar.core']['wall_s_per_step']:.2f}; "
               f"RSS {max(v['max_rss_mib'] for v in m.values()):.0f} MiB", flush=True)
     draw(summaries, [str(n) for n in args.uavs], args.out, xlabel="UAVs")
-    base = summaries[0]
-    print("\n| UAVs | wall clock (s) | × 1 UAV | ray tracing (ms/step) | camera (ms/step) | detector (ms/step) | "
-          "engine (ms/step) | engine share | max RSS (MiB) |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for s in summaries:
-        m = s["modules"]
-        engine = m["caviar.core"]["wall_s_per_step"]
-        print(f"| {s['uavs']} | {s['wall_s']:.1f} | {s['wall_s'] / base['wall_s']:.2f} | "
-              f"{1e3 * m['comm']['wall_s_per_step']:.0f} | {1e3 * m['camera']['wall_s_per_step']:.0f} | "
-              f"{1e3 * m['detector']['wall_s_per_step']:.0f} | {1e3 * engine:.2f} | "
-              f"{100 * m['caviar.core']['share']:.3f} % | {max(v['max_rss_mib'] for v in m.values()):.0f} |")
+    print()
+    print(table(summaries))
     (args.out / "sweep.json").write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
                                                      "runs": summaries}, indent=2) + "\n")
 
