@@ -257,8 +257,9 @@ class PersonDetector(caviar.Plugin):
         """Horizontal field of view of the camera (as in the camera module)."""
         workers: int = 0
         """Threads that detect in a step's images side by side; 0 = one per CPU core.
-        Each image is classified whole by one thread (the forest's tree walk and the
-        filters release the GIL), so the detections do not depend on this number."""
+        Each image is classified whole by one thread, so the detections do not depend on
+        this number. Only parts of the work release the GIL (the forest's tree walk): 16
+        threads measured 1.4x one at 20 UAVs."""
 
     def setup(self, ctx):
         self.ctx = ctx
