@@ -29,15 +29,12 @@ import time
 
 import numpy as np
 
-from caviar_plugins.radio import RadioConfig, RadioScene, configure_drjit
+import caviar
+from caviar_plugins import DATA
+from caviar_plugins.mobility import Path, read_waypoints
+from caviar_plugins.radio import LinkBudget, RadioConfig, RadioScene, configure_drjit, scene_path
 
-configure_drjit()
-
-import caviar  # noqa: E402
-from caviar_plugins import DATA  # noqa: E402
-from caviar_plugins.frames import read_waypoints  # noqa: E402
-from caviar_plugins.linkbudget import LinkBudget  # noqa: E402
-from caviar_plugins.mobility import Path  # noqa: E402
+configure_drjit()  # before Sionna RT, Mitsuba or Dr.Jit are imported (none of the above imports them)
 
 OUT = pathlib.Path("bench-results")
 FLIGHT = DATA / "central_park_path0_scene.csv"
@@ -60,8 +57,6 @@ def flight_positions(n_rx: int, steps: int, ts: float = 0.5, speed: float = 5.0)
 def bare_solver(cfg: RadioConfig):
     """The bare Sionna RT calls, as a user would write them without caviar."""
     import sionna.rt as rt
-
-    from caviar_plugins.radio import scene_path
 
     scene = rt.load_scene(str(scene_path(cfg.scene)))
     scene.frequency = cfg.frequency_hz

@@ -20,8 +20,7 @@ import shutil
 import caviar
 from caviar.report import draw, summary
 from caviar_plugins import DATA
-from caviar_plugins.frames import read_waypoints
-from caviar_plugins.mobility import Path
+from caviar_plugins.mobility import Path, read_waypoints
 
 ROUTE = "central_park_path0_scene.csv"
 

@@ -9,11 +9,8 @@ import pytest
 import caviar
 from conftest import write_config
 from caviar_plugins import DATA
-from caviar_plugins.beams import dft_codebook, element_grid
-from caviar_plugins.frames import airsim_ned_to_scene, read_waypoints
-from caviar_plugins.linkbudget import LinkBudget
-from caviar_plugins.mobility import Path
-from caviar_plugins.radio import RadioConfig, RadioScene
+from caviar_plugins.mobility import Path, airsim_ned_to_scene, read_waypoints
+from caviar_plugins.radio import LinkBudget, RadioConfig, RadioScene, dft_codebook, element_grid
 
 LAMBDA = 299_792_458.0 / 40e9
 

@@ -7,10 +7,10 @@ import pytest
 
 import caviar
 from conftest import write_config
-from caviar_plugins import beam_selection, detector
-from caviar_plugins.camera import VisualConfig, VisualScene
-from caviar_plugins.degrade import loss_for_throughput, packet_loss, psnr
+from caviar_plugins import beam_selection
 from caviar_plugins.radio import RadioConfig, RadioScene
+from caviar_plugins.vision import VisualConfig, VisualScene, loss_for_throughput, packet_loss, psnr
+from caviar_plugins.vision import person_detector as detector
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +34,7 @@ def test_camera_sees_a_target_where_the_geometry_says(visual):
     rows, cols = np.nonzero(labels == 2)
     assert len(rows) > 50
     # The person's pixels map back to its ground position through the nadir camera model.
-    g = detector.pixel_to_ground(rows.mean(), cols.mean(), image.shape, {"x": tx + 2.0, "y": ty - 1.5, "z": 9.0}, 70.0)
+    g = detector.pixel_to_ground(rows.mean(), cols.mean(), image.shape, (tx + 2.0, ty - 1.5, 9.0), 70.0)
     assert math.dist((g["x"], g["y"]), (tx, ty)) < 0.4
     # Far from every target no person is in view.
     _, empty = visual.render_labelled([tx + 40.0, ty + 40.0, 9.0])
@@ -206,7 +206,7 @@ def test_beam_dataset_blueprint_and_tree_training(tmp_path, cli):
 
     from conftest import ROOT
 
-    from caviar_plugins.beam_dataset import load
+    from caviar_plugins.beam_selection import load
 
     bp = ROOT / "blueprints" / "beam-dataset"
     small = ["--set", "modules.comm.params.samples_per_src=10000", "-q"]
@@ -217,7 +217,7 @@ def test_beam_dataset_blueprint_and_tree_training(tmp_path, cli):
     assert np.array_equal(data["best_pair"], data["gains"].reshape(24, -1).argmax(axis=1))
     hops = np.linalg.norm(np.diff(data["position"], axis=0), axis=1)
     assert np.all(hops <= 2.5 + 1e-9)  # 5 m/s at Ts = 0.5 s, through random waypoints
-    p = subprocess.run([sys.executable, "-m", "caviar_plugins.beam_selection", "train", "--train", "train",
+    p = subprocess.run([sys.executable, "-m", "caviar_plugins.beam_selection.train_tree", "--train", "train",
                         "--test", "test", "--out", "tree.pkl", "--report-dir", "report"],
                        cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr

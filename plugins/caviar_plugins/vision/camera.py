@@ -20,10 +20,10 @@ import math
 import numpy as np
 
 import caviar
-from caviar_plugins import DATA
-from caviar_plugins.frames import read_waypoints
-from caviar_plugins.mobility import Path
-from caviar_plugins.radio import SCENES, configure_drjit
+from caviar_plugins.assets import DATA, SCENES
+from caviar_plugins.mobility.waypoints import Path, read_waypoints
+from caviar_plugins.radio.scene import configure_drjit
+from caviar_plugins.schema import CAMERA, POSITIONS, per_ue, read_position
 
 CLOTHES = [(0.95, 0.35, 0.05), (0.85, 0.08, 0.08), (0.95, 0.85, 0.1), (0.1, 0.25, 0.85), (0.55, 0.1, 0.6)]
 SKIN = (0.8, 0.6, 0.45)
@@ -149,14 +149,16 @@ class VisualScene:
         return (255 * np.clip(srgb, 0, 1) + 0.5).astype(np.uint8), labels
 
 
-CAMERA = "3D.camera"
+FILE = "file"
+"""Last token of the PNG artifact's topic, ``3D.camera.<UE_Id>.file``."""
 
 
 class Camera(caviar.Plugin):
     """Renders each UAV's nadir camera image and publishes it as a binary payload on
-    ``3D.camera.<UE_Id>`` (uint8, H × W × 3); with ``save`` also as PNG artifacts."""
+    ``3D.camera.<UE_Id>`` (uint8, H × W × 3); with ``save`` also as PNG artifacts on
+    ``3D.camera.<UE_Id>.file``."""
 
-    subscribe = ["3D.mobility.positions"]
+    subscribe = [POSITIONS]
 
     @dataclasses.dataclass
     class Params(VisualConfig):
@@ -170,15 +172,15 @@ class Camera(caviar.Plugin):
 
     def step(self, t, inbox):
         latest = {}
-        for m in inbox.on("3D.mobility.positions"):
-            latest[m.data["UE_Id"]] = m.data["position"]
+        for m in inbox.on(POSITIONS):
+            latest[m.data["UE_Id"]] = read_position(m.data)
         for ue, pos in latest.items():
-            image = self.visual.render([pos["x"], pos["y"], pos["z"]])
-            yield f"{CAMERA}.{ue}", image
+            image = self.visual.render(pos)
+            yield per_ue(CAMERA, ue), image
             if self.ctx.params.save:
                 path = self.ctx.artifact_dir / f"{ue}-{self.ctx.step:06d}.png"
                 write_png(path, image)
-                yield f"{CAMERA}.{ue}.file", caviar.Artifact(path)
+                yield f"{per_ue(CAMERA, ue)}.{FILE}", caviar.Artifact(path)
 
 
 def write_png(path, image: np.ndarray) -> None:

@@ -13,14 +13,11 @@ import dataclasses
 import math
 
 import caviar
-
-HOVER = "mission.hover"
-RESCUE = "mission.rescue"
-RESULT = "mission.result"
+from caviar_plugins.schema import DETECTIONS, HOVER, RESCUE, RESULT, THROUGHPUT
 
 
 class Mission(caviar.Plugin):
-    subscribe = ["ai.detections", "communications.throughput", caviar.END_TOPIC]
+    subscribe = [DETECTIONS, THROUGHPUT, caviar.END_TOPIC]
 
     @dataclasses.dataclass
     class Params:
@@ -39,9 +36,9 @@ class Mission(caviar.Plugin):
     def step(self, t, inbox):
         p = self.ctx.params
         for m in inbox:
-            if m.topic == "communications.throughput":
+            if m.topic == THROUGHPUT:
                 self.throughput[m.data["UE_Id"]] = float(m.data["throughput"])
-        for m in inbox.on("ai.detections"):
+        for m in inbox.on(DETECTIONS):
             ue = m.data["UE_Id"]
             for d in m.data["detections"]:
                 g = d.get("ground")

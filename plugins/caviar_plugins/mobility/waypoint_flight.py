@@ -4,35 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
-
 import caviar
-from caviar_plugins import DATA
-from caviar_plugins.frames import airsim_ned_to_scene, read_waypoints
-
-POSITIONS = "3D.mobility.positions"
-HOVER = "mission.hover"
-
-
-class Path:
-    """A polyline walked at constant speed, parametrised by arc length."""
-
-    def __init__(self, points: np.ndarray):
-        self.points = np.asarray(points, dtype=float)
-        seg = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
-        self.cum = np.concatenate([[0.0], np.cumsum(seg)])
-
-    @property
-    def length(self) -> float:
-        return float(self.cum[-1])
-
-    def at(self, s: float) -> np.ndarray:
-        s = min(max(s, 0.0), self.length)
-        i = int(np.searchsorted(self.cum, s, side="right") - 1)
-        i = min(i, len(self.points) - 2)
-        seg = self.cum[i + 1] - self.cum[i]
-        f = 0.0 if seg == 0 else (s - self.cum[i]) / seg
-        return self.points[i] + f * (self.points[i + 1] - self.points[i])
+from caviar_plugins.assets import DATA
+from caviar_plugins.mobility.frames import airsim_ned_to_scene
+from caviar_plugins.mobility.waypoints import Path, read_waypoints
+from caviar_plugins.schema import HOVER, POSITIONS, position_payload
 
 
 class WaypointFlight(caviar.Plugin):
@@ -81,9 +57,7 @@ class WaypointFlight(caviar.Plugin):
         for m in inbox.on(HOVER):
             if m.data.get("UE_Id") == self.p.ue_id:
                 self.hover_until = max(self.hover_until, t + float(m.data["seconds"]))
-        pos = self.path.at(self.s)
-        yield POSITIONS, {"UE_type": "UAV", "UE_Id": self.p.ue_id,
-                          "position": {"x": float(pos[0]), "y": float(pos[1]), "z": float(pos[2])}}
+        yield POSITIONS, position_payload(self.p.ue_id, self.path.at(self.s))
         if self.s >= self.path.length and self.p.end_at_last:
             yield caviar.END_TOPIC, {"reason": f"{self.p.ue_id} reached its last waypoint"}
         if t + 1e-9 >= self.hover_until:

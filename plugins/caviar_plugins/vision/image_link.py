@@ -13,6 +13,7 @@ import dataclasses
 import numpy as np
 
 import caviar
+from caviar_plugins.schema import CAMERA, IMAGE_QUALITY, IMAGES, THROUGHPUT, every_ue, per_ue, ue_of
 
 # (throughput above which, loss rate), checked in order; the paper's table.
 PAPER_LOSS = ((60.0, 0.01), (30.0, 0.25), (-np.inf, 0.50))
@@ -44,7 +45,7 @@ class ImageLink(caviar.Plugin):
     latest throughput, publishes the received image on ``ai.images.<UE_Id>`` and the
     PSNR on ``ai.image_quality``."""
 
-    subscribe = ["3D.camera.*", "communications.throughput"]
+    subscribe = [every_ue(CAMERA), THROUGHPUT]
 
     @dataclasses.dataclass
     class Params:
@@ -56,13 +57,13 @@ class ImageLink(caviar.Plugin):
 
     def step(self, t, inbox):
         for m in inbox:
-            if m.topic == "communications.throughput":
+            if m.topic == THROUGHPUT:
                 self.throughput[m.data["UE_Id"]] = float(m.data["throughput"])
-        for m in inbox.on("3D.camera.*"):
-            ue = m.topic.rsplit(".", 1)[1]
+        for m in inbox.on(every_ue(CAMERA)):
+            ue = ue_of(m.topic)
             mbps = self.throughput.get(ue, 0.0)
             rate = loss_for_throughput(mbps)
             received = packet_loss(m.data, rate, self.ctx.rng, self.ctx.params.packet_bytes)
-            yield f"ai.images.{ue}", received
-            yield "ai.image_quality", {"UE_Id": ue, "throughput": mbps, "loss_rate": rate,
+            yield per_ue(IMAGES, ue), received
+            yield IMAGE_QUALITY, {"UE_Id": ue, "throughput": mbps, "loss_rate": rate,
                                         "psnr_db": min(psnr(m.data, received), 99.0), "step": m.step}

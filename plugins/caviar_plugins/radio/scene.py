@@ -17,10 +17,10 @@ import pathlib
 
 import numpy as np
 
-from caviar_plugins.beams import beam_gains, dft_codebook
-from caviar_plugins.linkbudget import SPEED_OF_LIGHT
+from caviar_plugins.assets import SCENES
+from caviar_plugins.radio.beams import beam_gains, dft_codebook
+from caviar_plugins.radio.link_budget import SPEED_OF_LIGHT
 
-SCENES = pathlib.Path(__file__).parent / "scenes"
 UAV_BODY = SCENES / "central_park" / "meshes" / "Cube.ply"  # a 2 m cube
 
 

@@ -2,7 +2,7 @@
 writes the paper's mission table (mission time, rescued targets) with plots and the
 exact configurations that produced it.
 
-    python -m caviar_plugins.sar_results --tree models/beam-tree.pkl [--out docs/results]
+    python -m caviar_plugins.sar.results --tree models/beam-tree.pkl [--out docs/results]
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import shutil
 import numpy as np
 
 import caviar
+from caviar_plugins.schema import IMAGE_QUALITY, POSITIONS, RESCUE, RESULT, THROUGHPUT
 
 PAPER = {"random": (424.94, 3), "tree": (98.50, 5), "oracle": (75.53, 5)}
 LABEL = {"random": "Random", "tree": "Decision tree", "oracle": "Oracle"}
@@ -41,9 +42,9 @@ def run_all(config: pathlib.Path, tree: pathlib.Path, runs: pathlib.Path, method
 def summarise(logs: dict) -> list[dict]:
     rows = []
     for method, log in logs.items():
-        result = log.topic("mission.result").row(0, named=True)
-        thr = log.topic("communications.throughput")["throughput"].to_numpy()
-        q = log.topic("ai.image_quality")
+        result = log.topic(RESULT).row(0, named=True)
+        thr = log.topic(THROUGHPUT)["throughput"].to_numpy()
+        q = log.topic(IMAGE_QUALITY)
         psnr = np.minimum(q["psnr_db"].to_numpy(), 99.0)
         rows.append({"method": method, "mission_time_s": result["mission_time_s"], "rescued": result["rescued"],
                      "throughput_mbps_mean": float(thr.mean()), "throughput_mbps_median": float(np.median(thr)),
@@ -79,12 +80,12 @@ def write(rows: list[dict], logs: dict, out: pathlib.Path) -> None:
 
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4))
     for method, log in logs.items():
-        thr = log.topic("communications.throughput")
+        thr = log.topic(THROUGHPUT)
         a1.plot(thr["time"], thr["throughput"], label=LABEL[method], lw=1)
-        pos = log.topic("3D.mobility.positions")
+        pos = log.topic(POSITIONS)
         a2.plot(pos["time"], np.cumsum(np.r_[0, np.linalg.norm(np.diff(
             np.array([[p["x"], p["y"]] for p in pos["position"].to_list()]), axis=0), axis=1)]), label=LABEL[method])
-        for r in log.topic("mission.rescue").iter_rows(named=True):
+        for r in log.topic(RESCUE).iter_rows(named=True):
             a2.axvline(r["time"], color="gray", lw=0.5)
     a1.set(xlabel="virtual time (s)", ylabel="throughput (Mbit/s)", title="Throughput of the selected beam pair")
     a2.set(xlabel="virtual time (s)", ylabel="distance flown (m)", title="Progress (grey: rescues)")
@@ -96,7 +97,7 @@ def write(rows: list[dict], logs: dict, out: pathlib.Path) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.sar.results", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", type=pathlib.Path, default=pathlib.Path("blueprints/sar/config.toml"))
     ap.add_argument("--tree", type=pathlib.Path, default=pathlib.Path("models/beam-tree.pkl"))
     ap.add_argument("--runs", type=pathlib.Path, default=pathlib.Path("runs"))

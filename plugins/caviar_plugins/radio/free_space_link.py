@@ -12,11 +12,8 @@ import dataclasses
 import numpy as np
 
 import caviar
-from caviar_plugins.linkbudget import LinkBudget, friis_path_gain
-
-POSITIONS = "3D.mobility.positions"
-THROUGHPUT = "communications.throughput"
-STATE = "communications.state"
+from caviar_plugins.radio.link_budget import LinkBudget, friis_path_gain
+from caviar_plugins.schema import POSITIONS, STATE, THROUGHPUT, read_position, throughput_payload
 
 
 class FreeSpaceLink(caviar.Plugin):
@@ -47,11 +44,10 @@ class FreeSpaceLink(caviar.Plugin):
     def step(self, t, inbox):
         latest = {}
         for m in inbox.on(POSITIONS):
-            latest[(m.data["UE_type"], m.data["UE_Id"])] = m.data["position"]
+            latest[(m.data["UE_type"], m.data["UE_Id"])] = read_position(m.data)
         for (ue_type, ue_id), pos in latest.items():
-            d = float(np.linalg.norm(np.array([pos["x"], pos["y"], pos["z"]]) - self.tx))
+            d = float(np.linalg.norm(pos - self.tx))
             gain = friis_path_gain(d, self.p.frequency_hz) * self.array_gain
-            yield THROUGHPUT, {"UE_type": ue_type, "UE_Id": ue_id,
-                               "throughput": float(self.budget.throughput_mbps(gain))}
+            yield THROUGHPUT, throughput_payload(ue_type, ue_id, self.budget.throughput_mbps(gain))
         if latest:
             yield STATE, "Ready"

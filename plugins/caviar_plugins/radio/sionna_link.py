@@ -20,14 +20,10 @@ import dataclasses
 import numpy as np
 
 import caviar
-from caviar_plugins.linkbudget import LinkBudget
-from caviar_plugins.radio import RadioConfig, RadioScene
-
-POSITIONS = "3D.mobility.positions"
-SELECTION = "ai.beam.selection"
-THROUGHPUT = "communications.throughput"
-LINK = "communications.link"
-STATE = "communications.state"
+from caviar_plugins.radio.link_budget import LinkBudget
+from caviar_plugins.radio.scene import RadioConfig, RadioScene
+from caviar_plugins.schema import (BEAM_GAINS, BEAM_SELECTION, CHANNEL, LINK, POSITIONS, STATE, THROUGHPUT,
+                                   per_ue, read_position, throughput_payload)
 
 
 @dataclasses.dataclass
@@ -44,7 +40,7 @@ class SionnaLinkParams(RadioConfig):
 
 
 class SionnaLink(caviar.Plugin):
-    subscribe = [POSITIONS, SELECTION]
+    subscribe = [POSITIONS, BEAM_SELECTION]
     Params = SionnaLinkParams
 
     def setup(self, ctx):
@@ -60,11 +56,9 @@ class SionnaLink(caviar.Plugin):
     def step(self, t, inbox):
         for m in inbox:
             if m.topic == POSITIONS:
-                d = m.data
-                self.ue_type[d["UE_Id"]] = d["UE_type"]
-                pos = d["position"]
-                self.positions[d["UE_Id"]] = np.array([pos["x"], pos["y"], pos["z"]], dtype=float)
-            elif m.topic == SELECTION:
+                self.ue_type[m.data["UE_Id"]] = m.data["UE_type"]
+                self.positions[m.data["UE_Id"]] = read_position(m.data)
+            elif m.topic == BEAM_SELECTION:
                 self.selected[m.data["UE_Id"]] = int(m.data["beam_pair"])
         if not self.positions:
             return
@@ -77,7 +71,7 @@ class SionnaLink(caviar.Plugin):
                 raise ValueError(f"beam pair {pair} for {ue} is outside 0..{n_pairs - 1}")
             gain = float(link.gains.flat[pair])
             ue_type = self.ue_type[ue]
-            yield THROUGHPUT, {"UE_type": ue_type, "UE_Id": ue, "throughput": float(self.budget.throughput_mbps(gain))}
+            yield THROUGHPUT, throughput_payload(ue_type, ue, self.budget.throughput_mbps(gain))
             yield LINK, {
                 "UE_type": ue_type, "UE_Id": ue, "los": link.los, "n_paths": link.n_paths,
                 "best_pair": link.best_pair, "pair": pair, "selected": ue in self.selected,
@@ -85,8 +79,8 @@ class SionnaLink(caviar.Plugin):
                 "best_throughput": float(self.budget.throughput_mbps(link.gains.max())),
             }
             if self.p.publish_channels:
-                yield f"communications.channel.{ue}", link.h.astype(np.complex64)
-                yield f"communications.beam_gains.{ue}", link.gains.astype(np.float32)
+                yield per_ue(CHANNEL, ue), link.h.astype(np.complex64)
+                yield per_ue(BEAM_GAINS, ue), link.gains.astype(np.float32)
         yield STATE, "Ready"
 
 

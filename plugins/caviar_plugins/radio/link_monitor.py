@@ -7,10 +7,9 @@ import csv
 import dataclasses
 
 import caviar
+from caviar_plugins.schema import LINK_REPORT, POSITIONS, THROUGHPUT, read_position
 
-THROUGHPUT = "communications.throughput"
-POSITIONS = "3D.mobility.positions"
-REPORT = "ai.link.report"
+NO_POSITION = (None, None, None)
 
 
 class LinkMonitor(caviar.Plugin):
@@ -28,15 +27,15 @@ class LinkMonitor(caviar.Plugin):
     def step(self, t, inbox):
         for m in inbox:
             if m.topic == POSITIONS:
-                self.pos[m.data["UE_Id"]] = m.data["position"]
+                self.pos[m.data["UE_Id"]] = tuple(read_position(m.data).tolist())
             elif m.topic == THROUGHPUT:
-                p = self.pos.get(m.data["UE_Id"], {"x": None, "y": None, "z": None})
-                self.rows.append((m.time, m.data["UE_Id"], m.data["throughput"], p["x"], p["y"], p["z"]))
+                x, y, z = self.pos.get(m.data["UE_Id"], NO_POSITION)
+                self.rows.append((m.time, m.data["UE_Id"], m.data["throughput"], x, y, z))
         last = self.ctx.steps is not None and self.ctx.step + 1 >= self.ctx.steps
         if inbox.latest(caviar.END_TOPIC) or last:
-            yield REPORT, caviar.Artifact(self.write_report())
+            yield LINK_REPORT, caviar.Artifact(self.write_report())
             if self.ctx.params.plot:
-                yield REPORT, caviar.Artifact(self.write_plot())
+                yield LINK_REPORT, caviar.Artifact(self.write_plot())
 
     def write_report(self):
         path = self.ctx.artifact_dir / "throughput.csv"

@@ -7,7 +7,7 @@ connected regions of person pixels of plausible size are the detections. Trainin
 includes packet-loss-degraded frames, so the detector meets the images it gets in
 the loop.
 
-    python -m caviar_plugins.detector train      # trains, evaluates on held-out frames
+    python -m caviar_plugins.vision.train_detector      # trains, evaluates on held-out frames
 
 The ``builtin`` model is trained on first use (about half a minute) and cached under
 ``$CAVIAR_CACHE`` (default ``~/.cache/caviar``); ``model = "PATH.pkl"`` loads another,
@@ -16,9 +16,7 @@ The ``builtin`` model is trained on first use (about half a minute) and cached u
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import math
 import os
 import pathlib
@@ -28,7 +26,11 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 import caviar
-from caviar_plugins.degrade import packet_loss
+from caviar_plugins.assets import DATA
+from caviar_plugins.mobility.waypoints import Path, read_waypoints
+from caviar_plugins.schema import DETECTIONS, IMAGES, POSITIONS, every_ue, read_position, ue_of
+from caviar_plugins.vision.camera import VisualConfig, VisualScene
+from caviar_plugins.vision.image_link import packet_loss
 
 TRAINING_SEED = 1234
 MODEL_VERSION = 2
@@ -109,8 +111,9 @@ class OnnxPixelModel:
     """A user-supplied ONNX pixel classifier: input (N, 10) float32 features as
     :func:`features` computes them, output per-pixel person probabilities, either
     (N, 2) class probabilities or (N,) / (N, 1) person probabilities. Runs with
-    onnxruntime (``pip install caviar-plugins[onnx]``); ``python -m caviar_plugins.detector
-    export-onnx`` writes the project's detector in this form."""
+    onnxruntime (``pip install caviar-plugins[onnx]``); ``python -m
+    caviar_plugins.vision.train_detector --export-onnx PATH`` writes the project's detector
+    in this form."""
 
     def __init__(self, path):
         try:
@@ -151,11 +154,6 @@ def export_onnx(detector: PixelDetector, path: pathlib.Path) -> None:
 def frames(count: int, seed: int, loss_rates=(0.0, 0.0, 0.01, 0.25, 0.5)):
     """Rendered frames with labels: half over a target (at random offsets and
     altitudes), half anywhere along the route; each with a random packet loss."""
-    from caviar_plugins.camera import VisualConfig, VisualScene
-    from caviar_plugins.frames import read_waypoints
-    from caviar_plugins.mobility import Path
-    from caviar_plugins import DATA
-
     rng = np.random.default_rng(seed)
     visual = VisualScene(VisualConfig(), seed=seed)
     path = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
@@ -228,11 +226,16 @@ def cache_dir() -> pathlib.Path:
     return pathlib.Path(os.environ.get("CAVIAR_CACHE", pathlib.Path.home() / ".cache" / "caviar"))
 
 
-def builtin_model() -> PixelDetector:
-    """The project's detector, trained on first use and cached."""
+def builtin_model_path() -> pathlib.Path:
+    """Where the builtin model is cached (per model version and scikit-learn version)."""
     import sklearn
 
-    path = cache_dir() / f"person-detector-v{MODEL_VERSION}-sklearn{sklearn.__version__}.pkl"
+    return cache_dir() / f"person-detector-v{MODEL_VERSION}-sklearn{sklearn.__version__}.pkl"
+
+
+def builtin_model() -> PixelDetector:
+    """The project's detector, trained on first use and cached."""
+    path = builtin_model_path()
     if path.exists():
         try:
             return PixelDetector.load(path)
@@ -248,7 +251,7 @@ class PersonDetector(caviar.Plugin):
     directly) and publishes ``ai.detections`` with each detection's estimated
     ground position, from the UAV's position and the nadir camera's geometry."""
 
-    subscribe = ["ai.images.*", "3D.mobility.positions"]
+    subscribe = [every_ue(IMAGES), POSITIONS]
 
     @dataclasses.dataclass
     class Params:
@@ -267,7 +270,7 @@ class PersonDetector(caviar.Plugin):
         if p.workers < 0:
             raise ValueError(f"params.workers = {p.workers}: expected 0 (one per CPU core) or more")
         self.detector = builtin_model() if p.model == "builtin" else PixelDetector.load(ctx.resolve(p.model))
-        self.positions: dict[str, dict] = {}
+        self.positions: dict[str, np.ndarray] = {}
         workers = p.workers or os.cpu_count() or 1
         self.pool = ThreadPoolExecutor(workers, thread_name_prefix="detector") if workers > 1 else None
 
@@ -276,15 +279,15 @@ class PersonDetector(caviar.Plugin):
             self.pool.shutdown()
 
     def step(self, t, inbox):
-        for m in inbox.on("3D.mobility.positions"):
-            self.positions[m.data["UE_Id"]] = m.data["position"]
-        images = list(inbox.on("ai.images.*"))
+        for m in inbox.on(POSITIONS):
+            self.positions[m.data["UE_Id"]] = read_position(m.data)
+        images = list(inbox.on(every_ue(IMAGES)))
         if self.pool is not None and len(images) > 1:
             results = list(self.pool.map(lambda m: self.detector.detect(m.data), images))
         else:
             results = [self.detector.detect(m.data) for m in images]
         for m, detections in zip(images, results):
-            ue = m.topic.rsplit(".", 1)[1]
+            ue = ue_of(m.topic)
             image = m.data
             pos = self.positions.get(ue)
             found = []
@@ -293,50 +296,22 @@ class PersonDetector(caviar.Plugin):
                 if pos is not None:
                     item["ground"] = pixel_to_ground(d.row, d.col, image.shape, pos, self.ctx.params.fov_deg)
                 found.append(item)
-            yield "ai.detections", {"UE_Id": ue, "image_step": m.step, "count": len(found), "detections": found}
+            yield DETECTIONS, {"UE_Id": ue, "image_step": m.step, "count": len(found), "detections": found}
 
 
-def pixel_to_ground(row: float, col: float, shape, position: dict, fov_deg: float) -> dict:
-    """Ground point (z = 0) seen at a pixel of a nadir camera with image-up = +y."""
+def pixel_to_ground(row: float, col: float, shape, position, fov_deg: float) -> dict:
+    """Ground point (z = 0) seen at a pixel of a nadir camera at ``position`` (x, y, z)
+    with image-up = +y."""
     h, w = shape[:2]
-    half = position["z"] * math.tan(math.radians(fov_deg) / 2)  # half the footprint width
+    x, y, z = (float(v) for v in position)
+    half = z * math.tan(math.radians(fov_deg) / 2)  # half the footprint width
     metres_per_px = 2 * half / w
     dx = (col + 0.5 - w / 2) * metres_per_px
     dy = (h / 2 - row - 0.5) * metres_per_px
-    return {"x": position["x"] + X_SIGN * dx, "y": position["y"] + dy}
+    return {"x": x + X_SIGN * dx, "y": y + dy}
 
 
 # Whether image columns grow with +x or -x (Mitsuba's look_at with up = +y looking
 # down); checked by tests/test_sar.py against a rendered target.
 X_SIGN = 1.0
 
-
-def main() -> None:
-    ap = argparse.ArgumentParser(description="Train and evaluate the person detector.")
-    ap.add_argument("command", choices=["train", "export-onnx"])
-    ap.add_argument("--frames", type=int, default=240)
-    ap.add_argument("--eval-frames", type=int, default=120)
-    ap.add_argument("--out", type=pathlib.Path, default=None, help="model file (default: the builtin cache)")
-    ap.add_argument("--report", type=pathlib.Path, default=pathlib.Path("docs/results/detector.json"))
-    args = ap.parse_args()
-    import sklearn
-
-    if args.command == "export-onnx":
-        out = args.out or pathlib.Path("person-detector.onnx")
-        export_onnx(builtin_model(), out)
-        print(f"model: {out}")
-        return
-    detector = train(args.frames)
-    out = args.out or cache_dir() / f"person-detector-v{MODEL_VERSION}-sklearn{sklearn.__version__}.pkl"
-    detector.save(out)
-    report = {"training_frames": args.frames, "eval_frames": args.eval_frames, "by_loss_rate": evaluate(detector, args.eval_frames)}
-    args.report.parent.mkdir(parents=True, exist_ok=True)
-    args.report.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"model: {out}")
-    print("| packet loss | frames | precision | recall |\n|---:|---:|---:|---:|")
-    for rate, s in report["by_loss_rate"].items():
-        print(f"| {float(rate):.0%} | {s['frames']} | {s['precision']:.3f} | {s['recall']:.3f} |")
-
-
-if __name__ == "__main__":
-    main()

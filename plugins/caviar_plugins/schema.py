@@ -1,0 +1,97 @@
+"""The topics the plugins exchange and the payloads they share: the paper's schema in
+one place.
+
+Topic names are the paper's where it has them (``3D.mobility.positions``,
+``communications.throughput``, ``communications.state``). A per-UE topic is a prefix
+followed by the UE's id (``3D.camera.uav1``): :func:`per_ue` builds it, :func:`every_ue`
+is the pattern that matches it for every UE and :func:`ue_of` reads the id back.
+
+A position payload (paper schema)::
+
+    {"UE_type": "UAV", "UE_Id": "uav1", "position": {"x": 1.0, "y": 2.0, "z": 3.0}}
+
+in metres, in the scene frame (x east, y north, z up); :func:`position_payload` builds
+one and :func:`read_position` reads its coordinates.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+# Mobility and the 3D scene
+POSITIONS = "3D.mobility.positions"
+"""Where a UE is: a position payload (see :func:`position_payload`)."""
+CAMERA = "3D.camera"
+"""Prefix: ``3D.camera.<UE_Id>`` a nadir camera image (uint8, H × W × 3, binary);
+``3D.camera.<UE_Id>.file`` the same image as a PNG artifact."""
+
+# Communications
+THROUGHPUT = "communications.throughput"
+"""``{"UE_type", "UE_Id", "throughput"}``, Mbit/s (see :func:`throughput_payload`)."""
+STATE = "communications.state"
+"""``"Ready"`` once a step's communications results are out."""
+LINK = "communications.link"
+"""Ray-traced link details per UE: LOS flag, best and used beam pair, path gain, SNR."""
+CHANNEL = "communications.channel"
+"""Prefix: ``communications.channel.<UE_Id>`` the MIMO channel H (complex64, binary)."""
+BEAM_GAINS = "communications.beam_gains"
+"""Prefix: ``communications.beam_gains.<UE_Id>`` gains of all beam pairs (float32, binary)."""
+
+# AI
+BEAM_SELECTION = "ai.beam.selection"
+"""``{"UE_Id", "beam_pair"}``: the pair the communications module should use."""
+IMAGES = "ai.images"
+"""Prefix: ``ai.images.<UE_Id>`` a camera image as received over the UE's link."""
+IMAGE_QUALITY = "ai.image_quality"
+"""``{"UE_Id", "throughput", "loss_rate", "psnr_db", "step"}`` per image sent."""
+DETECTIONS = "ai.detections"
+"""``{"UE_Id", "image_step", "count", "detections"}``; a detection may carry ``ground``
+``{"x", "y"}``, its estimated position on the ground."""
+LINK_REPORT = "ai.link.report"
+"""The link monitor's throughput CSV and plot (artifacts)."""
+
+# The search-and-rescue mission
+HOVER = "mission.hover"
+"""``{"UE_Id", "seconds"}``: the UAV stops for this long."""
+RESCUE = "mission.rescue"
+"""One rescued target: ``{"UE_Id", "x", "y", "time", "throughput", "hover_s"}``."""
+RESULT = "mission.result"
+"""At the end: ``{"mission_time_s", "rescued", "rescues"}``."""
+
+# Datasets
+DATASET_RECORD = "dataset.record"
+"""A record written by a dataset module (artifact)."""
+
+
+def per_ue(prefix: str, ue_id: str) -> str:
+    """The per-UE topic ``PREFIX.UE_Id``."""
+    return f"{prefix}.{ue_id}"
+
+
+def every_ue(prefix: str) -> str:
+    """The pattern matching ``PREFIX.UE_Id`` for every UE."""
+    return f"{prefix}.*"
+
+
+def ue_of(topic: str) -> str:
+    """The UE's id in a per-UE topic (its last token)."""
+    return topic.rsplit(".", 1)[1]
+
+
+def position_payload(ue_id: str, xyz: Sequence[float], ue_type: str = "UAV") -> dict[str, Any]:
+    """The paper's position payload of a UE at ``xyz`` (metres, scene frame)."""
+    x, y, z = (float(v) for v in xyz)
+    return {"UE_type": ue_type, "UE_Id": ue_id, "position": {"x": x, "y": y, "z": z}}
+
+
+def read_position(payload: Mapping[str, Any]) -> np.ndarray:
+    """The coordinates (x, y, z) of a position payload, as a float array of shape (3,)."""
+    p = payload["position"]
+    return np.array([p["x"], p["y"], p["z"]], dtype=float)
+
+
+def throughput_payload(ue_type: str, ue_id: str, mbps: float) -> dict[str, Any]:
+    """The paper's throughput payload (Mbit/s)."""
+    return {"UE_type": ue_type, "UE_Id": ue_id, "throughput": float(mbps)}
