@@ -4,6 +4,8 @@ import caviar
 
 
 class Noop(caviar.Plugin):
+    publishes = ()
+
     def step(self, t, inbox):
         return None
 
@@ -12,6 +14,7 @@ class Relay(caviar.Plugin):
     """Publishes one small JSON message per step (paper schema) and reads its inbox."""
 
     subscribe = ["bench.>"]
+    publishes = ("bench.*",)
 
     def step(self, t, inbox):
         for m in inbox:

@@ -9,8 +9,42 @@ import caviar
 from conftest import write_config
 from caviar_plugins import beam_selection
 from caviar_plugins.radio import RadioConfig, RadioScene
+from caviar_plugins.schema import read_position
 from caviar_plugins.vision import VisualConfig, VisualScene, loss_for_throughput, packet_loss, psnr
 from caviar_plugins.vision import person_detector as detector
+
+
+def assert_publishes_declared(log, plugins: dict[str, str]) -> None:
+    """Every topic a module published matches a pattern of its plugin's ``publishes``
+    (``plugins``: module name -> entry-point name)."""
+    from importlib.metadata import entry_points
+
+    from caviar.topics import matches
+
+    classes = {ep.name: ep.load() for ep in entry_points(group="caviar.plugins") if ep.name in plugins.values()}
+    seen = set()
+    for source, topic in log.messages.select("source", "topic").unique().iter_rows():
+        if source in plugins:
+            declared = classes[plugins[source]].publishes
+            assert any(matches(p, topic) for p in declared), f"{source} published {topic}, not in {declared}"
+            seen.add(source)
+    assert seen, "none of the modules published anything"
+
+
+def test_every_plugin_declares_what_it_publishes(tmp_path):
+    from importlib.metadata import entry_points
+
+    from conftest import ROOT
+
+    ours = [ep for ep in entry_points(group="caviar.plugins") if ep.value.startswith("caviar_plugins.")]
+    assert len(ours) == 11
+    for ep in ours:
+        publishes = ep.load().publishes
+        assert isinstance(publishes, tuple) and publishes and all(isinstance(t, str) for t in publishes), ep.name
+    log = caviar.Simulation.from_toml(ROOT / "blueprints" / "quickstart" / "config.toml", out=tmp_path / "run",
+                                      overrides={"episode.steps": 20}).run()
+    assert_publishes_declared(log, {"uav": "waypoint-flight", "comm": "free-space-link", "monitor": "link-monitor"})
+    assert "ai.link.report" in set(log.messages["topic"])
 
 
 @pytest.fixture(scope="module")
@@ -127,8 +161,7 @@ plugin = "beam-selector"
         else:
             assert picks.height == 4 and all(0 <= p < 256 for p in picks["beam_pair"])
         if method == "tree":
-            pos = log.topic("3D.mobility.positions")["position"].to_list()
-            xyz = np.array([[p["x"], p["y"], p["z"]] for p in pos])
+            xyz = np.array([read_position(row) for row in log.topic("3D.mobility.positions").iter_rows(named=True)])
             assert picks["beam_pair"].to_list() == tree.predict(xyz).tolist()
     again = caviar.Simulation.from_toml(tmp_path / "random.toml", out=tmp_path / "random2").run()
     assert again.topic("ai.beam.selection")["beam_pair"].to_list() == \
@@ -197,6 +230,9 @@ plugin = "mission"
     flight = 16.0 / 5.0
     assert result["rescued"] == 1 and result["mission_time_s"] >= flight + min(r["hover_s"], 600) - 1.0
     assert len(list((tmp_path / "run" / "artifacts" / "camera").glob("uav1-*.png"))) == log.status["steps_done"]
+    assert_publishes_declared(log, {"uav": "waypoint-flight", "camera": "camera", "beams": "beam-selector",
+                                    "comm": "sionna-link", "link": "image-link", "detector": "person-detector",
+                                    "mission": "mission"})
 
 
 def test_beam_dataset_blueprint_and_tree_training(tmp_path, cli):
@@ -213,6 +249,9 @@ def test_beam_dataset_blueprint_and_tree_training(tmp_path, cli):
     cli("run", bp / "config.toml", "--out", "train", "--set", "episode.steps=24", *small, check=0)
     cli("run", bp / "test-flight.toml", "--out", "test", "--set", "episode.steps=8", *small, check=0)
     data = load(tmp_path / "train")
+    assert_publishes_declared(caviar.load_run(tmp_path / "train"),
+                              {"uav": "random-waypoint-flight", "comm": "sionna-link", "dataset": "beam-dataset"})
+    assert_publishes_declared(caviar.load_run(tmp_path / "test"), {"uav": "waypoint-flight"})
     assert data["position"].shape == (24, 3) and data["gains"].shape == (24, 4, 64)
     assert np.array_equal(data["best_pair"], data["gains"].reshape(24, -1).argmax(axis=1))
     hops = np.linalg.norm(np.diff(data["position"], axis=0), axis=1)

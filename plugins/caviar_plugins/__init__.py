@@ -9,7 +9,7 @@
 * :mod:`~caviar_plugins.sar`: the search-and-rescue ``mission`` and its results table.
 * :mod:`~caviar_plugins.schema`: the topics and the position payload they share.
 
-Each plugin is a :class:`caviar.Plugin`; none of them
+Each plugin is a :class:`caviar.Plugin` that declares what it ``publishes``; none of them
 knows how messages travel. Offline tools run with ``python -m``:
 ``caviar_plugins.beam_selection.train_tree``, ``caviar_plugins.vision.train_detector``,
 ``caviar_plugins.sar.results``.

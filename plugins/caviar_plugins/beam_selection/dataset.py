@@ -22,6 +22,7 @@ class BeamDataset(caviar.Plugin):
     """Writes one npz record per UAV and step: position, best pair, LOS, gains."""
 
     subscribe = [POSITIONS, LINK, every_ue(BEAM_GAINS)]
+    publishes = (DATASET_RECORD,)
 
     def setup(self, ctx):
         self.ctx = ctx

@@ -23,6 +23,7 @@ METHODS = ("tree", "random", "oracle")
 
 class BeamSelector(caviar.Plugin):
     subscribe = [POSITIONS]
+    publishes = (BEAM_SELECTION,)
 
     @dataclasses.dataclass
     class Params:

@@ -16,6 +16,7 @@ class RandomWaypointFlight(caviar.Plugin):
     """A UAV flying at constant speed between random waypoints: each is a random point
     of the route moved sideways by up to ``spread`` metres, at a random altitude."""
 
+    publishes = (POSITIONS,)
 
     @dataclasses.dataclass
     class Params:

@@ -17,6 +17,7 @@ class WaypointFlight(caviar.Plugin):
     says so, and ends the episode at the last waypoint if ``end_at_last``."""
 
     subscribe = [HOVER]
+    publishes = (POSITIONS, caviar.END_TOPIC)
 
     @dataclasses.dataclass
     class Params:

@@ -18,6 +18,7 @@ from caviar_plugins.schema import POSITIONS, STATE, THROUGHPUT, read_position, t
 
 class FreeSpaceLink(caviar.Plugin):
     subscribe = [POSITIONS]
+    publishes = (THROUGHPUT, STATE)
 
     @dataclasses.dataclass
     class Params:

@@ -14,6 +14,7 @@ NO_POSITION = (None, None, None)
 
 class LinkMonitor(caviar.Plugin):
     subscribe = [THROUGHPUT, POSITIONS, caviar.END_TOPIC]
+    publishes = (LINK_REPORT,)
 
     @dataclasses.dataclass
     class Params:

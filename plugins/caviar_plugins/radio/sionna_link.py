@@ -22,7 +22,7 @@ import numpy as np
 import caviar
 from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.scene import RadioConfig, RadioScene
-from caviar_plugins.schema import (BEAM_GAINS, BEAM_SELECTION, CHANNEL, LINK, POSITIONS, STATE, THROUGHPUT,
+from caviar_plugins.schema import (BEAM_GAINS, BEAM_SELECTION, CHANNEL, LINK, POSITIONS, STATE, THROUGHPUT, every_ue,
                                    per_ue, read_position, throughput_payload)
 
 
@@ -41,6 +41,7 @@ class SionnaLinkParams(RadioConfig):
 
 class SionnaLink(caviar.Plugin):
     subscribe = [POSITIONS, BEAM_SELECTION]
+    publishes = (THROUGHPUT, LINK, every_ue(CHANNEL), every_ue(BEAM_GAINS), STATE)
     Params = SionnaLinkParams
 
     def setup(self, ctx):

@@ -18,6 +18,7 @@ from caviar_plugins.schema import DETECTIONS, HOVER, RESCUE, RESULT, THROUGHPUT
 
 class Mission(caviar.Plugin):
     subscribe = [DETECTIONS, THROUGHPUT, caviar.END_TOPIC]
+    publishes = (HOVER, RESCUE, RESULT)
 
     @dataclasses.dataclass
     class Params:

@@ -23,7 +23,7 @@ import caviar
 from caviar_plugins.assets import DATA, SCENES
 from caviar_plugins.mobility.waypoints import Path, read_waypoints
 from caviar_plugins.radio.scene import configure_drjit
-from caviar_plugins.schema import CAMERA, POSITIONS, per_ue, read_position
+from caviar_plugins.schema import CAMERA, POSITIONS, every_ue, per_ue, read_position
 
 CLOTHES = [(0.95, 0.35, 0.05), (0.85, 0.08, 0.08), (0.95, 0.85, 0.1), (0.1, 0.25, 0.85), (0.55, 0.1, 0.6)]
 SKIN = (0.8, 0.6, 0.45)
@@ -159,6 +159,7 @@ class Camera(caviar.Plugin):
     ``3D.camera.<UE_Id>.file``."""
 
     subscribe = [POSITIONS]
+    publishes = (every_ue(CAMERA), f"{every_ue(CAMERA)}.{FILE}")
 
     @dataclasses.dataclass
     class Params(VisualConfig):

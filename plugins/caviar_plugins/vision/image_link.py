@@ -46,6 +46,7 @@ class ImageLink(caviar.Plugin):
     PSNR on ``ai.image_quality``."""
 
     subscribe = [every_ue(CAMERA), THROUGHPUT]
+    publishes = (every_ue(IMAGES), IMAGE_QUALITY)
 
     @dataclasses.dataclass
     class Params:

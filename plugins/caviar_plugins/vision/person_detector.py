@@ -252,6 +252,7 @@ class PersonDetector(caviar.Plugin):
     ground position, from the UAV's position and the nadir camera's geometry."""
 
     subscribe = [every_ue(IMAGES), POSITIONS]
+    publishes = (DETECTIONS,)
 
     @dataclasses.dataclass
     class Params:
