@@ -101,7 +101,7 @@ def main() -> None:
         for plugin in ("Noop", "Relay"):
             for n in (1, 10, 100):
                 steps = max(200, args.steps // n)
-                us = repeat(lambda: caviar_step_us(n, plugin, steps, tmp), 3)
+                us = repeat(lambda n=n, plugin=plugin, steps=steps: caviar_step_us(n, plugin, steps, tmp), 3)
                 results["caviar"].append({"plugin": plugin, "modules": n, "step_us": us,
                                           "per_module_us": us / n, "ratio_to_asyncio_10": us / base})
     out = pathlib.Path(args.out)

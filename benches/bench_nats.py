@@ -117,7 +117,7 @@ def main() -> None:
         raw1 = med(lambda: raw_round_trip_us(url, 1, args.steps))
         raw10 = med(lambda: raw_round_trip_us(url, 10, args.steps))
         with tempfile.TemporaryDirectory() as d:
-            rows = [{"modules": n, "step_us": med(lambda: barrier_us(url, n, args.steps, pathlib.Path(d)))}
+            rows = [{"modules": n, "step_us": med(lambda n=n: barrier_us(url, n, args.steps, pathlib.Path(d)))}
                     for n in (1, 10)]
     finally:
         server.terminate()

@@ -18,5 +18,5 @@ class Relay(caviar.Plugin):
 
     def step(self, t, inbox):
         for m in inbox:
-            m.data
+            _ = m.data  # decoded, as a real module would
         return [("bench." + self.ctx.name, {"UE_type": "UAV", "UE_Id": self.ctx.name, "throughput": t})]

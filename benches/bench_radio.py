@@ -33,6 +33,7 @@ import caviar
 from caviar_plugins import DATA
 from caviar_plugins.mobility import Path, read_waypoints
 from caviar_plugins.radio import LinkBudget, RadioConfig, RadioScene, configure_drjit, scene_path
+from caviar_plugins.schema import POSITIONS, position_payload
 
 configure_drjit()  # before Sionna RT, Mitsuba or Dr.Jit are imported (none of the above imports them)
 
@@ -136,10 +137,8 @@ def record_positions(run_dir: pathlib.Path, positions: list[dict]) -> None:
     rows = []
     for k, step in enumerate(positions):
         for ue, p in step.items():
-            rows.append({"step": k, "time": 0.5 * k, "seq": len(rows), "source": ue, "topic": "3D.mobility.positions",
-                         "kind": "json", "meta": None, "data": None,
-                         "text": json.dumps({"UE_type": "UAV", "UE_Id": ue,
-                                             "position": dict(zip("xyz", map(float, p)))})})
+            rows.append({"step": k, "time": 0.5 * k, "seq": len(rows), "source": ue, "topic": POSITIONS,
+                         "kind": "json", "meta": None, "data": None, "text": json.dumps(position_payload(ue, p))})
     frame = pl.DataFrame(rows, schema={"step": pl.UInt64, "time": pl.Float64, "seq": pl.UInt32, "source": pl.Utf8,
                                        "topic": pl.Utf8, "kind": pl.Utf8, "text": pl.Utf8, "meta": pl.Utf8,
                                        "data": pl.Binary})
@@ -185,7 +184,7 @@ def accuracy(args) -> None:
             "samples": n, "seed": seed, "solve_s": float(np.median(times)),
             "speedup_vs_1e6": float(np.median(ref[1]) / np.median(times)),
             "same_best_pair_pct": float(100 * np.mean(best == ref_best)),
-            "ref_pair_in_top3_pct": float(100 * np.mean([r in t for r, t in zip(ref_best, top3)])),
+            "ref_pair_in_top3_pct": float(100 * np.mean([r in t for r, t in zip(ref_best, top3, strict=True)])),
             "throughput_loss_of_choice_mbps_mean": float(np.mean(ref_thr - thr_choice)),
             "throughput_loss_of_choice_mbps_p95": float(np.percentile(ref_thr - thr_choice, 95)),
             "throughput_estimate_error_mbps_median": float(np.median(np.abs(thr_est - ref_thr))),
@@ -194,11 +193,13 @@ def accuracy(args) -> None:
     results = {"machine": machine(), "positions": len(arcs), "spacing_m": args.spacing, "rows": rows,
                "reference_throughput_mbps": ref_thr.tolist(), "los": ref[2].tolist()}
     write(results, "radio-accuracy")
-    print("\n| samples (seed) | s/solve | speed-up | same best pair | ref. pair in top 3 | loss of choice, mean (p95) | "
+    print("\n| samples (seed) | s/solve | speed-up | same best pair | ref. pair in top 3 | "
+          "loss of choice, mean (p95) | "
           "throughput estimate error (median) | LOS flag agrees |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['samples']:.0e} ({r['seed']}) | {r['solve_s']:.2f} | {r['speedup_vs_1e6']:.1f}× | {r['same_best_pair_pct']:.0f} % | "
+        print(f"| {r['samples']:.0e} ({r['seed']}) | {r['solve_s']:.2f} | {r['speedup_vs_1e6']:.1f}× | "
+              f"{r['same_best_pair_pct']:.0f} % | "
               f"{r['ref_pair_in_top3_pct']:.0f} % | {r['throughput_loss_of_choice_mbps_mean']:.2f} "
               f"({r['throughput_loss_of_choice_mbps_p95']:.2f}) Mbit/s | "
               f"{r['throughput_estimate_error_mbps_median']:.2f} Mbit/s | {r['los_agreement_pct']:.0f} % |")
@@ -219,7 +220,8 @@ def plot_accuracy(results, arcs, per_count, budget) -> None:
     a1.grid(True)
     rows = [r for r in results["rows"] if r["seed"] == 0]
     a2.semilogx([r["samples"] for r in rows], [r["same_best_pair_pct"] for r in rows], "o-", label="same best pair")
-    a2.semilogx([r["samples"] for r in rows], [r["ref_pair_in_top3_pct"] for r in rows], "s-", label="ref. pair in top 3")
+    a2.semilogx([r["samples"] for r in rows], [r["ref_pair_in_top3_pct"] for r in rows], "s-",
+                label="ref. pair in top 3")
     a2.set(xlabel="samples per source", ylabel="% of positions", title="Agreement with 1e6 samples")
     a2.grid(True)
     a2.legend()

@@ -6,8 +6,8 @@ stops; per-module wall, CPU and memory, and the total wall clock.
 
 Writes bench-results/scaling/{sweep.json,modules.png,wall_clock.png} (the figures of
 ``caviar-core report``) and prints a table. ``--from-runs`` only summarises and draws the
-``run-N`` folders already under ``--out`` (a sweep recorded on another machine, say). The paper ran 60 s of virtual time at
-Ts = 0.5 s with 1e6 samples per source on a GPU.
+``run-N`` folders already under ``--out`` (a sweep recorded on another machine, say). The
+paper ran 60 s of virtual time at Ts = 0.5 s with 1e6 samples per source on a GPU.
 """
 
 from __future__ import annotations
@@ -43,7 +43,12 @@ exclude = ["3D.camera.>", "ai.images.>"]
 [modules.uav{i + 1}]
 stage = "mobility"
 plugin = "waypoint-flight"
-params = {{ waypoints = "{ROUTE}", frame = "scene", ue_id = "uav{i + 1}", end_at_last = false, start_m = {i * length / n:.1f} }}
+[modules.uav{i + 1}.params]
+waypoints = "{ROUTE}"
+frame = "scene"
+ue_id = "uav{i + 1}"
+end_at_last = false
+start_m = {i * length / n:.1f}
 """
     text += f"""
 [modules.camera]
@@ -82,7 +87,8 @@ def table(summaries: list[dict]) -> str:
                 f"{1e3 * m['detector']['wall_s_per_step']:.0f} | {1e3 * m['caviar.core']['wall_s_per_step']:.2f} | "
                 f"{100 * m['caviar.core']['share']:.3f} % | {max(v['max_rss_mib'] for v in m.values()):.0f} |")
         if gpu:
-            line += f" {m['comm']['mean_gpu_util_pct']:.1f} | {max(v['max_gpu_mem_mib'] or 0 for v in m.values()):.0f} |"
+            gpu_mem = max(v["max_gpu_mem_mib"] or 0 for v in m.values())
+            line += f" {m['comm']['mean_gpu_util_pct']:.1f} | {gpu_mem:.0f} |"
         lines.append(line)
     return "\n".join(lines)
 
@@ -111,8 +117,10 @@ def main() -> None:
         summaries.append(s)
         m = s["modules"]
         print(f"{n:3d} UAVs: wall {s['wall_s']:.1f} s for {s['virtual_time_s']:.0f} s virtual; "
-              f"comm {1e3 * m['comm']['wall_s_per_step']:.0f} ms/step, camera {1e3 * m['camera']['wall_s_per_step']:.0f}, "
-              f"detector {1e3 * m['detector']['wall_s_per_step']:.0f}, engine {1e3 * m['caviar.core']['wall_s_per_step']:.2f}; "
+              f"comm {1e3 * m['comm']['wall_s_per_step']:.0f} ms/step, "
+              f"camera {1e3 * m['camera']['wall_s_per_step']:.0f}, "
+              f"detector {1e3 * m['detector']['wall_s_per_step']:.0f}, "
+              f"engine {1e3 * m['caviar.core']['wall_s_per_step']:.2f}; "
               f"RSS {max(v['max_rss_mib'] for v in m.values()):.0f} MiB", flush=True)
     draw(summaries, [str(n) for n in args.uavs], args.out, xlabel="UAVs")
     print()

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import caviar
-from conftest import write_config
 from caviar_plugins import DATA
 from caviar_plugins.mobility import Path, airsim_ned_to_scene, read_waypoints
 from caviar_plugins.radio import LinkBudget, RadioConfig, RadioScene, dft_codebook, element_grid
+from conftest import write_config
 
 LAMBDA = 299_792_458.0 / 40e9
 
@@ -145,7 +145,7 @@ params = { samples_per_src = 10000 }
         assert len(gains) == len(chans) == 3
         rows = link.filter(link["UE_Id"] == ue)
         mbps = thr.filter(thr["UE_Id"] == ue)["throughput"].to_list()
-        for g, h, row, t in zip(gains, chans, rows.iter_rows(named=True), mbps):
+        for g, h, row, t in zip(gains, chans, rows.iter_rows(named=True), mbps, strict=True):
             assert h.dtype == np.complex64 and h.shape == (4, 64) and g.shape == (4, 64)
             pair = 77 if ue == "uav2" else int(np.argmax(g))
             assert row["pair"] == pair and row["best_pair"] == int(np.argmax(g))
@@ -168,7 +168,8 @@ def test_los_flag_agrees_with_an_independent_visibility_test():
     tx = np.array(radio.cfg.tx_position)
     d = np.linalg.norm(tx - rx, axis=1)
     u = (tx - rx) / d[:, None]
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(rx[:, i]) for i in range(3)]), mi.Vector3f(*[mi.Float(u[:, i]) for i in range(3)]))
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(rx[:, i]) for i in range(3)]),
+                   mi.Vector3f(*[mi.Float(u[:, i]) for i in range(3)]))
     ray.maxt = mi.Float(d - 0.01)
     visible = ~np.array(radio.scene.mi_scene.ray_test(ray))
     flags = np.array([links[k].los for k in points])

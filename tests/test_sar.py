@@ -1,17 +1,18 @@
 """Search-and-rescue plugins, each alone with small settings, and a short all-in-loop episode."""
 
+import itertools
 import math
 
 import numpy as np
 import pytest
 
 import caviar
-from conftest import write_config
 from caviar_plugins import beam_selection
 from caviar_plugins.radio import RadioConfig, RadioScene
 from caviar_plugins.schema import read_position
 from caviar_plugins.vision import VisualConfig, VisualScene, loss_for_throughput, packet_loss, psnr
 from caviar_plugins.vision import person_detector as detector
+from conftest import write_config
 
 
 def assert_publishes_declared(log, plugins: dict[str, str]) -> None:
@@ -225,7 +226,7 @@ plugin = "mission"
     assert r["hover_s"] == pytest.approx(min(320 / r["throughput"], 600.0))
     # The hover shows in the flight: the UAV stood still after the rescue.
     xs = [p["x"] for p in log.topic("3D.mobility.positions")["position"].to_list()]
-    assert sum(1 for a, b in zip(xs, xs[1:]) if a == b) >= 2
+    assert sum(1 for a, b in itertools.pairwise(xs) if a == b) >= 2
     result = log.topic("mission.result").row(0, named=True)
     flight = 16.0 / 5.0
     assert result["rescued"] == 1 and result["mission_time_s"] >= flight + min(r["hover_s"], 600) - 1.0
@@ -240,9 +241,8 @@ def test_beam_dataset_blueprint_and_tree_training(tmp_path, cli):
     import subprocess
     import sys
 
-    from conftest import ROOT
-
     from caviar_plugins.beam_selection import load
+    from conftest import ROOT
 
     bp = ROOT / "blueprints" / "beam-dataset"
     small = ["--set", "modules.comm.params.samples_per_src=10000", "-q"]
@@ -274,7 +274,7 @@ def test_a_user_supplied_onnx_model_detects_like_the_original(tmp_path, trained,
     detector.export_onnx(model, path)
     onnx = detector.PixelDetector.load(path)
     agree, persons = [], 0
-    for i, (x, y) in enumerate(visual.cfg.targets):
+    for x, y in visual.cfg.targets:
         image = visual.render([x + 1.0, y - 1.0, 9.0])
         a, b = model.mask(image)[0], onnx.mask(image)[0]
         agree.append(np.mean(a == b))

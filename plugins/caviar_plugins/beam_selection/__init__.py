@@ -9,8 +9,7 @@
 """
 
 from caviar_plugins.beam_selection.dataset import BeamDataset, load
-from caviar_plugins.beam_selection.decision_tree import (K_VALUES, full_scores, load_tree, save, top_k_accuracy,
-                                                         train)
+from caviar_plugins.beam_selection.decision_tree import K_VALUES, full_scores, load_tree, save, top_k_accuracy, train
 from caviar_plugins.beam_selection.selector import METHODS, BeamSelector
 
 __all__ = ["K_VALUES", "METHODS", "BeamDataset", "BeamSelector", "full_scores", "load", "load_tree", "save",

@@ -34,7 +34,7 @@ def load_tree(path: pathlib.Path):
 def top_k_accuracy(scores: np.ndarray, classes: np.ndarray, truth: np.ndarray, ks) -> dict[int, float]:
     """Share of samples whose true pair is among the k highest-scoring pairs."""
     order = classes[np.argsort(-scores, axis=1)]
-    return {k: float(np.mean([t in row[:k] for t, row in zip(truth, order)])) for k in ks}
+    return {k: float(np.mean([t in row[:k] for t, row in zip(truth, order, strict=True)])) for k in ks}
 
 
 def full_scores(tree, positions: np.ndarray, prior: np.ndarray, pairs: int = 256) -> np.ndarray:

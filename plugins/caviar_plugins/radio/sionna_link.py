@@ -22,8 +22,19 @@ import numpy as np
 import caviar
 from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.scene import RadioConfig, RadioScene
-from caviar_plugins.schema import (BEAM_GAINS, BEAM_SELECTION, CHANNEL, LINK, POSITIONS, STATE, THROUGHPUT, every_ue,
-                                   per_ue, read_position, throughput_payload)
+from caviar_plugins.schema import (
+    BEAM_GAINS,
+    BEAM_SELECTION,
+    CHANNEL,
+    LINK,
+    POSITIONS,
+    STATE,
+    THROUGHPUT,
+    every_ue,
+    per_ue,
+    read_position,
+    throughput_payload,
+)
 
 
 @dataclasses.dataclass

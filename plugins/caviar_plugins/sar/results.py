@@ -16,7 +16,7 @@ import shutil
 import numpy as np
 
 import caviar
-from caviar_plugins.schema import IMAGE_QUALITY, POSITIONS, RESCUE, RESULT, THROUGHPUT
+from caviar_plugins.schema import IMAGE_QUALITY, POSITIONS, RESCUE, RESULT, THROUGHPUT, read_position
 
 PAPER = {"random": (424.94, 3), "tree": (98.50, 5), "oracle": (75.53, 5)}
 LABEL = {"random": "Random", "tree": "Decision tree", "oracle": "Oracle"}
@@ -83,8 +83,9 @@ def write(rows: list[dict], logs: dict, out: pathlib.Path) -> None:
         thr = log.topic(THROUGHPUT)
         a1.plot(thr["time"], thr["throughput"], label=LABEL[method], lw=1)
         pos = log.topic(POSITIONS)
-        a2.plot(pos["time"], np.cumsum(np.r_[0, np.linalg.norm(np.diff(
-            np.array([[p["x"], p["y"]] for p in pos["position"].to_list()]), axis=0), axis=1)]), label=LABEL[method])
+        xy = np.array([read_position(row)[:2] for row in pos.iter_rows(named=True)])
+        flown = np.cumsum(np.r_[0, np.linalg.norm(np.diff(xy, axis=0), axis=1)])
+        a2.plot(pos["time"], flown, label=LABEL[method])
         for r in log.topic(RESCUE).iter_rows(named=True):
             a2.axvline(r["time"], color="gray", lw=0.5)
     a1.set(xlabel="virtual time (s)", ylabel="throughput (Mbit/s)", title="Throughput of the selected beam pair")
@@ -97,7 +98,8 @@ def write(rows: list[dict], logs: dict, out: pathlib.Path) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.sar.results", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.sar.results", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", type=pathlib.Path, default=pathlib.Path("blueprints/sar/config.toml"))
     ap.add_argument("--tree", type=pathlib.Path, default=pathlib.Path("models/beam-tree.pkl"))
     ap.add_argument("--runs", type=pathlib.Path, default=pathlib.Path("runs"))

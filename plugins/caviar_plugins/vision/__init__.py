@@ -8,8 +8,14 @@
 
 from caviar_plugins.vision.camera import Camera, VisualConfig, VisualScene, default_targets
 from caviar_plugins.vision.image_link import ImageLink, loss_for_throughput, packet_loss, psnr
-from caviar_plugins.vision.person_detector import (OnnxPixelModel, PersonDetector, PixelDetector, builtin_model,
-                                                   export_onnx, pixel_to_ground)
+from caviar_plugins.vision.person_detector import (
+    OnnxPixelModel,
+    PersonDetector,
+    PixelDetector,
+    builtin_model,
+    export_onnx,
+    pixel_to_ground,
+)
 
 __all__ = ["Camera", "ImageLink", "OnnxPixelModel", "PersonDetector", "PixelDetector", "VisualConfig", "VisualScene",
            "builtin_model", "default_targets", "export_onnx", "loss_for_throughput", "packet_loss",

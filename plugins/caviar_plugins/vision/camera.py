@@ -116,7 +116,7 @@ class VisualScene:
         size = int(ids.max()) + 1
         self.palette = np.tile(np.array(SKY, dtype=np.float32), (size, 1))
         self.person_of_id = np.full(size, -1)
-        for i, n in zip(ids, names):
+        for i, n in zip(ids, names, strict=True):
             self.palette[i] = colours[n]
             if n.startswith("person"):
                 self.person_of_id[i] = int(n[len("person"):].split("-")[0])

@@ -287,7 +287,7 @@ class PersonDetector(caviar.Plugin):
             results = list(self.pool.map(lambda m: self.detector.detect(m.data), images))
         else:
             results = [self.detector.detect(m.data) for m in images]
-        for m, detections in zip(images, results):
+        for m, detections in zip(images, results, strict=True):
             ue = ue_of(m.topic)
             image = m.data
             pos = self.positions.get(ue)
