@@ -349,3 +349,26 @@ def test_heights_materials_and_whole_file_build(tmp_path):
     e = small["extent_m"]
     assert e[2] - e[0] == pytest.approx(300, abs=1) and e[3] - e[1] == pytest.approx(300, abs=1)
     assert 0 < small["buildings"] < info["buildings"]
+
+
+def test_osm_city_blueprint_runs_on_its_checked_in_scene(tmp_path):
+    """The blueprint's scene works as `scene = "scene/scene.xml"` in sionna-link, and its
+    route stays in the open."""
+    import caviar
+    from caviar_plugins.frames import read_waypoints
+    from caviar_plugins.osm.mitsuba import scene_shapes
+
+    blueprint = pathlib.Path(__file__).resolve().parent.parent / "blueprints" / "osm-city"
+    shapes = scene_shapes(blueprint / "scene" / "scene.xml")
+    assert {s[0] for s in shapes} >= {"buildings-concrete", "ground", "roads"} and all(s[1].exists() for s in shapes)
+    assert sum(p.stat().st_size for p in (blueprint / "scene").rglob("*")) < 2_000_000
+    log = caviar.Simulation.from_toml(blueprint / "config.toml", out=tmp_path / "run",
+                                      overrides={"episode.steps": 3, "modules.comm.params.samples_per_src": 10000,
+                                                 "modules.monitor.params.plot": False}).run()
+    link = log.topic("communications.link")
+    assert link["los"].to_list() == [True] * 3  # 25 m above the street, in sight of the roof
+    assert all(t > 1.0 for t in log.topic("communications.throughput")["throughput"].to_list())
+    route = read_waypoints(blueprint / "route.csv")
+    info = json.loads((blueprint / "scene" / "scene.json").read_text())
+    x0, y0, x1, y1 = info["extent_m"]
+    assert np.all((route[:, 0] > x0) & (route[:, 0] < x1) & (route[:, 1] > y0) & (route[:, 1] < y1))

@@ -57,3 +57,24 @@ def scene_xml(shapes: list[tuple[str, str, str]], comment: str) -> str:
                   "\t</shape>"]
     lines.append("</scene>\n")
     return "\n".join(lines)
+
+
+def scene_shapes(xml_path) -> list[tuple[str, pathlib.Path, str]]:
+    """(shape id, absolute PLY path, ITU material type) of the PLY shapes of a scene
+    file written here (or any Mitsuba XML of that form): lets a renderer that builds its
+    own Mitsuba scene (the camera plugin) use the meshes of ``scene = "DIR/scene.xml"``."""
+    import xml.etree.ElementTree as ET
+
+    xml_path = pathlib.Path(xml_path)
+    root = ET.parse(xml_path).getroot()
+    types = {b.get("id"): next((s.get("value") for s in b.iter("string") if s.get("name") == "type"), "")
+             for b in root.iter("bsdf")}
+    out = []
+    for shape in root.iter("shape"):
+        if shape.get("type") != "ply":
+            continue
+        fname = next((s.get("value") for s in shape.iter("string") if s.get("name") == "filename"), None)
+        ref = next((r.get("id") for r in shape.iter("ref")), None)
+        if fname:
+            out.append((shape.get("id"), (xml_path.parent / fname).resolve(), types.get(ref, "")))
+    return out
