@@ -1,0 +1,5 @@
+import sys
+
+from caviar_plugins.osm.cli import main
+
+sys.exit(main())
