@@ -120,8 +120,7 @@ def render(png: str) -> float:
     route every 50 m (green)."""
     import sionna.rt as rt
 
-    from caviar_plugins.frames import read_waypoints
-    from caviar_plugins.mobility import Path
+    from caviar_plugins.mobility import Path, read_waypoints
 
     bp = pathlib.Path(__file__).resolve().parent.parent / "blueprints" / "osm-city"
     s = rt.load_scene(str(bp / "scene" / "scene.xml"), merge_shapes_exclude_regex="roads")

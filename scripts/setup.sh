@@ -35,6 +35,6 @@ log "Python packages"
 .venv/bin/pip install --quiet --upgrade pip maturin
 # Builds the Rust extension caviar._core (release) and installs caviar in editable mode.
 .venv/bin/pip install --quiet -e ".[test]"
-.venv/bin/pip install --quiet -e "plugins[radio,onnx]"
+.venv/bin/pip install --quiet -e "plugins[radio,onnx,osm]"
 
 log "ready: $(.venv/bin/caviar-core --version)"

@@ -355,7 +355,7 @@ def test_osm_city_blueprint_runs_on_its_checked_in_scene(tmp_path):
     """The blueprint's scene works as `scene = "scene/scene.xml"` in sionna-link, and its
     route stays in the open."""
     import caviar
-    from caviar_plugins.frames import read_waypoints
+    from caviar_plugins.mobility import read_waypoints
     from caviar_plugins.osm.mitsuba import scene_shapes
 
     blueprint = pathlib.Path(__file__).resolve().parent.parent / "blueprints" / "osm-city"

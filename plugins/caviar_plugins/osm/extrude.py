@@ -28,7 +28,7 @@ class Mesh:
             return Mesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
         offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
         return Mesh(np.concatenate([m.vertices for m in meshes]),
-                    np.concatenate([m.faces + o for m, o in zip(meshes, offsets)]))
+                    np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)]))
 
 
 def height_of(tags: dict[str, str], default: float) -> tuple[float, str]:

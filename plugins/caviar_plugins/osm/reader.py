@@ -76,19 +76,31 @@ def is_building(tags) -> bool:
     return v is not None and v != "no"
 
 
-def read(path: pathlib.Path, roads: bool = True) -> OsmData:
-    """Two passes: relations first (to know which ways are members of building
-    multipolygons), then ways with node locations."""
-    import osmium
-
-    path = pathlib.Path(path)
+def _check_input(path: pathlib.Path) -> None:
     if not path.exists():
         raise BuildError(f"{path}: no such file")
     if not path.is_file():
         raise BuildError(f"{path}: not a file")
     name = path.name.lower()
-    if not (name.endswith(".osm") or name.endswith(".pbf") or name.endswith(".osm.bz2") or name.endswith(".osm.gz")):
+    if not name.endswith((".osm", ".pbf", ".osm.bz2", ".osm.gz")):
         raise BuildError(f"{path}: unknown format; expected .osm (XML) or .osm.pbf")
+
+
+def _way(w) -> Way:
+    """A way with its node ids and (lon, lat) (NaN where a location is missing)."""
+    n = len(w.nodes)
+    refs = np.empty(n, dtype=np.int64)
+    ll = np.full((n, 2), np.nan)
+    for i, nd in enumerate(w.nodes):
+        refs[i] = nd.ref
+        if nd.location.valid():
+            ll[i] = nd.location.lon, nd.location.lat
+    return Way(w.id, {t.k: t.v for t in w.tags}, refs, ll)
+
+
+def _building_relations(path: pathlib.Path) -> dict[int, Relation]:
+    """Pass 1: multipolygon relations tagged building."""
+    import osmium
 
     relations: dict[int, Relation] = {}
 
@@ -98,7 +110,14 @@ def read(path: pathlib.Path, roads: bool = True) -> OsmData:
                 members = [(m.role or "outer", m.ref) for m in r.members if m.type == "w"]
                 relations[r.id] = Relation(r.id, {t.k: t.v for t in r.tags}, members)
 
-    wanted: set[int] = set()
+    Rel().apply_file(str(path))
+    return relations
+
+
+def _ways(path: pathlib.Path, roads: bool, wanted: set[int]) -> tuple[list[Way], list[Way], dict[int, Way]]:
+    """Pass 2: building ways, highways (if ``roads``) and the ways in ``wanted``, with locations."""
+    import osmium
+
     ways: list[Way] = []
     highways: list[Way] = []
     members: dict[int, Way] = {}
@@ -110,14 +129,7 @@ def read(path: pathlib.Path, roads: bool = True) -> OsmData:
             m = w.id in wanted
             if not (b or h or m):
                 return
-            n = len(w.nodes)
-            refs = np.empty(n, dtype=np.int64)
-            ll = np.full((n, 2), np.nan)
-            for i, nd in enumerate(w.nodes):
-                refs[i] = nd.ref
-                if nd.location.valid():
-                    ll[i] = nd.location.lon, nd.location.lat
-            way = Way(w.id, {t.k: t.v for t in w.tags}, refs, ll)
+            way = _way(w)
             if b:
                 ways.append(way)
             if h:
@@ -125,25 +137,41 @@ def read(path: pathlib.Path, roads: bool = True) -> OsmData:
             if m:
                 members[w.id] = way
 
+    Ways().apply_file(str(path), locations=True)
+    return ways, highways, members
+
+
+def _file_bounds(path: pathlib.Path) -> BBox | None:
+    """The bounding box in the file's header, where it has a valid one."""
+    import osmium
+
+    header = osmium.io.Reader(str(path), osmium.osm.osm_entity_bits.NOTHING)
+    box = header.header().box()
+    header.close()
+    if not box.valid():
+        return None
+    bl, tr = box.bottom_left, box.top_right
     try:
-        Rel().apply_file(str(path))
-        wanted.update(ref for r in relations.values() for _, ref in r.members)
-        Ways().apply_file(str(path), locations=True)
-        header = osmium.io.Reader(str(path), osmium.osm.osm_entity_bits.NOTHING)
-        box = header.header().box()
-        header.close()
+        return BBox(bl.lat, bl.lon, tr.lat, tr.lon).checked()
+    except ValueError:
+        return None
+
+
+def read(path: pathlib.Path, roads: bool = True) -> OsmData:
+    """Two passes: relations first (to know which ways are members of building
+    multipolygons), then ways with node locations."""
+    path = pathlib.Path(path)
+    _check_input(path)
+    try:
+        relations = _building_relations(path)
+        wanted = {ref for r in relations.values() for _, ref in r.members}
+        ways, highways, members = _ways(path, roads, wanted)
+        bounds = _file_bounds(path)
     except (RuntimeError, ValueError, OSError) as e:
         msg = " ".join(str(e).split()) or type(e).__name__
         raise BuildError(f"{path}: not a readable OSM file ({msg})") from None
     for r in relations.values():
         r.ways = [(role, members[ref]) for role, ref in r.members if ref in members]
-    bounds = None
-    if box.valid():
-        bl, tr = box.bottom_left, box.top_right
-        try:
-            bounds = BBox(bl.lat, bl.lon, tr.lat, tr.lon).checked()
-        except ValueError:
-            bounds = None
     return OsmData(path, ways, list(relations.values()), highways, bounds)
 
 

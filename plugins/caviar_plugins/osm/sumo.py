@@ -133,7 +133,8 @@ def build_network(data: OsmData, bbox: BBox | None, frame: Frame, out: pathlib.P
                          f"{check['max_error_m']:.2f} m from their OSM nodes)")
     info = network_summary(net)
     info.update(check, file=net.name, osm_xml=osm_xml.name, netconvert_warnings=warnings,
-                netconvert_options=["--proj", frame.proj, "--offset.disable-normalization", "true", *NETCONVERT_OPTIONS])
+                netconvert_options=["--proj", frame.proj, "--offset.disable-normalization", "true",
+                                    *NETCONVERT_OPTIONS])
     return info
 
 
