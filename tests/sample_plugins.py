@@ -137,3 +137,26 @@ class SplitWork(caviar.Plugin):
         mine = [i for i in range(self.ctx.params.items) if i % self.ctx.shards == self.ctx.shard]
         yield "work.part", {"step": self.ctx.step, "shard": self.ctx.shard, "squares": [i * i for i in mine]}
         yield "work.pid", os.getpid()
+
+
+class Declared(caviar.Plugin):
+    """Declares what it publishes (``caviar-core validate`` checks the wiring)."""
+
+    publishes = ("declared.count",)
+
+    def step(self, t, inbox):
+        return [("declared.count", {"t": t})]
+
+
+class DeclaredSink(caviar.Plugin):
+    """Subscribes to what ``Declared`` publishes and to a topic nobody publishes."""
+
+    subscribe = ["declared.*", "missing.topic"]
+    publishes = ("sink.summary",)
+
+    def step(self, t, inbox):
+        return [("sink.summary", {"seen": len(inbox)})]
+
+
+class BadPublishes(caviar.Plugin):
+    publishes = ("a..b",)

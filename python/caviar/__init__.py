@@ -8,7 +8,7 @@ recorded runs (:func:`load_run`).
 from caviar._core import __version__
 from caviar.errors import ConfigError, RunError
 from caviar.plugin import Artifact, Context, Inbox, Message, Plugin
-from caviar.runlog import RunLog, load_run
+from caviar.runlog import RunLog, RunStatus, load_run
 from caviar.simulation import Simulation
 from caviar.topics import matches
 
@@ -17,7 +17,7 @@ END_TOPIC = "caviar.episode.end"
 
 __all__ = [
     "Artifact", "ConfigError", "Context", "END_TOPIC", "Inbox", "Message", "Plugin", "RunError",
-    "RunLog", "Simulation", "__version__", "inspect", "load_run", "matches",
+    "RunLog", "RunStatus", "Simulation", "__version__", "inspect", "load_run", "matches",
 ]
 
 

@@ -16,8 +16,13 @@ import typing
 from importlib import metadata
 from typing import Any
 
+from caviar._core import RawMessage
 from caviar.errors import ConfigError
 from caviar.plugin import Context, Inbox, Message, Plugin, encode
+from caviar.topics import matches
+
+OutgoingTuple = tuple[str, str, "str | bytes", "str | None"]
+"""A published message as the core takes it: ``(topic, kind, body, meta)``."""
 
 ENTRY_POINT_GROUP = "caviar.plugins"
 
@@ -135,7 +140,8 @@ class Hosted:
                            config_dir=pathlib.Path(config_dir), shards=shards)
         self.plugin.setup(self.ctx)
 
-    def step(self, step: int, t: float, raw: list, shard: int = 0) -> list:
+    def step(self, step: int, t: float, raw: list[RawMessage], shard: int = 0) -> list[OutgoingTuple]:
+        """Runs the plugin's step; returns what it published as ``(topic, kind, body, meta)``."""
         self.ctx.step = step
         self.ctx.shard = shard
         run_dir = self.run_dir
@@ -165,8 +171,25 @@ class Hosted:
         self.plugin.teardown()
 
 
-def load_plugin(name: str, spec: str, params_json: str, config_dir: str) -> tuple[Hosted, list[str]]:
+def declared_publishes(cls: type) -> list[str]:
+    """The plugin's ``publishes`` as a list of valid patterns (empty: not declared)."""
+    declared = cls.publishes
+    if isinstance(declared, str) or not all(isinstance(p, str) for p in declared):
+        raise ConfigError(f"{cls.__name__}.publishes must be a tuple of topic names or patterns, "
+                          f"got {declared!r}", "plugin")
+    for p in declared:
+        try:
+            matches(p, "x")
+        except ValueError as e:
+            raise ConfigError(f"{cls.__name__}.publishes: {e}", "plugin") from None
+    return list(declared)
+
+
+def load_plugin(name: str, spec: str, params_json: str,
+                config_dir: str) -> tuple[Hosted, list[str], list[str]]:
+    """The hosted plugin, its default subscriptions and what it declares publishing."""
     cls = resolve_plugin(spec)
     params = check_params(cls, json.loads(params_json))
+    publishes = declared_publishes(cls)
     plugin = cls()
-    return Hosted(name, plugin, params), list(cls.subscribe)
+    return Hosted(name, plugin, params), list(cls.subscribe), publishes

@@ -33,9 +33,12 @@ import dataclasses
 import json
 import math
 import pathlib
-from typing import Any, ClassVar, Iterable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Iterator, Sequence
 
 from caviar.topics import matches
+
+if TYPE_CHECKING:
+    from caviar._core import RawMessage
 
 
 class Artifact:
@@ -73,11 +76,10 @@ class Message:
         self._kind = None
 
     @classmethod
-    def _from_wire(cls, raw: tuple, run_dir: pathlib.Path | None) -> "Message":
-        step, time, topic, source, kind, body, meta = raw
-        m = cls(topic, source=source, step=step, time=time)
-        m._raw = (kind, body, meta, run_dir)
-        m._kind = kind
+    def _from_wire(cls, raw: RawMessage, run_dir: pathlib.Path | None) -> "Message":
+        m = cls(raw.topic, source=raw.source, step=raw.step, time=raw.time)
+        m._raw = (raw.kind, raw.body, raw.meta, run_dir)
+        m._kind = raw.kind
         return m
 
     @property
@@ -179,10 +181,15 @@ class Context:
 
 class Plugin:
     """Base class of Python modules. Override what you need; ``step`` is the one
-    most plugins implement."""
+    most plugins implement, and ``publishes`` lets ``validate`` check the wiring."""
 
     subscribe: ClassVar[list[str]] = []
     """Default subscription patterns; ``subscribe`` in the config replaces them."""
+
+    publishes: ClassVar[tuple[str, ...]] = ()
+    """Topics (or patterns) the plugin may publish; ``()``: not declared (it may
+    publish anything). ``caviar-core validate`` warns about subscriptions that no
+    module publishes and publications that no module subscribes to."""
 
     Params: ClassVar[type | None] = None
     """A dataclass describing ``[modules.NAME.params]``: unknown keys, missing

@@ -5,9 +5,56 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+from typing import Literal, Optional, TypedDict
 
+from caviar._core import RawMessage
 from caviar.plugin import Message
 from caviar.topics import matches
+
+
+class RunErrorInfo(TypedDict, total=False):
+    """``error`` in run.json: ``message`` always; where a module failed also ``module``,
+    ``phase`` (setup, step, teardown), ``step``, ``time`` and ``trace``."""
+
+    message: str
+    module: str
+    phase: str
+    step: Optional[int]
+    time: Optional[float]
+    trace: Optional[str]
+
+
+EndReason = Literal["steps", "module", "error", "interrupted", "closed"]
+"""Why an episode ended: its planned steps ran, a module published
+``caviar.episode.end``, an error, Ctrl-C, or the host closed it early."""
+
+
+class _RunStatusFields(TypedDict):
+    """The fields of run.json present in every run."""
+
+    caviar_version: str
+    status: Literal["running", "completed", "failed", "interrupted"]
+    config_file: str
+    overrides: list[str]
+    seed: int
+    ts: float
+    steps_planned: Optional[int]
+    steps_done: int
+    virtual_time_s: float
+    wall_s: float
+    record_s: float
+    rtf: Optional[float]
+    modules: list[str]
+    error: Optional[RunErrorInfo]
+
+
+class RunStatus(_RunStatusFields, total=False):
+    """run.json, as the core writes it (``caviar_core::status::RunStatus``)."""
+
+    end_reason: EndReason
+    """Absent while running and in runs recorded before it was added."""
+    ended_by: str
+    """The module that published ``caviar.episode.end``, when that ended the episode."""
 
 
 def _read(run_dir: pathlib.Path, table: str):
@@ -36,7 +83,7 @@ class RunLog:
         status = self.path / "run.json"
         if not status.exists():
             raise FileNotFoundError(f"{self.path}: not a run directory (no run.json)")
-        self.status: dict = json.loads(status.read_text())
+        self.status: RunStatus = json.loads(status.read_text())
         self.messages = _read(self.path, "messages")
         self.timings = _read(self.path, "timings")
 
@@ -73,7 +120,7 @@ class RunLog:
         for r in self._select(pattern).iter_rows(named=True):
             body = r["text"] if r["kind"] != "binary" else r["data"]
             out.append(Message._from_wire(
-                (r["step"], r["time"], r["topic"], r["source"], r["kind"], body, r["meta"]), self.path))
+                RawMessage(r["step"], r["time"], r["topic"], r["source"], r["kind"], body, r["meta"]), self.path))
         return out
 
     def module_times(self):

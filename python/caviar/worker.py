@@ -6,7 +6,8 @@ The worker says hello to the run's core, receives its plugin and parameters, loa
 the plugin, and then answers the core's setup, step and teardown requests until the
 run ends. It beats every second so that the core notices a worker that hangs or
 dies. The plugin code is the same as in-process (``caviar._host.Hosted``); the wire
-format is in docs/nats-protocol.md.
+format is in docs/nats-protocol.md and its frames are encoded and decoded by the core
+(``caviar._core.decode_request``, ``encode_reply``, ``encode_failure``).
 """
 
 from __future__ import annotations
@@ -17,60 +18,23 @@ import json
 import os
 import socket
 import ssl
-import struct
 import sys
 import threading
 import time
 
+from caviar import _core
 from caviar._gpu import open_sampler
-from caviar._host import format_exception, load_plugin
+from caviar._host import OutgoingTuple, format_exception, load_plugin
 from caviar.errors import ConfigError
 
-PROTOCOL = 1
+PROTOCOL = _core.PROTOCOL
 HEARTBEAT_S = 1.0
 
 
-def pack_frame(header: dict, bodies: list[bytes]) -> bytes:
-    """4-byte little-endian header length, JSON header, bodies back to back."""
-    head = json.dumps(header, separators=(",", ":")).encode()
-    return b"".join([struct.pack("<I", len(head)), head, *bodies])
-
-
-def unpack_frame(buf: bytes) -> tuple[dict, memoryview]:
-    (n,) = struct.unpack_from("<I", buf)
-    return json.loads(buf[4:4 + n]), memoryview(buf)[4 + n:]
-
-
-def decode_request(buf: bytes) -> tuple[dict, list[tuple]]:
-    """The step request and its messages as ``_host`` tuples."""
-    req, rest = unpack_frame(buf)
-    if req.get("protocol") != PROTOCOL:
-        raise ValueError(f"protocol {req.get('protocol')} requested, this worker speaks {PROTOCOL}")
-    raw, pos = [], 0
-    for m in req["messages"]:
-        body = bytes(rest[pos:pos + m["len"]])
-        pos += m["len"]
-        kind = m["kind"]
-        if kind in ("json", "artifact"):
-            body = body.decode()
-        raw.append((m.get("step", req["step"]), m.get("time", req["time"]), m["topic"], m.get("source", ""),
-                    kind, body, m.get("meta")))
-    return req, raw
-
-
-def encode_reply(out: list[tuple], wall_s: float, cpu_s: float, gpu: tuple[float, float] | None = None) -> bytes:
-    messages, bodies = [], []
-    for topic, kind, body, meta in out:
-        b = body.encode() if isinstance(body, str) else bytes(body)
-        m = {"topic": topic, "kind": kind, "len": len(b)}
-        if meta is not None:
-            m["meta"] = meta
-        messages.append(m)
-        bodies.append(b)
-    header = {"ok": True, "messages": messages, "wall_s": wall_s, "cpu_s": cpu_s, "rss_mib": resident_mib()}
-    if gpu is not None:
-        header["gpu_util_pct"], header["gpu_mem_mib"] = gpu
-    return pack_frame(header, bodies)
+def encode_reply(out: list[OutgoingTuple], wall_s: float, cpu_s: float,
+                 gpu: tuple[float, float] | None = None) -> bytes:
+    """A step reply frame (the core's own encoder, ``caviar._core.encode_reply``)."""
+    return _core.encode_reply(out, wall_s, cpu_s, rss_mib=_core.resident_mib(), gpu=gpu)
 
 
 def error_reply(exc: BaseException) -> dict:
@@ -79,17 +43,6 @@ def error_reply(exc: BaseException) -> dict:
     if isinstance(exc, ConfigError):
         return {"ok": False, "error": {"message": exc.message, "key": exc.key, "trace": None}}
     return {"ok": False, "error": {"message": f"{type(exc).__name__}: {exc}", "trace": format_exception(exc)}}
-
-
-_PAGE_MIB = os.sysconf("SC_PAGE_SIZE") / 2**20 if hasattr(os, "sysconf") else float("nan")
-
-
-def resident_mib() -> float:
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * _PAGE_MIB
-    except OSError:
-        return float("nan")
 
 
 class Worker:
@@ -162,11 +115,12 @@ class Worker:
 
     def _load(self):
         s = self.spec
-        hosted, subscribe = load_plugin(self.module, s["plugin"], json.dumps(s["params"]), s["config_dir"])
+        hosted, subscribe, publishes = load_plugin(self.module, s["plugin"], json.dumps(s["params"]),
+                                                   s["config_dir"])
         if s.get("shards", 1) > 1 and not type(hosted.plugin).shardable:
             raise ConfigError(f"{type(hosted.plugin).__name__} cannot split a step into shards "
                               f"(it does not declare shardable = True)", "shards")
-        return hosted, subscribe
+        return hosted, subscribe, publishes
 
     async def serve(self) -> int:
         await self.connect()
@@ -180,7 +134,7 @@ class Worker:
             return 2
         loaded = f"{self.prefix}.loaded"
         try:
-            self.hosted, subscribe = self._load()
+            self.hosted, subscribe, publishes = self._load()
         except Exception as e:  # the core reports it as a configuration error
             await self.nc.publish(loaded, json.dumps({"worker": self.id, **error_reply(e)}).encode())
             await self.nc.flush()
@@ -190,7 +144,8 @@ class Worker:
         await self.nc.subscribe(f"{me}.setup", cb=self.on_setup)
         await self.nc.subscribe(f"{me}.teardown", cb=self.on_teardown)
         await self.nc.subscribe(f"{self.prefix}.stop", cb=self.on_stop)
-        await self.nc.publish(loaded, json.dumps({"worker": self.id, "subscribe": subscribe}).encode())
+        await self.nc.publish(loaded, json.dumps({"worker": self.id, "subscribe": subscribe,
+                                                  "publishes": publishes}).encode())
         await self.nc.flush()
         stop_beating = threading.Event()
         beat = threading.Thread(target=self.heartbeat, args=(stop_beating,), name="heartbeat", daemon=True)
@@ -236,18 +191,17 @@ class Worker:
         await self.nc.flush()  # subscribed on the server before the core's first step
         await msg.respond(b'{"ok":true}')
 
-    def _step(self, req: dict, raw: list) -> bytes:
+    def _step(self, req: _core.StepRequest) -> bytes:
         t0, c0 = time.perf_counter(), time.process_time()
-        out = self.hosted.step(req["step"], req["time"], raw, req.get("shard", 0))
+        out = self.hosted.step(req.step, req.time, req.messages, req.shard)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         return encode_reply(out, wall, cpu, self.gpu.sample() if self.gpu else None)
 
     async def on_step(self, msg):
         try:
-            req, raw = decode_request(msg.data)
-            reply = self._step(req, raw)
+            reply = self._step(_core.decode_request(msg.data))
         except Exception as e:
-            reply = pack_frame(error_reply(e), [])
+            reply = _core.encode_failure(**error_reply(e)["error"])
         await msg.respond(reply)
 
     async def on_teardown(self, msg):

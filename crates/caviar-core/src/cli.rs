@@ -10,10 +10,13 @@ use std::time::Instant;
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
+use crate::assembly::wiring_warnings;
 use crate::config;
-use crate::engine::{Engine, EngineError, StepReport};
-use crate::recorder::{read_messages, read_timings, CORE};
-use crate::run::{load_modules, prepare, write_status, PluginLoader};
+use crate::engine::{EndReason, Engine, EngineError, StepReport};
+use crate::message::Message;
+use crate::recorder::{read_messages, read_timings, TimingRow, CORE};
+use crate::run::{load_modules, prepare, PluginLoader};
+use crate::status::{write_status, RunErrorInfo, RunState, RunStatus};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -84,12 +87,15 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
 
 fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
     let result = config::load(path, set).and_then(|cfg| {
-        load_modules(&cfg, loader)?;
+        let specs = load_modules(&cfg, loader)?;
         let n = cfg.config.modules.len();
-        Ok((cfg, n))
+        Ok((wiring_warnings(&cfg, &specs), cfg, n))
     });
     match result {
-        Ok((cfg, n)) => {
+        Ok((warnings, cfg, n)) => {
+            for w in warnings {
+                eprintln!("warning: {w}");
+            }
             let steps = cfg
                 .steps()
                 .map_or("until a module ends it".to_string(), |s| {
@@ -210,16 +216,22 @@ fn run(
     let closed = engine.close();
     let error = result.err().or(closed.err());
     let status = match &error {
-        None => "completed",
-        Some(EngineError::Interrupted { .. }) => "interrupted",
-        Some(_) => "failed",
+        None => RunState::Completed,
+        Some(EngineError::Interrupted { .. }) => RunState::Interrupted,
+        Some(_) => RunState::Failed,
     };
     if let Err(e) = write_status(&cfg, &engine, status, error.as_ref()) {
         eprintln!("error: {e}");
     }
+    finish_line(&engine, status, error, started.elapsed().as_secs_f64())
+}
+
+/// The last line of a run (stdout when it completed, stderr with the error otherwise);
+/// returns the exit code.
+fn finish_line(engine: &Engine, status: RunState, error: Option<EngineError>, wall: f64) -> i32 {
     let virtual_s = engine.virtual_time_s();
-    let wall = started.elapsed().as_secs_f64();
     let dir = engine.run_dir().display();
+    let status = status.as_str();
     match error {
         None => {
             println!(
@@ -255,35 +267,49 @@ fn human_bytes(n: u64) -> String {
 
 /// The text `caviar-core inspect` prints.
 pub fn inspect(run_dir: &Path) -> Result<String, String> {
-    use std::fmt::Write;
-    let status: serde_json::Value = std::fs::read_to_string(run_dir.join("run.json"))
-        .map_err(|e| format!("{}: not a run directory ({e})", run_dir.display()))
-        .and_then(|t| {
-            serde_json::from_str(&t)
-                .map_err(|e| format!("{}: {e}", run_dir.join("run.json").display()))
-        })?;
+    let status = RunStatus::read(run_dir)?;
     let messages = read_messages(run_dir).map_err(|e| e.to_string())?;
     let timings = read_timings(run_dir).map_err(|e| e.to_string())?;
-
     let mut s = String::new();
-    let get = |k: &str| status.get(k).cloned().unwrap_or(serde_json::Value::Null);
-    let steps_done = get("steps_done").as_u64().unwrap_or(0);
-    let planned = get("steps_planned")
-        .as_u64()
+    write_summary(&mut s, run_dir, &status, &messages);
+    write_topics(&mut s, &messages);
+    write_modules(&mut s, module_rows(&timings));
+    Ok(s)
+}
+
+/// How the episode ended, in words.
+fn end_text(status: &RunStatus) -> Option<String> {
+    Some(match status.end_reason? {
+        EndReason::Steps => "all planned steps ran".into(),
+        EndReason::Module => format!(
+            "module '{}' published caviar.episode.end",
+            status.ended_by.as_deref().unwrap_or("?")
+        ),
+        EndReason::Error => "an error (below)".into(),
+        EndReason::Interrupted => "interrupted (Ctrl-C)".into(),
+        EndReason::Closed => "closed by the host before its end".into(),
+    })
+}
+
+/// The head: status, steps, wall time, messages, how it ended, the error.
+fn write_summary(s: &mut String, run_dir: &Path, status: &RunStatus, messages: &[Message]) {
+    use std::fmt::Write;
+    let planned = status
+        .steps_planned
         .map_or("open-ended".to_string(), |n| n.to_string());
-    let wall = get("wall_s").as_f64().unwrap_or(0.0);
-    let virt = get("virtual_time_s").as_f64().unwrap_or(0.0);
+    let (wall, virt) = (status.wall_s, status.virtual_time_s);
     writeln!(
         s,
         "run       {}  ({})",
         run_dir.display(),
-        get("status").as_str().unwrap_or("?")
+        status.status.as_str()
     )
     .unwrap();
     writeln!(
         s,
-        "steps     {steps_done} of {planned}, Ts = {} s, {virt:.3} s virtual",
-        get("ts")
+        "steps     {} of {planned}, Ts = {} s, {virt:.3} s virtual",
+        status.steps_done,
+        serde_json::json!(status.ts)
     )
     .unwrap();
     let rtf = if wall > 0.0 {
@@ -291,7 +317,7 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
     } else {
         "-".into()
     };
-    let record = get("record_s").as_f64().unwrap_or(0.0);
+    let record = status.record_s;
     writeln!(s, "wall      {wall:.3} s in steps ({record:.3} s of it recording), RTF {rtf} (virtual s per wall s)").unwrap();
     let total_bytes: u64 = messages.iter().map(|m| m.payload.len() as u64).sum();
     writeln!(
@@ -301,24 +327,27 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
         human_bytes(total_bytes)
     )
     .unwrap();
-    if let Some(err) = get("error").as_object() {
-        writeln!(
-            s,
-            "error     {}",
-            err.get("message").and_then(|m| m.as_str()).unwrap_or("?")
-        )
-        .unwrap();
-        if let Some(m) = err.get("module").and_then(|m| m.as_str()) {
-            writeln!(
-                s,
-                "          in module '{m}', {} at step {}",
-                err["phase"].as_str().unwrap_or("?"),
-                err["step"]
-            )
-            .unwrap();
+    if let Some(end) = end_text(status) {
+        writeln!(s, "ended     {end}").unwrap();
+    }
+    if let Some(err) = &status.error {
+        writeln!(s, "error     {}", err.message()).unwrap();
+        if let RunErrorInfo::Module {
+            module,
+            phase,
+            step,
+            ..
+        } = err
+        {
+            let step = serde_json::json!(step);
+            writeln!(s, "          in module '{module}', {phase} at step {step}").unwrap();
         }
     }
+}
 
+/// One row per topic: kind, count, steps, bytes, sources.
+fn write_topics(s: &mut String, messages: &[Message]) {
+    use std::fmt::Write;
     struct TopicRow {
         kind: &'static str,
         count: u64,
@@ -328,7 +357,7 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
         sources: Vec<String>,
     }
     let mut topics: BTreeMap<&str, TopicRow> = BTreeMap::new();
-    for m in &messages {
+    for m in messages {
         let row = topics.entry(&m.topic).or_insert(TopicRow {
             kind: m.payload.kind().as_str(),
             count: 0,
@@ -363,21 +392,45 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
         )
         .unwrap();
     }
+}
 
-    #[derive(Default)]
-    struct ModuleRow {
-        runs: u64,
-        wall: f64,
-        cpu: f64,
-        rss_max: f64,
-        msgs_in: u64,
-        msgs_out: u64,
-        gpu_util_sum: f64,
-        gpu_util_n: u64,
-        gpu_mem_max: Option<f64>,
+/// A module's timings added up over the run.
+#[derive(Default)]
+struct ModuleRow {
+    runs: u64,
+    wall: f64,
+    cpu: f64,
+    rss_max: f64,
+    msgs_in: u64,
+    msgs_out: u64,
+    gpu_util_sum: f64,
+    gpu_util_n: u64,
+    gpu_mem_max: Option<f64>,
+}
+
+impl ModuleRow {
+    fn add(&mut self, t: &TimingRow) {
+        self.runs += 1;
+        self.wall += t.wall_s;
+        self.cpu += t.cpu_s;
+        self.rss_max = self.rss_max.max(t.rss_mib);
+        self.msgs_in += t.msgs_in as u64;
+        self.msgs_out += t.msgs_out as u64;
+        if let Some(u) = t.gpu_util_pct {
+            self.gpu_util_sum += u;
+            self.gpu_util_n += 1;
+        }
+        if let Some(m) = t.gpu_mem_mib {
+            self.gpu_mem_max = Some(self.gpu_mem_max.map_or(m, |x: f64| x.max(m)));
+        }
     }
+}
+
+/// Per module in order of first appearance, the core's row last (it is the overhead
+/// of everything above it).
+fn module_rows(timings: &[TimingRow]) -> Vec<(String, ModuleRow)> {
     let mut modules: Vec<(String, ModuleRow)> = Vec::new();
-    for t in &timings {
+    for t in timings {
         let i = match modules.iter().position(|(n, _)| *n == t.module) {
             Some(i) => i,
             None => {
@@ -385,27 +438,18 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
                 modules.len() - 1
             }
         };
-        let r = &mut modules[i].1;
-        r.runs += 1;
-        r.wall += t.wall_s;
-        r.cpu += t.cpu_s;
-        r.rss_max = r.rss_max.max(t.rss_mib);
-        r.msgs_in += t.msgs_in as u64;
-        r.msgs_out += t.msgs_out as u64;
-        if let Some(u) = t.gpu_util_pct {
-            r.gpu_util_sum += u;
-            r.gpu_util_n += 1;
-        }
-        if let Some(m) = t.gpu_mem_mib {
-            r.gpu_mem_max = Some(r.gpu_mem_max.map_or(m, |x: f64| x.max(m)));
-        }
+        modules[i].1.add(t);
     }
+    modules.sort_by_key(|(n, _)| n == CORE);
+    modules
+}
+
+fn write_modules(s: &mut String, modules: Vec<(String, ModuleRow)>) {
+    use std::fmt::Write;
     // GPU columns only where a GPU was measured.
     let gpu = modules
         .iter()
         .any(|(_, r)| r.gpu_util_n > 0 || r.gpu_mem_max.is_some());
-    // The core's row last: it is the overhead of everything above it.
-    modules.sort_by_key(|(n, _)| n == CORE);
     let total: f64 = modules.iter().map(|(_, r)| r.wall).sum::<f64>().max(1e-12);
     let w = modules
         .iter()
@@ -453,5 +497,4 @@ pub fn inspect(run_dir: &Path) -> Result<String, String> {
             writeln!(s, "  {util:>10} {mem:>12}").unwrap();
         }
     }
-    Ok(s)
 }

@@ -438,12 +438,6 @@ fn validate_nats(c: &LoadedConfig) -> Result<(), ConfigError> {
                 "needs the NATS transport (transport.kind = \"nats\")",
             ));
         }
-        if m.plugin == crate::nats::BRIDGE_PLUGIN && !nats {
-            return Err(c.error_at(
-                &key("plugin"),
-                "the NATS bridge needs the NATS transport (transport.kind = \"nats\")",
-            ));
-        }
     }
     let n = &cfg.transport.nats;
     let seconds = [

@@ -14,7 +14,8 @@
 //! that run every `every`-th step receive all messages of the steps they skipped.
 //!
 //! **End.** After the configured number of steps, or after the step in which a
-//! module published [`END_TOPIC`] (a mission that finished).
+//! module published [`END_TOPIC`] (a mission that finished); [`EndReason`] says which
+//! (or that an error, an interruption or an early close ended it).
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -23,9 +24,15 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
+use serde::{Deserialize, Serialize};
+
 use crate::message::{Message, Outgoing, SharedMessage};
+use crate::metrics::{
+    charge_helper_threads, process_cpu_seconds, resident_mib, thread_cpu_seconds,
+};
 use crate::module::{
-    module_seed, Module, ModuleError, ResourceProbe, SetupContext, StepInfo, Usage,
+    module_seed, AnyModule, Module, ModuleError, RemoteModule, ResourceProbe, SetupContext,
+    StepInfo, Usage,
 };
 use crate::recorder::{RecordError, Recorder, TimingRow, CORE};
 use crate::topic::{validate_topic, Pattern};
@@ -83,7 +90,7 @@ pub struct ModuleSpec {
     /// `None`: the module's own default subscriptions.
     pub subscribe: Option<Vec<String>>,
     pub params: serde_json::Value,
-    pub module: Box<dyn Module>,
+    pub module: AnyModule,
 }
 
 struct Slot {
@@ -94,7 +101,7 @@ struct Slot {
     subs: Vec<Pattern>,
     seed: u64,
     params: serde_json::Value,
-    module: Box<dyn Module>,
+    module: AnyModule,
     inbox: Vec<SharedMessage>,
     set_up: bool,
 }
@@ -133,7 +140,10 @@ pub struct Engine {
     routes: HashMap<String, Arc<[usize]>>,
     recorder: Option<Recorder>,
     next_step: u64,
-    ended: bool,
+    /// Set when the episode ended before its planned steps ran out (or had none).
+    end: Option<EndReason>,
+    /// The module that published [`END_TOPIC`], when that ended the episode.
+    ended_by: Option<String>,
     started: Option<Instant>,
     wall_s: f64,
     record_s: f64,
@@ -141,86 +151,37 @@ pub struct Engine {
     probe: Option<Box<dyn ResourceProbe>>,
 }
 
-pub(crate) fn thread_cpu_seconds() -> f64 {
-    cpu_clock(libc::CLOCK_THREAD_CPUTIME_ID)
+/// Why an episode ended (`end_reason` in run.json).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum EndReason {
+    /// The configured number of steps ran.
+    Steps,
+    /// A module published [`END_TOPIC`].
+    Module,
+    /// A module, the recorder or a publication failed.
+    Error,
+    /// The host asked to stop (Ctrl-C).
+    Interrupted,
+    /// The host closed the episode before its end (`Simulation.close()`).
+    Closed,
 }
 
-/// CPU time of all threads of this process, in seconds.
-pub(crate) fn process_cpu_seconds() -> f64 {
-    cpu_clock(libc::CLOCK_PROCESS_CPUTIME_ID)
+/// An in-process module's step, ready to run.
+struct LocalStep<'a> {
+    slot: usize,
+    module: &'a mut Box<dyn Module>,
+    inbox: Vec<SharedMessage>,
 }
 
-fn cpu_clock(clock: libc::clockid_t) -> f64 {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: clock_gettime writes into the timespec we own.
-    unsafe { libc::clock_gettime(clock, &mut ts) };
-    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
+/// A remote module's step, ready to start.
+struct RemoteStep<'a> {
+    slot: usize,
+    module: &'a mut Box<dyn RemoteModule>,
+    inbox: Vec<SharedMessage>,
 }
 
-/// Work that a module hands to threads of its own (Dr.Jit's pool, a plugin's thread
-/// pool) does not show on the thread that ran its step. The process's CPU time over the
-/// stage beyond what the in-process modules' own threads used is therefore shared among
-/// them, in proportion to their own CPU time (their wall time where that is all zero):
-/// a module alone in its stage is charged the process's CPU time of its step. Remote
-/// modules report their own process's time and take no share.
-fn charge_helper_threads(ran: &mut [Ran], process_cpu_s: f64) {
-    let mut local: Vec<&mut Ran> = ran.iter_mut().filter(|r| r.reported.is_none()).collect();
-    let own: f64 = local.iter().map(|r| r.cpu_s).sum();
-    let extra = process_cpu_s - own;
-    if local.is_empty() || extra <= 0.0 {
-        return;
-    }
-    let by_cpu = own > 0.0;
-    let total = if by_cpu {
-        own
-    } else {
-        local.iter().map(|r| r.wall_s).sum()
-    };
-    let count = local.len() as f64;
-    for r in local.iter_mut() {
-        let weight = if by_cpu { r.cpu_s } else { r.wall_s };
-        r.cpu_s += if total > 0.0 {
-            extra * weight / total
-        } else {
-            extra / count
-        };
-    }
-}
-
-/// Resident set size of this process in MiB (Linux; NaN elsewhere).
-pub(crate) fn resident_mib() -> f64 {
-    use std::os::unix::fs::FileExt;
-    use std::sync::OnceLock;
-    // Opened once and read with pread: one system call per reading (open + read + close
-    // cost about 6 µs, three times per step).
-    static STATM: OnceLock<Option<(std::fs::File, f64)>> = OnceLock::new();
-    let Some((file, page_mib)) = STATM.get_or_init(|| {
-        // SAFETY: sysconf has no preconditions.
-        let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) } as f64;
-        std::fs::File::open("/proc/self/statm")
-            .ok()
-            .map(|f| (f, page / (1024.0 * 1024.0)))
-    }) else {
-        return f64::NAN;
-    };
-    let mut buf = [0u8; 128];
-    let Ok(n) = file.read_at(&mut buf, 0) else {
-        return f64::NAN;
-    };
-    let pages = std::str::from_utf8(&buf[..n]).ok().and_then(|t| {
-        t.split_whitespace()
-            .nth(1)
-            .and_then(|v| v.parse::<f64>().ok())
-    });
-    pages.map_or(f64::NAN, |p| p * page_mib)
-}
-
-/// A module slot with its index, as a stage runs it.
-type Indexed<'a> = (usize, &'a mut Slot);
-
+/// What running one module's step gave.
 struct Ran {
     slot: usize,
     result: Result<Vec<Outgoing>, ModuleError>,
@@ -231,40 +192,28 @@ struct Ran {
     msgs_in: u32,
 }
 
-fn run_slot(i: usize, slot: &mut Slot, at: StepInfo) -> Ran {
-    let inbox = std::mem::take(&mut slot.inbox);
+fn run_local(s: &mut LocalStep, at: StepInfo) -> Ran {
     let (t0, c0) = (Instant::now(), thread_cpu_seconds());
     let mut out = Vec::new();
-    let result = slot.module.step(at, &inbox, &mut out).map(|()| out);
+    let result = s.module.step(at, &s.inbox, &mut out).map(|()| out);
     Ran {
-        slot: i,
+        slot: s.slot,
         result,
         wall_s: t0.elapsed().as_secs_f64(),
         cpu_s: thread_cpu_seconds() - c0,
         reported: None,
-        msgs_in: inbox.len() as u32,
+        msgs_in: s.inbox.len() as u32,
     }
 }
 
-/// A remote module's step, started and not yet finished.
-struct Started {
-    slot: usize,
-    msgs_in: u32,
-    started: Result<(), ModuleError>,
+/// Starts a remote module's step; `finish_remote` waits for it.
+fn start_remote(s: &mut RemoteStep, at: StepInfo) -> Result<(), ModuleError> {
+    s.module.start_step(at, &s.inbox)
 }
 
-fn start_remote(i: usize, slot: &mut Slot, at: StepInfo) -> Started {
-    let inbox = std::mem::take(&mut slot.inbox);
-    Started {
-        slot: i,
-        msgs_in: inbox.len() as u32,
-        started: slot.module.start_step(at, &inbox),
-    }
-}
-
-fn finish_remote(s: Started, slot: &mut Slot) -> Ran {
+fn finish_remote(s: RemoteStep, started: Result<(), ModuleError>) -> Ran {
     let mut out = Vec::new();
-    let result = s.started.and_then(|()| slot.module.finish_step(&mut out));
+    let result = started.and_then(|()| s.module.finish_step(&mut out));
     let usage = result.as_ref().ok().copied().unwrap_or(Usage {
         wall_s: 0.0,
         cpu_s: 0.0,
@@ -278,8 +227,26 @@ fn finish_remote(s: Started, slot: &mut Slot) -> Ran {
         wall_s: usage.wall_s,
         cpu_s: usage.cpu_s,
         reported: Some(usage),
-        msgs_in: s.msgs_in,
+        msgs_in: s.inbox.len() as u32,
     }
+}
+
+/// What the process looked like after a stage: charged to each in-process module of it.
+#[derive(Clone, Copy)]
+struct StageSample {
+    rss_mib: f64,
+    gpu: Option<(f64, f64)>,
+}
+
+/// A step in progress: what its stages published and how it is going.
+struct StepState {
+    at: StepInfo,
+    published: Vec<SharedMessage>,
+    /// Module work of the step: each stage's slowest member.
+    module_wall: f64,
+    failure: Option<EngineError>,
+    /// The first module that published [`END_TOPIC`].
+    end_by: Option<String>,
 }
 
 impl Engine {
@@ -323,7 +290,8 @@ impl Engine {
             routes: HashMap::new(),
             recorder,
             next_step: 0,
-            ended: false,
+            end: None,
+            ended_by: None,
             started: None,
             wall_s: 0.0,
             record_s: 0.0,
@@ -359,7 +327,22 @@ impl Engine {
     }
 
     pub fn is_done(&self) -> bool {
-        self.ended || self.opts.steps.is_some_and(|n| self.next_step >= n)
+        self.end_reason().is_some()
+    }
+
+    /// Why the episode ended; `None` while it goes on.
+    pub fn end_reason(&self) -> Option<EndReason> {
+        self.end.or_else(|| {
+            self.opts
+                .steps
+                .is_some_and(|n| self.next_step >= n)
+                .then_some(EndReason::Steps)
+        })
+    }
+
+    /// The module that ended the episode by publishing [`END_TOPIC`].
+    pub fn ended_by(&self) -> Option<&str> {
+        self.ended_by.as_deref()
     }
 
     /// Virtual time covered by the steps done so far, in seconds.
@@ -433,117 +416,184 @@ impl Engine {
         if self.is_done() {
             return Ok(None);
         }
-        self.setup()?;
-        let step = self.next_step;
-        let at = StepInfo {
-            step,
-            time: step as f64 * self.opts.ts,
-        };
-        let t_step = Instant::now();
-        let mut published = Vec::new();
-        let mut module_wall = 0.0;
-        let mut failure = None;
-        let mut end = false;
+        let result = self.setup().and_then(|()| self.run_step());
+        if result.is_err() {
+            self.end.get_or_insert(EndReason::Error);
+        }
+        result.map(Some)
+    }
 
+    /// The stages of the next step in order, each: run → account → deliver; then the
+    /// step's record.
+    fn run_step(&mut self) -> Result<StepReport, EngineError> {
+        let step = self.next_step;
+        let t_step = Instant::now();
+        let mut state = StepState {
+            at: StepInfo {
+                step,
+                time: step as f64 * self.opts.ts,
+            },
+            published: Vec::new(),
+            module_wall: 0.0,
+            failure: None,
+            end_by: None,
+        };
         for stage in 0..self.opts.stages.len() {
-            let stage_start = published.len();
+            let stage_start = state.published.len();
             let (t_stage, cpu_stage) = (Instant::now(), process_cpu_seconds());
-            let mut ran = self.run_stage(stage, at);
+            let mut ran = self.run_stage(stage, state.at);
             let stage_wall = t_stage.elapsed().as_secs_f64();
-            charge_helper_threads(&mut ran, process_cpu_seconds() - cpu_stage);
-            // Modules of one process share its memory: the process's size after the stage
-            // is what each module of the stage is charged with (NATS workers report their own).
-            let sampled = self.recorder.is_some() && !ran.is_empty();
-            let rss_mib = if sampled { resident_mib() } else { f64::NAN };
-            let gpu = if sampled {
-                self.probe.as_mut().and_then(|p| p.sample())
-            } else {
-                None
-            };
-            // The stage's share of module work is its slowest member (they ran side by side).
-            module_wall += ran
-                .iter()
-                .map(|r| r.wall_s)
-                .fold(0.0, f64::max)
-                .min(stage_wall);
-            ran.sort_by_key(|r| r.slot);
-            for r in ran {
-                let name = self.slots[r.slot].name.clone();
-                let outgoing = match r.result {
-                    Ok(out) => out,
-                    Err(error) => {
-                        failure.get_or_insert(EngineError::Module {
-                            module: name.clone(),
-                            phase: "step",
-                            step: Some(step),
-                            time: Some(at.time),
-                            error,
-                        });
-                        Vec::new()
-                    }
-                };
-                if let Some(rec) = &mut self.recorder {
-                    let (rss_mib, gpu_util_pct, gpu_mem_mib) = match r.reported {
-                        Some(u) => (u.rss_mib, u.gpu_util_pct, u.gpu_mem_mib),
-                        None => (rss_mib, gpu.map(|g| g.0), gpu.map(|g| g.1)),
-                    };
-                    rec.record_timing(&TimingRow {
-                        step,
-                        time: at.time,
-                        module: name.clone(),
-                        wall_s: r.wall_s,
-                        cpu_s: r.cpu_s,
-                        rss_mib,
-                        msgs_in: r.msgs_in,
-                        msgs_out: outgoing.len() as u32,
-                        gpu_util_pct,
-                        gpu_mem_mib,
-                    });
-                }
-                for o in outgoing {
-                    if let Err(reason) = check_publish(&o.topic) {
-                        failure.get_or_insert(EngineError::Publish {
-                            module: name.clone(),
-                            step,
-                            topic: o.topic,
-                            reason,
-                        });
-                        continue;
-                    }
-                    end |= o.topic == END_TOPIC;
-                    let msg = Arc::new(Message {
-                        step,
-                        time: at.time,
-                        topic: o.topic,
-                        source: name.clone(),
-                        payload: o.payload,
-                    });
-                    for &j in self.subscribers(&msg.topic).iter() {
-                        self.slots[j].inbox.push(msg.clone());
-                    }
-                    if let Some(rec) = &mut self.recorder {
-                        rec.record_message(&msg);
-                    }
-                    published.push(msg);
-                }
-            }
+            let sample = self.account(&mut ran, stage_wall, cpu_stage, &mut state);
+            self.deliver(ran, sample, &mut state);
             if let Some(tap) = &mut self.tap {
-                tap(&published[stage_start..]);
+                tap(&state.published[stage_start..]);
             }
-            if failure.is_some() {
+            if state.failure.is_some() {
                 break;
             }
         }
-
         let wall_s = t_step.elapsed().as_secs_f64();
         self.next_step += 1;
+        let record_s = self.record_step(&state, wall_s)?;
+        let wall_s = wall_s + record_s;
+        self.wall_s += wall_s;
+        if let Some(f) = state.failure {
+            return Err(f);
+        }
+        if let Some(module) = state.end_by {
+            self.end = Some(EndReason::Module);
+            self.ended_by = Some(module);
+        }
+        Ok(StepReport {
+            step,
+            time: state.at.time,
+            messages: state.published,
+            wall_s,
+            ended: self.is_done(),
+        })
+    }
+
+    /// Charges the stage's CPU time and samples the process for its modules' timings.
+    fn account(
+        &mut self,
+        ran: &mut [Ran],
+        stage_wall: f64,
+        cpu_before: f64,
+        state: &mut StepState,
+    ) -> StageSample {
+        let local = ran.iter_mut().filter(|r| r.reported.is_none());
+        charge_helper_threads(
+            local.map(|r| (&mut r.cpu_s, r.wall_s)),
+            process_cpu_seconds() - cpu_before,
+        );
+        // Modules of one process share its memory: the process's size after the stage
+        // is what each module of the stage is charged with (NATS workers report their own).
+        let sampled = self.recorder.is_some() && !ran.is_empty();
+        let sample = StageSample {
+            rss_mib: if sampled { resident_mib() } else { f64::NAN },
+            gpu: if sampled {
+                self.probe.as_mut().and_then(|p| p.sample())
+            } else {
+                None
+            },
+        };
+        // The stage's share of module work is its slowest member (they ran side by side).
+        state.module_wall += ran
+            .iter()
+            .map(|r| r.wall_s)
+            .fold(0.0, f64::max)
+            .min(stage_wall);
+        sample
+    }
+
+    /// Records each module's timing and routes what it published, in module order.
+    fn deliver(&mut self, mut ran: Vec<Ran>, sample: StageSample, state: &mut StepState) {
+        ran.sort_by_key(|r| r.slot);
+        let at = state.at;
+        for r in ran {
+            let name = self.slots[r.slot].name.clone();
+            let outgoing = match r.result {
+                Ok(out) => out,
+                Err(error) => {
+                    state.failure.get_or_insert(EngineError::Module {
+                        module: name.clone(),
+                        phase: "step",
+                        step: Some(at.step),
+                        time: Some(at.time),
+                        error,
+                    });
+                    Vec::new()
+                }
+            };
+            if let Some(rec) = &mut self.recorder {
+                let (rss_mib, gpu_util_pct, gpu_mem_mib) = match r.reported {
+                    Some(u) => (u.rss_mib, u.gpu_util_pct, u.gpu_mem_mib),
+                    None => (
+                        sample.rss_mib,
+                        sample.gpu.map(|g| g.0),
+                        sample.gpu.map(|g| g.1),
+                    ),
+                };
+                rec.record_timing(&TimingRow {
+                    step: at.step,
+                    time: at.time,
+                    module: name.clone(),
+                    wall_s: r.wall_s,
+                    cpu_s: r.cpu_s,
+                    rss_mib,
+                    msgs_in: r.msgs_in,
+                    msgs_out: outgoing.len() as u32,
+                    gpu_util_pct,
+                    gpu_mem_mib,
+                });
+            }
+            for o in outgoing {
+                self.publish(&name, o, state);
+            }
+        }
+    }
+
+    /// Checks one outgoing message, hands it to its subscribers and the recorder.
+    fn publish(&mut self, name: &str, o: Outgoing, state: &mut StepState) {
+        let at = state.at;
+        if let Err(reason) = check_publish(&o.topic) {
+            state.failure.get_or_insert(EngineError::Publish {
+                module: name.to_string(),
+                step: at.step,
+                topic: o.topic,
+                reason,
+            });
+            return;
+        }
+        if o.topic == END_TOPIC && state.end_by.is_none() {
+            state.end_by = Some(name.to_string());
+        }
+        let msg = Arc::new(Message {
+            step: at.step,
+            time: at.time,
+            topic: o.topic,
+            source: name.to_string(),
+            payload: o.payload,
+        });
+        for &j in self.subscribers(&msg.topic).iter() {
+            self.slots[j].inbox.push(msg.clone());
+        }
+        if let Some(rec) = &mut self.recorder {
+            rec.record_message(&msg);
+        }
+        state.published.push(msg);
+    }
+
+    /// The core's own timing row, then the step's messages to disk (all of them, or
+    /// what there is after a failure). Returns the seconds that took.
+    fn record_step(&mut self, state: &StepState, wall_s: f64) -> Result<f64, EngineError> {
         let t_record = Instant::now();
         if let Some(rec) = &mut self.recorder {
             rec.record_timing(&TimingRow {
-                step,
-                time: at.time,
+                step: state.at.step,
+                time: state.at.time,
                 module: CORE.into(),
-                wall_s: (wall_s - module_wall).max(0.0),
+                wall_s: (wall_s - state.module_wall).max(0.0),
                 cpu_s: 0.0,
                 rss_mib: resident_mib(),
                 msgs_in: 0,
@@ -551,7 +601,7 @@ impl Engine {
                 gpu_util_pct: None,
                 gpu_mem_mib: None,
             });
-            if failure.is_some() {
+            if state.failure.is_some() {
                 rec.flush()?;
             } else {
                 rec.end_step()?;
@@ -559,55 +609,56 @@ impl Engine {
         }
         let record_s = t_record.elapsed().as_secs_f64();
         self.record_s += record_s;
-        let wall_s = wall_s + record_s;
-        self.wall_s += wall_s;
-        if let Some(f) = failure {
-            self.ended = true;
-            return Err(f);
-        }
-        self.ended |= end;
-        Ok(Some(StepReport {
-            step,
-            time: at.time,
-            messages: published,
-            wall_s,
-            ended: self.is_done(),
-        }))
+        Ok(record_s)
     }
 
     fn run_stage(&mut self, stage: usize, at: StepInfo) -> Vec<Ran> {
-        let (remote, local): (Vec<Indexed>, Vec<Indexed>) = self
-            .slots
-            .iter_mut()
-            .enumerate()
-            .filter(|(_, s)| s.stage == stage && s.runs_at(at.step))
-            .partition(|(_, s)| s.module.remote());
+        let (mut remote, mut parallel, mut serial) = (Vec::new(), Vec::new(), Vec::new());
+        for (i, slot) in self.slots.iter_mut().enumerate() {
+            if slot.stage != stage || !slot.runs_at(at.step) {
+                continue;
+            }
+            let inbox = std::mem::take(&mut slot.inbox);
+            match &mut slot.module {
+                AnyModule::Remote(module) => remote.push(RemoteStep {
+                    slot: i,
+                    module,
+                    inbox,
+                }),
+                AnyModule::Local(module) => {
+                    let concurrent = module.concurrent();
+                    let s = LocalStep {
+                        slot: i,
+                        module,
+                        inbox,
+                    };
+                    if concurrent {
+                        &mut parallel
+                    } else {
+                        &mut serial
+                    }
+                    .push(s);
+                }
+            }
+        }
         // Remote modules first: they work while this process runs the local ones.
-        let mut remote: Vec<(Started, &mut Slot)> = remote
-            .into_iter()
-            .map(|(i, s)| (start_remote(i, s, at), s))
-            .collect();
-        let (mut parallel, mut serial): (Vec<Indexed>, Vec<Indexed>) =
-            local.into_iter().partition(|(_, s)| s.module.concurrent());
+        let started: Vec<_> = remote.iter_mut().map(|s| start_remote(s, at)).collect();
         let mut ran = if parallel.len() <= 1 {
             // Not worth a thread hop.
             serial.append(&mut parallel);
-            serial
-                .into_iter()
-                .map(|(i, s)| run_slot(i, s, at))
-                .collect()
+            serial.iter_mut().map(|s| run_local(s, at)).collect()
         } else {
             let (mut a, b) = rayon::join(
                 || {
                     parallel
                         .par_iter_mut()
-                        .map(|(i, s)| run_slot(*i, s, at))
+                        .map(|s| run_local(s, at))
                         .collect::<Vec<_>>()
                 },
                 || {
                     serial
-                        .into_iter()
-                        .map(|(i, s)| run_slot(i, s, at))
+                        .iter_mut()
+                        .map(|s| run_local(s, at))
                         .collect::<Vec<_>>()
                 },
             );
@@ -616,8 +667,9 @@ impl Engine {
         };
         ran.extend(
             remote
-                .drain(..)
-                .map(|(started, slot)| finish_remote(started, slot)),
+                .into_iter()
+                .zip(started)
+                .map(|(s, r)| finish_remote(s, r)),
         );
         ran
     }
@@ -630,7 +682,7 @@ impl Engine {
     ) -> Result<(), EngineError> {
         while let Some(report) = self.step()? {
             if !after_step(self, &report) && !report.ended {
-                self.ended = true;
+                self.end = Some(EndReason::Interrupted);
                 return Err(EngineError::Interrupted { step: report.step });
             }
         }
@@ -640,6 +692,9 @@ impl Engine {
     /// Tears the modules down and finishes the recording. Call once, also after a
     /// failed step: whatever was recorded is then compacted and readable.
     pub fn close(&mut self) -> Result<(), EngineError> {
+        if self.end_reason().is_none() {
+            self.end = Some(EndReason::Closed);
+        }
         let mut first = None;
         for slot in self.slots.iter_mut().filter(|s| s.set_up) {
             slot.set_up = false;

@@ -3,23 +3,51 @@
 //! The core owns virtual time, stages and barriers ([`engine`]), routes messages on
 //! NATS-style topics ([`topic`]), records every message ([`recorder`]) and reads the
 //! experiment from one TOML file ([`config`]). It knows nothing of radio, UAVs or AI:
-//! that is the plugins' work, behind the small [`module::Module`] contract.
+//! that is the plugins' work, behind the small [`module::Module`] contract (and
+//! [`module::RemoteModule`] for modules that run elsewhere).
+//!
+//! # Dependency order
+//!
+//! Each module uses only modules listed before it (none imports a module that
+//! imports it back); transports are leaves that only the run reaches:
+//!
+//! 1. [`topic`], [`message`], [`metrics`]: leaves
+//! 2. [`module`] (message)
+//! 3. [`recorder`] (message, topic)
+//! 4. [`config`] (topic)
+//! 5. [`replay`] (config, message, module, recorder, topic)
+//! 6. [`engine`] (message, metrics, module, recorder, topic)
+//! 7. [`assembly`] (config, engine, module, replay, topic): built-in plugin names,
+//!    `build_modules`, `PrepareError`, wiring warnings
+//! 8. [`status`] (config, engine): run.json
+//! 9. [`transport::nats`] (assembly, config, engine, message, metrics, module, topic)
+//! 10. [`run`] (assembly, config, engine, module, recorder, status, topic, transport)
+//! 11. [`cli`] (assembly, config, engine, recorder, run, status)
+//! 12. `python` (feature `python`: the `caviar._core` extension; everything above)
 
+pub mod assembly;
 pub mod cli;
 pub mod config;
 pub mod engine;
 pub mod message;
+pub mod metrics;
 pub mod module;
-pub mod nats;
 pub mod recorder;
 pub mod replay;
 pub mod run;
+pub mod status;
 pub mod topic;
+pub mod transport;
 
 #[cfg(feature = "python")]
 mod python;
 
 pub use config::{ConfigError, LoadedConfig};
-pub use engine::{Engine, EngineError, EngineOptions, ModuleSpec, StepReport, END_TOPIC};
+pub use engine::{
+    EndReason, Engine, EngineError, EngineOptions, ModuleSpec, StepReport, END_TOPIC,
+};
 pub use message::{Message, Outgoing, Payload, SharedMessage};
-pub use module::{Module, ModuleError, ResourceProbe, SetupContext, StepInfo, Usage};
+pub use module::{
+    AnyModule, Module, ModuleError, RemoteModule, ResourceProbe, SetupContext, StepInfo, Usage,
+};
+pub use status::{RunState, RunStatus};

@@ -2,7 +2,10 @@
 //!
 //! The core calls `setup` once, then `step` at each of the module's steps with the
 //! messages it received since its previous step, then `teardown` once. Where a
-//! module runs (this process, a Python plugin, another machine) is not its concern.
+//! module runs (this process, a Python plugin, another machine) is not its concern:
+//! in-process modules implement [`Module`], modules that run elsewhere (a transport's)
+//! implement [`RemoteModule`], whose step is started and finished apart, and the
+//! engine holds either as an [`AnyModule`].
 
 use std::path::PathBuf;
 
@@ -83,10 +86,18 @@ pub trait ResourceProbe: Send {
     fn sample(&mut self) -> Option<(f64, f64)>;
 }
 
+/// A module that runs in this process: the engine calls `step` and waits for it.
 pub trait Module: Send {
     /// Subscription patterns used when the config gives none.
     fn default_subscriptions(&self) -> Vec<String> {
         Vec::new()
+    }
+
+    /// Topics (or patterns) the module may publish; `None`: not declared (it may
+    /// publish anything). Only `caviar-core validate` reads it, to warn about
+    /// subscriptions nobody feeds and publications nobody reads.
+    fn publishes(&self) -> Option<Vec<String>> {
+        None
     }
 
     fn setup(&mut self, _ctx: &SetupContext) -> Result<(), ModuleError> {
@@ -111,22 +122,99 @@ pub trait Module: Send {
     fn concurrent(&self) -> bool {
         true
     }
+}
 
-    /// True for a module that runs elsewhere (a NATS worker). The engine then calls
-    /// `start_step` on every remote module of a stage before it waits for any of them
-    /// with `finish_step`: remote modules run side by side without a thread each.
-    fn remote(&self) -> bool {
-        false
+/// A module that runs elsewhere (a NATS worker). A step is split in two: the engine
+/// calls `start_step` on every remote module of a stage before it waits for any of
+/// them with `finish_step`, so remote modules run side by side without a thread each.
+///
+/// The split belongs to remote modules only: a local module has no `start_step`.
+///
+/// ```compile_fail
+/// use caviar_core::{Module, StepInfo};
+/// fn start(m: &mut dyn Module) {
+///     let _ = m.start_step(StepInfo { step: 0, time: 0.0 }, &[]);
+/// }
+/// ```
+pub trait RemoteModule: Send {
+    /// Subscription patterns used when the config gives none.
+    fn default_subscriptions(&self) -> Vec<String> {
+        Vec::new()
     }
 
-    /// Hands the step off and returns without waiting (remote modules only).
-    fn start_step(&mut self, _at: StepInfo, _inbox: &[SharedMessage]) -> Result<(), ModuleError> {
-        Err(ModuleError::new("start_step is only for remote modules"))
+    /// As [`Module::publishes`].
+    fn publishes(&self) -> Option<Vec<String>> {
+        None
     }
+
+    fn setup(&mut self, _ctx: &SetupContext) -> Result<(), ModuleError> {
+        Ok(())
+    }
+
+    /// Hands the step off and returns without waiting.
+    fn start_step(&mut self, at: StepInfo, inbox: &[SharedMessage]) -> Result<(), ModuleError>;
 
     /// Waits for the step started by `start_step`; returns what it cost where it ran.
-    fn finish_step(&mut self, _out: &mut Vec<Outgoing>) -> Result<Usage, ModuleError> {
-        Err(ModuleError::new("finish_step is only for remote modules"))
+    fn finish_step(&mut self, out: &mut Vec<Outgoing>) -> Result<Usage, ModuleError>;
+
+    fn teardown(&mut self) -> Result<(), ModuleError> {
+        Ok(())
+    }
+}
+
+/// A module as the engine holds it: run here, or elsewhere.
+pub enum AnyModule {
+    Local(Box<dyn Module>),
+    Remote(Box<dyn RemoteModule>),
+}
+
+impl AnyModule {
+    pub fn local(module: impl Module + 'static) -> Self {
+        AnyModule::Local(Box::new(module))
+    }
+
+    pub fn remote(module: impl RemoteModule + 'static) -> Self {
+        AnyModule::Remote(Box::new(module))
+    }
+
+    pub fn default_subscriptions(&self) -> Vec<String> {
+        match self {
+            AnyModule::Local(m) => m.default_subscriptions(),
+            AnyModule::Remote(m) => m.default_subscriptions(),
+        }
+    }
+
+    pub fn publishes(&self) -> Option<Vec<String>> {
+        match self {
+            AnyModule::Local(m) => m.publishes(),
+            AnyModule::Remote(m) => m.publishes(),
+        }
+    }
+
+    pub fn setup(&mut self, ctx: &SetupContext) -> Result<(), ModuleError> {
+        match self {
+            AnyModule::Local(m) => m.setup(ctx),
+            AnyModule::Remote(m) => m.setup(ctx),
+        }
+    }
+
+    pub fn teardown(&mut self) -> Result<(), ModuleError> {
+        match self {
+            AnyModule::Local(m) => m.teardown(),
+            AnyModule::Remote(m) => m.teardown(),
+        }
+    }
+}
+
+impl From<Box<dyn Module>> for AnyModule {
+    fn from(m: Box<dyn Module>) -> Self {
+        AnyModule::Local(m)
+    }
+}
+
+impl From<Box<dyn RemoteModule>> for AnyModule {
+    fn from(m: Box<dyn RemoteModule>) -> Self {
+        AnyModule::Remote(m)
     }
 }
 

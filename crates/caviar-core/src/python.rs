@@ -1,19 +1,30 @@
 //! The `caviar._core` extension: hosts Python plugins in-process and exposes the
 //! engine to Python. The Python side of the bridge is `caviar/_host.py`; this file
-//! only moves tuples across and turns Python exceptions into module errors.
+//! moves messages across ([`RawMessage`]), turns Python exceptions into module errors
+//! and exposes the core's topic matching and NATS wire format, so that Python does
+//! not write them a second time. `caviar/_core.pyi` describes all of it.
 
 use std::path::PathBuf;
 
-use pyo3::exceptions::PyRuntimeError;
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
-use pyo3::types::{PyBytes, PyList, PyTuple};
+use pyo3::types::{PyBytes, PyList, PyString};
 
+use crate::assembly::PrepareError;
 use crate::config::{self, ConfigError, LoadedConfig};
 use crate::engine::{Engine, EngineError};
-use crate::message::{Outgoing, Payload, SharedMessage};
-use crate::module::{Module, ModuleError, ResourceProbe, SetupContext, StepInfo};
-use crate::nats::WorkerLauncher;
-use crate::run::{prepare, write_status, PluginLoader, PrepareError};
+use crate::message::{Message, Outgoing, Payload, SharedMessage};
+use crate::module::{Module, ModuleError, ResourceProbe, SetupContext, StepInfo, Usage};
+use crate::run::{prepare, PluginLoader};
+use crate::status::{write_status, RunState};
+use crate::transport::nats::wire::{self, WireError};
+use crate::transport::nats::WorkerLauncher;
+
+/// The exception classes of `caviar.errors`, raised from here.
+mod errors {
+    pyo3::import_exception!(caviar.errors, ConfigError);
+    pyo3::import_exception!(caviar.errors, RunError);
+}
 
 fn host(py: Python<'_>) -> PyResult<Bound<'_, PyModule>> {
     py.import("caviar._host")
@@ -33,11 +44,17 @@ fn module_error(py: Python<'_>, err: PyErr) -> ModuleError {
 struct PyPlugin {
     hosted: Py<PyAny>,
     subscriptions: Vec<String>,
+    /// Empty: not declared.
+    publishes: Vec<String>,
 }
 
 impl Module for PyPlugin {
     fn default_subscriptions(&self) -> Vec<String> {
         self.subscriptions.clone()
+    }
+
+    fn publishes(&self) -> Option<Vec<String>> {
+        (!self.publishes.is_empty()).then(|| self.publishes.clone())
     }
 
     fn setup(&mut self, ctx: &SetupContext) -> Result<(), ModuleError> {
@@ -65,7 +82,7 @@ impl Module for PyPlugin {
         out: &mut Vec<Outgoing>,
     ) -> Result<(), ModuleError> {
         Python::with_gil(|py| {
-            let raw = inbox_to_python(py, inbox).map_err(|e| module_error(py, e))?;
+            let raw = raw_messages(py, inbox).map_err(|e| module_error(py, e))?;
             let result = self
                 .hosted
                 .call_method1(py, "step", (at.step, at.time, raw))
@@ -88,34 +105,83 @@ impl Module for PyPlugin {
     }
 }
 
-/// Messages as tuples `(step, time, topic, source, kind, body, meta)`; `_host` makes
-/// `caviar.Message` objects of them and decodes payloads only when asked.
-fn inbox_to_python<'py>(py: Python<'py>, inbox: &[SharedMessage]) -> PyResult<Bound<'py, PyList>> {
-    let items = inbox
-        .iter()
-        .map(|m| message_tuple(py, m))
-        .collect::<PyResult<Vec<_>>>()?;
-    PyList::new(py, items)
+/// A routed message as it crosses to Python: `caviar.Message` is made of it, and
+/// decodes the payload only when asked. `body` is `str` for JSON and artifacts (the
+/// JSON text, the artifact's path in the run directory), `bytes` for binary payloads.
+#[pyclass(frozen, get_all, module = "caviar._core")]
+struct RawMessage {
+    step: u64,
+    time: f64,
+    topic: String,
+    source: String,
+    kind: String,
+    body: Py<PyAny>,
+    meta: Option<String>,
 }
 
-fn message_tuple<'py>(py: Python<'py>, m: &SharedMessage) -> PyResult<Bound<'py, PyTuple>> {
-    let kind = m.payload.kind().as_str();
-    let (body, meta): (Bound<'py, PyAny>, Option<&str>) = match &m.payload {
-        Payload::Json(text) | Payload::Artifact(text) => (text.into_pyobject(py)?.into_any(), None),
-        Payload::Binary { meta, data } => (PyBytes::new(py, data).into_any(), Some(meta.as_str())),
-    };
-    PyTuple::new(
-        py,
-        [
-            m.step.into_pyobject(py)?.into_any(),
-            m.time.into_pyobject(py)?.into_any(),
-            m.topic.as_str().into_pyobject(py)?.into_any(),
-            m.source.as_str().into_pyobject(py)?.into_any(),
-            kind.into_pyobject(py)?.into_any(),
+#[pymethods]
+impl RawMessage {
+    #[new]
+    #[pyo3(signature = (step, time, topic, source, kind, body, meta=None))]
+    fn new(
+        step: u64,
+        time: f64,
+        topic: String,
+        source: String,
+        kind: String,
+        body: Py<PyAny>,
+        meta: Option<String>,
+    ) -> Self {
+        RawMessage {
+            step,
+            time,
+            topic,
+            source,
+            kind,
             body,
-            meta.into_pyobject(py)?.into_any(),
-        ],
-    )
+            meta,
+        }
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "RawMessage(step={}, topic={:?}, source={:?}, kind={:?})",
+            self.step, self.topic, self.source, self.kind
+        )
+    }
+}
+
+fn raw_message(py: Python<'_>, m: &Message) -> PyResult<RawMessage> {
+    let (body, meta): (Py<PyAny>, Option<&str>) = match &m.payload {
+        Payload::Json(text) | Payload::Artifact(text) => {
+            (PyString::new(py, text).into_any().unbind(), None)
+        }
+        Payload::Binary { meta, data } => (
+            PyBytes::new(py, data).into_any().unbind(),
+            Some(meta.as_str()),
+        ),
+    };
+    Ok(RawMessage {
+        step: m.step,
+        time: m.time,
+        topic: m.topic.clone(),
+        source: m.source.clone(),
+        kind: m.payload.kind().as_str().into(),
+        body,
+        meta: meta.map(String::from),
+    })
+}
+
+/// Messages as a list of [`RawMessage`].
+fn raw_messages<'py, M: std::borrow::Borrow<Message>>(
+    py: Python<'py>,
+    messages: &[M],
+) -> PyResult<Bound<'py, PyList>> {
+    let items = messages
+        .iter()
+        .map(|m| raw_message(py, m.borrow()))
+        .collect::<PyResult<Vec<_>>>()?;
+    PyList::new(py, items)
 }
 
 /// `_host` normalises a plugin's return value to a list of `(topic, kind, body, meta)`.
@@ -128,7 +194,10 @@ fn outgoing_from_python(result: &Bound<'_, PyAny>, out: &mut Vec<Outgoing>) -> P
             "artifact" => Payload::Artifact(body.extract()?),
             "binary" => Payload::Binary {
                 meta: meta.unwrap_or_else(|| "{}".into()),
-                data: body.extract::<Vec<u8>>()?,
+                data: match body.downcast::<PyBytes>() {
+                    Ok(b) => b.as_bytes().to_vec(),
+                    Err(_) => body.extract::<Vec<u8>>()?,
+                },
             },
             other => {
                 return Err(PyRuntimeError::new_err(format!(
@@ -211,13 +280,14 @@ impl PluginLoader for PyLoader {
             });
             match result {
                 Ok(tuple) => {
-                    let (hosted, subscriptions): (Py<PyAny>, Vec<String>) =
+                    let (hosted, subscriptions, publishes): (Py<PyAny>, Vec<String>, Vec<String>) =
                         tuple.extract().map_err(|e| {
                             cfg.error_at(&format!("modules.{name}.plugin"), e.to_string())
                         })?;
                     Ok(Box::new(PyPlugin {
                         hosted,
                         subscriptions,
+                        publishes,
                     }) as Box<dyn Module>)
                 }
                 Err(e) => {
@@ -240,25 +310,12 @@ impl PluginLoader for PyLoader {
     }
 }
 
-/// Instantiates an exception class of `caviar.errors` (or reports why it could not).
-fn caviar_error<'py>(
-    py: Python<'py>,
-    class: &str,
-    args: impl pyo3::call::PyCallArgs<'py>,
-) -> PyErr {
-    py.import("caviar.errors")
-        .and_then(|m| m.getattr(class))
-        .and_then(|cls| cls.call1(args))
-        .map(PyErr::from_value)
-        .unwrap_or_else(|err| err)
-}
-
-fn config_error(py: Python<'_>, e: impl ToString) -> PyErr {
-    caviar_error(py, "ConfigError", (e.to_string(),))
+fn config_error(e: impl ToString) -> PyErr {
+    errors::ConfigError::new_err((e.to_string(),))
 }
 
 /// Raises `caviar.errors.RunError` carrying module, phase and step.
-fn run_error(py: Python<'_>, e: &EngineError, run_dir: &std::path::Path) -> PyErr {
+fn run_error(e: &EngineError, run_dir: &std::path::Path) -> PyErr {
     let (module, phase, step) = match e {
         EngineError::Module {
             module,
@@ -272,17 +329,13 @@ fn run_error(py: Python<'_>, e: &EngineError, run_dir: &std::path::Path) -> PyEr
         EngineError::Interrupted { step } => (None, None, Some(*step)),
         EngineError::Record(_) => (None, None, None),
     };
-    caviar_error(
-        py,
-        "RunError",
-        (
-            e.to_string(),
-            module,
-            phase,
-            step,
-            run_dir.to_string_lossy().into_owned(),
-        ),
-    )
+    errors::RunError::new_err((
+        e.to_string(),
+        module,
+        phase,
+        step,
+        run_dir.to_string_lossy().into_owned(),
+    ))
 }
 
 /// An episode driven from Python. `caviar.Simulation` wraps it.
@@ -297,15 +350,10 @@ struct Episode {
 impl Episode {
     #[new]
     #[pyo3(signature = (path, overrides, out=None))]
-    fn new(
-        py: Python<'_>,
-        path: PathBuf,
-        overrides: Vec<String>,
-        out: Option<PathBuf>,
-    ) -> PyResult<Self> {
-        let cfg = config::load(&path, &overrides).map_err(|e| config_error(py, e))?;
+    fn new(path: PathBuf, overrides: Vec<String>, out: Option<PathBuf>) -> PyResult<Self> {
+        let cfg = config::load(&path, &overrides).map_err(config_error)?;
         let engine = prepare(&cfg, &PyLoader, out.as_deref()).map_err(|e| match e {
-            PrepareError::Config(c) => config_error(py, c),
+            PrepareError::Config(c) => config_error(c),
             PrepareError::Io(s) => pyo3::exceptions::PyOSError::new_err(s),
         })?;
         Ok(Episode {
@@ -315,14 +363,14 @@ impl Episode {
         })
     }
 
-    /// Runs one step; returns its messages as tuples, or None when the episode is over.
+    /// Runs one step; returns its messages, or None when the episode is over.
     fn step<'py>(&mut self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyList>>> {
         if self.closed {
             return Ok(None);
         }
         let engine = &mut self.engine;
         match py.allow_threads(|| engine.step()) {
-            Ok(Some(report)) => Ok(Some(inbox_to_python(py, &report.messages)?)),
+            Ok(Some(report)) => Ok(Some(raw_messages(py, &report.messages)?)),
             Ok(None) => Ok(None),
             Err(e) => Err(self.fail(py, e)),
         }
@@ -366,13 +414,13 @@ impl Episode {
         let engine = &mut self.engine;
         match py.allow_threads(|| engine.close()) {
             Ok(()) => {
-                write_status(&self.cfg, &self.engine, "completed", None)
+                write_status(&self.cfg, &self.engine, RunState::Completed, None)
                     .map_err(PyRuntimeError::new_err)?;
                 Ok(())
             }
             Err(e) => {
-                let _ = write_status(&self.cfg, &self.engine, "failed", Some(&e));
-                Err(run_error(py, &e, self.engine.run_dir()))
+                let _ = write_status(&self.cfg, &self.engine, RunState::Failed, Some(&e));
+                Err(run_error(&e, self.engine.run_dir()))
             }
         }
     }
@@ -410,12 +458,12 @@ impl Episode {
         let engine = &mut self.engine;
         let _ = py.allow_threads(|| engine.close());
         let status = if matches!(e, EngineError::Interrupted { .. }) {
-            "interrupted"
+            RunState::Interrupted
         } else {
-            "failed"
+            RunState::Failed
         };
         let _ = write_status(&self.cfg, &self.engine, status, Some(&e));
-        run_error(py, &e, self.engine.run_dir())
+        run_error(&e, self.engine.run_dir())
     }
 }
 
@@ -435,11 +483,98 @@ fn inspect(run_dir: PathBuf) -> PyResult<String> {
     crate::cli::inspect(&run_dir).map_err(pyo3::exceptions::PyValueError::new_err)
 }
 
+/// True if `topic` matches `pattern` (`*`: one token, `>`: the rest); ValueError
+/// for a pattern that is not valid.
+#[pyfunction]
+fn matches(pattern: &str, topic: &str) -> PyResult<bool> {
+    crate::topic::matches(pattern, topic).map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
+/// Resident memory of this process, MiB (NaN where it cannot tell).
+#[pyfunction]
+fn resident_mib() -> f64 {
+    crate::metrics::resident_mib()
+}
+
+/// A step request of the NATS protocol, decoded.
+#[pyclass(frozen, get_all, module = "caviar._core")]
+struct StepRequest {
+    protocol: u32,
+    step: u64,
+    time: f64,
+    shard: u64,
+    shards: u64,
+    messages: Py<PyList>,
+}
+
+/// Decodes a step request frame; ValueError if it is malformed or of another protocol.
+#[pyfunction]
+fn decode_request(py: Python<'_>, frame: &[u8]) -> PyResult<StepRequest> {
+    let (req, inbox) = wire::decode_request(frame).map_err(PyValueError::new_err)?;
+    Ok(StepRequest {
+        protocol: req.protocol,
+        step: req.step,
+        time: req.time,
+        shard: req.shard,
+        shards: req.shards,
+        messages: raw_messages(py, &inbox)?.unbind(),
+    })
+}
+
+/// Encodes a successful step reply: the step's messages as `_host` returns them and
+/// what the step cost.
+#[pyfunction]
+#[pyo3(signature = (out, wall_s, cpu_s, rss_mib=None, gpu=None))]
+fn encode_reply<'py>(
+    py: Python<'py>,
+    out: &Bound<'py, PyAny>,
+    wall_s: f64,
+    cpu_s: f64,
+    rss_mib: Option<f64>,
+    gpu: Option<(f64, f64)>,
+) -> PyResult<Bound<'py, PyBytes>> {
+    let mut messages = Vec::new();
+    outgoing_from_python(out, &mut messages)?;
+    let usage = Usage {
+        wall_s,
+        cpu_s,
+        rss_mib: rss_mib.unwrap_or(f64::NAN),
+        gpu_util_pct: gpu.map(|g| g.0),
+        gpu_mem_mib: gpu.map(|g| g.1),
+    };
+    Ok(PyBytes::new(py, &wire::encode_reply(&messages, usage)))
+}
+
+/// Encodes a failed step reply.
+#[pyfunction]
+#[pyo3(signature = (message, trace=None, key=None))]
+fn encode_failure(
+    py: Python<'_>,
+    message: String,
+    trace: Option<String>,
+    key: Option<String>,
+) -> Bound<'_, PyBytes> {
+    let error = WireError {
+        message,
+        trace,
+        key,
+    };
+    PyBytes::new(py, &wire::encode_failure(&error))
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add("PROTOCOL", wire::PROTOCOL)?;
     m.add_class::<Episode>()?;
+    m.add_class::<RawMessage>()?;
+    m.add_class::<StepRequest>()?;
     m.add_function(wrap_pyfunction!(main, m)?)?;
     m.add_function(wrap_pyfunction!(inspect, m)?)?;
+    m.add_function(wrap_pyfunction!(matches, m)?)?;
+    m.add_function(wrap_pyfunction!(resident_mib, m)?)?;
+    m.add_function(wrap_pyfunction!(decode_request, m)?)?;
+    m.add_function(wrap_pyfunction!(encode_reply, m)?)?;
+    m.add_function(wrap_pyfunction!(encode_failure, m)?)?;
     Ok(())
 }

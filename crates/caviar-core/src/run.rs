@@ -8,13 +8,14 @@ use std::fs;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::config::{ConfigError, LoadedConfig, ModuleConfig, TransportKind};
-use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec};
-use crate::module::{Module, ResourceProbe};
-use crate::nats::{self, WorkerLauncher};
+use crate::assembly::{build_modules, PrepareError, BRIDGE_PLUGIN, REPLAY_PLUGIN};
+use crate::config::{ConfigError, LoadedConfig, TransportKind};
+use crate::engine::{Engine, EngineOptions, ModuleSpec};
+use crate::module::{AnyModule, Module, ResourceProbe};
 use crate::recorder::Recorder;
-use crate::replay::{self, Replay};
+use crate::status::{write_status, RunState};
 use crate::topic::Pattern;
+use crate::transport::nats::{self, WorkerLauncher};
 
 /// Builds the module of a `[modules.NAME]` table. Loading and checking parameters
 /// happens here, before any run directory exists: a config error never starts a run.
@@ -42,19 +43,10 @@ impl PluginLoader for BuiltinsOnly {
             format!(
                 "'{}' is not a built-in module ({}) and this caviar-core binary has no Python; \
                  run the `caviar-core` installed with the Python package (pip install .)",
-                cfg.config.modules[name].plugin,
-                replay::PLUGIN
+                cfg.config.modules[name].plugin, REPLAY_PLUGIN
             ),
         ))
     }
-}
-
-#[derive(Debug, thiserror::Error)]
-pub enum PrepareError {
-    #[error("{0}")]
-    Config(#[from] ConfigError),
-    #[error("{0}")]
-    Io(String),
 }
 
 /// Loads every module of the configuration (what `validate` checks).
@@ -63,41 +55,13 @@ pub fn load_modules(
     loader: &dyn PluginLoader,
 ) -> Result<Vec<ModuleSpec>, ConfigError> {
     build_modules(cfg, |name, m| {
-        if m.plugin == nats::BRIDGE_PLUGIN {
-            // Needs a live NATS connection: built by `nats::prepare` (the config allows
-            // it only with the NATS transport, so only `validate` gets here).
+        if m.plugin == BRIDGE_PLUGIN {
+            // Needs a live NATS connection: built by `nats::prepare` (allowed only with
+            // the NATS transport, so only `validate` gets here).
             return Ok(None);
         }
-        loader.load(cfg, name).map(Some)
+        loader.load(cfg, name).map(|m| Some(AnyModule::Local(m)))
     })
-}
-
-/// The modules of the configuration in its order, with their stage, period and
-/// subscriptions: built-in replays here, every other module by `make` (`None`
-/// leaves it out).
-pub(crate) fn build_modules(
-    cfg: &LoadedConfig,
-    mut make: impl FnMut(&str, &ModuleConfig) -> Result<Option<Box<dyn Module>>, ConfigError>,
-) -> Result<Vec<ModuleSpec>, ConfigError> {
-    let mut specs = Vec::new();
-    for (name, m) in &cfg.config.modules {
-        let module: Option<Box<dyn Module>> = if m.plugin == replay::PLUGIN {
-            Some(Box::new(Replay::from_config(cfg, name)?))
-        } else {
-            make(name, m)?
-        };
-        let Some(module) = module else { continue };
-        specs.push(ModuleSpec {
-            name: name.clone(),
-            stage: m.stage.clone(),
-            every: m.every,
-            offset: m.offset,
-            subscribe: m.subscribe.clone(),
-            params: cfg.params_json(name),
-            module,
-        });
-    }
-    Ok(specs)
 }
 
 /// Loads every module, creates the run directory and the engine.
@@ -155,7 +119,7 @@ pub fn prepare(
     if let Some(probe) = loader.resource_probe() {
         engine.set_probe(probe);
     }
-    write_status(cfg, &engine, "running", None).map_err(PrepareError::Io)?;
+    write_status(cfg, &engine, RunState::Running, None).map_err(PrepareError::Io)?;
     Ok(engine)
 }
 
@@ -198,46 +162,4 @@ fn create_numbered(cfg: &LoadedConfig) -> Result<PathBuf, PrepareError> {
         }
     }
     unreachable!()
-}
-
-/// Writes `run.json`: what ran, how far it got and how it ended.
-pub fn write_status(
-    cfg: &LoadedConfig,
-    engine: &Engine,
-    status: &str,
-    error: Option<&EngineError>,
-) -> Result<(), String> {
-    let virtual_s = engine.virtual_time_s();
-    let error_json = error.map(|e| match e {
-        EngineError::Module {
-            module,
-            phase,
-            step,
-            time,
-            error,
-        } => serde_json::json!({
-            "module": module, "phase": phase, "step": step, "time": time,
-            "message": error.message, "trace": error.trace,
-        }),
-        other => serde_json::json!({ "message": other.to_string() }),
-    });
-    let doc = serde_json::json!({
-        "caviar_version": env!("CARGO_PKG_VERSION"),
-        "status": status,
-        "config_file": cfg.file,
-        "overrides": cfg.overrides,
-        "seed": cfg.config.episode.seed,
-        "ts": engine.ts(),
-        "steps_planned": engine.planned_steps(),
-        "steps_done": engine.steps_done(),
-        "virtual_time_s": virtual_s,
-        "wall_s": engine.wall_s(),
-        "record_s": engine.record_s(),
-        "rtf": if engine.wall_s() > 0.0 { Some(virtual_s / engine.wall_s()) } else { None },
-        "modules": engine.module_names().collect::<Vec<_>>(),
-        "error": error_json,
-    });
-    let path = engine.run_dir().join("run.json");
-    let text = serde_json::to_string_pretty(&doc).expect("json");
-    fs::write(&path, text + "\n").map_err(|e| format!("{}: {e}", path.display()))
 }

@@ -113,6 +113,31 @@ impl Pattern {
         }
         parts.next().is_none()
     }
+
+    /// True if some topic matches both patterns (e.g. `a.*` and `*.b` share `a.b`).
+    pub fn overlaps(&self, other: &Pattern) -> bool {
+        fn tokens_overlap(a: &[Token], b: &[Token]) -> bool {
+            match (a.first(), b.first()) {
+                (None, None) => true,
+                // `>` takes one or more tokens: whatever is left on the other side.
+                (Some(Token::Rest), Some(_)) | (Some(_), Some(Token::Rest)) => true,
+                (None, Some(_)) | (Some(_), None) => false,
+                (Some(x), Some(y)) => {
+                    let same = match (x, y) {
+                        (Token::Literal(p), Token::Literal(q)) => p == q,
+                        _ => true,
+                    };
+                    same && tokens_overlap(&a[1..], &b[1..])
+                }
+            }
+        }
+        tokens_overlap(&self.tokens, &other.tokens)
+    }
+}
+
+/// True if `topic` matches `pattern`; an error if the pattern is not valid.
+pub fn matches(pattern: &str, topic: &str) -> Result<bool, TopicError> {
+    Ok(Pattern::new(pattern)?.matches(topic))
 }
 
 impl fmt::Debug for Pattern {
@@ -160,6 +185,24 @@ mod tests {
         assert!(!m("3D.>", "3D"));
         assert!(m(">", "anything.at.all"));
         assert!(!m("3D.>", "communications.throughput"));
+    }
+
+    #[test]
+    fn patterns_overlap_when_some_topic_matches_both() {
+        let o = |a: &str, b: &str| {
+            let (a, b) = (Pattern::new(a).unwrap(), Pattern::new(b).unwrap());
+            assert_eq!(a.overlaps(&b), b.overlaps(&a), "symmetric");
+            a.overlaps(&b)
+        };
+        assert!(o("a.b", "a.b"));
+        assert!(!o("a.b", "a.c"));
+        assert!(o("a.*", "*.b"));
+        assert!(!o("a.*", "a"));
+        assert!(o("a.>", "a.b.c"));
+        assert!(!o("a.>", "a"));
+        assert!(o(">", "x"));
+        assert!(!o("a.*.c", "a.b.d"));
+        assert!(o("*.*", "a.>"));
     }
 
     #[test]

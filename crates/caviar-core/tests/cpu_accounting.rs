@@ -4,7 +4,8 @@
 
 use caviar_core::recorder::{read_timings, Recorder};
 use caviar_core::{
-    Engine, EngineOptions, Module, ModuleError, ModuleSpec, Outgoing, SharedMessage, StepInfo,
+    AnyModule, Engine, EngineOptions, Module, ModuleError, ModuleSpec, Outgoing, SharedMessage,
+    StepInfo,
 };
 
 /// Burns `own` of CPU on the thread that runs its step and `helper` on a thread it starts.
@@ -55,7 +56,7 @@ fn cpu_time_includes_the_threads_a_module_keeps_busy() {
         offset: 0,
         subscribe: Some(vec![]),
         params: serde_json::Value::Null,
-        module: Box::new(Burner { own, helper }),
+        module: AnyModule::local(Burner { own, helper }),
     };
     let opts = EngineOptions {
         ts: 0.5,

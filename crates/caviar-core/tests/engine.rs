@@ -6,8 +6,8 @@ use std::sync::{Arc, Mutex};
 
 use caviar_core::recorder::{read_messages, read_timings, Recorder, CORE};
 use caviar_core::{
-    Engine, EngineError, EngineOptions, Module, ModuleError, ModuleSpec, Outgoing, Payload,
-    SharedMessage, StepInfo, END_TOPIC,
+    AnyModule, Engine, EngineError, EngineOptions, Module, ModuleError, ModuleSpec, Outgoing,
+    Payload, SharedMessage, StepInfo, END_TOPIC,
 };
 
 /// What a probe saw: (its step, topic, source, step the message was published in).
@@ -94,7 +94,7 @@ fn build(dir: &Path, steps: Option<u64>, specs: Vec<Spec>) -> (Engine, Vec<(&'st
                 offset: s.offset,
                 subscribe: Some(s.subscribe.iter().map(|x| x.to_string()).collect()),
                 params: serde_json::Value::Null,
-                module: Box::new(Probe {
+                module: AnyModule::local(Probe {
                     topics: s.publish.iter().map(|x| x.to_string()).collect(),
                     seen: log,
                     fail_at: s.fail_at,

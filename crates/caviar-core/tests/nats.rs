@@ -6,10 +6,10 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use caviar_core::config;
-use caviar_core::nats::server::{find_server, SpawnedServer};
-use caviar_core::nats::worker;
 use caviar_core::recorder::{read_messages, read_timings};
 use caviar_core::run::{prepare, BuiltinsOnly};
+use caviar_core::transport::nats::server::{find_server, SpawnedServer};
+use caviar_core::transport::nats::worker;
 use caviar_core::{
     Engine, EngineError, Message, Module, ModuleError, ModuleSpec, Outgoing, Payload,
     SharedMessage, StepInfo,
@@ -179,7 +179,7 @@ fn in_process(dir: &Path) -> Vec<Message> {
         offset: 0,
         subscribe: None,
         params: serde_json::json!({}),
-        module,
+        module: module.into(),
     };
     let modules = vec![
         spec(

@@ -12,6 +12,9 @@ use crate::module::{ModuleError, StepInfo, Usage};
 
 pub const PROTOCOL: u32 = 1;
 
+/// Header naming the source module on mirrored messages (and marking them as ours).
+pub const MIRROR_SOURCE_HEADER: &str = "Caviar-Source";
+
 /// One message in a frame header; its body is the next `len` bytes of the frame.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct WireMessage {
@@ -170,6 +173,11 @@ pub fn encode_reply(out: &[Outgoing], usage: Usage) -> Vec<u8> {
         error: None,
     };
     frame(&header, &bodies)
+}
+
+/// A failed step reply: the error and no messages.
+pub fn encode_failure(error: &WireError) -> Vec<u8> {
+    frame(&serde_json::json!({"ok": false, "error": error}), &[])
 }
 
 /// Reads the messages of a frame whose header was already parsed.
@@ -354,10 +362,11 @@ mod tests {
             "{}",
             err.message
         );
-        let failed = frame(
-            &serde_json::json!({"ok": false, "error": {"message": "ValueError: boom", "trace": "tb"}}),
-            &[],
-        );
+        let failed = encode_failure(&WireError {
+            message: "ValueError: boom".into(),
+            trace: Some("tb".into()),
+            key: None,
+        });
         let err = decode_reply(&failed, &mut Vec::new()).unwrap_err();
         assert_eq!(
             (err.message.as_str(), err.trace.as_deref()),

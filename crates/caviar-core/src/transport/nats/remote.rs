@@ -6,17 +6,25 @@ use std::time::Duration;
 use async_nats::client::RequestErrorKind;
 use serde::Deserialize;
 
-use super::link::Link;
+use super::link::{Link, LoadedPlugin};
 use super::wire::{self, WireError};
 use crate::message::{Outgoing, SharedMessage};
-use crate::module::{Module, ModuleError, SetupContext, StepInfo, Usage};
+use crate::module::{ModuleError, RemoteModule, SetupContext, StepInfo, Usage};
+
+/// A remote module whose workers are connected with the plugin loaded.
+pub(crate) struct Ready {
+    /// The plugin's default subscriptions and what it declares publishing.
+    pub plugin: LoadedPlugin,
+    /// Ids of its workers.
+    pub workers: Vec<String>,
+}
 
 type Pending = tokio::task::JoinHandle<Result<async_nats::Message, async_nats::RequestError>>;
 
-pub struct RemoteModule {
+pub(crate) struct WorkerModule {
     link: Arc<Link>,
     name: String,
-    subscriptions: Vec<String>,
+    plugin: LoadedPlugin,
     /// Ids of the workers set up for this module.
     workers: Vec<String>,
     shards: u64,
@@ -31,19 +39,13 @@ struct Ack {
     error: Option<WireError>,
 }
 
-impl RemoteModule {
-    pub fn new(
-        link: Arc<Link>,
-        name: &str,
-        subscriptions: Vec<String>,
-        workers: Vec<String>,
-        shards: u64,
-    ) -> Self {
-        RemoteModule {
+impl WorkerModule {
+    pub fn new(link: Arc<Link>, name: &str, ready: Ready, shards: u64) -> Self {
+        WorkerModule {
             link,
             name: name.into(),
-            subscriptions,
-            workers,
+            plugin: ready.plugin,
+            workers: ready.workers,
             shards,
             pending: Vec::new(),
             at: None,
@@ -114,9 +116,13 @@ fn request_error(what: &str, e: async_nats::RequestError) -> ModuleError {
     })
 }
 
-impl Module for RemoteModule {
+impl RemoteModule for WorkerModule {
     fn default_subscriptions(&self) -> Vec<String> {
-        self.subscriptions.clone()
+        self.plugin.subscribe.clone()
+    }
+
+    fn publishes(&self) -> Option<Vec<String>> {
+        self.plugin.publishes.clone()
     }
 
     fn setup(&mut self, ctx: &SetupContext) -> Result<(), ModuleError> {
@@ -125,20 +131,6 @@ impl Module for RemoteModule {
             "seed": ctx.seed, "ts": ctx.ts, "steps": ctx.steps, "every": ctx.every, "offset": ctx.offset,
         });
         self.control("setup", &body, self.link.timeouts.startup)
-    }
-
-    fn step(
-        &mut self,
-        at: StepInfo,
-        inbox: &[SharedMessage],
-        out: &mut Vec<Outgoing>,
-    ) -> Result<(), ModuleError> {
-        self.start_step(at, inbox)?;
-        self.finish_step(out).map(drop)
-    }
-
-    fn remote(&self) -> bool {
-        true
     }
 
     fn start_step(&mut self, at: StepInfo, inbox: &[SharedMessage]) -> Result<(), ModuleError> {

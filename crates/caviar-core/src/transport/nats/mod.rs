@@ -1,15 +1,20 @@
 //! The NATS transport: every plugin in a worker process of its own, on this machine
 //! or another, stepped over NATS request/reply (docs/nats-protocol.md).
 //!
-//! The engine does not change: each worker-run module is a [`remote::RemoteModule`]
-//! behind the same `Module` trait, so barriers, ordering and recording are the
+//! The engine does not change: each worker-run module is a [`remote::WorkerModule`],
+//! a [`crate::module::RemoteModule`], so barriers, ordering and recording are the
 //! in-process ones and a run records the same messages either way.
+//!
+//! A leaf of the crate: it uses the configuration, the engine, module assembly and
+//! the process metrics; nothing but the run (which calls [`prepare`]) and the Python
+//! bindings (which reach the wire format) uses it. Public for benchmarks and tests:
+//! [`prepare`], [`WorkerLauncher`], [`server`] and the Rust [`worker`].
 
-pub mod bridge;
-pub mod link;
-pub mod remote;
+pub(crate) mod bridge;
+pub(crate) mod link;
+pub(crate) mod remote;
 pub mod server;
-pub mod wire;
+pub(crate) mod wire;
 pub mod worker;
 
 use std::collections::HashMap;
@@ -17,21 +22,17 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-pub use bridge::PLUGIN as BRIDGE_PLUGIN;
 use link::{connect_options, Link, ModuleOffer, Timeouts};
-use remote::RemoteModule;
+use remote::{Ready, WorkerModule};
 use server::{find_server, SpawnedServer};
+use wire::MIRROR_SOURCE_HEADER;
 
+use crate::assembly::{build_modules, is_builtin, PrepareError, BRIDGE_PLUGIN};
 use crate::config::{LoadedConfig, ModuleConfig};
 use crate::engine::{ModuleSpec, Tap};
 use crate::message::{Payload, SharedMessage};
-use crate::module::Module;
-use crate::replay;
-use crate::run::{build_modules, PrepareError};
+use crate::module::AnyModule;
 use crate::topic::Pattern;
-
-/// Header naming the source module on mirrored messages (and marking them as ours).
-pub const MIRROR_SOURCE_HEADER: &str = "Caviar-Source";
 
 /// How to start a worker: the interpreter and arguments before `--nats …`.
 pub struct WorkerLauncher {
@@ -59,11 +60,10 @@ fn run_id(cfg: &LoadedConfig, run_dir: &Path) -> String {
 
 /// The modules run by workers: all but the built-ins.
 fn remote_modules(cfg: &LoadedConfig) -> impl Iterator<Item = (&String, &ModuleConfig)> {
-    let builtin = |p: &str| p == replay::PLUGIN || p == BRIDGE_PLUGIN;
     cfg.config
         .modules
         .iter()
-        .filter(move |(_, m)| !builtin(&m.plugin))
+        .filter(|(_, m)| !is_builtin(&m.plugin))
 }
 
 /// Arguments that give a worker the run's connection settings (secrets go by environment).
@@ -101,56 +101,83 @@ pub fn prepare(
     launcher: Option<WorkerLauncher>,
     run_dir: &Path,
 ) -> Result<(Vec<ModuleSpec>, Option<Tap>), PrepareError> {
+    let server = start_server(cfg, launcher.as_ref(), run_dir)?;
+    let link = connect(cfg, run_dir, server)?;
+    spawn_workers(cfg, launcher.as_ref(), &link, run_dir)?;
+    let mut ready = wait_for_workers(cfg, &link)?;
+    let specs = build_modules(cfg, |name, m| {
+        Ok(Some(if m.plugin == BRIDGE_PLUGIN {
+            AnyModule::local(bridge::Bridge::from_config(cfg, name, link.clone())?)
+        } else {
+            let r = ready.remove(name).expect("every remote module is ready");
+            AnyModule::remote(WorkerModule::new(link.clone(), name, r, m.shards))
+        }))
+    })?;
+    Ok((specs, mirror_tap(cfg, link)))
+}
+
+/// The server this run starts, if it starts one (`transport.nats.spawn`).
+fn start_server(
+    cfg: &LoadedConfig,
+    launcher: Option<&WorkerLauncher>,
+    run_dir: &Path,
+) -> Result<Option<SpawnedServer>, PrepareError> {
     let n = &cfg.config.transport.nats;
-    let io = PrepareError::Io;
-    let id = run_id(cfg, run_dir);
-    let server = if n.spawns_server() {
-        let python = launcher.as_ref().map(|l| PathBuf::from(&l.command[0]));
-        let bin = find_server(
-            n.server.as_ref().map(|p| cfg.resolve(p)).as_deref(),
-            python.as_deref(),
-        )
-        .map_err(|e| cfg.error_at("transport.nats.spawn", e))?;
-        Some(
-            SpawnedServer::start(&bin, "127.0.0.1", &run_dir.join("nats-server.log"))
-                .map_err(io)?,
-        )
-    } else {
-        None
-    };
+    if !n.spawns_server() {
+        return Ok(None);
+    }
+    let python = launcher.map(|l| PathBuf::from(&l.command[0]));
+    let bin = find_server(
+        n.server.as_ref().map(|p| cfg.resolve(p)).as_deref(),
+        python.as_deref(),
+    )
+    .map_err(|e| cfg.error_at("transport.nats.spawn", e))?;
+    let log = run_dir.join("nats-server.log");
+    Ok(Some(
+        SpawnedServer::start(&bin, "127.0.0.1", &log).map_err(PrepareError::Io)?,
+    ))
+}
+
+/// Connects to the run's server and starts answering workers with their module.
+fn connect(
+    cfg: &LoadedConfig,
+    run_dir: &Path,
+    server: Option<SpawnedServer>,
+) -> Result<Arc<Link>, PrepareError> {
+    let n = &cfg.config.transport.nats;
     let url = server
         .as_ref()
         .map(|s| s.url.clone())
         .or_else(|| n.url.clone())
         .expect("validated: url or spawn");
-    let options = connect_options(n, &|p| cfg.resolve(p)).map_err(io)?;
-    let mut offers = HashMap::new();
-    for (name, m) in remote_modules(cfg) {
-        offers.insert(
-            name.clone(),
-            ModuleOffer {
+    let options = connect_options(n, &|p| cfg.resolve(p)).map_err(PrepareError::Io)?;
+    let offers = remote_modules(cfg)
+        .map(|(name, m)| {
+            let offer = ModuleOffer {
                 plugin: m.plugin.clone(),
                 params: cfg.params_json(name),
                 shards: m.shards,
-            },
-        );
-    }
+            };
+            (name.clone(), offer)
+        })
+        .collect();
     let base = serde_json::json!({
         "run_dir": run_dir.canonicalize().unwrap_or_else(|_| run_dir.to_path_buf()),
         "config_dir": cfg.base_dir.canonicalize().unwrap_or_else(|_| cfg.base_dir.clone()),
     });
-    let link = Link::connect(
-        &url,
-        options,
-        &id,
-        offers,
-        base,
-        Timeouts::from_config(n),
-        server,
-    )
-    .map_err(io)?;
+    let id = run_id(cfg, run_dir);
+    let timeouts = Timeouts::from_config(n);
+    Link::connect(&url, options, &id, offers, base, timeouts, server).map_err(PrepareError::Io)
+}
 
-    // Start the workers this run owns; tell the user about the ones it waits for.
+/// Starts the workers this run owns; tells the user about the ones it waits for.
+fn spawn_workers(
+    cfg: &LoadedConfig,
+    launcher: Option<&WorkerLauncher>,
+    link: &Link,
+    run_dir: &Path,
+) -> Result<(), PrepareError> {
+    let (url, id) = (&link.url, &link.run_id);
     let (extra_args, envs) = connection_args(cfg);
     let logs = run_dir.join("workers");
     for (name, m) in remote_modules(cfg) {
@@ -159,7 +186,7 @@ pub fn prepare(
             eprintln!("caviar: waiting for module '{name}': start `caviar worker --nats {url} --run {id} --module {name}`");
             continue;
         }
-        let Some(l) = &launcher else {
+        let Some(l) = launcher else {
             return Err(cfg
                 .error_at(
                     &format!("modules.{name}.workers"),
@@ -168,43 +195,44 @@ pub fn prepare(
                 )
                 .into());
         };
-        std::fs::create_dir_all(&logs).map_err(|e| io(format!("{}: {e}", logs.display())))?;
+        std::fs::create_dir_all(&logs)
+            .map_err(|e| PrepareError::Io(format!("{}: {e}", logs.display())))?;
         for i in 0..count {
             let mut cmd = l.command.clone();
-            cmd.extend([
-                "--nats".into(),
-                url.clone(),
-                "--run".into(),
-                id.clone(),
-                "--module".into(),
-                name.clone(),
-            ]);
+            cmd.extend(["--nats", url, "--run", id, "--module", name].map(String::from));
             cmd.extend(["--worker-id".into(), format!("{name}-{i}")]);
             cmd.extend(extra_args.iter().cloned());
-            link.spawn_worker(name, &cmd, &envs, &logs.join(format!("{name}-{i}.log")))
-                .map_err(io)?;
+            let log = logs.join(format!("{name}-{i}.log"));
+            link.spawn_worker(name, &cmd, &envs, &log)
+                .map_err(PrepareError::Io)?;
         }
     }
-    let ready = wait_for_workers(cfg, &link)?;
-
-    let specs = build_modules(cfg, |name, m| {
-        let module: Box<dyn Module> = if m.plugin == BRIDGE_PLUGIN {
-            Box::new(bridge::Bridge::from_config(cfg, name, link.clone())?)
-        } else {
-            let (subs, ids) = ready[name].clone();
-            Box::new(RemoteModule::new(link.clone(), name, subs, ids, m.shards))
-        };
-        Ok(Some(module))
-    })?;
-    Ok((specs, mirror_tap(cfg, link)))
+    Ok(())
 }
 
-/// A module's default subscriptions and the ids of its workers, once they are ready.
-type Ready = HashMap<String, (Vec<String>, Vec<String>)>;
+/// The configuration error of a worker that could not load its plugin.
+fn load_failure(cfg: &LoadedConfig, name: &str, w: &link::WorkerInfo) -> Option<PrepareError> {
+    let Some(Err(e)) = &w.loaded else {
+        return None;
+    };
+    let key = format!(
+        "modules.{name}.{}",
+        e.key.clone().unwrap_or_else(|| "plugin".into())
+    );
+    let mut message = format!("worker {} on {}: {}", w.id, w.host, e.message);
+    if e.key.is_none() {
+        if let Some(t) = &e.trace {
+            message = format!("{message}\n{}", t.trim_end());
+        }
+    }
+    Some(cfg.error_at(&key, message).into())
+}
 
-/// Waits until each remote module has its workers connected with the plugin loaded;
-/// returns each module's default subscriptions and worker ids.
-fn wait_for_workers(cfg: &LoadedConfig, link: &Link) -> Result<Ready, PrepareError> {
+/// Waits until each remote module has its workers connected with the plugin loaded.
+fn wait_for_workers(
+    cfg: &LoadedConfig,
+    link: &Link,
+) -> Result<HashMap<String, Ready>, PrepareError> {
     let timeout = link.timeouts.startup;
     let t0 = Instant::now();
     loop {
@@ -213,34 +241,20 @@ fn wait_for_workers(cfg: &LoadedConfig, link: &Link) -> Result<Ready, PrepareErr
         let mut missing = Vec::new();
         for (name, m) in remote_modules(cfg) {
             let workers = link.workers_of(name);
-            for w in &workers {
-                if let Some(Err(e)) = &w.loaded {
-                    let key = format!(
-                        "modules.{name}.{}",
-                        e.key.clone().unwrap_or_else(|| "plugin".into())
-                    );
-                    let mut message = format!("worker {} on {}: {}", w.id, w.host, e.message);
-                    if e.key.is_none() {
-                        if let Some(t) = &e.trace {
-                            message = format!("{message}\n{}", t.trim_end());
-                        }
-                    }
-                    return Err(cfg.error_at(&key, message).into());
-                }
+            if let Some(e) = workers.iter().find_map(|w| load_failure(cfg, name, w)) {
+                return Err(e);
             }
             let loaded: Vec<_> = workers
                 .iter()
-                .filter(|w| matches!(w.loaded, Some(Ok(_))))
+                .filter_map(|w| match &w.loaded {
+                    Some(Ok(p)) => Some((w.id.clone(), p)),
+                    _ => None,
+                })
                 .collect();
             if loaded.len() >= m.workers.unwrap_or(m.shards).max(1) as usize {
-                let subs = match &loaded[0].loaded {
-                    Some(Ok(s)) => s.clone(),
-                    _ => unreachable!(),
-                };
-                ready.insert(
-                    name.clone(),
-                    (subs, loaded.iter().map(|w| w.id.clone()).collect()),
-                );
+                let plugin = loaded[0].1.clone();
+                let workers = loaded.into_iter().map(|(id, _)| id).collect();
+                ready.insert(name.clone(), Ready { plugin, workers });
             } else {
                 missing.push(name.as_str());
             }

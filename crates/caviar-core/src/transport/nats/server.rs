@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 /// a killed run must not leave a server or workers behind. The signal follows the
 /// *thread* that started them: start a run from a thread that outlives it (the CLI and
 /// `caviar.Simulation` on the main thread do).
-pub trait DieWithParent {
+pub(crate) trait DieWithParent {
     fn die_with_parent(&mut self) -> &mut Self;
 }
 

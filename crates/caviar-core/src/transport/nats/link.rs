@@ -24,8 +24,17 @@ pub struct WorkerInfo {
     pub host: String,
     pub pid: u32,
     pub last_beat: Instant,
-    /// After `loaded`: the plugin's default subscriptions, or why it could not load.
-    pub loaded: Option<Result<Vec<String>, WireError>>,
+    /// After `loaded`: what the plugin said of itself, or why it could not load.
+    pub loaded: Option<Result<LoadedPlugin, WireError>>,
+}
+
+/// What a worker's plugin said of itself once loaded.
+#[derive(Debug, Clone, Default)]
+pub struct LoadedPlugin {
+    /// Default subscriptions.
+    pub subscribe: Vec<String>,
+    /// Topics it declares publishing (`None`: not declared).
+    pub publishes: Option<Vec<String>>,
 }
 
 #[derive(Deserialize)]
@@ -44,6 +53,9 @@ struct Loaded {
     worker: String,
     #[serde(default)]
     subscribe: Vec<String>,
+    /// Absent or empty: not declared.
+    #[serde(default)]
+    publishes: Option<Vec<String>>,
     #[serde(default)]
     error: Option<WireError>,
 }
@@ -193,7 +205,11 @@ impl Link {
                     if let Ok(l) = serde_json::from_slice::<Loaded>(&msg.payload) {
                         if let Some(info) = w.lock().unwrap().get_mut(&l.worker) {
                             info.last_beat = Instant::now();
-                            info.loaded = Some(l.error.map_or(Ok(l.subscribe), Err));
+                            let plugin = LoadedPlugin {
+                                subscribe: l.subscribe,
+                                publishes: l.publishes.filter(|p| !p.is_empty()),
+                            };
+                            info.loaded = Some(l.error.map_or(Ok(plugin), Err));
                         }
                     }
                 } else if let Ok(b) = serde_json::from_slice::<Beat>(&msg.payload) {

@@ -12,13 +12,11 @@ use std::time::{Duration, Instant};
 use futures_util::StreamExt;
 
 use super::link::Link;
-use super::MIRROR_SOURCE_HEADER;
+use super::wire::MIRROR_SOURCE_HEADER;
 use crate::config::{ConfigError, LoadedConfig};
 use crate::message::{Outgoing, Payload, SharedMessage};
 use crate::module::{Module, ModuleError, StepInfo};
 use crate::topic::{validate_topic, Pattern};
-
-pub const PLUGIN: &str = "caviar.nats-bridge";
 
 #[derive(Default)]
 struct Arrivals {
@@ -119,6 +117,10 @@ impl Bridge {
 }
 
 impl Module for Bridge {
+    fn publishes(&self) -> Option<Vec<String>> {
+        Some(self.subjects.clone())
+    }
+
     fn step(
         &mut self,
         _at: StepInfo,
