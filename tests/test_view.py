@@ -149,6 +149,8 @@ import dataclasses
 import math
 import time
 
+import numpy as np
+
 import caviar
 
 
@@ -168,6 +170,9 @@ class Walkers(caviar.Plugin):
             a = 0.2 * t + i
             yield "3D.mobility.positions", {"UE_type": kind, "UE_Id": f"{kind.lower()}{i}",
                                              "position": {"x": -150 + r * math.cos(a), "y": 60 + r * math.sin(a), "z": z}}
+        img = np.zeros((24, 32, 3), np.uint8)
+        img[:, :, 0] = 8 * self.ctx.step
+        yield "3D.camera.uav0", img  # a camera frame, as the camera plugin publishes it
         yield "view.walkers", {"points": [{"x": -150, "y": 60, "z": 0, "color": "#ff00ff", "label": "centre"}],
                                "lines": [{"points": [[-150, 60, 0], [-150, 60, 50]], "color": "#00ffff"}]}
 
@@ -238,6 +243,11 @@ def test_live_run_newest_step_appears_within_2_s(browser, tmp_path):
         assert st["following"] and st["n"] == 3
         assert {b["ue"]: b["los"] for b in st["beams"]} == {"uav0": True, "car1": False, "pedestrian2": True}
         assert st["view"] == 2  # view.walkers: a point (with its label) and a line
+        page.wait_for_function("caviarView.frameTopic === '3D.camera.uav0' && caviarView.frameShown !== null"
+                               " && document.getElementById('frame').complete")
+        frame = page.evaluate("caviarView.frameShown")
+        img = page.evaluate("[document.getElementById('frame').naturalWidth, document.getElementById('frame').naturalHeight]")
+        assert frame <= page.evaluate("caviarView.step") and img == [32, 24]
 
         assert proc.wait(timeout=60) == 0, proc.stdout.read()
         # the run finished: parts merged into messages.parquet; the page has every step

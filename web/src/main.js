@@ -33,11 +33,23 @@ const S = {
   renders: 0, meshesLoaded: 0, meshesTotal: 0,
   loadedAt: null, ready: false, error: null,
   drawnBeams: [], drawnView: 0,
+  ms: { step: null, plots: null, render: null }, // moving averages of the frame's parts
 };
 
 // ---------------------------------------------------------------- three.js
+// A software rasteriser (SwiftShader, llvmpipe: no GPU) spends most of a frame on
+// multisampling: without a GPU the view renders without it.
+const SOFTWARE_GL = (() => {
+  try {
+    const gl = document.createElement('canvas').getContext('webgl2');
+    const ext = gl && gl.getExtension('WEBGL_debug_renderer_info');
+    const name = ext ? String(gl.getParameter(ext.UNMASKED_RENDERER_WEBGL)) : '';
+    gl && gl.getExtension('WEBGL_lose_context')?.loseContext();
+    return /swiftshader|llvmpipe|softpipe|software/i.test(name);
+  } catch (e) { return false; }
+})();
 const container = $('scene');
-const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+const renderer = new THREE.WebGLRenderer({ antialias: !SOFTWARE_GL });
 renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
 container.appendChild(renderer.domElement);
 const scene = new THREE.Scene();
@@ -108,8 +120,9 @@ function entity(id, type) {
   const geom = new THREE.BufferGeometry();
   geom.setAttribute('position', new THREE.BufferAttribute(new Float32Array(cap * 3), 3));
   geom.setDrawRange(0, 0);
-  const trail = new THREE.Line(geom, new THREE.LineBasicMaterial({ color, transparent: true, opacity: 0.75 }));
+  const trail = new THREE.Line(geom, new THREE.LineBasicMaterial({ color, transparent: true, opacity: 0.8, depthTest: false }));
   trail.frustumCulled = false;
+  trail.renderOrder = 5; // paths stay visible behind buildings
   e = { id, type, color, steps: [], xyz: new Float32Array(cap * 3), n: 0, mesh, label, trail, shown: -1 };
   scene.add(mesh); scene.add(label); trails.add(trail);
   S.entities.set(id, e);
@@ -210,10 +223,17 @@ function loadScene(info) {
       mesh.updateMatrixWorld(true);
       if (!flat) box.union(new THREE.Box3().setFromObject(mesh));
       S.meshesLoaded++;
-      if (S.meshesLoaded === meshes.length && !box.isEmpty()) frame(box);
+      if (S.meshesLoaded === meshes.length) { S.sceneBox = box; reframe(); }
       S.dirty = true;
     }, undefined, () => { S.meshesLoaded++; note(`mesh ${m.id} could not be loaded`); });
   });
+}
+
+function reframe() {
+  // the entities' paths and the Tx where there are entities, else the whole scene
+  if (S.entities.size) frame(new THREE.Box3());
+  else if (S.sceneBox && !S.sceneBox.isEmpty()) frame(S.sceneBox.clone());
+  else frame(new THREE.Box3());
 }
 
 function frame(box) {
@@ -222,9 +242,9 @@ function frame(box) {
   if (S.txPos) box.expandByPoint(S.txPos);
   if (box.isEmpty()) return;
   const c = box.getCenter(new THREE.Vector3());
-  const size = box.getSize(new THREE.Vector3()).length();
+  const size = Math.max(250, box.getSize(new THREE.Vector3()).length());
   controls.target.copy(c);
-  camera.position.set(c.x - 0.45 * size, c.y - 0.65 * size, c.z + 0.55 * size);
+  camera.position.set(c.x - 0.2 * size, c.y - 0.45 * size, c.z + 0.85 * size);
   camera.far = size * 20; camera.near = Math.max(0.5, size / 2000);
   camera.updateProjectionMatrix();
   controls.update();
@@ -249,6 +269,19 @@ function setupTx(tx) {
 const Y = new THREE.Vector3(0, 1, 0);
 const beamGeom = new THREE.ConeGeometry(1, 1, 20, 1, true).rotateX(Math.PI).translate(0, 0.5, 0); // apex at origin, opens along +y
 
+const beamPool = [];
+const beamAxis = new THREE.BufferGeometry().setFromPoints([new THREE.Vector3(0, 0, 0), new THREE.Vector3(0, 1, 0)]);
+function beamObject(i) {
+  if (!beamPool[i]) {
+    const cone = new THREE.Mesh(beamGeom, new THREE.MeshBasicMaterial({ transparent: true, opacity: 0.28, depthWrite: false, side: THREE.DoubleSide }));
+    const line = new THREE.Line(beamAxis, new THREE.LineBasicMaterial());
+    cone.position.copy(S.txPos); line.position.copy(S.txPos);
+    beams.add(cone); beams.add(line);
+    beamPool[i] = { cone, line };
+  }
+  return beamPool[i];
+}
+
 function radioAt(ue, step) {
   const r = S.radio.get(ue);
   if (!r) return null;
@@ -259,6 +292,7 @@ function radioAt(ue, step) {
 
 function showStep() {
   if (S.index < 0 || !S.steps.length) return;
+  const t0 = performance.now();
   const step = S.steps[S.index];
   const camPos = camera.position;
   for (const e of S.entities.values()) {
@@ -270,9 +304,9 @@ function showStep() {
     e.label.position.copy(e.mesh.position);
     e.k = k;
   }
-  // beams: Tx -> each UE with a radio message at this step
-  beams.clear();
+  // beams: Tx -> each UE with a radio message at this step (objects reused across steps)
   S.drawnBeams = [];
+  let nb = 0;
   if (S.txPos) {
     for (const [ue] of S.radio) {
       const e = S.entities.get(ue);
@@ -281,25 +315,30 @@ function showStep() {
       const to = e.mesh.position.clone().sub(S.txPos);
       const len = to.length();
       if (len < 1e-6) continue;
+      const b = beamObject(nb++);
       const color = LOS_COLOR[String(r.los)] ?? LOS_COLOR.null;
-      const cone = new THREE.Mesh(beamGeom, new THREE.MeshBasicMaterial({ color, transparent: true, opacity: 0.18, depthWrite: false, side: THREE.DoubleSide }));
-      cone.position.copy(S.txPos);
-      cone.quaternion.setFromUnitVectors(Y, to.clone().normalize());
+      b.cone.material.color.setHex(color);
+      b.line.material.color.setHex(color);
+      b.cone.quaternion.setFromUnitVectors(Y, to.normalize());
       const rad = len * Math.tan(BEAM_HALF_ANGLE);
-      cone.scale.set(rad, len, rad);
-      beams.add(cone);
-      const axis = new THREE.BufferGeometry().setFromPoints([S.txPos, e.mesh.position.clone()]);
-      beams.add(new THREE.Line(axis, new THREE.LineBasicMaterial({ color })));
+      b.cone.scale.set(rad, len, rad);
+      b.line.quaternion.copy(b.cone.quaternion);
+      b.line.scale.set(1, len, 1);
+      b.cone.visible = b.line.visible = true;
       S.drawnBeams.push({ ue, los: r.los, pair: r.pair });
     }
   }
+  for (let i = nb; i < beamPool.length; i++) beamPool[i].cone.visible = beamPool[i].line.visible = false;
   drawView(step);
   scaleMarkers(camPos);
   updateInfo(step);
   updateFrame(step);
   S.plotsDirty = true;
   S.dirty = true;
+  S.ms.step = avg(S.ms.step, performance.now() - t0);
 }
+
+function avg(a, x) { return a === null ? x : 0.9 * a + 0.1 * x; }
 
 function scaleMarkers(camPos) {
   for (const e of S.entities.values()) {
@@ -393,7 +432,8 @@ function updateFrame(step) {
   if (fs === S.frameShown || frameLoading) return;
   if (fs === null) { img.removeAttribute('src'); $('framenote').textContent = `${topic}: no frame yet`; S.frameShown = null; return; }
   frameLoading = true;
-  img.onload = img.onerror = () => { frameLoading = false; S.frameShown = fs; $('framenote').textContent = `${topic} · step ${fs}`; };
+  img.onload = () => { frameLoading = false; S.frameShown = fs; $('framenote').textContent = `${topic} · step ${fs}`; };
+  img.onerror = () => { frameLoading = false; $('framenote').textContent = `${topic}: frame of step ${fs} unavailable`; };
   img.src = `/api/frame?topic=${encodeURIComponent(topic)}&step=${fs}`;
 }
 
@@ -478,14 +518,18 @@ function loop(now) {
   if (S.seriesDirty) rebuildSeries();
   if (S.plotsDirty) {
     const x = S.index >= 0 ? S.times[S.index] : null;
+    const t0 = performance.now();
     for (const p of plots) { p.cursor = x; p.draw(); }
     S.plotsDirty = false;
+    S.ms.plots = avg(S.ms.plots, performance.now() - t0);
   }
   if (S.dirty) {
     controls.update();
     scaleMarkers(camera.position);
+    const t0 = performance.now();
     renderer.render(scene, camera);
     S.renders++;
+    S.ms.render = avg(S.ms.render, performance.now() - t0);
     S.dirty = false;
   }
   requestAnimationFrame(loop);
@@ -534,8 +578,7 @@ async function start() {
     merge(d);
     S.loadedAt = performance.now();
     afterData();
-    if (S.meshesTotal === 0) frame(new THREE.Box3());
-    else setTimeout(() => { if (S.meshesLoaded < S.meshesTotal) frame(new THREE.Box3()); }, 3000);
+    reframe();
     S.ready = true;
     if (live()) connect();
   } catch (err) {
@@ -581,6 +624,8 @@ window.caviarView = Object.freeze({
   get meshesLoaded() { return S.meshesLoaded; },
   get meshesTotal() { return S.meshesTotal; },
   get renders() { return S.renders; },
+  get frameMs() { return { ...S.ms }; },
+  get softwareGL() { return SOFTWARE_GL; },
   get events() { return S.events.length; },
   get frameTopic() { return S.frameTopic; },
   get frameShown() { return S.frameShown; },

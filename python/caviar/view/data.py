@@ -337,6 +337,8 @@ class RunData:
             s = max(cands)
             where = steps[s]
         f = self.path / where
+        if not f.is_file():  # the run finished meanwhile: its parts are merged
+            f = self.path / "messages.parquet"
         df = pl.scan_parquet(f).filter((pl.col("step") == s) & (pl.col("topic") == topic)).select(
             "data", "meta").collect()
         if df.is_empty():
