@@ -132,9 +132,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=pathlib.Path, default=OUT)
     args = ap.parse_args(argv)
 
-    from playwright.sync_api import sync_playwright
-
     from caviar.view import RunData, start_server
+    from playwright.sync_api import sync_playwright
 
     with tempfile.TemporaryDirectory(prefix="bench-view-") as d:
         run, run_s = make_run(pathlib.Path(d), args.steps, args.entities)

@@ -20,7 +20,6 @@ import time
 
 import polars as pl
 import pytest
-
 from caviar.view import RunData, start_server
 from caviar.view.cli import main as view_main
 
@@ -138,7 +137,7 @@ def test_page_draws_the_run_and_scrubbing_moves_the_entities(browser, server, po
         page.screenshot(path=ROOT / "docs/view-quickstart.png")
     assert not errors
     origin = server.url.rstrip("/")
-    assert all(u.startswith(origin + "/") or u.startswith("data:") for u in requests), requests
+    assert all(u.startswith((origin + "/", "data:")) for u in requests), requests
     page.close()
 
 
@@ -224,10 +223,10 @@ def test_live_run_newest_step_appears_within_2_s(browser, tmp_path):
         assert page.evaluate("caviarView.live") is True
 
         # watch parts land; the page must show each newest step within 2 s
-        latencies, seen = [], set(p.name for p in (out / "messages").glob("*.parquet"))
+        latencies, seen = [], {p.name for p in (out / "messages").glob("*.parquet")}
         while len(latencies) < 4 and proc.poll() is None:
             try:
-                new = sorted(set(p.name for p in (out / "messages").glob("*.parquet")) - seen)
+                new = sorted({p.name for p in (out / "messages").glob("*.parquet")} - seen)
             except FileNotFoundError:
                 break
             if not new:
@@ -342,7 +341,7 @@ def test_bad_run_directories_are_clear_errors(tmp_path, qs_run, capsys):
         assert str(path) in err and "Traceback" not in err, (name, err)
     # and as a command, without a traceback
     p = subprocess.run([sys.executable, "-m", "caviar.view", str(bad["missing"])], capture_output=True, text=True,
-                       timeout=60)
+                       timeout=60, check=False)
     assert p.returncode == 2 and str(bad["missing"]) in p.stderr and "Traceback" not in p.stderr, p.stderr
 
 

@@ -16,6 +16,7 @@ import os
 import pathlib
 import threading
 import time as _time
+
 import tomllib
 
 POSITIONS = "3D.mobility.positions"
@@ -120,8 +121,8 @@ class RunData:
         try:
             status = json.loads(f.read_text())
             if not isinstance(status, dict):
-                raise ValueError("not a JSON object")
-        except (OSError, ValueError) as e:
+                raise TypeError("not a JSON object")
+        except (OSError, ValueError, TypeError) as e:
             if strict:
                 raise RunDirError(f"{f}: unreadable run status ({e})") from None
             return  # being rewritten: next poll
