@@ -1,0 +1,5 @@
+import sys
+
+from caviar.view.cli import main
+
+sys.exit(main())

@@ -1,0 +1,378 @@
+"""What the view shows, read from a run directory and kept up to date while it grows.
+
+A run that is still going leaves one Parquet part per recorded step under
+``messages/`` and ``timings/``; a finished run has them merged into
+``messages.parquet`` and ``timings.parquet``. :class:`RunData` reads whichever is
+there, remembers which steps it has, and :meth:`RunData.refresh` reads only parts
+it has not seen (a directory listing is the whole cost of a poll with nothing new).
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import math
+import os
+import pathlib
+import threading
+import time as _time
+
+import tomllib
+
+POSITIONS = "3D.mobility.positions"
+THROUGHPUT = "communications.throughput"
+LINK = "communications.link"
+FRAME_PREFIXES = ("3D.camera.", "ai.images.")
+EVENT_PREFIXES = ("mission.",)
+EVENT_TOPICS = ("ai.detections", "caviar.episode.end")
+VIEW_PREFIX = "view."
+
+MSG_COLUMNS = ["step", "time", "source", "topic", "kind", "text", "meta"]
+
+
+class RunDirError(Exception):
+    """The run directory is missing, is not a run directory, or cannot be read."""
+
+
+def _num(v):
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _r(v, nd=3):
+    return None if v is None else round(v, nd)
+
+
+def _summary(payload, limit=160) -> str:
+    if isinstance(payload, dict):
+        parts = []
+        for k, v in payload.items():
+            if isinstance(v, (list, dict)):
+                v = f"[{len(v)}]"
+            elif isinstance(v, float):
+                v = f"{v:.4g}"
+            parts.append(f"{k}={v}")
+        s = ", ".join(parts)
+    else:
+        s = json.dumps(payload)
+    return s if len(s) <= limit else s[: limit - 1] + "…"
+
+
+class RunData:
+    """The view's data of one run, updated incrementally; thread-safe.
+
+    ``pending=True`` accepts a directory that does not exist yet or has no
+    ``run.json`` (``caviar-core run --view`` starts the server before the first step).
+    """
+
+    min_poll_s = 0.1
+    """Polls closer together than this share one directory listing."""
+
+    def __init__(self, run_dir: str | os.PathLike, pending: bool = False):
+        self.path = pathlib.Path(run_dir).absolute()
+        self.pending = pending
+        self._lock = threading.RLock()
+        self.status: dict = {}
+        self._status_mtime = None
+        self.config: dict = {}
+        self._parts = {"messages": set(), "timings": set()}
+        self._merged = {"messages": False, "timings": False}
+        self._bad_parts: dict[str, int] = {}
+        self._msg_steps: set[int] = set()
+        self._timing_steps: set[int] = set()
+        self.step_time: dict[int, float] = {}
+        self._sorted_steps: list[int] = []
+        self.entities: dict[str, dict] = {}  # id -> {"type", "p": [[step, x, y, z], ...]}
+        self.radio: dict[str, dict[int, list]] = {}  # ue -> step -> [thr, snr, los, pair]
+        self.events: list[dict] = []
+        self.view: list[dict] = []
+        self.timings: dict[str, list] = {}  # module -> [[step, wall_ms], ...]
+        self.frames: dict[str, dict[int, str]] = {}  # topic -> step -> file holding it
+        self.topics: set[str] = set()
+        self.version = 0
+        self._last_poll = 0.0
+        if not pending:
+            self._check_dir()
+        self.refresh(force=True, strict=not pending)
+
+    # ---- reading -------------------------------------------------------------------
+
+    def _check_dir(self):
+        p = self.path
+        if not p.exists():
+            raise RunDirError(f"{p}: no such directory")
+        if not p.is_dir():
+            raise RunDirError(f"{p}: not a directory")
+        if not (p / "run.json").is_file():
+            raise RunDirError(f"{p}: not a run directory (no run.json)")
+        if not ((p / "messages.parquet").is_file() or (p / "messages").is_dir()):
+            raise RunDirError(f"{p}: not a run directory (neither messages.parquet nor messages/)")
+
+    def _read_status(self, strict: bool):
+        f = self.path / "run.json"
+        try:
+            mtime = f.stat().st_mtime_ns
+        except OSError:
+            return
+        if mtime == self._status_mtime:
+            return
+        try:
+            status = json.loads(f.read_text())
+            if not isinstance(status, dict):
+                raise TypeError("not a JSON object")
+        except (OSError, ValueError, TypeError) as e:
+            if strict:
+                raise RunDirError(f"{f}: unreadable run status ({e})") from None
+            return  # being rewritten: next poll
+        self.status, self._status_mtime = status, mtime
+        self.version += 1
+        if not self.config and (self.path / "config.toml").is_file():
+            try:
+                self.config = tomllib.loads((self.path / "config.toml").read_text())
+            except (OSError, ValueError) as e:
+                if strict:
+                    raise RunDirError(f"{self.path / 'config.toml'}: unreadable config ({e})") from None
+
+    @property
+    def running(self) -> bool:
+        return self.status.get("status") in (None, "running")
+
+    def refresh(self, force: bool = False, strict: bool = False) -> bool:
+        """Reads what is new; True if anything changed. Cheap to call often."""
+        with self._lock:
+            now = _time.monotonic()
+            if not force and now - self._last_poll < (self.min_poll_s if self.running else 1.0):
+                return False
+            self._last_poll = now
+            before = self.version
+            self._read_status(strict)
+            for table in ("messages", "timings"):
+                self._read_table(table, strict)
+            return self.version != before
+
+    def _read_table(self, table: str, strict: bool):
+        import polars as pl
+
+        merged = self.path / f"{table}.parquet"
+        if merged.is_file():
+            if self._merged[table]:
+                return
+            try:
+                df = pl.read_parquet(merged, columns=MSG_COLUMNS if table == "messages" else None)
+            except Exception as e:  # noqa: BLE001 - polars raises several kinds
+                if strict:
+                    raise RunDirError(f"{merged}: unreadable Parquet ({str(e).splitlines()[0]})") from None
+                return  # the recorder may still be writing it
+            self._merged[table] = True
+            self._ingest(table, df, merged.name)
+            return
+        d = self.path / table
+        try:
+            names = [e.name for e in os.scandir(d) if e.name.endswith(".parquet")]
+        except OSError:
+            return
+        new = sorted(n for n in names if n not in self._parts[table])
+        for name in new:
+            try:
+                df = pl.read_parquet(d / name, columns=MSG_COLUMNS if table == "messages" else None)
+            except Exception as e:  # noqa: BLE001
+                tries = self._bad_parts[name] = self._bad_parts.get(name, 0) + 1
+                if strict and not self.running:
+                    raise RunDirError(f"{d / name}: unreadable Parquet ({str(e).splitlines()[0]})") from None
+                if tries < 20:
+                    return  # perhaps still being written: parts are read in order, retry later
+                continue
+            self._parts[table].add(name)
+            self._ingest(table, df, f"{table}/{name}")
+
+    def _ingest(self, table: str, df, where: str):
+        import polars as pl
+
+        if df.is_empty():
+            return
+        seen = self._msg_steps if table == "messages" else self._timing_steps
+        if seen:
+            df = df.filter(~pl.col("step").is_in(list(seen)))
+            if df.is_empty():
+                return
+        df = df.sort(["step", "seq"] if "seq" in df.columns else ["step"], maintain_order=True)
+        steps = df.select("step", "time").unique("step")
+        for s, t in steps.iter_rows():
+            self.step_time.setdefault(int(s), float(t))
+        seen.update(int(s) for s in steps["step"].to_list())
+        if table == "timings":
+            for step, module, wall in df.select("step", "module", "wall_s").iter_rows():
+                self.timings.setdefault(module, []).append([int(step), _r(_num(wall) and wall * 1e3, 4)])
+        else:
+            self._ingest_messages(df, where)
+        self._sorted_steps = sorted(self.step_time)
+        self.version += 1
+
+    def _ingest_messages(self, df, where: str):
+        import polars as pl
+
+        self.topics.update(df["topic"].unique().to_list())
+        frames = df.filter(pl.col("kind") == "binary")
+        for step, topic in frames.select("step", "topic").iter_rows():
+            if topic.startswith(FRAME_PREFIXES):
+                self.frames.setdefault(topic, {})[int(step)] = where
+        js = df.filter(pl.col("kind") == "json")
+        interesting = (pl.col("topic") == POSITIONS) | pl.col("topic").str.starts_with("communications.") \
+            | pl.col("topic").str.starts_with("mission.") | pl.col("topic").is_in(list(EVENT_TOPICS)) \
+            | pl.col("topic").str.starts_with(VIEW_PREFIX)
+        for step, t, source, topic, text in js.filter(interesting).select(
+                "step", "time", "source", "topic", "text").iter_rows():
+            try:
+                payload = json.loads(text)
+            except (TypeError, ValueError):
+                continue
+            step = int(step)
+            if topic == POSITIONS:
+                for d in payload if isinstance(payload, list) else [payload]:
+                    self._position(step, d)
+            elif topic in (THROUGHPUT, LINK):
+                self._radio(step, topic, payload)
+            elif topic.startswith(VIEW_PREFIX):
+                if isinstance(payload, dict):
+                    self.view.append({"step": step, "source": source, "topic": topic, "data": payload})
+            elif topic.startswith(EVENT_PREFIXES) or topic in EVENT_TOPICS:
+                if topic == "ai.detections" and isinstance(payload, dict) and not payload.get("count"):
+                    continue  # detections with nothing found are not events
+                ev = {"step": step, "time": t, "topic": topic, "source": source, "text": _summary(payload)}
+                if isinstance(payload, dict) and _num(payload.get("x")) is not None and _num(payload.get("y")) is not None:
+                    ev["x"], ev["y"] = _num(payload["x"]), _num(payload["y"])
+                self.events.append(ev)
+
+    def _position(self, step: int, d):
+        if not isinstance(d, dict):
+            return
+        ue = d.get("UE_Id", d.get("id"))
+        pos = d.get("position")
+        if ue is None or not isinstance(pos, dict):
+            return
+        x, y, z = (_num(pos.get(k)) for k in "xyz")
+        if x is None or y is None:
+            return
+        e = self.entities.setdefault(str(ue), {"type": str(d.get("UE_type", "UE")), "p": []})
+        pts = e["p"]
+        row = [step, _r(x), _r(y), _r(z or 0.0)]
+        if pts and pts[-1][0] == step:
+            pts[-1] = row  # the latest of a step wins
+        else:
+            pts.append(row)
+
+    def _radio(self, step: int, topic: str, d):
+        if not isinstance(d, dict) or d.get("UE_Id") is None:
+            return
+        rec = self.radio.setdefault(str(d["UE_Id"]), {}).setdefault(step, [None, None, None, None])
+        if topic == THROUGHPUT:
+            rec[0] = _r(_num(d.get("throughput")), 4)
+        else:
+            rec[1] = _r(_num(d.get("snr_db")), 3)
+            if isinstance(d.get("los"), bool):
+                rec[2] = d["los"]
+            pair = d.get("pair", d.get("beam_index"))
+            rec[3] = int(pair) if isinstance(pair, int) and not isinstance(pair, bool) else None
+            if rec[0] is None and _num(d.get("throughput")) is not None:
+                rec[0] = _r(_num(d.get("throughput")), 4)
+
+    # ---- queries -------------------------------------------------------------------
+
+    @property
+    def last_step(self) -> int | None:
+        return self._sorted_steps[-1] if self._sorted_steps else None
+
+    def status_summary(self) -> dict:
+        s = self.status
+        return {k: s.get(k) for k in ("status", "steps_done", "steps_planned", "error", "ts", "virtual_time_s")} | {
+            "last_step": self.last_step, "waiting": not s}
+
+    def next_steps(self) -> list[int]:
+        """The first message step and the first timing step not read yet."""
+        with self._lock:
+            return [max(self._msg_steps, default=-1) + 1, max(self._timing_steps, default=-1) + 1]
+
+    def since(self, step: int, tstep: int | None = None) -> dict:
+        """Everything recorded at steps >= ``step`` (timings: >= ``tstep``, default
+        ``step``), compact: what the page loads and what each live update pushes.
+        ``next`` says where the next update starts (messages, timings)."""
+        tstep = step if tstep is None else tstep
+        with self._lock:
+            lo = bisect.bisect_left(self._sorted_steps, step)
+            ents = {}
+            for k, e in self.entities.items():
+                pts = e["p"]
+                i = bisect.bisect_left(pts, [step])
+                if i < len(pts):
+                    ents[k] = {"type": e["type"], "p": pts[i:]}
+            radio = {ue: [[s, *r] for s, r in sorted(recs.items()) if s >= step] for ue, recs in self.radio.items()}
+            lo = min(lo, bisect.bisect_left(self._sorted_steps, tstep))
+            return {
+                "status": self.status_summary(),
+                "since": [step, tstep],
+                "next": self.next_steps(),
+                "steps": [[s, self.step_time[s]] for s in self._sorted_steps[lo:]],
+                "entities": ents,
+                "radio": {k: v for k, v in radio.items() if v},
+                "events": [e for e in self.events if e["step"] >= step],
+                "view": [v for v in self.view if v["step"] >= step],
+                "timings": {m: rows[bisect.bisect_left(rows, [tstep]):] for m, rows in self.timings.items()},
+                "frames": {t: sorted(s for s in steps if s >= step) for t, steps in self.frames.items()},
+            }
+
+    def frame(self, topic: str, step: int):
+        """The image on ``topic`` at the latest step <= ``step`` as (step, uint8 H×W×{1,3,4}),
+        or None."""
+        import numpy as np
+        import polars as pl
+
+        with self._lock:
+            steps = self.frames.get(topic)
+            if not steps:
+                return None
+            cands = [s for s in steps if s <= step]
+            if not cands:
+                return None
+            s = max(cands)
+            where = steps[s]
+        f = self.path / where
+        if not f.is_file():  # the run finished meanwhile: its parts are merged
+            f = self.path / "messages.parquet"
+        df = pl.scan_parquet(f).filter((pl.col("step") == s) & (pl.col("topic") == topic)).select(
+            "data", "meta").collect()
+        if df.is_empty():
+            return None
+        data, meta = df.row(-1)
+        info = json.loads(meta) if meta else {}
+        if "dtype" not in info or "shape" not in info:
+            return None
+        arr = np.frombuffer(data, dtype=np.dtype(info["dtype"])).reshape(info["shape"])
+        if arr.ndim == 2:
+            arr = arr[..., None]
+        if arr.ndim != 3 or arr.shape[2] not in (1, 3, 4):
+            return None
+        if arr.dtype != np.uint8:
+            a = arr.astype(float)
+            hi = a.max() if a.size and a.max() > 1.0 else 1.0
+            arr = (np.clip(a / hi, 0, 1) * 255 + 0.5).astype(np.uint8)
+        return s, arr
+
+
+def png_bytes(arr) -> bytes:
+    """A PNG of a uint8 H×W×C image (C = 1, 3 or 4), with the standard library's zlib."""
+    import struct
+    import zlib
+
+    import numpy as np
+
+    h, w, c = arr.shape
+    colour = {1: 0, 3: 2, 4: 6}[c]
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), np.ascontiguousarray(arr).reshape(h, w * c)], axis=1)
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, colour, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw.tobytes(), 6)) + chunk(b"IEND", b""))

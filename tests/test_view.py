@@ -1,0 +1,352 @@
+"""`caviar-core view`: the page in a real browser (Debian's chromium driven by
+playwright), live following, and the server's safety (read-only, no path escapes).
+
+Needs ``apt-get install chromium`` and ``pip install playwright`` (scripts/setup-view.sh);
+the browser tests are skipped without them. ``CAVIAR_VIEW_DOCS=1`` also writes the
+README's screenshot, docs/view-quickstart.png.
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+import textwrap
+import time
+
+import polars as pl
+import pytest
+from caviar.view import RunData, start_server
+from caviar.view.cli import main as view_main
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+CHROMIUM = os.environ.get("CAVIAR_CHROMIUM", "/usr/bin/chromium")
+# software WebGL (SwiftShader): headless machines have no GPU
+CHROMIUM_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
+
+
+def run_caviar(*args, env=None, **kw):
+    return subprocess.Popen([sys.executable, "-m", "caviar.cli", *map(str, args)], env=env, **kw)
+
+
+@pytest.fixture(scope="module")
+def qs_run(tmp_path_factory):
+    """The quickstart, recorded (1,525 steps, one UAV)."""
+    out = tmp_path_factory.mktemp("view") / "qs"
+    p = run_caviar("run", ROOT / "blueprints/quickstart/config.toml", "--out", out, "-q",
+                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    log, _ = p.communicate(timeout=120)
+    assert p.returncode == 0, log
+    return out
+
+
+@pytest.fixture(scope="module")
+def positions(qs_run):
+    m = pl.read_parquet(qs_run / "messages.parquet")
+    m = m.filter(pl.col("topic") == "3D.mobility.positions")
+    return {(s, d["UE_Id"]): d["position"] for s, d in zip(m["step"].to_list(), map(json.loads, m["text"].to_list()))}
+
+
+@pytest.fixture(scope="module")
+def server(qs_run):
+    srv = start_server(qs_run, pending=False)
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright")
+    if not pathlib.Path(CHROMIUM).exists():
+        pytest.skip(f"{CHROMIUM} missing (apt-get install chromium)")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+def open_page(browser, url, requests=None):
+    # bypass_csp: playwright evaluates its wait predicates as strings, which the page's CSP forbids
+    page = browser.new_page(viewport={"width": 1400, "height": 820}, bypass_csp=True)
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    if requests is not None:
+        page.on("request", lambda r: requests.append(r.url))
+    page.goto(url)
+    page.wait_for_function("window.caviarView && (caviarView.ready || caviarView.error)", timeout=20_000)
+    assert page.evaluate("caviarView.error") is None
+    return page, errors
+
+
+def view_state(page):
+    return page.evaluate("({step: caviarView.step, n: caviarView.entityCount, entities: caviarView.entities,"
+                         " last: caviarView.lastStep, status: caviarView.status, following: caviarView.following,"
+                         " beams: caviarView.beams, view: caviarView.viewPrimitives})")
+
+
+def assert_positions(state, positions):
+    assert state["entities"], state
+    for ue, xyz in state["entities"].items():
+        want = positions[(state["step"], ue)]
+        assert xyz == pytest.approx([want["x"], want["y"], want["z"]], abs=2e-3), (ue, state["step"])
+
+
+# ---------------------------------------------------------------------- the page
+
+
+def test_page_draws_the_run_and_scrubbing_moves_the_entities(browser, server, positions, tmp_path):
+    requests = []
+    page, errors = open_page(browser, server.url, requests)
+    page.wait_for_function("caviarView.meshesLoaded === caviarView.meshesTotal && caviarView.meshesTotal > 0",
+                           timeout=20_000)
+    s0 = view_state(page)
+    assert s0["step"] == 0 and s0["last"] == 1524 and s0["status"] == "completed"
+    assert s0["n"] == 1 == len({ue for (s, ue) in positions if s == 0})
+    assert_positions(s0, positions)
+    assert [b["ue"] for b in s0["beams"]] == ["uav1"]  # Tx -> served UE; LOS unknown without a link model
+    assert s0["beams"][0]["los"] is None
+
+    # scrub: click three-quarters along the timeline
+    box = page.locator("#timeline").bounding_box()
+    page.mouse.click(box["x"] + 0.75 * box["width"], box["y"] + box["height"] / 2)
+    page.wait_for_function("caviarView.step > 0")
+    s1 = view_state(page)
+    assert 0.6 * 1524 < s1["step"] < 0.9 * 1524
+    assert_positions(s1, positions)
+    assert s1["entities"]["uav1"] != s0["entities"]["uav1"]
+    page.keyboard.press("End")  # the slider has focus: the last step
+    page.wait_for_function("caviarView.step === 1524")
+    assert_positions(view_state(page), positions)
+
+    # play at 50x for a moment: the step advances by itself
+    page.locator("#timeline").press("Home")
+    page.select_option("#speed", "50")
+    page.click("#play")
+    page.wait_for_function("caviarView.step > 100", timeout=10_000)
+    page.click("#play")
+    assert_positions(view_state(page), positions)
+
+    page.mouse.click(box["x"] + 0.2 * box["width"], box["y"] + box["height"] / 2)
+    page.wait_for_timeout(300)
+    page.screenshot(path=tmp_path / "view-quickstart.png")
+    if os.environ.get("CAVIAR_VIEW_DOCS"):
+        page.screenshot(path=ROOT / "docs/view-quickstart.png")
+    assert not errors
+    origin = server.url.rstrip("/")
+    assert all(u.startswith((origin + "/", "data:")) for u in requests), requests
+    page.close()
+
+
+# ---------------------------------------------------------------------- live runs
+
+LIVE_PLUGINS = '''
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+import caviar
+
+
+class Walkers(caviar.Plugin):
+    """A UAV, a car and a pedestrian on circles, slowly (delay_s of wall time a step)."""
+
+    @dataclasses.dataclass
+    class Params:
+        delay_s: float = 0.2
+
+    def setup(self, ctx):
+        self.ctx = ctx
+
+    def step(self, t, inbox):
+        time.sleep(self.ctx.params.delay_s)
+        for i, (kind, r, z) in enumerate([("UAV", 80, 40), ("car", 120, 1), ("pedestrian", 60, 0)]):
+            a = 0.2 * t + i
+            yield "3D.mobility.positions", {"UE_type": kind, "UE_Id": f"{kind.lower()}{i}",
+                                             "position": {"x": -150 + r * math.cos(a), "y": 60 + r * math.sin(a), "z": z}}
+        img = np.zeros((24, 32, 3), np.uint8)
+        img[:, :, 0] = 8 * self.ctx.step
+        yield "3D.camera.uav0", img  # a camera frame, as the camera plugin publishes it
+        yield "view.walkers", {"points": [{"x": -150, "y": 60, "z": 0, "color": "#ff00ff", "label": "centre"}],
+                               "lines": [{"points": [[-150, 60, 0], [-150, 60, 50]], "color": "#00ffff"}]}
+
+
+class Link(caviar.Plugin):
+    subscribe = ["3D.mobility.positions"]
+
+    @dataclasses.dataclass
+    class Params:
+        tx_position: list = dataclasses.field(default_factory=lambda: [-154.0, 64.0, 120.0])
+
+    def step(self, t, inbox):
+        for m in inbox.on("3D.mobility.positions"):
+            ue = m.data["UE_Id"]
+            yield "communications.throughput", {"UE_type": m.data["UE_type"], "UE_Id": ue, "throughput": 100 + t}
+            yield "communications.link", {"UE_Id": ue, "los": ue != "car1", "snr_db": 20 - t, "pair": 3}
+'''
+
+
+def test_live_run_newest_step_appears_within_2_s(browser, tmp_path):
+    (tmp_path / "view_live_plugins.py").write_text(LIVE_PLUGINS)
+    (tmp_path / "live.toml").write_text(textwrap.dedent("""
+        [episode]
+        ts = 0.5
+        steps = 30
+        seed = 1
+        stages = ["mobility", "communications"]
+        [modules.walkers]
+        stage = "mobility"
+        plugin = "view_live_plugins:Walkers"
+        [modules.link]
+        stage = "communications"
+        plugin = "view_live_plugins:Link"
+        params = { tx_position = [-154.0, 64.0, 120.0] }
+    """))
+    out = tmp_path / "live-run"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    proc = run_caviar("run", tmp_path / "live.toml", "--out", out, "-q", env=env, cwd=tmp_path,
+                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    srv = None
+    try:
+        deadline = time.monotonic() + 60
+        while not (out / "messages").is_dir() or not list((out / "messages").glob("*.parquet")):
+            assert proc.poll() is None, proc.stdout.read()
+            assert time.monotonic() < deadline, "the run wrote no part"
+            time.sleep(0.05)
+        srv = start_server(out, pending=False)
+        page, errors = open_page(browser, srv.url)
+        assert page.evaluate("caviarView.live") is True
+
+        # watch parts land; the page must show each newest step within 2 s
+        latencies, seen = [], {p.name for p in (out / "messages").glob("*.parquet")}
+        while len(latencies) < 4 and proc.poll() is None:
+            try:
+                new = sorted({p.name for p in (out / "messages").glob("*.parquet")} - seen)
+            except FileNotFoundError:
+                break
+            if not new:
+                time.sleep(0.01)
+                continue
+            landed = time.monotonic()
+            seen.update(new)
+            step = int(pl.read_parquet(out / "messages" / new[-1], columns=["step"])["step"].max())
+            page.wait_for_function(f"caviarView.step >= {step}", timeout=2_000)
+            latencies.append(time.monotonic() - landed)
+        assert len(latencies) == 4 and max(latencies) < 2.0, latencies
+        st = view_state(page)
+        assert st["following"] and st["n"] == 3
+        assert {b["ue"]: b["los"] for b in st["beams"]} == {"uav0": True, "car1": False, "pedestrian2": True}
+        assert st["view"] == 2  # view.walkers: a point (with its label) and a line
+        page.wait_for_function("caviarView.frameTopic === '3D.camera.uav0' && caviarView.frameShown !== null"
+                               " && document.getElementById('frame').complete")
+        frame = page.evaluate("caviarView.frameShown")
+        img = page.evaluate("[document.getElementById('frame').naturalWidth, document.getElementById('frame').naturalHeight]")
+        assert frame <= page.evaluate("caviarView.step") and img == [32, 24]
+
+        assert proc.wait(timeout=60) == 0, proc.stdout.read()
+        # the run finished: parts merged into messages.parquet; the page has every step
+        page.wait_for_function("caviarView.status === 'completed' && caviarView.lastStep === 29", timeout=5_000)
+        page.screenshot(path=tmp_path / "view-live.png")
+        assert not errors
+        page.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        if srv:
+            srv.stop()
+
+
+def test_server_started_before_the_run_waits_for_it(tmp_path):
+    srv = start_server(tmp_path / "not-yet")  # caviar-core run --view starts it before the first step
+    try:
+        c = http.client.HTTPConnection("127.0.0.1", srv.port, timeout=5)
+        c.request("GET", "/api/data")
+        d = json.loads(c.getresponse().read())
+        assert d["status"]["waiting"] and d["steps"] == []
+    finally:
+        srv.stop()
+
+
+# ---------------------------------------------------------------------- safety
+
+
+def request(server, method, path, host=None):
+    c = http.client.HTTPConnection("127.0.0.1", server.port, timeout=5)
+    c.putrequest(method, path, skip_host=host is not None, skip_accept_encoding=True)
+    if host is not None:
+        c.putheader("Host", host)
+    c.endheaders()
+    r = c.getresponse()
+    body = r.read()
+    c.close()
+    return r.status, body
+
+
+@pytest.mark.parametrize("path", [
+    "/../../../../etc/passwd", "/static/../server.py", "/static/..%2fserver.py", "/static/%2e%2e/server.py",
+    "/run/../../../../etc/passwd", "/run/%2e%2e/%2e%2e/%2e%2e/etc/passwd", "/run/%2E%2E%2F%2E%2E%2Fetc%2Fpasswd",
+    "/run//etc/passwd", "/run/%2Fetc%2Fpasswd", "/run/~/.bashrc", "/run/outside-link", "/run/artifacts/../../x",
+    "/mesh/../../etc/passwd", "/mesh/99", "/mesh/-1", "/etc/passwd", "/static/view.js%00.html", "/run/config.toml%00",
+])
+def test_paths_outside_what_the_view_serves_are_refused(server, qs_run, path):
+    link = qs_run / "outside-link"
+    if not link.is_symlink():
+        link.symlink_to("/etc/passwd")
+    status, body = request(server, "GET", path)
+    assert status in (400, 403, 404), (path, status)
+    assert b"root:" not in body
+
+
+def test_what_the_view_serves(server, qs_run):
+    (qs_run / "inside-link").unlink(missing_ok=True)
+    (qs_run / "inside-link").symlink_to(qs_run / "config.toml")
+    assert request(server, "GET", "/run/config.toml") == (200, (qs_run / "config.toml").read_bytes())
+    assert request(server, "GET", "/run/inside-link")[0] == 200  # a link that stays inside
+    assert request(server, "GET", "/mesh/0")[1].startswith(b"ply")
+    assert request(server, "GET", "/static/view.js")[0] == 200
+    assert request(server, "HEAD", "/") == (200, b"")
+
+
+@pytest.mark.parametrize("method", ["POST", "PUT", "DELETE", "PATCH", "OPTIONS", "PROPFIND"])
+def test_only_get_and_head(server, method):
+    status, _ = request(server, method, "/")
+    assert status in (405, 501)
+
+
+def test_other_hosts_are_refused_on_localhost(server):  # DNS rebinding
+    assert request(server, "GET", "/api/run", host="evil.example:80")[0] == 403
+    assert request(server, "GET", "/api/run", host=f"localhost:{server.port}")[0] == 200
+
+
+# ---------------------------------------------------------------------- errors
+
+
+def test_bad_run_directories_are_clear_errors(tmp_path, qs_run, capsys):
+    bad = {"missing": tmp_path / "nope", "file": tmp_path / "a-file", "empty": tmp_path / "empty",
+           "corrupt-status": tmp_path / "cs", "corrupt-parquet": tmp_path / "cp"}
+    bad["file"].write_text("x")
+    bad["empty"].mkdir()
+    for k in ("corrupt-status", "corrupt-parquet"):
+        shutil.copytree(qs_run, bad[k], symlinks=True)
+    (bad["corrupt-status"] / "run.json").write_text("{not json")
+    (bad["corrupt-parquet"] / "messages.parquet").write_bytes(b"PAR1 garbage")
+    for name, path in bad.items():
+        assert view_main([str(path), "--port", "0"]) == 2, name
+        err = capsys.readouterr().err
+        assert str(path) in err and "Traceback" not in err, (name, err)
+    # and as a command, without a traceback
+    p = subprocess.run([sys.executable, "-m", "caviar.view", str(bad["missing"])], capture_output=True, text=True,
+                       timeout=60, check=False)
+    assert p.returncode == 2 and str(bad["missing"]) in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
+def test_run_data_reads_what_was_recorded(qs_run, positions):
+    d = RunData(qs_run)
+    assert len(d.step_time) == 1525
+    assert len(d.entities["uav1"]["p"]) == len(positions)
+    assert d.since(1500)["steps"][0] == [1500, pytest.approx(150.0)]
