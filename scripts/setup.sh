@@ -37,4 +37,13 @@ log "Python packages"
 .venv/bin/pip install --quiet -e ".[test]"
 .venv/bin/pip install --quiet -e "plugins[radio,onnx,osm]"
 
+# The browser view: its bundle ships built; chromium (apt) and playwright for its tests.
+bash scripts/setup-view.sh
+
+# Lint for the Rust side (scripts/test.sh runs cargo clippy -D warnings).
+if ! cargo clippy --version >/dev/null 2>&1 && command -v rustup >/dev/null 2>&1; then
+    log "clippy"
+    rustup component add clippy
+fi
+
 log "ready: $(.venv/bin/caviar-core --version)"
