@@ -36,14 +36,18 @@ class BeamDataset(caviar.Plugin):
             ue = ue_of(m.topic)
             path = self.ctx.artifact_dir / f"step-{self.ctx.step:06d}-{ue}.npz"
             np.savez(path, position=self.positions[ue], best_pair=links[ue]["best_pair"],
-                     los=links[ue]["los"], gains=m.data, time=t)
+                     los=links[ue]["los"], gains=m.data, time=t, n_paths=links[ue]["n_paths"])
             yield DATASET_RECORD, caviar.Artifact(path)
 
 
 def load(run_dir: str | pathlib.Path) -> dict[str, np.ndarray]:
-    """All records of a run: position (N, 3), best_pair (N,), los (N,), gains (N, 4, 64)."""
+    """All records of a run: position (N, 3), best_pair (N,), los (N,), gains (N, 4, 64),
+    time (N,) and, where recorded, n_paths (N,)."""
     files = sorted(pathlib.Path(run_dir).glob("artifacts/*/step-*.npz"))
     if not files:
         raise FileNotFoundError(f"{run_dir}: no dataset records (artifacts/*/step-*.npz)")
     records = [np.load(f) for f in files]
-    return {k: np.stack([r[k] for r in records]) for k in ("position", "best_pair", "los", "gains")}
+    keys = ["position", "best_pair", "los", "gains", "time"]
+    if all("n_paths" in r for r in records):
+        keys.append("n_paths")
+    return {k: np.stack([r[k] for r in records]) for k in keys}

@@ -6,6 +6,12 @@ max depth 15), or the random and oracle baselines.
   :mod:`~caviar_plugins.beam_selection.decision_tree`).
 * ``random``: a uniformly drawn pair (Rx 0–3 × Tx 0–63), seeded.
 * ``oracle``: publishes nothing, so the communications module uses the best pair.
+* ``previous``: the best pair of the previous step (from ``communications.link``): the
+  selector that is given last step's beam sweep; the first step uses the best pair.
+
+``protocol = "paper"`` changes ``random`` to the 2023 code's draws: one
+``numpy.random.default_rng(1)`` per run, ``r = integers(0, 4)`` then
+``t = integers(0, 64)`` every step, pair = 64·r + t.
 
 Choices go to ``ai.beam.selection`` as ``{"UE_Id": …, "beam_pair": i}``.
 """
@@ -14,15 +20,18 @@ from __future__ import annotations
 
 import dataclasses
 
-import caviar
-from caviar_plugins.beam_selection.decision_tree import load_tree
-from caviar_plugins.schema import BEAM_SELECTION, POSITIONS, read_position
+import numpy as np
 
-METHODS = ("tree", "random", "oracle")
+import caviar
+from caviar_plugins import protocol as paper
+from caviar_plugins.beam_selection.decision_tree import load_tree
+from caviar_plugins.schema import BEAM_SELECTION, LINK, POSITIONS, read_position
+
+METHODS = ("tree", "random", "oracle", "previous")
 
 
 class BeamSelector(caviar.Plugin):
-    subscribe = [POSITIONS]
+    subscribe = [POSITIONS, LINK]
     publishes = (BEAM_SELECTION,)
 
     @dataclasses.dataclass
@@ -31,8 +40,11 @@ class BeamSelector(caviar.Plugin):
         model: str = ""
         """Pickled tree from ``train_tree`` (relative to the config file); needed for ``tree``."""
         pairs: int = 256
+        protocol: str = "physical"
+        """``physical`` or ``paper`` (changes only ``random``; see the module docstring)."""
 
         def __post_init__(self):
+            paper.check_protocol(self.protocol)
             if self.method not in METHODS:
                 raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
             if self.method == "tree" and not self.model:
@@ -45,13 +57,24 @@ class BeamSelector(caviar.Plugin):
         self.tree = None
         if p.method == "tree":
             self.tree = load_tree(ctx.resolve(p.model))
+        self.paper_rng = np.random.default_rng(1)
+        self.last_best: dict[str, int] = {}
 
     def step(self, t, inbox):
         p = self.ctx.params
+        for m in inbox.on(LINK):
+            self.last_best[m.data["UE_Id"]] = int(m.data["best_pair"])
         if p.method == "oracle":
             return
         for m in inbox.on(POSITIONS):
-            if p.method == "random":
+            if p.method == "previous":
+                if m.data["UE_Id"] not in self.last_best:
+                    continue
+                pair = self.last_best[m.data["UE_Id"]]
+            elif p.method == "random" and p.protocol == "paper":
+                r = int(self.paper_rng.integers(0, 4))
+                pair = r * 64 + int(self.paper_rng.integers(0, 64))
+            elif p.method == "random":
                 pair = int(self.ctx.rng.integers(p.pairs))
             else:
                 pair = int(self.tree.predict(read_position(m.data)[None, :])[0])

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+import math
+
+import numpy as np
 
 import caviar
+from caviar_plugins import protocol as paper
 from caviar_plugins.assets import DATA
 from caviar_plugins.mobility.frames import airsim_ned_to_scene
 from caviar_plugins.mobility.waypoints import Path, read_waypoints
@@ -12,9 +16,18 @@ from caviar_plugins.schema import HOVER, POSITIONS, position_payload
 
 
 class WaypointFlight(caviar.Plugin):
-    """Flies one UAV along waypoints at constant speed and publishes its position
-    (paper schema) every step. It hovers while a ``mission.hover`` message for it
-    says so, and ends the episode at the last waypoint if ``end_at_last``."""
+    """Flies one UAV along waypoints and publishes its position (paper schema) every
+    step.
+
+    ``protocol = "physical"``: constant speed through the waypoints; it hovers while a
+    ``mission.hover`` message for it says so, and ends the episode at the last waypoint
+    if ``end_at_last``.
+
+    ``protocol = "paper"``: the 2023 AirSim loop (:class:`PaperFlight`): stop-and-go legs,
+    a hover requested by ``mission.hover`` is served at the next waypoint reached, and
+    the episode ends when the UAV leaves waypoint ``last_waypoint``; the end message
+    carries the mission clock, which starts ``takeoff_s`` before the first move.
+    """
 
     subscribe = [HOVER]
     publishes = (POSITIONS, caviar.END_TOPIC)
@@ -33,12 +46,23 @@ class WaypointFlight(caviar.Plugin):
         end_at_last: bool = True
         start_m: float = 0.0
         """Distance along the route at which the UAV starts (to spread several UAVs)."""
+        protocol: str = "physical"
+        """``physical`` or ``paper`` (see the class docstring and docs/paper-protocol.md)."""
+        last_waypoint: int = paper.PAPER_LAST_WAYPOINT
+        """paper: the episode ends when the UAV leaves this waypoint (0-based row)."""
+        takeoff_s: float = paper.PAPER_TAKEOFF_S
+        """paper: mission clock when the UAV first leaves waypoint 0 (takeoff, an estimate)."""
+        acceleration: float = paper.PAPER_ACCELERATION
+        """paper: m/s² of the stop-and-go legs."""
 
         def __post_init__(self):
+            paper.check_protocol(self.protocol)
             if self.frame not in ("airsim_ned", "scene"):
                 raise ValueError(f"frame: expected 'airsim_ned' or 'scene', got {self.frame!r}")
             if not self.speed > 0:
                 raise ValueError(f"speed: expected a positive number of m/s, got {self.speed}")
+            if not self.acceleration > 0 or self.takeoff_s < 0 or self.last_waypoint < 1:
+                raise ValueError("acceleration must be > 0, takeoff_s >= 0 and last_waypoint >= 1")
 
     def setup(self, ctx):
         p = ctx.params
@@ -53,8 +77,16 @@ class WaypointFlight(caviar.Plugin):
         self.s = min(max(p.start_m, 0.0), self.path.length)  # arc length flown
         self.hover_until = -1.0
         self.ts = ctx.ts
+        self.paper = None
+        if p.protocol == "paper":
+            if p.last_waypoint >= len(pts):
+                raise ValueError(f"last_waypoint = {p.last_waypoint}: the route has {len(pts)} waypoints")
+            self.paper = PaperFlight(pts, ctx.ts, p.speed, p.acceleration, p.last_waypoint)
 
     def step(self, t, inbox):
+        if self.paper is not None:
+            yield from self._paper_step(t, inbox)
+            return
         for m in inbox.on(HOVER):
             if m.data.get("UE_Id") == self.p.ue_id:
                 self.hover_until = max(self.hover_until, t + float(m.data["seconds"]))
@@ -63,3 +95,108 @@ class WaypointFlight(caviar.Plugin):
             yield caviar.END_TOPIC, {"reason": f"{self.p.ue_id} reached its last waypoint"}
         if t + 1e-9 >= self.hover_until:
             self.s += self.p.speed * self.ts
+
+    def _paper_step(self, t, inbox):
+        f = self.paper
+        for m in inbox.on(HOVER):
+            if m.data.get("UE_Id") == self.p.ue_id:
+                f.request_hover(float(m.data["seconds"]))
+        if f.k > 0:
+            # The waypoint logic of the previous step, which sees that step's detections
+            # (the mission runs after mobility): the order of the 2023 loop.
+            if f.decide():
+                time_s = (f.k - 1) * self.ts
+                yield caviar.END_TOPIC, {
+                    "reason": f"{self.p.ue_id} left waypoint {self.p.last_waypoint}",
+                    "mission_time_s": self.p.takeoff_s + time_s, "clock_offset_s": self.p.takeoff_s,
+                    "flight_time_s": time_s, "hover_s": f.hover_steps * self.ts,
+                    "flown_m": f.flown_m}
+                return
+            f.advance()
+        f.k += 1
+        yield POSITIONS, position_payload(self.p.ue_id, f.pos)
+
+
+class PaperFlight:
+    """The flight of the 2023 AirSim loop, stepped every ``ts``.
+
+    Each step: the position is published; then (waypoint logic) if the UAV is within
+    0.5 m (x, y) and 0.6 m (z) of its target waypoint: a pending hover starts a
+    countdown of ceil(S / ts) steps; with none pending it moves on to the next waypoint,
+    and leaving ``last`` ends the flight. During a countdown, requests overwrite the
+    pending S but the end of the countdown clears it (so they are lost); a request in
+    the step after the countdown starts a new one. A hover holds the UAV for
+    (ceil(S / ts) + 1) · ts. Legs are straight, at ``speed`` with ``acceleration`` at
+    both ends (AirSim's ``moveToPositionAsync`` stops at every waypoint).
+    """
+
+    def __init__(self, points, ts: float, speed: float, acceleration: float, last: int):
+        self.points = np.asarray(points, dtype=float)
+        self.ts, self.speed, self.acc, self.last = ts, speed, acceleration, last
+        self.pos = self.points[0].copy()
+        self.target = 0
+        self.leg_start = self.pos.copy()
+        self.leg_tau = 0.0
+        self.pending: float | None = None
+        self.countdown = 0
+        self.hover_steps = 0
+        self.flown_m = 0.0
+        self.k = 0  # steps published
+
+    def request_hover(self, seconds: float) -> None:
+        self.pending = seconds  # the last request wins
+
+    def arrived(self) -> bool:
+        d = np.abs(self.pos - self.points[self.target])
+        return bool(np.all(d <= np.asarray(paper.PAPER_ARRIVAL_TOLERANCE)))
+
+    def decide(self) -> bool:
+        """The waypoint logic; True when the UAV leaves the last waypoint (the end)."""
+        if not self.arrived():
+            return False
+        if self.countdown == 0 and self.pending is not None:
+            self.countdown = max(1, math.ceil(self.pending / self.ts - 1e-9))
+            self.hover_steps += 1
+        elif self.countdown == 0:
+            if self.target == self.last:
+                return True
+            self.target += 1
+            self.leg_start, self.leg_tau = self.pos.copy(), 0.0
+        else:
+            self.hover_steps += 1
+            self.countdown -= 1
+            if self.countdown == 0:
+                self.pending = None
+        return False
+
+    def advance(self) -> None:
+        """Moves along the current leg for one step (stays put once at its end)."""
+        goal = self.points[self.target]
+        vec = goal - self.leg_start
+        length = float(np.linalg.norm(vec))
+        if length == 0:
+            return
+        self.leg_tau += self.ts
+        s = leg_distance(length, self.leg_tau, self.speed, self.acc)
+        new = self.leg_start + vec * (s / length)
+        self.flown_m += float(np.linalg.norm(new - self.pos))
+        self.pos = new
+
+
+def leg_distance(length: float, tau: float, speed: float, acc: float) -> float:
+    """Distance covered ``tau`` seconds after leaving on a straight leg of ``length``
+    metres: accelerate at ``acc`` up to ``speed``, cruise, decelerate to stop at the end."""
+    t_acc = speed / acc
+    if length < speed * t_acc:  # triangular profile: never reaches the cruise speed
+        t_half = math.sqrt(length / acc)
+        if tau <= t_half:
+            return 0.5 * acc * tau**2
+        rest = max(2 * t_half - tau, 0.0)
+        return length - 0.5 * acc * rest**2
+    total = length / speed + t_acc
+    if tau <= t_acc:
+        return 0.5 * acc * tau**2
+    if tau <= total - t_acc:
+        return 0.5 * speed * t_acc + speed * (tau - t_acc)
+    rest = max(total - tau, 0.0)
+    return length - 0.5 * acc * rest**2

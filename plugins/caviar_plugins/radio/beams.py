@@ -45,6 +45,18 @@ def dft_codebook(positions: np.ndarray) -> np.ndarray:
     return np.exp(-2j * np.pi * phase) / np.sqrt(len(m_y))
 
 
+def flat_dft_codebook(n: int) -> np.ndarray:
+    """The 2023 CAVIAR code's codebook (``mimo_channels.dft_codebook``): an unnormalised
+    n-point DFT over the flat element index, ``W[k, c] = exp(-2j·π·k·c / n)`` (|w|² = n).
+
+    On an 8 × 8 planar array in Sionna's element order (k = row + 8·column) codeword c
+    advances c/8 cycles per element along y and c/64 along z: 64 beams on a diagonal of
+    the spatial-frequency torus, not a grid. Kept only for ``protocol = "paper"``.
+    """
+    k = np.arange(n)
+    return np.exp(-2j * np.pi * np.outer(k, k) / n)
+
+
 def beam_gains(h: np.ndarray, w_tx: np.ndarray, w_rx: np.ndarray) -> np.ndarray:
     """|w_rx^H · H · w_tx|² for every pair: H of shape (..., N_rx, N_tx) gives gains of
     shape (..., C_rx, C_tx) (receive codeword index first)."""

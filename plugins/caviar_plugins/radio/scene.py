@@ -18,9 +18,10 @@ import pathlib
 import numpy as np
 
 from caviar_plugins.assets import SCENES
-from caviar_plugins.radio.beams import beam_gains, dft_codebook
+from caviar_plugins.radio.beams import beam_gains, dft_codebook, flat_dft_codebook
 from caviar_plugins.radio.link_budget import SPEED_OF_LIGHT
 
+CODEBOOKS = ("kronecker", "flat-dft")
 UAV_BODY = SCENES / "central_park" / "meshes" / "Cube.ply"  # a 2 m cube
 
 
@@ -82,13 +83,24 @@ class RadioConfig:
     """Put a metal UAV body (the scene's 2 m cube) at each UAV's position."""
     antenna_offset: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 1.5])
     """Receive antenna relative to the UAV body's centre (above the 2 m cube)."""
+    rx_orientation: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    """Receivers' yaw, pitch, roll in radians."""
+    codebook: str = "kronecker"
+    """``kronecker``: a 2-D DFT grid of beams per planar array (unit-norm codewords);
+    ``flat-dft``: the 2023 code's unnormalised N-point DFT over the flat element index
+    (see :func:`~caviar_plugins.radio.beams.flat_dft_codebook`)."""
+    normalize: bool = False
+    """Scale each link's H to unit mean |H_mn|² (the 2023 code's ``normalize=True``):
+    path loss and distance cancel. A link without paths stays zero."""
     threads: int = 0
     """Dr.Jit CPU threads; 0 = all cores. On CPU the solver's parallel sums differ in the
     last float bits from run to run; ``threads = 1`` makes runs bit-identical (measured
     1.9x slower per solve on the 2-core development machine)."""
 
     def __post_init__(self):
-        for name in ("tx_position", "tx_orientation", "antenna_offset"):
+        if self.codebook not in CODEBOOKS:
+            raise ValueError(f"codebook: expected one of {', '.join(CODEBOOKS)}, got {self.codebook!r}")
+        for name in ("tx_position", "tx_orientation", "antenna_offset", "rx_orientation"):
             if len(getattr(self, name)) != 3:
                 raise ValueError(f"{name}: expected three numbers, got {getattr(self, name)}")
         for name in ("tx_array", "rx_array"):
@@ -120,6 +132,13 @@ class Link:
         return int(np.argmax(self.gains))
 
 
+def normalize_channel(h: np.ndarray) -> np.ndarray:
+    """H scaled to unit mean |H_mn|² (Sionna 0.15's ``cir_to_ofdm_channel(normalize=True)``
+    for one frequency); an all-zero H stays zero."""
+    c = float(np.mean(np.abs(h) ** 2))
+    return h / np.sqrt(c) if c > 0 else h
+
+
 class RadioScene:
     def __init__(self, cfg: RadioConfig, seed: int = 0, base_dir: pathlib.Path | None = None):
         configure_drjit()
@@ -141,8 +160,12 @@ class RadioScene:
         s.rx_array = self._array(cfg.rx_array)
         s.add(rt.Transmitter("tx", position=cfg.tx_position, orientation=cfg.tx_orientation))
         self.solver = rt.PathSolver()
-        self.w_tx = dft_codebook(np.array(s.tx_array.positions(s.wavelength)))
-        self.w_rx = dft_codebook(np.array(s.rx_array.positions(s.wavelength)))
+        if cfg.codebook == "flat-dft":
+            self.w_tx = flat_dft_codebook(s.tx_array.num_ant)
+            self.w_rx = flat_dft_codebook(s.rx_array.num_ant)
+        else:
+            self.w_tx = dft_codebook(np.array(s.tx_array.positions(s.wavelength)))
+            self.w_rx = dft_codebook(np.array(s.rx_array.positions(s.wavelength)))
         self.receivers: dict[str, object] = {}
         self.bodies: dict[str, object] = {}
         # The scene is static and the solver seeded: the same positions give the same
@@ -169,7 +192,8 @@ class RadioScene:
         for key, pos in positions.items():
             pos = np.asarray(pos, dtype=float)
             if key not in self.receivers:
-                rx = self.rt.Receiver(f"rx-{key}", position=(pos + self.cfg.antenna_offset).tolist())
+                rx = self.rt.Receiver(f"rx-{key}", position=(pos + self.cfg.antenna_offset).tolist(),
+                                      orientation=list(self.cfg.rx_orientation))
                 self.scene.add(rx)
                 self.receivers[key] = rx
             else:
@@ -221,6 +245,8 @@ class RadioScene:
         out = {}
         for i, key in enumerate(self.receivers):
             h = cfr[i, :, 0, :, 0, 0]
+            if c.normalize:
+                h = normalize_channel(h)
             out[key] = Link(h=h, gains=beam_gains(h, self.w_tx, self.w_rx), los=bool(los[i]),
                             n_paths=int(valid[i].sum()))
         self._solved = (self._placed, out)

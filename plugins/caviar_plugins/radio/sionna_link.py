@@ -20,6 +20,7 @@ import dataclasses
 import numpy as np
 
 import caviar
+from caviar_plugins import protocol as paper
 from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.scene import RadioConfig, RadioScene
 from caviar_plugins.schema import (
@@ -44,6 +45,29 @@ class SionnaLinkParams(RadioConfig):
     interference_dbw: float = -130.0
     publish_channels: bool = True
     """Publish H and the beam gains as binary payloads."""
+    protocol: str = "physical"
+    """``physical``: H with path loss, the link budget above, the Kronecker codebook at
+    ``spacing``. ``paper``: the 2023 code's link (docs/paper-protocol.md): LOS path
+    dropped, unit-energy H, no refraction or diffuse reflection, 5.714 λ spacing, the
+    flat 64-point DFT, Rx 8.23 m below the UAV, R = 40 MHz · log2(1 + |g|²/3248.11).
+    It fixes those fields whatever they are set to."""
+
+    def __post_init__(self):
+        paper.check_protocol(self.protocol)
+        if self.protocol == "paper":
+            self.spacing = paper.PAPER_SPACING
+            self.los = False
+            self.diffuse_reflection = False
+            self.refraction = False
+            self.specular_reflection = True
+            self.diffraction = True
+            self.codebook = "flat-dft"
+            self.normalize = True
+            self.antenna_offset = list(paper.PAPER_RX_OFFSET)
+            self.rx_orientation = list(paper.PAPER_RX_ORIENTATION)
+            self.uav_mesh = True
+            self.bandwidth_hz = paper.PAPER_BANDWIDTH_HZ
+        super().__post_init__()
 
     def radio(self) -> RadioConfig:
         names = {f.name for f in dataclasses.fields(RadioConfig)}
@@ -83,17 +107,28 @@ class SionnaLink(caviar.Plugin):
                 raise ValueError(f"beam pair {pair} for {ue} is outside 0..{n_pairs - 1}")
             gain = float(link.gains.flat[pair])
             ue_type = self.ue_type[ue]
-            yield THROUGHPUT, throughput_payload(ue_type, ue, self.budget.throughput_mbps(gain))
+            yield THROUGHPUT, throughput_payload(ue_type, ue, self._mbps(gain))
             yield LINK, {
                 "UE_type": ue_type, "UE_Id": ue, "los": link.los, "n_paths": link.n_paths,
                 "best_pair": link.best_pair, "pair": pair, "selected": ue in self.selected,
-                "path_gain_db": _db(link.path_gain), "snr_db": _db(float(self.budget.sinr(gain))),
-                "best_throughput": float(self.budget.throughput_mbps(link.gains.max())),
+                "path_gain_db": _db(link.path_gain), "snr_db": _db(self._snr(gain)),
+                "best_throughput": self._mbps(float(link.gains.max())),
             }
             if self.p.publish_channels:
                 yield per_ue(CHANNEL, ue), link.h.astype(np.complex64)
                 yield per_ue(BEAM_GAINS, ue), link.gains.astype(np.float32)
         yield STATE, "Ready"
+
+
+    def _snr(self, gain: float) -> float:
+        if self.p.protocol == "paper":
+            return gain / paper.PAPER_SNR_DIVISOR
+        return float(self.budget.sinr(gain))
+
+    def _mbps(self, gain: float) -> float:
+        if self.p.protocol == "paper":
+            return float(paper.paper_rate_mbps(gain))
+        return float(self.budget.throughput_mbps(gain))
 
 
 def _db(x: float) -> float:

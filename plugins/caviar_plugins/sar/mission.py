@@ -5,6 +5,12 @@ The stop lasts S = B / throughput with B = 10 images of 4 MB (the paper's), at t
 UAV's latest throughput. A person seen again within ``same_target_m`` of a rescued
 one is the same person. When the episode ends (the UAV reached its last waypoint),
 ``mission.result`` reports the total mission time and the rescued targets.
+
+``protocol = "paper"`` (the 2023 loop, docs/paper-protocol.md): S uses the throughput
+of the previous step (the 2023 loop's lag); a detection while that throughput is 0
+counts nothing (the 2023 ZeroDivisionError); S is not capped; the hover itself is
+served by the flight at the next waypoint (``waypoint-flight`` with the same
+protocol), and the mission time is the flight's clock, takeoff included.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import dataclasses
 import math
 
 import caviar
+from caviar_plugins import protocol as paper
 from caviar_plugins.schema import DETECTIONS, HOVER, RESCUE, RESULT, THROUGHPUT
 
 
@@ -27,7 +34,12 @@ class Mission(caviar.Plugin):
         """Megabytes per image (MB = 10^6 bytes)."""
         same_target_m: float = 5.0
         max_hover_s: float = 600.0
-        """Upper bound of one stop, for links with (almost) no throughput."""
+        """Upper bound of one stop, for links with (almost) no throughput (physical only)."""
+        protocol: str = "physical"
+        """``physical`` or ``paper`` (see the module docstring)."""
+
+        def __post_init__(self):
+            paper.check_protocol(self.protocol)
 
     def setup(self, ctx):
         self.ctx = ctx
@@ -36,24 +48,39 @@ class Mission(caviar.Plugin):
 
     def step(self, t, inbox):
         p = self.ctx.params
+        is_paper = p.protocol == "paper"
+        previous = dict(self.throughput)
         for m in inbox:
             if m.topic == THROUGHPUT:
                 self.throughput[m.data["UE_Id"]] = float(m.data["throughput"])
-        for m in inbox.on(DETECTIONS):
+        end = inbox.latest(caviar.END_TOPIC)
+        detections = [] if (is_paper and end is not None) else inbox.on(DETECTIONS)
+        for m in detections:
             ue = m.data["UE_Id"]
             for d in m.data["detections"]:
                 g = d.get("ground")
                 if g is None or any(math.dist((g["x"], g["y"]), (r["x"], r["y"])) < p.same_target_m
                                     for r in self.rescues):
                     continue
-                mbps = self.throughput.get(ue, 0.0)
                 megabits = p.images * p.image_mb * 8
-                seconds = min(megabits / mbps, p.max_hover_s) if mbps > 0 else p.max_hover_s
+                if is_paper:
+                    mbps = previous.get(ue, 0.0)
+                    if mbps <= 0:
+                        continue
+                    seconds = megabits / mbps
+                else:
+                    mbps = self.throughput.get(ue, 0.0)
+                    seconds = min(megabits / mbps, p.max_hover_s) if mbps > 0 else p.max_hover_s
                 rescue = {"UE_Id": ue, "x": g["x"], "y": g["y"], "time": t, "throughput": mbps,
                           "hover_s": seconds}
                 self.rescues.append(rescue)
                 yield HOVER, {"UE_Id": ue, "seconds": seconds}
                 yield RESCUE, rescue
-        end = inbox.latest(caviar.END_TOPIC)
         if end is not None:
-            yield RESULT, {"mission_time_s": end.time, "rescued": len(self.rescues), "rescues": self.rescues}
+            result = {"mission_time_s": end.time, "rescued": len(self.rescues), "rescues": self.rescues}
+            if is_paper:
+                data = end.data if isinstance(end.data, dict) else {}
+                for key in ("mission_time_s", "clock_offset_s", "flight_time_s", "hover_s", "flown_m"):
+                    if key in data:
+                        result[key] = data[key]
+            yield RESULT, result

@@ -4,6 +4,11 @@ The image is sent in packets of ``packet_bytes``; each is lost independently wit
 probability set by the link's throughput (> 60 Mbit/s: 1 %, 30–60: 25 %, ≤ 30: 50 %)
 and a lost packet's bytes arrive as zeros. Zero-filling reproduces the paper's PSNRs
 (≈ 26, 12 and 9 dB on its images).
+
+``protocol = "paper"`` (the 2023 loop): the loss rate follows the throughput of the
+previous step, and exactly ⌊N · rate⌋ randomly chosen bytes of the image are zeroed
+(:func:`caviar_plugins.protocol.zero_bytes`), from a generator seeded 1 that runs on
+across frames.
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ import dataclasses
 import numpy as np
 
 import caviar
+from caviar_plugins import protocol as paper
 from caviar_plugins.schema import CAMERA, IMAGE_QUALITY, IMAGES, THROUGHPUT, every_ue, per_ue, ue_of
 
 # (throughput above which, loss rate), checked in order; the paper's table.
@@ -51,20 +57,34 @@ class ImageLink(caviar.Plugin):
     @dataclasses.dataclass
     class Params:
         packet_bytes: int = 1400
+        protocol: str = "physical"
+        """``physical``: packets of ``packet_bytes``, this step's throughput; ``paper``:
+        byte-level zeroing at the previous step's throughput (module docstring)."""
+
+        def __post_init__(self):
+            paper.check_protocol(self.protocol)
 
     def setup(self, ctx):
         self.ctx = ctx
         self.throughput: dict[str, float] = {}
+        self.paper_rng = np.random.default_rng(1)
 
     def step(self, t, inbox):
+        is_paper = self.ctx.params.protocol == "paper"
+        previous = dict(self.throughput)
         for m in inbox:
             if m.topic == THROUGHPUT:
                 self.throughput[m.data["UE_Id"]] = float(m.data["throughput"])
         for m in inbox.on(every_ue(CAMERA)):
             ue = ue_of(m.topic)
-            mbps = self.throughput.get(ue, 0.0)
-            rate = loss_for_throughput(mbps)
-            received = packet_loss(m.data, rate, self.ctx.rng, self.ctx.params.packet_bytes)
+            if is_paper:
+                mbps = previous.get(ue, 0.0)
+                rate = loss_for_throughput(mbps, paper.PAPER_LOSS)
+                received = paper.zero_bytes(m.data, rate, self.paper_rng)
+            else:
+                mbps = self.throughput.get(ue, 0.0)
+                rate = loss_for_throughput(mbps)
+                received = packet_loss(m.data, rate, self.ctx.rng, self.ctx.params.packet_bytes)
             yield per_ue(IMAGES, ue), received
             yield IMAGE_QUALITY, {"UE_Id": ue, "throughput": mbps, "loss_rate": rate,
                                         "psnr_db": min(psnr(m.data, received), 99.0), "step": m.step}
