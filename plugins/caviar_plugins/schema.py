@@ -23,6 +23,13 @@ import numpy as np
 # Mobility and the 3D scene
 POSITIONS = "3D.mobility.positions"
 """Where a UE is: a position payload (see :func:`position_payload`)."""
+DEPARTED = "3D.mobility.departed"
+"""A UE entered the scene (a SUMO vehicle or person departed): ``{"UE_type", "UE_Id"}``."""
+ARRIVED = "3D.mobility.arrived"
+"""A UE left the scene (arrived at its destination): ``{"UE_type", "UE_Id"}``."""
+TRAFFIC = "3D.mobility.traffic"
+"""Once a step from the traffic simulator: ``{"sumo_time", "vehicles", "persons", "departed", "arrived"}``,
+``sumo_time`` being the simulator's own clock (equal to the engine's)."""
 CAMERA = "3D.camera"
 """Prefix: ``3D.camera.<UE_Id>`` a nadir camera image (uint8, H × W × 3, binary);
 ``3D.camera.<UE_Id>.file`` the same image as a PNG artifact."""

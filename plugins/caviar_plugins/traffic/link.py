@@ -1,0 +1,298 @@
+"""The ``sionna-traffic-link`` communications plugin: ``sionna-link`` in a living scene.
+
+Every vehicle and person on ``3D.mobility.positions`` that carries ``dimensions`` (as
+``sumo-traffic`` publishes them) is a box of its size in the ray-traced scene — ITU metal
+for vehicles, ITU concrete for pedestrians by default — borrowed from a pool of boxes
+added once at setup (:class:`~caviar_plugins.radio.scatterers.ScattererPool`): boxes move
+every step without reloading the scene or recompiling the solver.
+
+Receivers, one per UE, as in ``sionna-link``:
+
+* UEs without ``dimensions`` (a UAV of ``waypoint-flight``): the antenna at the position
+  plus ``antenna_offset``, with a metal body (a 2 m box) when ``uav_mesh``;
+* connected vehicles: those named in ``connected`` and the first ``connected_count``
+  vehicles of ``connected_types`` to appear; the antenna ``roof_antenna_m`` above the
+  roof centre. Their receivers exist from setup on (parked below the ground while their
+  vehicle is away), so the number of receivers never changes.
+
+Each receiver moves with its UE's velocity (payload ``velocity``; for UEs without one, the
+displacement since the previous step over the elapsed time), so Sionna RT gives every
+path its Doppler shift. Per UE and step it publishes what ``sionna-link`` does, and on
+``communications.link`` also ``doppler_hz`` (strongest path), ``doppler_los_hz`` (the
+line-of-sight path, or null), ``speed`` and ``blocker``: what the straight Tx–Rx line hits
+first — null when clear, the UE_Id of a vehicle/person, or ``"scene"`` for a building or
+other static geometry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+import caviar
+from caviar_plugins.radio.link_budget import LinkBudget
+from caviar_plugins.radio.scatterers import Body, ScattererPool
+from caviar_plugins.radio.scene import RadioScene
+from caviar_plugins.radio.sionna_link import SionnaLinkParams, _db
+from caviar_plugins.schema import (
+    BEAM_GAINS,
+    BEAM_SELECTION,
+    CHANNEL,
+    LINK,
+    POSITIONS,
+    STATE,
+    THROUGHPUT,
+    every_ue,
+    per_ue,
+    read_position,
+    throughput_payload,
+)
+
+PARKED_RX_Z = -500.0
+UAV_BODY_SIZE = (2.0, 2.0, 2.0)
+ITU_TYPES = ("concrete", "brick", "plasterboard", "wood", "glass", "ceiling_board", "chipboard", "plywood",
+             "marble", "floorboard", "metal", "very_dry_ground", "medium_dry_ground", "wet_ground")
+
+
+@dataclasses.dataclass
+class SionnaTrafficLinkParams(SionnaLinkParams):
+    vehicle_pool: int = 64
+    """Boxes for vehicles (the most vehicles in the scene at once)."""
+    person_pool: int = 32
+    """Boxes for pedestrians."""
+    vehicle_material: str = "metal"
+    """ITU-R P.2040 material of vehicle boxes (Sionna ``itu_<name>``)."""
+    person_material: str = "concrete"
+    """Of pedestrian boxes. P.2040 has no body tissue; concrete (thickness ``person_thickness``)
+    is opaque at mm-wave like a body and reflects about as weakly (normal incidence: −8 dB
+    for concrete against about −5 dB for skin at 40 GHz)."""
+    person_thickness: float = 0.3
+    connected: list[str] = dataclasses.field(default_factory=list)
+    """UE_Ids of vehicles that are receivers (e.g. SUMO ids)."""
+    connected_count: int = 0
+    """Plus the first N vehicles of ``connected_types`` to appear."""
+    connected_types: list[str] = dataclasses.field(default_factory=lambda: ["car"])
+    roof_antenna_m: float = 0.1
+    """A connected vehicle's antenna above its roof."""
+    scatterers: bool = True
+    """Vehicles and persons as boxes in the scene (false: receivers only)."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        for name in ("vehicle_material", "person_material"):
+            if getattr(self, name) not in ITU_TYPES:
+                raise ValueError(f"{name}: expected an ITU-R P.2040 material ({', '.join(ITU_TYPES)}), "
+                                 f"got {getattr(self, name)!r}")
+        if self.vehicle_pool < 0 or self.person_pool < 0 or self.connected_count < 0:
+            raise ValueError("vehicle_pool, person_pool and connected_count must be >= 0")
+
+
+class _Recorder:
+    """Wraps the path solver to keep the last Paths (Doppler shifts, amplitudes)."""
+
+    def __init__(self, solver):
+        self.solver = solver
+        self.last = None
+
+    def __call__(self, *args, **kw):
+        self.last = self.solver(*args, **kw)
+        return self.last
+
+
+class SionnaTrafficLink(caviar.Plugin):
+    subscribe = [POSITIONS, BEAM_SELECTION]
+    publishes = (THROUGHPUT, LINK, every_ue(CHANNEL), every_ue(BEAM_GAINS), STATE)
+    Params = SionnaTrafficLinkParams
+
+    def setup(self, ctx):
+        p = ctx.params
+        self.p = p
+        radio_cfg = p.radio()
+        self.uav_offset = np.asarray(radio_cfg.antenna_offset, dtype=float)
+        radio_cfg.antenna_offset = [0.0, 0.0, 0.0]  # receivers are placed at their antennas here
+        radio_cfg.uav_mesh = False  # UAV bodies are boxes of the pool
+        self.radio = RadioScene(radio_cfg, seed=ctx.seed, base_dir=ctx.config_dir)
+        self.radio.solver = _Recorder(self.radio.solver)
+        self.budget = LinkBudget(bandwidth_hz=p.bandwidth_hz, tx_power_w=p.tx_power_w,
+                                 interference_dbw=p.interference_dbw)
+        rt = self.radio.rt
+        n_slots = len(p.connected) + p.connected_count
+        capacity = {"vehicle": p.vehicle_pool, "person": p.person_pool} if p.scatterers else {}
+        self.pool = ScattererPool(self.radio.scene, capacity, {
+            "vehicle": rt.ITURadioMaterial("traffic-vehicle", p.vehicle_material, thickness=0.01),
+            "person": rt.ITURadioMaterial("traffic-person", p.person_material, thickness=p.person_thickness),
+        }, prefix="traffic")
+        self.uav_pool: ScattererPool | None = None
+        self.rx_slots = [f"car-slot-{i}" for i in range(n_slots)]
+        self.slot_of: dict[str, str] = {}  # connected vehicle -> receiver slot
+        self.rx_pos: dict[str, np.ndarray] = {}  # receiver key -> antenna position (insertion order = receivers)
+        self.rx_vel: dict[str, np.ndarray] = {}
+        park = np.array([0.0, 0.0, PARKED_RX_Z])
+        for i, slot in enumerate(self.rx_slots):
+            self.rx_pos[slot] = park + [i, 0.0, 0.0]
+            self.rx_vel[slot] = np.zeros(3)
+        self.ue_type: dict[str, str] = {}
+        self.selected: dict[str, int] = {}
+        self.prev: dict[str, tuple[float, np.ndarray]] = {}  # for UEs without velocity
+        self.n_chosen = 0
+
+    # -- per step -----------------------------------------------------------------
+
+    def _read(self, t, inbox):
+        """Bodies in the scene and receivers to serve this step (UE -> (receiver, antenna
+        position, velocity)), from the inbox."""
+        bodies, served, vehicles = [], {}, {}
+        for m in inbox:
+            if m.topic == BEAM_SELECTION:
+                self.selected[m.data["UE_Id"]] = int(m.data["beam_pair"])
+            elif m.topic == POSITIONS:
+                ue, pos, vel = self._ue(t, m.data)
+                dims = m.data.get("dimensions")
+                if dims is None:  # a UAV (or any UE without a size): a receiver of its own
+                    served[ue] = (ue, pos + self.uav_offset, vel)
+                    if self.p.uav_mesh:
+                        centre = pos - [0.0, 0.0, UAV_BODY_SIZE[2] / 2]
+                        bodies.append(Body(ue, "uav", tuple(centre), 0.0, UAV_BODY_SIZE, tuple(vel)))
+                    continue
+                size = (float(dims["length"]), float(dims["width"]), float(dims["height"]))
+                group = "person" if m.data["UE_type"] == "pedestrian" else "vehicle"
+                if self.p.scatterers:
+                    bodies.append(Body(ue, group, tuple(pos), float(m.data.get("heading", 0.0)), size, tuple(vel)))
+                if group == "vehicle":
+                    vehicles[ue] = (pos + [0.0, 0.0, size[2] + self.p.roof_antenna_m], vel)
+        # Connected vehicles: the named ones, and the first of the chosen types to appear.
+        for ue in sorted(vehicles):
+            if ue not in self.slot_of:
+                named = ue in self.p.connected
+                if not named and (self.n_chosen >= self.p.connected_count
+                                  or self.ue_type[ue] not in self.p.connected_types):
+                    continue
+                self.slot_of[ue] = self.rx_slots[len(self.slot_of)]
+                self.n_chosen += 0 if named else 1
+            served[ue] = (self.slot_of[ue], *vehicles[ue])
+        return bodies, served
+
+    def _ue(self, t, d):
+        ue, pos = d["UE_Id"], read_position(d)
+        self.ue_type[ue] = d["UE_type"]
+        v = d.get("velocity")
+        if v is not None:
+            vel = np.array([v["x"], v["y"], v["z"]], dtype=float)
+        else:  # from the displacement since the last step
+            t0, p0 = self.prev.get(ue, (t, pos))
+            vel = (pos - p0) / (t - t0) if t > t0 else np.zeros(3)
+        self.prev[ue] = (t, pos)
+        return ue, pos, vel
+
+    def step(self, t, inbox):
+        bodies, served = self._read(t, inbox)
+        self._place_bodies(bodies)
+        for slot, _, _ in served.values():
+            if slot not in self.rx_pos:  # a new UAV: one more receiver (a recompile, once)
+                self.rx_pos[slot] = np.zeros(3)
+                self.rx_vel[slot] = np.zeros(3)
+        active = {slot for slot, _, _ in served.values()}
+        for i, slot in enumerate(self.rx_pos):
+            if slot not in active:  # a connected car that left, a UAV not reported: parked
+                self.rx_pos[slot] = np.array([float(i), 0.0, PARKED_RX_Z])
+                self.rx_vel[slot] = np.zeros(3)
+        for slot, pos, vel in served.values():
+            self.rx_pos[slot] = np.asarray(pos, dtype=float)
+            self.rx_vel[slot] = np.asarray(vel, dtype=float)
+        if not served:
+            return
+        self.radio.place(self.rx_pos)
+        for slot, rx in self.radio.receivers.items():
+            rx.velocity = self.rx_vel[slot].tolist()
+        self.radio._solved = None  # the scatterers moved: never reuse the last solve
+        links = self.radio.solve()
+        extra = self._paths_info()
+        blockers = self._blockers()
+        n_pairs = self.radio.w_rx.shape[1] * self.radio.n_tx_beams
+        for ue in sorted(served):
+            slot = served[ue][0]
+            link = links[slot]
+            pair = self.selected.get(ue, link.best_pair)
+            if not 0 <= pair < n_pairs:
+                raise ValueError(f"beam pair {pair} for {ue} is outside 0..{n_pairs - 1}")
+            gain = float(link.gains.flat[pair])
+            ue_type = self.ue_type[ue]
+            yield THROUGHPUT, throughput_payload(ue_type, ue, self.budget.throughput_mbps(gain))
+            info = extra[slot]
+            yield LINK, {
+                "UE_type": ue_type, "UE_Id": ue, "los": link.los, "n_paths": link.n_paths,
+                "best_pair": link.best_pair, "pair": pair, "selected": ue in self.selected,
+                "path_gain_db": _db(link.path_gain), "snr_db": _db(float(self.budget.sinr(gain))),
+                "best_throughput": float(self.budget.throughput_mbps(link.gains.max())),
+                "speed": float(np.linalg.norm(self.rx_vel[slot])), "blocker": blockers[slot], **info,
+            }
+            if self.p.publish_channels:
+                yield per_ue(CHANNEL, ue), link.h.astype(np.complex64)
+                yield per_ue(BEAM_GAINS, ue), link.gains.astype(np.float32)
+        yield STATE, "Ready"
+
+    def _place_bodies(self, bodies):
+        uav = [b for b in bodies if b.group == "uav"]
+        others = [b for b in bodies if b.group != "uav"]
+        if self.uav_pool is None and uav:
+            # UAV bodies: a pool of their own the first time UAVs are seen (their receivers
+            # are new then too, so this edit costs no extra recompile later).
+            rt = self.radio.rt
+            self.uav_pool = ScattererPool(self.radio.scene, {"uav": len(uav)},
+                                          {"uav": rt.ITURadioMaterial("traffic-uav", "metal", thickness=0.01)},
+                                          prefix="traffic-uav")
+        if self.uav_pool is not None:
+            self.uav_pool.update(uav[: self.uav_pool.capacity["uav"]])
+        self.pool.update(others)
+
+    def _paths_info(self) -> dict[str, dict]:
+        """Doppler of the strongest and of the line-of-sight path of each receiver."""
+        paths = self.radio.solver.last
+        keys = list(self.radio.receivers)
+        n = len(keys)
+        a_re, a_im = paths.a
+        a2 = np.array(a_re) ** 2 + np.array(a_im) ** 2  # [rx, rx_ant, tx, tx_ant, paths]
+        n_paths = a2.shape[-1]
+        power = a2.reshape(n, -1, n_paths).sum(axis=1) if a2.size else np.zeros((n, n_paths))
+        doppler = np.array(paths.doppler).reshape(n, n_paths)
+        tau = np.array(paths.tau).reshape(n, n_paths)
+        valid = np.array(paths.valid).reshape(n, n_paths).astype(bool)
+        tx = np.asarray(self.radio.cfg.tx_position, dtype=float)
+        out = {}
+        for i, key in enumerate(keys):
+            direct = float(np.linalg.norm(self.rx_pos[key] - tx))
+            pw = np.where(valid[i], power[i], -1.0)
+            best = int(np.argmax(pw)) if valid[i].any() else None
+            los = np.flatnonzero(valid[i] & (np.abs(tau[i] * 299_792_458.0 - direct) < 0.01))
+            out[key] = {"doppler_hz": float(doppler[i, best]) if best is not None else None,
+                        "doppler_los_hz": float(doppler[i, los[0]]) if len(los) else None}
+        return out
+
+    def _blockers(self) -> dict[str, str | None]:
+        """What the straight line from the transmitter to each receiver hits first."""
+        import drjit as dr
+        import mitsuba as mi
+
+        keys = list(self.radio.receivers)
+        tx = np.asarray(self.radio.cfg.tx_position, dtype=float)
+        rx = np.array([self.rx_pos[k] for k in keys])
+        d = rx - tx
+        dist = np.linalg.norm(d, axis=1)
+        u = d / np.maximum(dist, 1e-9)[:, None]
+        ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.full(len(keys), v)) for v in tx)),
+                       mi.Vector3f(*(mi.Float(u[:, j]) for j in range(3))))
+        ray.maxt = mi.Float(np.maximum(dist - 0.05, 0.0))
+        si = self.radio.scene.mi_scene.ray_intersect(ray)
+        hit = np.array(si.is_valid())
+        ids = np.array(dr.reinterpret_array(mi.UInt32, si.shape))
+        names = {}
+        for pool in (self.pool, self.uav_pool):
+            if pool is None:
+                continue
+            for key, (group, slot) in pool.used.items():
+                names[int(pool.slots[group][slot].object_id)] = key
+        return {k: (names.get(int(ids[i]), "scene") if hit[i] else None) for i, k in enumerate(keys)}
+
+
+__all__ = ["SionnaTrafficLink", "SionnaTrafficLinkParams"]

@@ -1,0 +1,176 @@
+"""SUMO traffic in the loop (real SUMO through libsumo) and moving scatterers in the
+ray-traced scene (real Sionna RT, small sample counts), checked against independent
+computations."""
+
+import math
+import pathlib
+import subprocess
+
+import numpy as np
+import pytest
+
+import caviar
+from caviar.plugin import Context, Inbox, Message
+from caviar_plugins.schema import LINK, POSITIONS, position_payload
+from caviar_plugins.traffic.sumo import binary
+from conftest import write_config
+
+FC = 40e9
+LAMBDA = 299_792_458.0 / FC
+
+
+@pytest.fixture(scope="module")
+def grid(tmp_path_factory) -> pathlib.Path:
+    """A 3 x 3 grid of 150 m streets with sidewalks and crossings (SUMO's netgenerate)."""
+    d = tmp_path_factory.mktemp("grid")
+    net = d / "grid.net.xml"
+    subprocess.run([binary("netgenerate"), "--grid", "--grid.number", "3", "--grid.length", "150",
+                    "--sidewalks.guess", "true", "--crossings.guess", "true", "-o", str(net)],
+                   check=True, capture_output=True)
+    return net
+
+
+DEMAND = "vehicles = { passenger = 5, bus = 1 }\npedestrians = 3"
+
+
+def traffic_config(tmp_path, net, seed=3, steps=6, ts=0.5, demand=DEMAND):
+    return write_config(tmp_path, f"""
+[episode]
+ts = {ts}
+seed = {seed}
+steps = {steps}
+stages = ["mobility"]
+[modules.traffic]
+stage = "mobility"
+plugin = "sumo-traffic"
+[modules.traffic.params]
+net = "{net}"
+{demand}
+window_s = 2.0
+min_trip_m = 100.0
+substeps = 2
+""", f"traffic-{seed}.toml")
+
+
+def positions(log):
+    p = log.topic(POSITIONS)
+    return [(r["time"], r["UE_Id"], r["position"]["x"], r["position"]["y"]) for r in p.iter_rows(named=True)]
+
+
+def test_lockstep_and_same_seed_same_positions(tmp_path, grid):
+    logs = {}
+    for name, seed in (("a", 3), ("b", 3), ("c", 4)):
+        cfg = traffic_config(tmp_path, grid, seed=seed)
+        logs[name] = caviar.Simulation.from_toml(cfg, out=tmp_path / name).run()
+    log = logs["a"]
+    traffic = log.topic("3D.mobility.traffic")
+    # SUMO's own clock equals the engine's at every step (Ts = 0.5 s in 2 SUMO substeps).
+    assert traffic["sumo_time"].to_list() == traffic["time"].to_list() == [0.5 * k for k in range(6)]
+    pos = log.topic(POSITIONS)
+    assert set(pos["UE_type"]) == {"car", "bus", "pedestrian"}
+    assert pos.filter(pos["UE_type"] == "bus")["dimensions"].to_list()[0] == {"length": 12.0, "width": 2.5,
+                                                                              "height": 3.4}
+    # Every UE seen was announced as departed, once, no later than its first position.
+    departed = log.topic("3D.mobility.departed")
+    assert sorted(departed["UE_Id"]) == sorted(set(pos["UE_Id"])) and departed["UE_Id"].is_unique().all()
+    first_seen = {r["UE_Id"]: r["time"] for r in reversed(list(pos.iter_rows(named=True)))}
+    assert all(r["time"] <= first_seen[r["UE_Id"]] for r in departed.iter_rows(named=True))
+    # Counts per step add up.
+    n = pos.group_by("time").len().sort("time")
+    assert dict(zip(n["time"], n["len"], strict=True)) == {r["time"]: r["vehicles"] + r["persons"]
+                                              for r in traffic.iter_rows(named=True) if r["vehicles"] + r["persons"]}
+    assert positions(logs["a"]) == positions(logs["b"])
+    assert positions(logs["a"]) != positions(logs["c"])
+
+
+def test_bad_input_is_a_clear_error_naming_the_file(tmp_path, grid, cli):
+    # A network that does not exist.
+    cfg = traffic_config(tmp_path, tmp_path / "missing.net.xml")
+    with pytest.raises(caviar.RunError, match=r"missing\.net\.xml: no such SUMO network file"):
+        caviar.Simulation.from_toml(cfg, out=tmp_path / "r1").run()
+    # A route file on edges the network does not have.
+    routes = tmp_path / "other.rou.xml"
+    routes.write_text('<routes><vehicle id="v0" depart="0"><route edges="nowhere elsewhere"/></vehicle></routes>')
+    cfg = traffic_config(tmp_path, grid, demand=f'routes = ["{routes}"]')
+    with pytest.raises(caviar.RunError, match=r"SUMO cannot load .*other\.rou\.xml.*nowhere"):
+        caviar.Simulation.from_toml(cfg, out=tmp_path / "r2").run()
+    # A vehicle type the route file does not define.
+    routes.write_text('<routes><vehicle id="v0" depart="0" type="spaceship"><route edges="A0B0 B0C0"/></vehicle>'
+                      '</routes>')
+    with pytest.raises(caviar.RunError, match=r"other\.rou\.xml.*spaceship"):
+        caviar.Simulation.from_toml(cfg, out=tmp_path / "r3").run()
+    # A vehicle class SUMO does not know: a parameter error (exit 2, file and line).
+    cfg = traffic_config(tmp_path, grid, demand="vehicles = { spaceship = 1 }")
+    p = cli("run", cfg)
+    assert p.returncode == 2 and "modules.traffic.params" in p.stderr and "unknown vehicle class 'spaceship'" \
+        in p.stderr and str(cfg.name) in p.stderr, p.stderr
+
+
+# -- the radio side -------------------------------------------------------------
+
+
+def radio_plugin(tmp_path, **kw):
+    from caviar_plugins.traffic.link import SionnaTrafficLink, SionnaTrafficLinkParams
+
+    params = dict(scene="empty", samples_per_src=2000, max_depth=1, tx_array=[1, 1], rx_array=[1, 1],
+                  pattern="iso", uav_mesh=False, antenna_offset=[0.0, 0.0, 0.0], tx_orientation=[0.0, 0.0, 0.0],
+                  frequency_hz=FC, vehicle_pool=4, person_pool=2, publish_channels=False)
+    params.update(kw)
+    plugin = SionnaTrafficLink()
+    plugin.setup(Context(name="comm", params=SionnaTrafficLinkParams(**params), seed=1, ts=1.0, steps=None, every=1,
+                         offset=0, run_dir=tmp_path, config_dir=tmp_path))
+    return plugin
+
+
+def step(plugin, t, payloads):
+    msgs = [Message(POSITIONS, p) for p in payloads]
+    return {m[1]["UE_Id"]: m[1] for m in plugin.step(t, Inbox(msgs)) if m[0] == LINK}
+
+
+def test_a_vehicle_stopped_on_the_line_lowers_the_path_gain(tmp_path, grid):
+    # A car from SUMO, stopped 60 m along edge A0B0 (x from 0 to 150 m at y = 0).
+    routes = tmp_path / "stop.rou.xml"
+    routes.write_text('<routes><vehicle id="blocker" depart="0"><route edges="A0B0 B0C0"/>'
+                      '<stop lane="A0B0_1" endPos="65" duration="1000"/></vehicle></routes>')
+    cfg = traffic_config(tmp_path, grid, steps=30, ts=1.0, demand=f'routes = ["{routes}"]')
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "stop").run()
+    car = log.topic(POSITIONS).filter(caviar.load_run(tmp_path / "stop").topic(POSITIONS)["UE_Id"] == "blocker")
+    last = car.row(-1, named=True)
+    assert last["speed"] == 0.0 and last["UE_type"] == "car"
+    car_msg = {k: last[k] for k in ("UE_type", "UE_Id", "position", "heading", "speed", "velocity", "dimensions")}
+    c = np.array([last["position"]["x"], last["position"]["y"]])
+    heading = np.array([math.cos(last["heading"]), math.sin(last["heading"])])
+    normal = np.array([-heading[1], heading[0]])
+    tx = np.append(c - 15 * normal, 1.0)
+    rx = np.append(c + 15 * normal, 1.0)  # the car (1.5 m high) stands across the Tx-Rx line at 1 m
+    plugin = radio_plugin(tmp_path, tx_position=tx.tolist(), max_depth=3, samples_per_src=20000)
+    ue = position_payload("ue", rx, "pedestrian-phone")
+    with_car = step(plugin, 29.0, [car_msg, ue])["ue"]
+    without = step(plugin, 29.0, [ue])["ue"]
+    print("path gain without/with the car:", without["path_gain_db"], with_car["path_gain_db"], with_car["n_paths"])
+    assert without["los"] and without["blocker"] is None
+    assert not with_car["los"] and with_car["blocker"] == "blocker"
+    assert without["path_gain_db"] - with_car["path_gain_db"] >= 10.0
+    free_space = 20 * math.log10(LAMBDA / (4 * math.pi * 30.0))
+    assert without["path_gain_db"] == pytest.approx(free_space, abs=0.1)
+
+
+def test_doppler_of_the_los_path_is_v_cos_theta_over_lambda(tmp_path):
+    tx = np.array([0.0, 0.0, 25.0])
+    plugin = radio_plugin(tmp_path, tx_position=tx.tolist(), connected=["car1", "car2"])
+    cars = {"car1": ((80.0, 30.0), 0.3, 14.0), "car2": ((-40.0, 60.0), 2.5, 9.0)}
+    msgs = []
+    for ue, ((x, y), yaw, v) in cars.items():
+        m = position_payload(ue, (x, y, 0.0), "car")
+        m.update(heading=yaw, speed=v, velocity={"x": v * math.cos(yaw), "y": v * math.sin(yaw), "z": 0.0},
+                 dimensions={"length": 4.5, "width": 1.8, "height": 1.5})
+        msgs.append(m)
+    links = step(plugin, 0.0, msgs)
+    for ue, ((x, y), yaw, v) in cars.items():
+        antenna = np.array([x, y, 1.5 + 0.1])
+        to_tx = (tx - antenna) / np.linalg.norm(tx - antenna)
+        vel = v * np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        expected = float(vel @ to_tx) / LAMBDA  # approaching the transmitter: positive
+        assert links[ue]["los"] and links[ue]["speed"] == pytest.approx(v)
+        assert links[ue]["doppler_los_hz"] == pytest.approx(expected, rel=0.01)
+        assert abs(expected) > 500  # not a trivially small number
