@@ -241,3 +241,25 @@ def test_blueprints_set_the_protocol_where_they_should():
         assert {bp["modules"][m]["params"]["protocol"] for m in ("uav", "comm")} == {"paper"}
     assert dataclasses.fields(SionnaLinkParams)  # imported for the defaults above
     assert math.isclose(paper.PAPER_SPACING, 0.5 * 40 / 3.5)
+
+
+def test_paper_top_k_counts_the_predicted_pair_among_the_k_strongest():
+    from caviar_plugins.beam_selection.paper_topk import hits
+
+    gains = np.array([[0.0, 5, 3, 1], [4.0, 4, 1, 0]])
+    # Row 0 ranks 1, 2, 3, 0; row 1 ranks 0, 1 (tie: lower index first), 2, 3.
+    assert hits(np.array([2, 1]), gains, ks=(1, 2, 4)) == {1: 0.0, 2: 1.0, 4: 1.0}
+    assert hits(np.array([1, 0]), gains, ks=(1,)) == {1: 1.0}
+
+
+def test_gain_knn_picks_the_pair_strong_around_a_position():
+    from caviar_plugins.beam_selection.knn import GainKNN
+
+    pos = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [50, 0, 0]])
+    gains = np.array([[1.0, 0.9, 0], [0.0, 1, 0.2], [0.1, 1, 0], [0, 0, 1]])
+    model = GainKNN(k=3).fit(pos, gains)
+    # The best pair flips near x = 0..2, but pair 1 is strong at all three: k-NN picks it.
+    assert model.predict(np.array([[1.0, 0.5, 0]])).tolist() == [1]
+    assert model.predict(np.array([[49.0, 0, 0]])).tolist() == [2]  # distance weights: x = 50 dominates
+    assert GainKNN(k=3, weights="uniform").fit(pos, gains).predict(np.array([[49.0, 0, 0]])).tolist() == [1]
+    assert GainKNN(k=1).fit(pos, gains).predict(np.array([[49.0, 0, 0]])).tolist() == [2]

@@ -3,6 +3,12 @@ writes the paper's mission table (mission time, rescued targets) with plots and 
 exact configurations that produced it.
 
     python -m caviar_plugins.sar.results --tree models/beam-tree.pkl [--out docs/results]
+    python -m caviar_plugins.sar.results --config blueprints/sar-paper/config.toml \
+        --tree models/paper-beam-tree.pkl --knn models/paper-beam-knn.pkl \
+        --methods random tree oracle knn --runs runs/paper --out docs/results/paper-protocol --reuse
+
+``knn`` is the better selector (:mod:`caviar_plugins.beam_selection.knn`) in the loop,
+run as the ``tree`` method with its model. ``--reuse`` keeps completed runs.
 """
 
 from __future__ import annotations
@@ -19,19 +25,27 @@ import caviar
 from caviar_plugins.schema import IMAGE_QUALITY, POSITIONS, RESCUE, RESULT, THROUGHPUT, read_position
 
 PAPER = {"random": (424.94, 3), "tree": (98.50, 5), "oracle": (75.53, 5)}
-LABEL = {"random": "Random", "tree": "Decision tree", "oracle": "Oracle"}
+LABEL = {"random": "Random", "tree": "Decision tree", "oracle": "Oracle", "knn": "k-NN gain (ours)",
+         "previous": "Previous beam (ours)"}
 
 
-def run_all(config: pathlib.Path, tree: pathlib.Path, runs: pathlib.Path, methods, overrides=()) -> dict:
+def run_all(config: pathlib.Path, tree: pathlib.Path, runs: pathlib.Path, methods, overrides=(),
+            knn: pathlib.Path | None = None, reuse: bool = False) -> dict:
     logs = {}
     for method in methods:
         out = runs / f"sar-{method}"
+        done = (out / "run.json").exists() and json.loads((out / "run.json").read_text())["status"] == "completed"
+        if reuse and done:
+            print(f"reusing {out}", flush=True)
+            logs[method] = caviar.load_run(out)
+            continue
         if out.exists():
             shutil.rmtree(out)
-        sets = {"modules.beams.params.method": method, "output.name": f"sar-{method}"}
-        if method == "tree":
+        sets = {"modules.beams.params.method": "tree" if method == "knn" else method, "output.name": f"sar-{method}"}
+        if method in ("tree", "knn"):
+            model = tree if method == "tree" else knn
             # Relative to the config file, as paths in it are: the saved config stays portable.
-            sets["modules.beams.params.model"] = os.path.relpath(tree.resolve(), config.resolve().parent)
+            sets["modules.beams.params.model"] = os.path.relpath(model.resolve(), config.resolve().parent)
         sim = caviar.Simulation.from_toml(config, overrides=[f"{k}={json.dumps(v)}" for k, v in sets.items()]
                                           + list(overrides), out=out)
         print(f"running {method} -> {out}", flush=True)
@@ -43,10 +57,18 @@ def summarise(logs: dict) -> list[dict]:
     rows = []
     for method, log in logs.items():
         result = log.topic(RESULT).row(0, named=True)
+        extra = {k: result[k] for k in ("clock_offset_s", "flight_time_s", "hover_s", "flown_m")
+                 if result.get(k) is not None}
+        paper_t, paper_r = PAPER.get(method, (None, None))
+        if paper_t is not None:
+            extra.update(paper_mission_time_s=paper_t, paper_rescued=paper_r,
+                         diff_s=round(result["mission_time_s"] - paper_t, 2),
+                         diff_pct=round(100 * (result["mission_time_s"] / paper_t - 1), 1))
         thr = log.topic(THROUGHPUT)["throughput"].to_numpy()
         q = log.topic(IMAGE_QUALITY)
         psnr = np.minimum(q["psnr_db"].to_numpy(), 99.0)
         rows.append({"method": method, "mission_time_s": result["mission_time_s"], "rescued": result["rescued"],
+                     **extra,
                      "throughput_mbps_mean": float(thr.mean()), "throughput_mbps_median": float(np.median(thr)),
                      "psnr_db_median": float(np.median(psnr)),
                      "frames_at_50pct_loss": float(np.mean(q["loss_rate"].to_numpy() == 0.5)),
@@ -55,24 +77,13 @@ def summarise(logs: dict) -> list[dict]:
     return rows
 
 
-def write(rows: list[dict], logs: dict, out: pathlib.Path) -> None:
+def write(rows: list[dict], logs: dict, out: pathlib.Path, note: str = "") -> None:
     out.mkdir(parents=True, exist_ok=True)
     configs = out / "configs"
     configs.mkdir(exist_ok=True)
     for method, log in logs.items():
         shutil.copy(log.path / "config.toml", configs / f"sar-{method}.toml")
-    (out / "mission.json").write_text(json.dumps(rows, indent=2) + "\n")
-    lines = ["| approach | mission time (s) | rescued targets | paper: time (s) | paper: rescued | "
-             "throughput mean / median (Mbit/s) | median PSNR (dB) | frames at 50 % loss |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        pt, pr = PAPER[r["method"]]
-        lines.append(f"| {LABEL[r['method']]} | {r['mission_time_s']:.2f} | {r['rescued']} | {pt} | {pr} | "
-                     f"{r['throughput_mbps_mean']:.1f} / {r['throughput_mbps_median']:.1f} | "
-                     f"{r['psnr_db_median']:.1f} | {100 * r['frames_at_50pct_loss']:.0f} % |")
-    (out / "mission.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-
+    write_tables(rows, out, note)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -89,12 +100,57 @@ def write(rows: list[dict], logs: dict, out: pathlib.Path) -> None:
         for r in log.topic(RESCUE).iter_rows(named=True):
             a2.axvline(r["time"], color="gray", lw=0.5)
     a1.set(xlabel="virtual time (s)", ylabel="throughput (Mbit/s)", title="Throughput of the selected beam pair")
-    a2.set(xlabel="virtual time (s)", ylabel="distance flown (m)", title="Progress (grey: rescues)")
+    a2.set(xlabel="virtual time (s, without the takeoff offset)", ylabel="distance flown (m)",
+           title="Progress (grey: rescues)")
     for a in (a1, a2):
         a.grid(True)
         a.legend()
     fig.tight_layout()
+    fig.savefig(out / "mission-traces.png", dpi=100)
+    plt.close(fig)
+
+
+def write_tables(rows: list[dict], out: pathlib.Path, note: str = "") -> str:
+    """mission.json, mission.md (paper | ours | difference side by side) and mission.png
+    (bars, paper vs ours)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "mission.json").write_text(json.dumps(rows, indent=2) + "\n")
+    lines = ["| approach | paper: time (s) | ours: time (s) | diff (s) | diff (%) | paper: rescued | ours: rescued "
+             "| diff | ours: hover total (s) | throughput mean / median (Mbit/s) | frames at 50 % loss |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        pt, pr = PAPER.get(r["method"], (None, None))
+        t = r["mission_time_s"]
+        diff = f"{t - pt:+.2f} | {100 * (t / pt - 1):+.1f}" if pt else "— | —"
+        hover = f"{r['hover_s']:.1f}" if r.get("hover_s") is not None else "—"
+        rescued_diff = f"{r['rescued'] - pr:+d}" if pr else "—"
+        lines.append(f"| {LABEL[r['method']]} | {pt if pt else '—'} | {t:.2f} | {diff} | {pr if pr else '—'} | "
+                     f"{r['rescued']} | {rescued_diff} | {hover} | "
+                     f"{r['throughput_mbps_mean']:.1f} / {r['throughput_mbps_median']:.1f} | "
+                     f"{100 * r['frames_at_50pct_loss']:.0f} % |")
+    table = "\n".join(lines)
+    (out / "mission.md").write_text(f"# SAR mission\n\n{note}\n\n{table}\n")
+    print(table)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    idx = np.arange(len(rows))
+    ax.bar(idx - 0.2, [PAPER.get(r["method"], (np.nan,))[0] for r in rows], 0.4, label="paper")
+    ax.bar(idx + 0.2, [r["mission_time_s"] for r in rows], 0.4, label="ours")
+    for i, r in enumerate(rows):
+        ax.annotate(f"{r['rescued']} rescued", (i + 0.2, r["mission_time_s"]), ha="center", va="bottom", fontsize=8)
+    ax.set(xticks=idx, xticklabels=[LABEL[r["method"]] for r in rows], ylabel="mission time (s)", yscale="log",
+           title=f"Mission time, paper vs ours ({out.name})")
+    ax.grid(True, axis="y")
+    ax.legend()
+    fig.tight_layout()
     fig.savefig(out / "mission.png", dpi=100)
+    plt.close(fig)
+    return table
 
 
 def main() -> None:
@@ -106,9 +162,12 @@ def main() -> None:
     ap.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/results"))
     ap.add_argument("--methods", nargs="+", default=["random", "tree", "oracle"])
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--knn", type=pathlib.Path, default=pathlib.Path("models/paper-beam-knn.pkl"))
+    ap.add_argument("--reuse", action="store_true", help="keep completed runs in --runs")
+    ap.add_argument("--note", default="", help="text above the table in mission.md")
     args = ap.parse_args()
-    logs = run_all(args.config, args.tree, args.runs, args.methods, args.overrides)
-    write(summarise(logs), logs, args.out)
+    logs = run_all(args.config, args.tree, args.runs, args.methods, args.overrides, knn=args.knn, reuse=args.reuse)
+    write(summarise(logs), logs, args.out, args.note)
 
 
 if __name__ == "__main__":
