@@ -100,7 +100,8 @@ class ScriptedDetections(caviar.Plugin):
 
     def step(self, t, inbox):
         step = self.ctx.step
-        yield "communications.throughput", {"UE_type": "UAV", "UE_Id": "uav1", "throughput": 80.0 if step >= 3 else 40.0}
+        yield "communications.throughput", {"UE_type": "UAV", "UE_Id": "uav1",
+                                            "throughput": 80.0 if step >= 3 else 40.0}
         ground = {1: [(10.0, 10.0)], 2: [(12.0, 12.0)], 3: [(50.0, 10.0)]}.get(step, [])
         yield "ai.detections", {"UE_Id": "uav1", "count": len(ground),
                                 "detections": [{"ground": {"x": x, "y": y}} for x, y in ground]}

@@ -53,7 +53,7 @@ def record_quickstart(out_dir: pathlib.Path) -> list[str]:
 def test_quickstart_records_the_reference_messages(tmp_path):
     expected = gzip.decompress(GOLDEN.read_bytes()).decode().splitlines()
     got = record_quickstart(tmp_path)
-    for i, (e, g) in enumerate(zip(expected, got)):
+    for i, (e, g) in enumerate(zip(expected, got, strict=False)):
         assert g == e, f"message {i} differs from the reference:\n  expected {e}\n  got      {g}"
     assert len(got) == len(expected), f"{len(got)} messages recorded, the reference has {len(expected)}"
 

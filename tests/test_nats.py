@@ -260,7 +260,8 @@ def second_host():
 def test_a_worker_on_a_second_host_takes_part(tmp_path, cli, nats_server, second_host):
     url = nats_server(host=second_host)
     cfg = QUICKSTART.read_text().replace('plugin = "free-space-link"', 'plugin = "free-space-link"\nworkers = 0')
-    cfg = cfg.replace("[output]", f'[transport]\nkind = "nats"\n[transport.nats]\nurl = "{url}"\nrun_id = "twohosts"\n\n[output]')
+    cfg = cfg.replace("[output]", f'[transport]\nkind = "nats"\n[transport.nats]\nurl = "{url}"\n'
+                                  'run_id = "twohosts"\n\n[output]')
     write_config(tmp_path, cfg)
     # The comm module runs "on the other machine": only the server's address is shared.
     remote = subprocess.Popen(["ip", "netns", "exec", NETNS, sys.executable, "-m", "caviar.worker", "--nats", url,

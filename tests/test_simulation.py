@@ -71,7 +71,7 @@ params = { topic = "slow" }
     # At step 2 it has fast's messages of steps 0, 1, 2; at step 5 those of 3, 4, 5.
     assert slow["seen"].to_list() == [3, 3]
     times = log.module_times()
-    assert dict(zip(times["module"], times["steps"])) == {"fast": 7, "slow": 2, "caviar.core": 7}
+    assert dict(zip(times["module"], times["steps"], strict=True)) == {"fast": 7, "slow": 2, "caviar.core": 7}
     # Resident memory of this (Python + numpy + polars) process: tens of MiB at least, below 20 GiB.
     assert all(20 < m < 20_000 for m in times["max_rss_mib"]), times
     assert (times["cpu_s"] >= 0).all() and (times["wall_s"] > 0).all()
@@ -91,11 +91,11 @@ plugin = "sample_plugins:Echo"
     arrays = log.decoded("noise.array")
     echoed = log.decoded("echo.noise.array")
     assert len(arrays) == len(echoed) == 4
-    for a, e, j in zip(arrays, echoed, log.decoded("noise.json")):
+    for a, e, j in zip(arrays, echoed, log.decoded("noise.json"), strict=False):
         assert a.kind == "binary" and a.data.dtype == np.complex64 and a.data.shape == (4,)
         np.testing.assert_array_equal(a.data, e.data)
         np.testing.assert_allclose(a.data, np.asarray(j.data["x"], dtype=np.complex64) * 1j)
-    kinds = dict(zip(log.messages["topic"], log.messages["kind"]))
+    kinds = dict(zip(log.messages["topic"], log.messages["kind"], strict=True))
     assert kinds == {"noise.json": "json", "noise.array": "binary", "echo.noise.json": "json",
                      "echo.noise.array": "binary"}
     row = log.messages.filter(log.messages["topic"] == "noise.array").row(0, named=True)

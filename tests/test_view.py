@@ -20,6 +20,7 @@ import time
 
 import polars as pl
 import pytest
+
 from caviar.view import RunData, start_server
 from caviar.view.cli import main as view_main
 
@@ -48,7 +49,8 @@ def qs_run(tmp_path_factory):
 def positions(qs_run):
     m = pl.read_parquet(qs_run / "messages.parquet")
     m = m.filter(pl.col("topic") == "3D.mobility.positions")
-    return {(s, d["UE_Id"]): d["position"] for s, d in zip(m["step"].to_list(), map(json.loads, m["text"].to_list()))}
+    payloads = map(json.loads, m["text"].to_list())
+    return {(s, d["UE_Id"]): d["position"] for s, d in zip(m["step"].to_list(), payloads, strict=True)}
 
 
 @pytest.fixture(scope="module")
@@ -167,8 +169,8 @@ class Walkers(caviar.Plugin):
         time.sleep(self.ctx.params.delay_s)
         for i, (kind, r, z) in enumerate([("UAV", 80, 40), ("car", 120, 1), ("pedestrian", 60, 0)]):
             a = 0.2 * t + i
-            yield "3D.mobility.positions", {"UE_type": kind, "UE_Id": f"{kind.lower()}{i}",
-                                             "position": {"x": -150 + r * math.cos(a), "y": 60 + r * math.sin(a), "z": z}}
+            position = {"x": -150 + r * math.cos(a), "y": 60 + r * math.sin(a), "z": z}
+            yield "3D.mobility.positions", {"UE_type": kind, "UE_Id": f"{kind.lower()}{i}", "position": position}
         img = np.zeros((24, 32, 3), np.uint8)
         img[:, :, 0] = 8 * self.ctx.step
         yield "3D.camera.uav0", img  # a camera frame, as the camera plugin publishes it
@@ -245,7 +247,8 @@ def test_live_run_newest_step_appears_within_2_s(browser, tmp_path):
         page.wait_for_function("caviarView.frameTopic === '3D.camera.uav0' && caviarView.frameShown !== null"
                                " && document.getElementById('frame').complete")
         frame = page.evaluate("caviarView.frameShown")
-        img = page.evaluate("[document.getElementById('frame').naturalWidth, document.getElementById('frame').naturalHeight]")
+        img = page.evaluate("[document.getElementById('frame').naturalWidth,"
+                            " document.getElementById('frame').naturalHeight]")
         assert frame <= page.evaluate("caviarView.step") and img == [32, 24]
 
         assert proc.wait(timeout=60) == 0, proc.stdout.read()

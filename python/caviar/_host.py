@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import json
+import os
 import pathlib
 import traceback
 import types
@@ -18,20 +19,20 @@ from typing import Any
 
 from caviar._core import RawMessage
 from caviar.errors import ConfigError
-from caviar.plugin import Context, Inbox, Message, Plugin, encode
+from caviar.plugin import Context, Inbox, Message, PayloadKind, Plugin, encode
 from caviar.topics import matches
 
-OutgoingTuple = tuple[str, str, "str | bytes", "str | None"]
+OutgoingTuple = tuple[str, PayloadKind, "str | bytes", "str | None"]
 """A published message as the core takes it: ``(topic, kind, body, meta)``."""
 
 ENTRY_POINT_GROUP = "caviar.plugins"
 
 
-def format_exception(exc: BaseException, tb=None) -> str:
+def format_exception(exc: BaseException, tb: types.TracebackType | None = None) -> str:
     return "".join(traceback.format_exception(type(exc), exc, tb or exc.__traceback__))
 
 
-def resolve_plugin(spec: str) -> type:
+def resolve_plugin(spec: str) -> type[Plugin]:
     """``package.module:Class`` or an entry-point name of group ``caviar.plugins``."""
     if ":" in spec:
         module_name, _, attr = spec.partition(":")
@@ -39,7 +40,7 @@ def resolve_plugin(spec: str) -> type:
             module = importlib.import_module(module_name)
         except ImportError as e:
             raise ConfigError(f"cannot import '{module_name}' for plugin '{spec}': {e}", "plugin") from None
-        cls = module
+        cls: Any = module
         for part in attr.split("."):
             cls = getattr(cls, part, None)
             if cls is None:
@@ -78,7 +79,7 @@ def _type_ok(value: Any, hint: Any) -> bool:
         if not isinstance(value, list):
             return False
         if origin is tuple and args and args[-1] is not Ellipsis:
-            return len(args) == len(value) and all(_type_ok(v, h) for v, h in zip(value, args))
+            return len(args) == len(value) and all(_type_ok(v, h) for v, h in zip(value, args, strict=True))
         return not args or all(_type_ok(v, args[0]) for v in value)
     if origin is dict:
         return isinstance(value, dict)
@@ -91,7 +92,7 @@ def _type_name(hint: Any) -> str:
     return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
 
 
-def check_params(cls: type, params: dict) -> Any:
+def check_params(cls: type[Plugin], params: dict[str, Any]) -> Any:
     """Builds the plugin's ``Params`` dataclass from the config table, or explains why not."""
     schema = cls.Params
     if schema is None:
@@ -129,7 +130,8 @@ class Hosted:
         self.ctx: Context | None = None
         self.run_dir: pathlib.Path | None = None
 
-    def setup(self, seed, ts, steps, every, offset, run_dir, config_dir, shards=1) -> None:
+    def setup(self, seed: int, ts: float, steps: int | None, every: int, offset: int,
+              run_dir: str | os.PathLike[str], config_dir: str | os.PathLike[str], shards: int = 1) -> None:
         if shards > 1 and not type(self.plugin).shardable:
             raise ConfigError(f"{type(self.plugin).__name__} cannot split a step into shards "
                               f"(it does not declare shardable = True)", "shards")
@@ -142,16 +144,19 @@ class Hosted:
 
     def step(self, step: int, t: float, raw: list[RawMessage], shard: int = 0) -> list[OutgoingTuple]:
         """Runs the plugin's step; returns what it published as ``(topic, kind, body, meta)``."""
-        self.ctx.step = step
-        self.ctx.shard = shard
+        ctx = self.ctx
+        assert ctx is not None, "the core calls setup before step"
+        ctx.step = step
+        ctx.shard = shard
         run_dir = self.run_dir
         inbox = Inbox([Message._from_wire(r, run_dir) for r in raw])
-        result = self.plugin.step(t, inbox)
-        out = []
+        result: Any = self.plugin.step(t, inbox)
+        out: list[OutgoingTuple] = []
         if result is None:
             return out
         # A single message may be returned bare.
-        if isinstance(result, Message) or (isinstance(result, tuple) and len(result) == 2 and isinstance(result[0], str)):
+        if isinstance(result, Message) or (isinstance(result, tuple) and len(result) == 2
+                                           and isinstance(result[0], str)):
             result = [result]
         for item in result:
             if isinstance(item, Message):
@@ -171,7 +176,7 @@ class Hosted:
         self.plugin.teardown()
 
 
-def declared_publishes(cls: type) -> list[str]:
+def declared_publishes(cls: type[Plugin]) -> list[str]:
     """The plugin's ``publishes`` as a list of valid patterns (empty: not declared)."""
     declared = cls.publishes
     if isinstance(declared, str) or not all(isinstance(p, str) for p in declared):

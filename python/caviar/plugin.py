@@ -33,12 +33,17 @@ import dataclasses
 import json
 import math
 import pathlib
-from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Iterator, Literal, Sequence, overload
 
 from caviar.topics import matches
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from caviar._core import RawMessage
+
+PayloadKind = Literal["json", "binary", "artifact"]
+"""How a payload travels (the core's ``caviar._core.PayloadKind``)."""
 
 
 class Artifact:
@@ -72,8 +77,9 @@ class Message:
         self.step = step
         self.time = time
         self._data = data
-        self._raw = None
-        self._kind = None
+        # (kind, body, meta, run_dir) of a message from the wire, until decoded.
+        self._raw: tuple[PayloadKind, str | bytes, str | None, pathlib.Path | None] | None = None
+        self._kind: PayloadKind | None = None
 
     @classmethod
     def _from_wire(cls, raw: RawMessage, run_dir: pathlib.Path | None) -> "Message":
@@ -107,7 +113,13 @@ class Inbox(Sequence[Message]):
     def __init__(self, messages: list[Message]):
         self._messages = messages
 
-    def __getitem__(self, i):  # type: ignore[override]
+    @overload
+    def __getitem__(self, i: int) -> Message: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[Message]: ...
+
+    def __getitem__(self, i: int | slice) -> Message | list[Message]:
         return self._messages[i]
 
     def __len__(self) -> int:
@@ -157,7 +169,7 @@ class Context:
     shards: int = 1
 
     @property
-    def rng(self):
+    def rng(self) -> np.random.Generator:
         """A ``numpy.random.Generator`` seeded with :attr:`seed` (created once)."""
         rng = self.__dict__.get("_rng")
         if rng is None:
@@ -222,7 +234,7 @@ def _check_json(topic: str, value: Any) -> str:
         ) from None
 
 
-def encode(topic: str, value: Any, run_dir: pathlib.Path | None) -> tuple[str, Any, str | None]:
+def encode(topic: str, value: Any, run_dir: pathlib.Path | None) -> tuple[PayloadKind, Any, str | None]:
     """(kind, body, meta) of a payload."""
     if isinstance(value, (Artifact, pathlib.PurePath)):
         path = pathlib.Path(value.path if isinstance(value, Artifact) else value)
@@ -232,7 +244,8 @@ def encode(topic: str, value: Any, run_dir: pathlib.Path | None) -> tuple[str, A
             try:
                 path = path.resolve().relative_to(run_dir.resolve())
             except ValueError:
-                raise ValueError(f"artifact on topic '{topic}': {path} is not inside the run directory {run_dir}") from None
+                raise ValueError(f"artifact on topic '{topic}': {path} is not inside the run directory "
+                                 f"{run_dir}") from None
         return "artifact", path.as_posix(), None
     if isinstance(value, (bytes, bytearray, memoryview)):
         return "binary", bytes(value), '{"content_type":"application/octet-stream"}'

@@ -63,12 +63,12 @@ def draw(summaries: list[dict], labels: list[str], out: pathlib.Path, xlabel: st
     fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4))
     width = 0.8 / max(1, len(summaries))
     x = np.arange(len(modules))
-    for i, (g, label) in enumerate(zip(groups, labels)):
-        for ax, (key, scale, _) in zip(axes, panels):
+    for i, (g, label) in enumerate(zip(groups, labels, strict=False)):
+        for ax, (key, scale, _) in zip(axes, panels, strict=True):
             ax.bar(x + i * width, [scale * g.get(m, {}).get(key, 0.0) for m in modules], width, label=label)
     axes[0].set_yscale("symlog", linthresh=1.0)
     axes[1].set_yscale("symlog", linthresh=1.0)
-    for ax, title in zip(axes, (p[2] for p in panels)):
+    for ax, title in zip(axes, (p[2] for p in panels), strict=True):
         ax.set_xticks(x + width * (len(summaries) - 1) / 2, modules, rotation=30, ha="right")
         ax.set_title(title)
         ax.grid(True, axis="y")

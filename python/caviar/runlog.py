@@ -112,7 +112,8 @@ class RunLog:
             fields = pl.DataFrame(records)
             fields = fields.rename({c: f"payload.{c}" for c in fields.columns if c in base.columns})
             return pl.concat([base, fields], how="horizontal")
-        return base.with_columns(pl.Series("value", records, dtype=pl.Object) if records else pl.lit(None).alias("value"))
+        value = pl.Series("value", records, dtype=pl.Object) if records else pl.lit(None).alias("value")
+        return base.with_columns(value)
 
     def decoded(self, pattern: str) -> list[Message]:
         """Messages on matching topics as :class:`caviar.Message` (arrays decoded lazily)."""
@@ -136,7 +137,8 @@ class RunLog:
         t = timings.group_by("module", maintain_order=True).agg(
             pl.len().alias("steps"), pl.col("wall_s").sum(), pl.col("wall_s").mean().alias("mean_wall_s"),
             pl.col("cpu_s").sum(), pl.col("rss_mib").max().alias("max_rss_mib"),
-            pl.col("gpu_util_pct").mean().alias("mean_gpu_util_pct"), pl.col("gpu_mem_mib").max().alias("max_gpu_mem_mib"))
+            pl.col("gpu_util_pct").mean().alias("mean_gpu_util_pct"),
+            pl.col("gpu_mem_mib").max().alias("max_gpu_mem_mib"))
         return t.with_columns((pl.col("wall_s") / pl.col("wall_s").sum()).alias("share"))
 
     def to_pandas(self, table: str = "messages"):

@@ -21,11 +21,15 @@ import ssl
 import sys
 import threading
 import time
+from typing import TYPE_CHECKING
 
 from caviar import _core
 from caviar._gpu import open_sampler
-from caviar._host import OutgoingTuple, format_exception, load_plugin
+from caviar._host import Hosted, OutgoingTuple, format_exception, load_plugin
 from caviar.errors import ConfigError
+
+if TYPE_CHECKING:
+    from nats.aio.msg import Msg
 
 PROTOCOL = _core.PROTOCOL
 HEARTBEAT_S = 1.0
@@ -56,7 +60,7 @@ class Worker:
         self.run, self.module = args.run, args.module
         self.id = args.worker_id or f"{args.module}-{socket.gethostname()}-{os.getpid()}"
         self.prefix = f"caviar.{self.run}"
-        self.hosted = None
+        self.hosted: Hosted | None = None
         self.spec: dict = {}
         self.done = asyncio.Event()
         self.gpu = open_sampler()
@@ -113,7 +117,13 @@ class Worker:
                                        f"(is run '{self.run}' started?)") from None
                 await asyncio.sleep(0.5)
 
-    def _load(self):
+    def _plugin(self) -> Hosted:
+        """The loaded plugin: setup, step and teardown requests are subscribed to only
+        once it is loaded."""
+        assert self.hosted is not None, "plugin requests arrive only after the plugin is loaded"
+        return self.hosted
+
+    def _load(self) -> tuple[Hosted, list[str], list[str]]:
         s = self.spec
         hosted, subscribe, publishes = load_plugin(self.module, s["plugin"], json.dumps(s["params"]),
                                                    s["config_dir"])
@@ -170,7 +180,8 @@ class Worker:
             while not stop.is_set():
                 try:
                     await nc.publish(f"{self.prefix}.heartbeat", body)
-                    await nc.flush(timeout=HEARTBEAT_S)
+                    # nats-py annotates timeout as int; it is seconds for asyncio.wait_for, a float is fine.
+                    await nc.flush(timeout=HEARTBEAT_S)  # type: ignore[arg-type]
                 except Exception as e:  # reconnecting: the core times us out if it lasts
                     self.log(f"heartbeat not sent: {e}")
                 await asyncio.sleep(HEARTBEAT_S)
@@ -178,10 +189,10 @@ class Worker:
 
         asyncio.run(beat())
 
-    async def on_setup(self, msg):
+    async def on_setup(self, msg: Msg) -> None:
         s, c = self.spec, json.loads(msg.data)
         try:
-            self.hosted.setup(c["seed"], c["ts"], c["steps"], c["every"], c["offset"],
+            self._plugin().setup(c["seed"], c["ts"], c["steps"], c["every"], c["offset"],
                               s["run_dir"], s["config_dir"], s.get("shards", 1))
         except Exception as e:
             await msg.respond(json.dumps(error_reply(e)).encode())
@@ -193,20 +204,20 @@ class Worker:
 
     def _step(self, req: _core.StepRequest) -> bytes:
         t0, c0 = time.perf_counter(), time.process_time()
-        out = self.hosted.step(req.step, req.time, req.messages, req.shard)
+        out = self._plugin().step(req.step, req.time, req.messages, req.shard)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         return encode_reply(out, wall, cpu, self.gpu.sample() if self.gpu else None)
 
-    async def on_step(self, msg):
+    async def on_step(self, msg: Msg) -> None:
         try:
             reply = self._step(_core.decode_request(msg.data))
         except Exception as e:
             reply = _core.encode_failure(**error_reply(e)["error"])
         await msg.respond(reply)
 
-    async def on_teardown(self, msg):
+    async def on_teardown(self, msg: Msg) -> None:
         try:
-            self.hosted.teardown()
+            self._plugin().teardown()
             reply = b'{"ok":true}'
         except Exception as e:
             reply = json.dumps(error_reply(e)).encode()
@@ -214,7 +225,7 @@ class Worker:
         await self.nc.flush()
         self.done.set()
 
-    async def on_stop(self, msg):
+    async def on_stop(self, msg: Msg) -> None:
         self.done.set()
 
 

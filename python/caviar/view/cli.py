@@ -31,10 +31,8 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:  # port in use, address not available
         print(f"error: cannot listen on {args.host}:{args.port}: {e.strerror or e}", file=sys.stderr)
         return 2
-    host, port = httpd.server_address[:2]
-    host = f"[{host}]" if ":" in host else host
     d = state.data
-    print(f"view of {d.path} ({d.status.get('status')}, {len(d.step_time)} steps): http://{host}:{port}/  (Ctrl-C stops)",
+    print(f"view of {d.path} ({d.status.get('status')}, {len(d.step_time)} steps): {httpd.url}  (Ctrl-C stops)",
           flush=True)
     try:
         httpd.serve_forever(poll_interval=0.25)

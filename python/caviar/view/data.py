@@ -16,6 +16,7 @@ import os
 import pathlib
 import threading
 import time as _time
+from typing import Any
 
 import tomllib
 
@@ -75,9 +76,9 @@ class RunData:
         self.pending = pending
         self._lock = threading.RLock()
         self.status: dict = {}
-        self._status_mtime = None
+        self._status_mtime: int | None = None
         self.config: dict = {}
-        self._parts = {"messages": set(), "timings": set()}
+        self._parts: dict[str, set[str]] = {"messages": set(), "timings": set()}
         self._merged = {"messages": False, "timings": False}
         self._bad_parts: dict[str, int] = {}
         self._msg_steps: set[int] = set()
@@ -228,22 +229,25 @@ class RunData:
                 payload = json.loads(text)
             except (TypeError, ValueError):
                 continue
-            step = int(step)
-            if topic == POSITIONS:
-                for d in payload if isinstance(payload, list) else [payload]:
-                    self._position(step, d)
-            elif topic in (THROUGHPUT, LINK):
-                self._radio(step, topic, payload)
-            elif topic.startswith(VIEW_PREFIX):
-                if isinstance(payload, dict):
-                    self.view.append({"step": step, "source": source, "topic": topic, "data": payload})
-            elif topic.startswith(EVENT_PREFIXES) or topic in EVENT_TOPICS:
-                if topic == "ai.detections" and isinstance(payload, dict) and not payload.get("count"):
-                    continue  # detections with nothing found are not events
-                ev = {"step": step, "time": t, "topic": topic, "source": source, "text": _summary(payload)}
-                if isinstance(payload, dict) and _num(payload.get("x")) is not None and _num(payload.get("y")) is not None:
-                    ev["x"], ev["y"] = _num(payload["x"]), _num(payload["y"])
-                self.events.append(ev)
+            self._message(int(step), t, source, topic, payload)
+
+    def _message(self, step: int, t: float, source: str, topic: str, payload: Any) -> None:
+        """One decoded JSON message the view shows."""
+        if topic == POSITIONS:
+            for d in payload if isinstance(payload, list) else [payload]:
+                self._position(step, d)
+        elif topic in (THROUGHPUT, LINK):
+            self._radio(step, topic, payload)
+        elif topic.startswith(VIEW_PREFIX):
+            if isinstance(payload, dict):
+                self.view.append({"step": step, "source": source, "topic": topic, "data": payload})
+        elif topic.startswith(EVENT_PREFIXES) or topic in EVENT_TOPICS:
+            if topic == "ai.detections" and isinstance(payload, dict) and not payload.get("count"):
+                return  # detections with nothing found are not events
+            ev = {"step": step, "time": t, "topic": topic, "source": source, "text": _summary(payload)}
+            if isinstance(payload, dict) and _num(payload.get("x")) is not None and _num(payload.get("y")) is not None:
+                ev["x"], ev["y"] = _num(payload["x"]), _num(payload["y"])
+            self.events.append(ev)
 
     def _position(self, step: int, d):
         if not isinstance(d, dict):

@@ -36,7 +36,8 @@ def _shipped_scene_dirs() -> list[pathlib.Path]:
     return out
 
 
-def find_scene(config: dict, config_dir: pathlib.Path | None, run_dir: pathlib.Path) -> tuple[str, pathlib.Path | None, str]:
+def find_scene(config: dict, config_dir: pathlib.Path | None,
+               run_dir: pathlib.Path) -> tuple[str, pathlib.Path | None, str]:
     """(name, XML path or None, where the name came from)."""
     name, origin = DEFAULT_SCENE, "default (no module sets a 'scene' parameter)"
     for mod, spec in _modules(config):
@@ -67,9 +68,10 @@ def _transform(shape: ET.Element) -> list[float] | None:
         return None
     m = np.eye(4)
 
-    def vec(el, default):
-        if el.get("value") is not None:
-            v = [float(x) for x in el.get("value").replace(",", " ").split()]
+    def vec(el: ET.Element, default: float) -> list[float]:
+        value = el.get("value")
+        if value is not None:
+            v = [float(x) for x in value.replace(",", " ").split()]
             return v * 3 if len(v) == 1 else v
         return [float(el.get(k, default)) for k in "xyz"]
 
@@ -91,7 +93,8 @@ def _transform(shape: ET.Element) -> list[float] | None:
                          [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
                          [z * x * C - y * s, z * y * C + x * s, c + z * z * C]]
         elif el.tag == "matrix":
-            a = np.array([float(v) for v in el.get("value").split()]).reshape(4, 4)
+            # No value: an empty matrix, which reshape refuses (a bad scene, reported as such).
+            a = np.array([float(v) for v in el.get("value", "").split()]).reshape(4, 4)
         else:
             continue
         m = a @ m
@@ -122,9 +125,10 @@ def transmitter(config: dict) -> dict | None:
     plugins' default, else None."""
     for mod, spec in _modules(config):
         params = spec.get("params")
-        if isinstance(params, dict) and isinstance(params.get("tx_position"), list) and len(params["tx_position"]) == 3:
+        tx = params.get("tx_position") if isinstance(params, dict) else None
+        if isinstance(tx, list) and len(tx) == 3:
             try:
-                return {"position": [float(v) for v in params["tx_position"]], "origin": f"modules.{mod}.params.tx_position"}
+                return {"position": [float(v) for v in tx], "origin": f"modules.{mod}.params.tx_position"}
             except (TypeError, ValueError):
                 pass
     for mod, spec in _modules(config):

@@ -12,12 +12,14 @@ import json
 import os
 import pathlib
 import posixpath
+import socket
 import sys
 import threading
 import time
 import urllib.parse
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
 
 from caviar.view.data import RunData, png_bytes
 from caviar.view.scene import find_scene, scene_meshes, transmitter
@@ -25,8 +27,8 @@ from caviar.view.scene import find_scene, scene_meshes, transmitter
 STATIC = pathlib.Path(__file__).parent / "static"
 TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
          ".css": "text/css; charset=utf-8", ".txt": "text/plain; charset=utf-8", ".json": "application/json",
-         ".png": "image/png", ".jpg": "image/jpeg", ".csv": "text/csv; charset=utf-8", ".ply": "application/octet-stream",
-         ".toml": "text/plain; charset=utf-8", ".svg": "image/svg+xml"}
+         ".png": "image/png", ".jpg": "image/jpeg", ".csv": "text/csv; charset=utf-8",
+         ".ply": "application/octet-stream", ".toml": "text/plain; charset=utf-8", ".svg": "image/svg+xml"}
 CSP = ("default-src 'none'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; "
        "connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
 LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1", "[::1]"}
@@ -35,35 +37,37 @@ LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1", "[::1]"}
 class ViewState:
     """What the handlers share: the run's data, its scene and the allow-lists."""
 
-    def __init__(self, run_dir, pending: bool = False):
+    def __init__(self, run_dir: str | os.PathLike[str], pending: bool = False):
         self.data = RunData(run_dir, pending=pending)
-        self.static = {p.name: p for p in STATIC.iterdir() if p.is_file() and not p.is_symlink()} if STATIC.is_dir() else {}
+        self.static: dict[str, pathlib.Path] = (
+            {p.name: p for p in STATIC.iterdir() if p.is_file() and not p.is_symlink()} if STATIC.is_dir() else {})
         self.stopping = threading.Event()
-        self._scene = None
+        self._scene: dict[str, Any] | None = None
         self._scene_lock = threading.Lock()
 
     @property
     def run_dir(self) -> pathlib.Path:
         return self.data.path.resolve()
 
-    def scene(self) -> dict:
+    def scene(self) -> dict[str, Any]:
         with self._scene_lock:
-            if self._scene is None or (not self._scene["had_config"] and self.data.config):
+            sc = self._scene
+            if sc is None or (not sc["had_config"] and self.data.config):
                 cfg = self.data.config
                 cf = self.data.status.get("config_file")
                 config_dir = pathlib.Path(cf).parent if isinstance(cf, str) and cf else None
                 name, xml, origin = find_scene(cfg, config_dir, self.data.path)
-                meshes = []
+                meshes: list[dict[str, Any]] = []
                 if xml is not None:
                     try:
                         meshes = scene_meshes(xml)
                     except Exception as e:  # noqa: BLE001 - a bad scene must not stop the view
                         origin += f"; unreadable scene XML: {e}"
-                self._scene = {"name": name, "xml": str(xml) if xml else None, "origin": origin, "meshes": meshes,
-                               "tx": transmitter(cfg), "had_config": bool(cfg)}
-            return self._scene
+                sc = self._scene = {"name": name, "xml": str(xml) if xml else None, "origin": origin,
+                                    "meshes": meshes, "tx": transmitter(cfg), "had_config": bool(cfg)}
+            return sc
 
-    def run_info(self) -> dict:
+    def run_info(self) -> dict[str, Any]:
         sc = self.scene()
         cfg = self.data.config
         mods = cfg.get("modules", {}) if isinstance(cfg.get("modules"), dict) else {}
@@ -82,33 +86,63 @@ class ViewState:
         }
 
 
+class ViewHTTPServer(ThreadingHTTPServer):
+    """The view's server: a thread per request; ``local_only`` (bound to a local
+    address) refuses requests whose Host is not a local name (DNS rebinding)."""
+
+    def __init__(self, address: tuple[str, int], handler: type[BaseHTTPRequestHandler], local_only: bool):
+        super().__init__(address, handler)
+        self.local_only = local_only
+
+    @property
+    def host(self) -> str:
+        """The address it listens on, bracketed if IPv6."""
+        host = self.server_address[0]
+        host = host.decode() if isinstance(host, (bytes, bytearray)) else host
+        return f"[{host}]" if ":" in host else host
+
+    @property
+    def port(self) -> int:
+        return self.server_address[1]
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}/"
+
+
+class ViewHTTPServer6(ViewHTTPServer):
+    address_family = socket.AF_INET6
+
+
 class Handler(BaseHTTPRequestHandler):
     server_version = "caviar-view"
     sys_version = ""
     protocol_version = "HTTP/1.1"
     state: ViewState  # set on the subclass made per server
+    server: ViewHTTPServer
 
-    def log_message(self, fmt, *args):  # quiet: the page polls nothing but SSE keeps it busy
+    def log_message(self, fmt: str, *args: Any) -> None:  # quiet: the page polls nothing but SSE keeps it busy
         if os.environ.get("CAVIAR_VIEW_LOG"):
             sys.stderr.write("view: " + fmt % args + "\n")
 
     # ---- methods -----------------------------------------------------------------------
 
-    def _refuse_method(self):
+    def _refuse_method(self) -> None:
         self._send(HTTPStatus.METHOD_NOT_ALLOWED, b"read-only: GET and HEAD only\n", "text/plain; charset=utf-8",
                    extra={"Allow": "GET, HEAD"})
 
     do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = do_CONNECT = do_TRACE = _refuse_method
 
-    def do_HEAD(self):
+    def do_HEAD(self) -> None:
         self._get(head=True)
 
-    def do_GET(self):
+    def do_GET(self) -> None:
         self._get(head=False)
 
     # ---- responses ----------------------------------------------------------------------
 
-    def _send(self, code, body: bytes, ctype: str, head: bool = False, extra: dict | None = None, cache: bool = False):
+    def _send(self, code: int, body: bytes, ctype: str, head: bool = False, extra: dict[str, str] | None = None,
+              cache: bool = False) -> None:
         self.send_response(code)
         self.send_header("Content-Type", ctype)
         self.send_header("Content-Length", str(len(body)))
@@ -122,95 +156,123 @@ class Handler(BaseHTTPRequestHandler):
         if not head:
             self.wfile.write(body)
 
-    def _error(self, code, msg, head):
+    def _error(self, code: int, msg: str, head: bool) -> None:
         self._send(code, (msg + "\n").encode(), "text/plain; charset=utf-8", head)
 
-    def _json(self, obj, head):
+    def _json(self, obj: Any, head: bool) -> None:
         self._send(HTTPStatus.OK, json.dumps(obj, separators=(",", ":"), allow_nan=False).encode(),
                    "application/json", head)
 
-    def _file(self, path: pathlib.Path, head, cache=False):
+    def _file(self, path: pathlib.Path, head: bool, cache: bool = False) -> None:
         try:
             body = path.read_bytes()
         except OSError:
-            return self._error(HTTPStatus.NOT_FOUND, "not found", head)
+            self._error(HTTPStatus.NOT_FOUND, "not found", head)
+            return
         self._send(HTTPStatus.OK, body, TYPES.get(path.suffix.lower(), "application/octet-stream"), head, cache=cache)
 
     # ---- routing ------------------------------------------------------------------------
 
-    def _get(self, head: bool):
-        st = self.state
+    def _host(self) -> str:
+        """The host name of the request's Host header ("" if none or malformed)."""
         try:
-            host = urllib.parse.urlsplit("//" + (self.headers.get("Host") or "")).hostname or ""
+            return urllib.parse.urlsplit("//" + (self.headers.get("Host") or "")).hostname or ""
         except ValueError:
-            host = ""
-        if self.server.local_only and host not in LOCAL_HOSTS:  # DNS rebinding
-            return self._error(HTTPStatus.FORBIDDEN, "forbidden host", head)
+            return ""
+
+    def _get(self, head: bool) -> None:
+        if self.server.local_only and self._host() not in LOCAL_HOSTS:  # DNS rebinding
+            self._error(HTTPStatus.FORBIDDEN, "forbidden host", head)
+            return
         url = urllib.parse.urlsplit(self.path)
-        raw = url.path
-        path = urllib.parse.unquote(raw)
+        path = urllib.parse.unquote(url.path)
         if "\x00" in path or "\\" in path or not path.startswith("/"):
-            return self._error(HTTPStatus.BAD_REQUEST, "bad path", head)
+            self._error(HTTPStatus.BAD_REQUEST, "bad path", head)
+            return
         parts = path.split("/")[1:]
         if any(p in ("..", ".") for p in parts) or "//" in path:
-            return self._error(HTTPStatus.FORBIDDEN, "forbidden path", head)
-        q = urllib.parse.parse_qs(url.query)
+            self._error(HTTPStatus.FORBIDDEN, "forbidden path", head)
+            return
         try:
-            if path in ("/", "/index.html"):
-                return self._static("index.html", head)
-            if parts[0] == "static" and len(parts) == 2:
-                return self._static(parts[1], head)
-            if path == "/api/run":
-                st.data.refresh()
-                return self._json(st.run_info(), head)
-            if path == "/api/data":
-                st.data.refresh()
-                return self._json(st.data.since(_int(q, "since", 0), _int(q, "tsince", 0)), head)
-            if path == "/api/events":
-                return self._events(_int(q, "since", 0), _int(q, "tsince", 0), head)
-            if path == "/api/frame":
-                return self._frame(q.get("topic", [""])[0], _int(q, "step", 0), head)
-            if parts[0] == "mesh" and len(parts) == 2 and parts[1].isdigit():
-                meshes = st.scene()["meshes"]
-                i = int(parts[1])
-                if i < len(meshes):
-                    return self._file(meshes[i]["file"], head, cache=True)
-                return self._error(HTTPStatus.NOT_FOUND, "no such mesh", head)
-            if parts[0] == "run" and len(parts) >= 2:
-                return self._run_file("/".join(parts[1:]), head)
+            if self._route(path, parts, urllib.parse.parse_qs(url.query), head):
+                return
         except (BrokenPipeError, ConnectionResetError):
             return
-        return self._error(HTTPStatus.NOT_FOUND, "not found", head)
+        self._error(HTTPStatus.NOT_FOUND, "not found", head)
 
-    def _static(self, name, head):
+    def _route(self, path: str, parts: list[str], q: dict[str, list[str]], head: bool) -> bool:
+        """Answers a checked path; False if nothing is there."""
+        if path in ("/", "/index.html"):
+            self._static("index.html", head)
+        elif parts[0] == "static" and len(parts) == 2:
+            self._static(parts[1], head)
+        elif parts[0] == "api":
+            return self._api(path, q, head)
+        elif parts[0] == "mesh" and len(parts) == 2 and parts[1].isdigit():
+            self._mesh(int(parts[1]), head)
+        elif parts[0] == "run" and len(parts) >= 2:
+            self._run_file("/".join(parts[1:]), head)
+        else:
+            return False
+        return True
+
+    def _api(self, path: str, q: dict[str, list[str]], head: bool) -> bool:
+        st = self.state
+        if path == "/api/run":
+            st.data.refresh()
+            self._json(st.run_info(), head)
+        elif path == "/api/data":
+            st.data.refresh()
+            self._json(st.data.since(_int(q, "since", 0), _int(q, "tsince", 0)), head)
+        elif path == "/api/events":
+            self._events(_int(q, "since", 0), _int(q, "tsince", 0), head)
+        elif path == "/api/frame":
+            self._frame(q.get("topic", [""])[0], _int(q, "step", 0), head)
+        else:
+            return False
+        return True
+
+    def _mesh(self, i: int, head: bool) -> None:
+        meshes = self.state.scene()["meshes"]
+        if i < len(meshes):
+            self._file(meshes[i]["file"], head, cache=True)
+        else:
+            self._error(HTTPStatus.NOT_FOUND, "no such mesh", head)
+
+    def _static(self, name: str, head: bool) -> None:
         p = self.state.static.get(name)
         if p is None:
-            return self._error(HTTPStatus.NOT_FOUND, "not found", head)
-        return self._file(p, head)
+            self._error(HTTPStatus.NOT_FOUND, "not found", head)
+        else:
+            self._file(p, head)
 
-    def _run_file(self, rel: str, head):
+    def _run_file(self, rel: str, head: bool) -> None:
         root = self.state.run_dir
         if posixpath.isabs(rel) or rel.startswith("~"):
-            return self._error(HTTPStatus.FORBIDDEN, "forbidden path", head)
+            self._error(HTTPStatus.FORBIDDEN, "forbidden path", head)
+            return
         try:
             target = (root / rel).resolve(strict=True)
         except (OSError, RuntimeError):
-            return self._error(HTTPStatus.NOT_FOUND, "not found", head)
+            self._error(HTTPStatus.NOT_FOUND, "not found", head)
+            return
         if not target.is_relative_to(root) or not target.is_file():
-            return self._error(HTTPStatus.FORBIDDEN, "outside the run directory", head)
-        return self._file(target, head)
+            self._error(HTTPStatus.FORBIDDEN, "outside the run directory", head)
+            return
+        self._file(target, head)
 
-    def _frame(self, topic, step, head):
+    def _frame(self, topic: str, step: int, head: bool) -> None:
         try:
             got = self.state.data.frame(topic, step)
         except Exception:  # noqa: BLE001 - a part rewritten under us: the page asks again
             got = None
         if got is None:
-            return self._error(HTTPStatus.NOT_FOUND, "no frame", head)
+            self._error(HTTPStatus.NOT_FOUND, "no frame", head)
+            return
         s, arr = got
         self._send(HTTPStatus.OK, png_bytes(arr), "image/png", head, extra={"X-Frame-Step": str(s)}, cache=True)
 
-    def _events(self, since: int, tsince: int, head):
+    def _events(self, since: int, tsince: int, head: bool) -> None:
         """Server-sent events: one ``data:`` line with everything new (the same JSON as
         /api/data?since=...) whenever the run directory gains steps or its status changes."""
         self.send_response(HTTPStatus.OK)
@@ -243,7 +305,7 @@ class Handler(BaseHTTPRequestHandler):
             st.stopping.wait(0.1 if data.running else 1.0)
 
 
-def _int(q, key, default):
+def _int(q: dict[str, list[str]], key: str, default: int) -> int:
     try:
         return int(q.get(key, [default])[0])
     except (TypeError, ValueError):
@@ -253,45 +315,41 @@ def _int(q, key, default):
 class ViewServer:
     """A running view server (:func:`start_server`)."""
 
-    def __init__(self, httpd: ThreadingHTTPServer, state: ViewState, thread: threading.Thread):
+    def __init__(self, httpd: ViewHTTPServer, state: ViewState, thread: threading.Thread):
         self.httpd, self.state, self.thread = httpd, state, thread
 
     @property
     def port(self) -> int:
-        return self.httpd.server_address[1]
+        return self.httpd.port
 
     @property
     def url(self) -> str:
-        host = self.httpd.server_address[0]
-        host = f"[{host}]" if ":" in host else host
-        return f"http://{host}:{self.port}/"
+        return self.httpd.url
 
-    def stop(self):
+    def stop(self) -> None:
         self.state.stopping.set()
         self.httpd.shutdown()
         self.httpd.server_close()
         self.thread.join(timeout=5)
 
 
-def make_server(run_dir, host: str = "127.0.0.1", port: int = 0, pending: bool = False):
+def make_server(run_dir: str | os.PathLike[str], host: str = "127.0.0.1", port: int = 0,
+                pending: bool = False) -> tuple[ViewHTTPServer, ViewState]:
     state = ViewState(run_dir, pending=pending)
     handler = type("BoundHandler", (Handler,), {"state": state})
-    cls = ThreadingHTTPServer
-    if ":" in host:
-        import socket
-
-        cls = type("V6Server", (ThreadingHTTPServer,), {"address_family": socket.AF_INET6})
-    httpd = cls((host, port), handler)
+    cls = ViewHTTPServer6 if ":" in host else ViewHTTPServer
+    httpd = cls((host, port), handler, local_only=host in LOCAL_HOSTS)
     httpd.daemon_threads = True
-    httpd.local_only = host in LOCAL_HOSTS
     return httpd, state
 
 
-def start_server(run_dir, host: str = "127.0.0.1", port: int = 0, pending: bool = True) -> ViewServer:
+def start_server(run_dir: str | os.PathLike[str], host: str = "127.0.0.1", port: int = 0,
+                 pending: bool = True) -> ViewServer:
     """Serves the view of ``run_dir`` from a background (daemon) thread and returns at
     once; ``.url`` is the page, ``.stop()`` ends it. With ``pending`` (the default, for
     ``caviar-core run --view``) the directory may not exist yet: the page waits for it."""
     httpd, state = make_server(run_dir, host, port, pending=pending)
-    t = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.25}, name="caviar-view", daemon=True)
+    t = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.25}, name="caviar-view",
+                         daemon=True)
     t.start()
     return ViewServer(httpd, state, t)
