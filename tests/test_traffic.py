@@ -174,3 +174,12 @@ def test_doppler_of_the_los_path_is_v_cos_theta_over_lambda(tmp_path):
         assert links[ue]["los"] and links[ue]["speed"] == pytest.approx(v)
         assert links[ue]["doppler_los_hz"] == pytest.approx(expected, rel=0.01)
         assert abs(expected) > 500  # not a trivially small number
+
+
+def test_over_nats_sumo_runs_in_its_own_worker_with_the_same_positions(tmp_path, grid, cli):
+    cfg = traffic_config(tmp_path, grid)
+    cli("run", cfg, "-q", "--out", "inproc", check=0)
+    cli("run", cfg, "-q", "--out", "nats", "--set", "transport.kind=nats", check=0)
+    a, b = caviar.load_run(tmp_path / "inproc"), caviar.load_run(tmp_path / "nats")
+    assert positions(a) == positions(b) and len(positions(a)) > 20
+    assert (tmp_path / "nats" / "workers" / "traffic-0.log").exists()
