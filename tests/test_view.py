@@ -275,6 +275,35 @@ def test_server_started_before_the_run_waits_for_it(tmp_path):
         srv.stop()
 
 
+def test_run_with_view_serves_the_run_while_it_goes(tmp_path):
+    """`caviar-core run CONFIG --view`: the URL comes before the first step, and the page's
+    data follow the run (a slowed quickstart: 40 steps of at least 50 ms)."""
+    out = tmp_path / "qs"
+    p = run_caviar("run", ROOT / "blueprints/quickstart/config.toml", "--out", out, "-q", "--view",
+                   "--set", "episode.steps=40", "--set", 'modules.slow.plugin="sample_plugins:Slow"',
+                   "--set", 'modules.slow.stage="ai"', "--set", "modules.slow.params.seconds=0.05",
+                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                   env={**os.environ, "PYTHONPATH": str(ROOT / "tests")})
+    try:
+        line = p.stderr.readline()
+        assert line.startswith("view: http://127.0.0.1:"), line
+        port = int(line.strip().rsplit(":", 1)[1].rstrip("/"))
+        seen = []
+        while p.poll() is None:
+            try:
+                c = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+                c.request("GET", "/api/data")
+                seen.append(len(json.loads(c.getresponse().read())["steps"]))
+                c.close()
+            except OSError:  # the run ended, and its view with it
+                assert p.poll() is not None or p.wait(timeout=5) is not None
+            time.sleep(0.3)
+        assert p.wait(timeout=60) == 0, p.stderr.read()
+        assert any(0 < n < 40 for n in seen), seen  # followed the run while it went
+    finally:
+        p.kill()
+
+
 # ---------------------------------------------------------------------- safety
 
 

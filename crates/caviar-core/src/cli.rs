@@ -5,6 +5,7 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::io::IsTerminal;
 use std::time::Instant;
 
 use clap::{Parser, Subcommand};
@@ -43,6 +44,13 @@ enum Command {
         /// No progress bar, only the final summary line.
         #[arg(long, short)]
         quiet: bool,
+        /// Watch the run in the browser (`caviar-core view` on the run directory, on
+        /// 127.0.0.1); with a terminal, it keeps serving after the run until Ctrl-C.
+        #[arg(long)]
+        view: bool,
+        /// Port of the view (default: a free one).
+        #[arg(long, requires = "view", value_name = "PORT")]
+        view_port: Option<u16>,
     },
     /// Check a configuration and load its plugins without running anything.
     Validate {
@@ -70,7 +78,12 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
             set,
             out,
             quiet,
-        } => run(&config, &set, out.as_deref(), quiet, loader, interrupted),
+            view,
+            view_port,
+        } => {
+            let view = view.then_some(view_port.unwrap_or(0));
+            run(&config, &set, out.as_deref(), quiet, view, loader, interrupted)
+        }
         Command::Validate { config, set } => validate(&config, &set, loader),
         Command::Inspect { run_dir } => match inspect(&run_dir) {
             Ok(text) => {
@@ -124,7 +137,6 @@ struct LogProgress {
 
 impl LogProgress {
     fn new(quiet: bool) -> Self {
-        use std::io::IsTerminal;
         LogProgress {
             enabled: !quiet && !std::io::stderr().is_terminal(),
             last: Instant::now(),
@@ -187,6 +199,7 @@ fn run(
     set: &[String],
     out: Option<&Path>,
     quiet: bool,
+    view_port: Option<u16>,
     loader: &dyn PluginLoader,
     interrupted: &dyn Fn() -> bool,
 ) -> i32 {
@@ -204,6 +217,7 @@ fn run(
             return 2;
         }
     };
+    let viewing = view_port.is_some_and(|port| start_viewer(loader, engine.run_dir(), port));
     let started = Instant::now();
     let bar = progress_bar(&engine, quiet);
     let mut log = LogProgress::new(quiet);
@@ -223,7 +237,28 @@ fn run(
     if let Err(e) = write_status(&cfg, &engine, status, error.as_ref()) {
         eprintln!("error: {e}");
     }
-    finish_line(&engine, status, error, started.elapsed().as_secs_f64())
+    let code = finish_line(&engine, status, error, started.elapsed().as_secs_f64());
+    if viewing && std::io::stderr().is_terminal() && status != RunState::Interrupted {
+        eprintln!("view: still serving the finished run; Ctrl-C to stop");
+        while !interrupted() {
+            std::thread::sleep(std::time::Duration::from_millis(200));
+        }
+    }
+    code
+}
+
+/// Starts the host's viewer on the run directory; prints where, or why not.
+fn start_viewer(loader: &dyn PluginLoader, run_dir: &Path, port: u16) -> bool {
+    match loader.start_viewer(run_dir, port) {
+        Ok(url) => {
+            eprintln!("view: {url}");
+            true
+        }
+        Err(e) => {
+            eprintln!("warning: --view: {e}");
+            false
+        }
+    }
 }
 
 /// The last line of a run (stdout when it completed, stderr with the error otherwise);

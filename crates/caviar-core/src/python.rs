@@ -231,6 +231,17 @@ impl ResourceProbe for PyGpuProbe {
 }
 
 impl PluginLoader for PyLoader {
+    /// `caviar.view.start_server`: a daemon thread of this interpreter serves the page.
+    fn start_viewer(&self, run_dir: &std::path::Path, port: u16) -> Result<String, String> {
+        Python::with_gil(|py| {
+            let server = py
+                .import("caviar.view")?
+                .call_method1("start_server", (run_dir.to_path_buf(), "127.0.0.1", port))?;
+            server.getattr("url")?.extract::<String>()
+        })
+        .map_err(|e: PyErr| e.to_string())
+    }
+
     /// Present only where nvidia-ml-py finds an NVIDIA driver and a GPU.
     fn resource_probe(&self) -> Option<Box<dyn ResourceProbe>> {
         Python::with_gil(|py| {

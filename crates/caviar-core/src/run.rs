@@ -31,6 +31,12 @@ pub trait PluginLoader {
     fn resource_probe(&self) -> Option<Box<dyn ResourceProbe>> {
         None
     }
+
+    /// Serves a live view of the run directory in the background (port 0: any free
+    /// one); returns its URL. Hosts without a viewer say so.
+    fn start_viewer(&self, _run_dir: &Path, _port: u16) -> Result<String, String> {
+        Err("this caviar-core has no viewer (use the one installed with the Python package)".into())
+    }
 }
 
 /// The loader of a build without Python: only built-in modules.
