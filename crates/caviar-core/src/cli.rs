@@ -4,8 +4,8 @@
 //! configuration, unreadable run directory), 130 interrupted.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
 use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use clap::{Parser, Subcommand};
@@ -82,7 +82,15 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
             view_port,
         } => {
             let view = view.then_some(view_port.unwrap_or(0));
-            run(&config, &set, out.as_deref(), quiet, view, loader, interrupted)
+            run(
+                &config,
+                &set,
+                out.as_deref(),
+                quiet,
+                view,
+                loader,
+                interrupted,
+            )
         }
         Command::Validate { config, set } => validate(&config, &set, loader),
         Command::Inspect { run_dir } => match inspect(&run_dir) {
