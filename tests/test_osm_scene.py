@@ -161,6 +161,34 @@ def street_link(scene_xml, info, mi_scene, length=80.0):
     raise AssertionError("no open street segment found")
 
 
+def test_camera_renders_the_built_scene_roof_grey_and_ground_green(scene):
+    """The camera plugin's renderer on ``scene = "DIR/scene.xml"``: looking straight down
+    at a tagged building's footprint it sees the roof, and at open ground the ground."""
+    from shapely.geometry import Point, Polygon
+
+    from caviar_plugins.vision.camera import VisualConfig, VisualScene
+
+    xml, info = scene
+    _, _, ways = osm_buildings(HELSINKI, BBOX)
+    polys = []
+    for ok, tags, ll in ways.values():
+        if ok and tags.get("building", "no") != "no" and len(ll) >= 4:
+            x, y = to_xy(info, [p[0] for p in ll], [p[1] for p in ll])
+            polys.append((Polygon(np.column_stack([x, y])).buffer(0), tags))
+    roof = next(poly.buffer(-3.0).representative_point() for poly, tags in polys
+                if "height" in tags and poly.buffer(-3.0).area > 50)
+    rng = np.random.default_rng(0)
+    xs = [poly.bounds for poly, _ in polys]
+    lo, hi = np.min([b[:2] for b in xs], axis=0), np.max([b[2:] for b in xs], axis=0)
+    ground = next(Point(p) for p in rng.uniform(lo, hi, size=(5000, 2))
+                  if all(poly.distance(Point(p)) > 12 for poly, _ in polys))
+    cam = VisualScene(VisualConfig(scene=str(xml), targets=[], distractors=0, width=32, height=24, supersample=1))
+    r, g, b = cam.render([roof.x, roof.y, 120.0])[12, 16].astype(int)
+    assert abs(r - g) < 12 and r > 120, (r, g, b)  # building grey
+    r, g, b = cam.render([ground.x, ground.y, 40.0])[12, 16].astype(int)
+    assert g > r + 30 and g > b + 30, (r, g, b)  # ground green
+
+
 def test_los_along_an_open_street_equals_friis(scene, loaded):
     """Sionna RT's direct path along a street of the built scene has the free-space
     gain, and the ground reflection is where a ground plane at z = 0 puts it. (The

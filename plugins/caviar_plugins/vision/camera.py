@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import pathlib
 
 import numpy as np
 
 import caviar
-from caviar_plugins.assets import DATA, SCENES
+from caviar_plugins.assets import DATA
 from caviar_plugins.mobility.waypoints import Path, read_waypoints
 from caviar_plugins.radio.scene import configure_drjit
 from caviar_plugins.schema import CAMERA, POSITIONS, every_ue, per_ue, read_position
@@ -71,21 +72,43 @@ class VisualConfig:
     """Samples per pixel along each axis (averaged: anti-aliasing)."""
 
 
+GROUND = (0.22, 0.45, 0.16)
+BUILDINGS = (0.55, 0.55, 0.6)
+ROADS = (0.25, 0.25, 0.27)
+
+
+def _scene_meshes(scene: str, base_dir: pathlib.Path | None, d: dict) -> dict[str, tuple[float, float, float]]:
+    """Adds the static meshes of ``scene`` to the Mitsuba dict ``d``; their colours by id.
+
+    The shipped Central Park scene, or any Mitsuba XML of PLY shapes (``scene =
+    "DIR/scene.xml"``, e.g. built by ``caviar-core scene build``); the UAV's cube of the
+    paper's scene is left out (the camera is on the UAV)."""
+    from caviar_plugins.osm.mitsuba import scene_shapes
+    from caviar_plugins.radio.scene import scene_path
+
+    path = scene_path(scene, base_dir)
+    if path is None:  # "empty": free space over a ground plane
+        d["ground"] = {"type": "rectangle", "to_world": mitsuba().ScalarTransform4f().scale([5e3, 5e3, 1])}
+        return {"ground": GROUND}
+    colours = {}
+    for sid, ply, _material in scene_shapes(path):
+        if sid in ("mesh-Cube",):
+            continue
+        d[sid] = {"type": "ply", "filename": str(ply)}
+        low = sid.lower()
+        colours[sid] = GROUND if ("ground" in low or "plane" in low) else ROADS if "road" in low else BUILDINGS
+    return colours
+
+
 class VisualScene:
     """Buildings, ground, persons and distractors; renders nadir views."""
 
-    def __init__(self, cfg: VisualConfig, seed: int = 0):
+    def __init__(self, cfg: VisualConfig, seed: int = 0, base_dir: pathlib.Path | None = None):
         self.cfg = cfg
         rng = np.random.default_rng(seed)
-        meshes = SCENES / cfg.scene / "meshes"
         mi = self.mi = mitsuba()
-        colours = {"buildings": (0.55, 0.55, 0.6), "ground": (0.22, 0.45, 0.16)}
-        d = {
-            "type": "scene",
-            "integrator": {"type": "aov", "aovs": "nn:sh_normal,id:shape_index"},
-            "buildings": {"type": "ply", "filename": str(meshes / "map_2_osm_buildings.ply")},
-            "ground": {"type": "ply", "filename": str(meshes / "Plane.ply")},
-        }
+        d: dict = {"type": "scene", "integrator": {"type": "aov", "aovs": "nn:sh_normal,id:shape_index"}}
+        colours = _scene_meshes(cfg.scene, base_dir, d)
         for i, (x, y) in enumerate(cfg.targets):
             yaw = float(rng.uniform(0, 180))
             d[f"person{i}-body"] = {"type": "cube", "to_world": mi.ScalarTransform4f().translate([x, y, 0.15])
@@ -96,7 +119,11 @@ class VisualScene:
             colours[f"person{i}-head"] = SKIN
         path = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
         for j in range(cfg.distractors):
-            p = path.at(rng.uniform(0, path.length)) + np.r_[rng.normal(0, 4, 2), 0]
+            if cfg.scene == "central_park":  # along the paper's route
+                p = path.at(rng.uniform(0, path.length)) + np.r_[rng.normal(0, 4, 2), 0]
+            else:  # another scene: around the targets
+                x, y = cfg.targets[j % len(cfg.targets)] if cfg.targets else (0.0, 0.0)
+                p = np.r_[x, y, 0] + np.r_[rng.normal(0, 6, 2), 0]
             if rng.uniform() < 0.5:
                 r = float(rng.uniform(0.4, 1.2))
                 d[f"bush{j}"] = {"type": "sphere", "center": [p[0], p[1], r * 0.6], "radius": r}
@@ -169,7 +196,7 @@ class Camera(caviar.Plugin):
         self.ctx = ctx
         p = ctx.params
         cfg = VisualConfig(**{f.name: getattr(p, f.name) for f in dataclasses.fields(VisualConfig)})
-        self.visual = VisualScene(cfg, seed=ctx.seed)
+        self.visual = VisualScene(cfg, seed=ctx.seed, base_dir=ctx.config_dir)
 
     def step(self, t, inbox):
         latest = {}
