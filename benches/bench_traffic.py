@@ -159,7 +159,8 @@ def main(argv=None) -> int:
     import mitsuba
     import sionna.rt
 
-    doc = {"machine": machine(), "load_average_1_5_15": list(os.getloadavg()), "python": platform.python_version(), "sionna_rt": sionna.rt.__version__,
+    doc = {"machine": machine(), "load_average_1_5_15": list(os.getloadavg()),
+           "python": platform.python_version(), "sionna_rt": sionna.rt.__version__,
            "mitsuba": mitsuba.__version__, "scene": str(SCENE.relative_to(ROOT)), "tx": TX, "receivers": 6,
            "solver": {"max_depth": 5, "samples_per_src": 100_000, "diffuse": True, "diffraction": True,
                       "refraction": True},
