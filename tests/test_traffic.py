@@ -59,13 +59,13 @@ def positions(log):
 
 def test_lockstep_and_same_seed_same_positions(tmp_path, grid):
     logs = {}
-    for name, seed in (("a", 3), ("b", 3), ("c", 4)):
-        cfg = traffic_config(tmp_path, grid, seed=seed)
+    for name, seed, extra in (("a", 3, ""), ("b", 3, ""), ("c", 4, ""), ("traci", 3, 'backend = "traci"')):
+        cfg = traffic_config(tmp_path, grid, seed=seed, steps=40, ts=1.0, demand=DEMAND + "\n" + extra)
         logs[name] = caviar.Simulation.from_toml(cfg, out=tmp_path / name).run()
     log = logs["a"]
     traffic = log.topic("3D.mobility.traffic")
-    # SUMO's own clock equals the engine's at every step (Ts = 0.5 s in 2 SUMO substeps).
-    assert traffic["sumo_time"].to_list() == traffic["time"].to_list() == [0.5 * k for k in range(6)]
+    # SUMO's own clock equals the engine's at every step (Ts = 1 s in 2 SUMO substeps).
+    assert traffic["sumo_time"].to_list() == traffic["time"].to_list() == [float(k) for k in range(40)]
     pos = log.topic(POSITIONS)
     assert set(pos["UE_type"]) == {"car", "bus", "pedestrian"}
     assert pos.filter(pos["UE_type"] == "bus")["dimensions"].to_list()[0] == {"length": 12.0, "width": 2.5,
@@ -79,7 +79,12 @@ def test_lockstep_and_same_seed_same_positions(tmp_path, grid):
     n = pos.group_by("time").len().sort("time")
     assert dict(zip(n["time"], n["len"], strict=True)) == {r["time"]: r["vehicles"] + r["persons"]
                                               for r in traffic.iter_rows(named=True) if r["vehicles"] + r["persons"]}
-    assert positions(logs["a"]) == positions(logs["b"])
+    # Arrivals are announced once, after which the UE is gone.
+    arrived = log.topic("3D.mobility.arrived")
+    assert arrived.height >= 1 and set(arrived["UE_Id"]) <= set(departed["UE_Id"])
+    for r in arrived.iter_rows(named=True):
+        assert pos.filter((pos["UE_Id"] == r["UE_Id"]) & (pos["time"] >= r["time"])).height == 0
+    assert positions(logs["a"]) == positions(logs["b"]) == positions(logs["traci"])
     assert positions(logs["a"]) != positions(logs["c"])
 
 
@@ -107,6 +112,30 @@ def test_bad_input_is_a_clear_error_naming_the_file(tmp_path, grid, cli):
 
 
 # -- the radio side -------------------------------------------------------------
+
+
+def test_the_pool_moves_boxes_without_scene_edits_and_reuses_them(tmp_path):
+    from caviar_plugins.radio.scatterers import Body, PoolFull, ScattererPool, box_vertices
+
+    plugin = radio_plugin(tmp_path, vehicle_pool=2, person_pool=1)
+    pool, scene = plugin.pool, plugin.radio.scene
+    edits = []
+    scene_edit = scene.edit
+    scene.edit = lambda *a, **kw: (edits.append(1), scene_edit(*a, **kw))
+    car = Body("car", "vehicle", (10.0, 5.0, 0.0), 0.4, (4.5, 1.8, 1.5), (3.0, 1.0, 0.0))
+    bus = Body("bus", "vehicle", (-20.0, 0.0, 0.0), 1.2, (12.0, 2.5, 3.4))
+    assert pool.update([car, bus]) == 2 and pool.used == {"car": ("vehicle", 0), "bus": ("vehicle", 1)}
+    verts = np.array(scene.mi_scene_params["traffic-vehicle-1.vertex_positions"]).reshape(-1, 3)
+    np.testing.assert_allclose(verts, box_vertices(bus.center, bus.yaw, bus.size), atol=1e-4)
+    np.testing.assert_allclose(np.array(pool.slot_of("car").velocity).ravel(), [3.0, 1.0, 0.0])
+    assert pool.update([car, bus]) == 0  # nothing moved: nothing rewritten
+    van = Body("van", "vehicle", (0.0, 30.0, 0.0), 0.0, (5.0, 2.0, 2.2))
+    pool.update([car, van])  # the bus left, a van came: it takes the bus's box
+    assert pool.used["van"] == ("vehicle", 1) and edits == []
+    with pytest.raises(PoolFull):
+        pool.update([car, van, bus])
+    ScattererPool.update(pool, [car, van, bus], grow=True)
+    assert pool.capacity["vehicle"] == 4 and len(edits) == 1
 
 
 def radio_plugin(tmp_path, **kw):

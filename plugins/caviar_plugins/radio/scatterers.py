@@ -86,25 +86,39 @@ class ScattererPool:
         self.free: dict[str, list[int]] = {}
         self.used: dict[str, tuple[str, int]] = {}  # key -> (group, slot)
         self.state: dict[tuple[str, int], tuple] = {}  # what each slot shows now
+        self.rt = rt
+        self.prefix = prefix
+        self.materials = dict(materials)
+        self.edits = 0
+        self.last_update_s = 0.0
+        self.last_changed = 0
+        self.grow(capacity)
+
+    def grow(self, more: dict[str, int]) -> None:
+        """Adds ``more[group]`` boxes to each group, in one scene edit (a kernel recompile
+        at the next solve)."""
+        mi = self.mi
         objects = []
-        for group, n in capacity.items():
-            self.slots[group] = []
-            for i in range(n):
-                mesh = mi.Mesh(f"{prefix}-{group}-{i}", vertex_count=8, face_count=len(BOX_FACES),
+        for group, n in more.items():
+            slots = self.slots.setdefault(group, [])
+            free = self.free.setdefault(group, [])
+            start = len(slots)
+            for i in range(start, start + n):
+                mesh = mi.Mesh(f"{self.prefix}-{group}-{i}", vertex_count=8, face_count=len(BOX_FACES),
                                has_vertex_normals=False, has_vertex_texcoords=False)
                 p = mi.traverse(mesh)
                 p["vertex_positions"] = mi.Float(self._parked(group, i).ravel().astype(np.float32))
                 p["faces"] = mi.UInt32(BOX_FACES.ravel())
                 p.update()
-                obj = rt.SceneObject(mi_mesh=mesh, name=f"{prefix}-{group}-{i}", radio_material=materials[group])
+                obj = self.rt.SceneObject(mi_mesh=mesh, name=f"{self.prefix}-{group}-{i}",
+                                          radio_material=self.materials[group])
                 obj.velocity = [0.0, 0.0, 0.0]  # creates the attribute now: no recompile later
-                self.slots[group].append(obj)
+                slots.append(obj)
                 objects.append(obj)
-            self.free[group] = list(range(n - 1, -1, -1))  # pop() gives slot 0 first
+            free[:0] = list(range(start + n - 1, start - 1, -1))  # pop() gives the lowest slot first
         if objects:
-            scene.edit(add=objects)
-        self.last_update_s = 0.0
-        self.last_changed = 0
+            self.scene.edit(add=objects)
+            self.edits += 1
 
     @staticmethod
     def _parked(group: str, i: int) -> np.ndarray:
@@ -114,47 +128,62 @@ class ScattererPool:
     def capacity(self) -> dict[str, int]:
         return {g: len(s) for g, s in self.slots.items()}
 
-    def update(self, bodies: list[Body]) -> int:
+    def update(self, bodies: list[Body], grow: bool = False) -> int:
         """Shows exactly ``bodies`` (others parked); returns how many boxes changed.
-        Raises :class:`PoolFull` if a group has more bodies than boxes."""
+        A group with more bodies than boxes raises :class:`PoolFull`, or with ``grow``
+        gets twice the boxes it needs (one scene edit, one recompile)."""
         t0 = time.perf_counter()
-        mi = self.mi
-        present = {b.key for b in bodies}
-        for key in [k for k in self.used if k not in present]:
-            group, slot = self.used.pop(key)
-            self.free[group].append(slot)
-        wanted: dict[tuple[str, int], tuple] = {}
-        for b in bodies:
-            if b.key not in self.used:
-                if b.group not in self.free:
-                    raise KeyError(f"no scatterer pool for group {b.group!r} (pools: {', '.join(self.slots)})")
-                if not self.free[b.group]:
-                    raise PoolFull(f"more than {len(self.slots[b.group])} {b.group} scatterers at once; "
-                                   f"raise the pool's capacity")
-                self.used[b.key] = (b.group, self.free[b.group].pop())
-            wanted[self.used[b.key]] = (tuple(b.center), float(b.yaw), tuple(b.size), tuple(b.velocity))
+        wanted = self._assign(bodies, grow)
         params = self.scene.mi_scene_params
         changed = 0
         for group, objs in self.slots.items():
             for i, obj in enumerate(objs):
                 state = wanted.get((group, i))
-                if self.state.get((group, i)) == state:
-                    continue
-                self.state[(group, i)] = state
-                if state is None:
-                    verts, vel = self._parked(group, i), (0.0, 0.0, 0.0)
-                else:
-                    verts, vel = box_vertices(state[0], state[1], state[2]), state[3]
-                params[obj.mi_mesh.id() + ".vertex_positions"] = mi.Float(verts.ravel().astype(np.float32))
-                if tuple(np.asarray(obj.velocity).ravel()) != tuple(np.float32(vel)):
-                    obj.velocity = [float(v) for v in vel]
-                changed += 1
+                if self.state.get((group, i)) != state:
+                    self.state[(group, i)] = state
+                    self._show(params, group, i, obj, state)
+                    changed += 1
         if changed:
-            params.update()
+            params.update()  # one acceleration-structure rebuild for all boxes
             self.scene.scene_geometry_updated()
         self.last_update_s = time.perf_counter() - t0
         self.last_changed = changed
         return changed
+
+    def _assign(self, bodies: list[Body], grow: bool) -> dict[tuple[str, int], tuple]:
+        """Frees the slots of bodies gone, gives new bodies a slot; (group, slot) -> state."""
+        present = {b.key for b in bodies}
+        for key in [k for k in self.used if k not in present]:
+            group, slot = self.used.pop(key)
+            self.free[group].append(slot)
+        needed: dict[str, int] = {}
+        for b in bodies:
+            if b.key not in self.used:
+                needed[b.group] = needed.get(b.group, 0) + 1
+        for group, n in needed.items():
+            if group not in self.slots and not grow:
+                raise KeyError(f"no scatterer pool for group {group!r} (pools: {', '.join(self.slots)})")
+            free = len(self.free.get(group, []))
+            if n > free:
+                if not grow:
+                    raise PoolFull(f"{n} new {group} scatterers but {free} free boxes of "
+                                   f"{len(self.slots[group])}; raise the pool's capacity")
+                self.grow({group: 2 * n - free})
+        wanted = {}
+        for b in bodies:
+            if b.key not in self.used:
+                self.used[b.key] = (b.group, self.free[b.group].pop())
+            wanted[self.used[b.key]] = (tuple(b.center), float(b.yaw), tuple(b.size), tuple(b.velocity))
+        return wanted
+
+    def _show(self, params, group: str, i: int, obj, state) -> None:
+        if state is None:
+            verts, vel = self._parked(group, i), (0.0, 0.0, 0.0)
+        else:
+            verts, vel = box_vertices(state[0], state[1], state[2]), state[3]
+        params[obj.mi_mesh.id() + ".vertex_positions"] = self.mi.Float(verts.ravel().astype(np.float32))
+        if tuple(np.asarray(obj.velocity).ravel()) != tuple(np.float32(vel)):
+            obj.velocity = [float(v) for v in vel]
 
     def slot_of(self, key: str):
         """The scene object showing ``key``, or None."""

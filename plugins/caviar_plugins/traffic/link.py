@@ -27,6 +27,7 @@ other static geometry.
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import numpy as np
 
@@ -58,9 +59,10 @@ ITU_TYPES = ("concrete", "brick", "plasterboard", "wood", "glass", "ceiling_boar
 @dataclasses.dataclass
 class SionnaTrafficLinkParams(SionnaLinkParams):
     vehicle_pool: int = 64
-    """Boxes for vehicles (the most vehicles in the scene at once)."""
+    """Boxes for vehicles, made at setup: the most vehicles in the scene at once. More
+    vehicles grow the pool (one scene edit and recompile, with a warning)."""
     person_pool: int = 32
-    """Boxes for pedestrians."""
+    """Boxes for pedestrians, likewise."""
     vehicle_material: str = "metal"
     """ITU-R P.2040 material of vehicle boxes (Sionna ``itu_<name>``)."""
     person_material: str = "concrete"
@@ -108,6 +110,7 @@ class SionnaTrafficLink(caviar.Plugin):
     def setup(self, ctx):
         p = ctx.params
         self.p = p
+        self.ctx = ctx
         radio_cfg = p.radio()
         self.uav_offset = np.asarray(radio_cfg.antenna_offset, dtype=float)
         radio_cfg.antenna_offset = [0.0, 0.0, 0.0]  # receivers are placed at their antennas here
@@ -243,8 +246,13 @@ class SionnaTrafficLink(caviar.Plugin):
                                           {"uav": rt.ITURadioMaterial("traffic-uav", "metal", thickness=0.01)},
                                           prefix="traffic-uav")
         if self.uav_pool is not None:
-            self.uav_pool.update(uav[: self.uav_pool.capacity["uav"]])
-        self.pool.update(others)
+            self.uav_pool.update(uav, grow=True)
+        before = self.pool.capacity
+        self.pool.update(others, grow=True)
+        for group, n in self.pool.capacity.items():
+            if n > before.get(group, 0):
+                print(f"{self.ctx.name}: {group} pool grown from {before.get(group, 0)} to {n} boxes (one scene "
+                      f"edit and recompile); set {group}_pool >= {n} to avoid it", file=sys.stderr)
 
     def _paths_info(self) -> dict[str, dict]:
         """Doppler of the strongest and of the line-of-sight path of each receiver."""
