@@ -15,9 +15,15 @@ import numpy as np
 
 
 class GainKNN:
-    def __init__(self, k: int = 5, weights: str = "distance"):
+    """``previous_weight`` α > 0 makes it a model given the previous step's beam sweep:
+    score = α · (previous gains / their max) + (1 − α) · k-NN score."""
+
+    uses_previous = True
+
+    def __init__(self, k: int = 5, weights: str = "distance", previous_weight: float = 0.0):
         self.k = k
         self.weights = weights
+        self.previous_weight = previous_weight
 
     def fit(self, positions: np.ndarray, gains: np.ndarray) -> GainKNN:
         """positions (N, 3); gains (N, C_rx, C_tx) or (N, pairs)."""
@@ -34,5 +40,13 @@ class GainKNN:
         w = 1 / np.maximum(dist, 1e-3) if self.weights == "distance" else np.ones_like(dist)
         return np.einsum("nk,nkp->np", w, self.gains_[idx]) / w.sum(axis=1, keepdims=True)
 
-    def predict(self, positions: np.ndarray) -> np.ndarray:
-        return np.argmax(self.scores(positions), axis=1)
+    def predict(self, positions: np.ndarray, previous_gains: np.ndarray | None = None) -> np.ndarray:
+        """Best pair per position; ``previous_gains`` (N, pairs), the previous step's gains
+        (rows of zeros where there is none), enter with weight ``previous_weight``."""
+        s = self.scores(positions)
+        if self.previous_weight > 0 and previous_gains is not None:
+            g = np.asarray(previous_gains, dtype=float).reshape(len(s), -1)
+            prev = g / np.maximum(g.max(axis=1, keepdims=True), 1e-30)
+            a = np.where(g.max(axis=1, keepdims=True) > 0, self.previous_weight, 0.0)
+            s = a * prev + (1 - a) * s
+        return np.argmax(s, axis=1)

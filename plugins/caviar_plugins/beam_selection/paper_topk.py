@@ -10,8 +10,10 @@ and the SAR test flight (paper-test-flight.toml), with better selectors beside i
 * Split: ``sklearn.utils.shuffle(random_state=1)``, the last 30 % validate.
 * Tree: ``DecisionTreeClassifier(max_depth=15, random_state=0)`` on (x, y, z).
 * Top-K (the 2023 metric): the *predicted pair* is among the K pairs of largest gain.
-* Beside it: :class:`~caviar_plugins.beam_selection.knn.GainKNN` (k chosen on the
-  validation set) and ``previous`` (last step's best pair, same flight).
+* Beside it: :class:`~caviar_plugins.beam_selection.knn.GainKNN` on position (k chosen
+  on the validation set), ``previous`` (last step's best pair, same flight) and
+  ``knn+previous`` (GainKNN given the previous step's gains; k and the weight chosen by
+  leave-one-flight-out on the training flights, never on the test flight).
 """
 
 from __future__ import annotations
@@ -40,8 +42,9 @@ def samples(run: str) -> dict[str, np.ndarray]:
     gains = d["gains"].reshape(len(d["gains"]), -1)
     keep = gains.max(axis=1) > 0 if "n_paths" not in d else d["n_paths"] > 0
     prev = np.r_[-1, d["best_pair"][:-1]]
+    prev_gains = np.r_[np.zeros_like(gains[:1]), gains[:-1]]
     return {"position": d["position"][keep], "best_pair": d["best_pair"][keep], "gains": gains[keep],
-            "previous": prev[keep], "all_steps": np.array(len(order))}
+            "previous": prev[keep], "previous_gains": prev_gains[keep], "all_steps": np.array(len(order))}
 
 
 def hits(pred: np.ndarray, gains: np.ndarray, ks=K_VALUES) -> dict[int, float]:
@@ -57,8 +60,9 @@ def evaluate(train_runs, test_run, knn_ks=(1, 3, 5, 7, 10, 15, 20)) -> tuple[dic
     from sklearn.utils import shuffle
 
     parts = [samples(r) for r in train_runs]
-    data = {k: np.concatenate([p[k] for p in parts]) for k in ("position", "best_pair", "gains", "previous")}
-    x, y, g, prev = shuffle(data["position"], data["best_pair"], data["gains"], data["previous"], random_state=1)
+    keys = ("position", "best_pair", "gains", "previous", "previous_gains")
+    data = {k: np.concatenate([p[k] for p in parts]) for k in keys}
+    x, y, g, prev, prev_g = shuffle(*(data[k] for k in keys), random_state=1)
     cut = len(x) - int(np.ceil(0.3 * len(x)))
     test = samples(test_run)
     tree = DecisionTreeClassifier(max_depth=MAX_DEPTH, random_state=0).fit(x[:cut], y[:cut])
@@ -73,12 +77,31 @@ def evaluate(train_runs, test_run, knn_ks=(1, 3, 5, 7, 10, 15, 20)) -> tuple[dic
     for name, (_, gs, pv) in sets.items():
         ok = pv >= 0
         out["previous"][name] = hits(pv[ok], gs[ok])
+    # k-NN given the previous step's gains: (k, weight) by leave-one-flight-out top-1.
+    lofo = {}
+    for k in knn_ks:
+        for w in (0.3, 0.5, 0.7, 0.9):
+            scores = []
+            for i, held in enumerate(parts):
+                rest = [p for j, p in enumerate(parts) if j != i]
+                m = GainKNN(k, previous_weight=w).fit(np.concatenate([p["position"] for p in rest]),
+                                                      np.concatenate([p["gains"] for p in rest]))
+                scores.append(hits(m.predict(held["position"], held["previous_gains"]), held["gains"], (1,))[1])
+            lofo[(k, w)] = float(np.mean(scores))
+    best_kw = max(lofo, key=lambda kw: (lofo[kw], -kw[0]))
+    knn_prev = GainKNN(best_kw[0], previous_weight=best_kw[1]).fit(x[:cut], g[:cut])
+    val_prev = (x[cut:], g[cut:], prev_g[cut:])
+    test_prev = (test["position"], test["gains"], test["previous_gains"])
+    out["knn_previous"] = {name: hits(knn_prev.predict(xs, pg), gs)
+                           for name, (xs, gs, pg) in (("validation", val_prev), ("test", test_prev))}
     sizes = {"train_runs": [str(r) for r in train_runs], "test_run": str(test_run),
              "samples_with_paths": int(len(x)), "steps_recorded": int(sum(int(p["all_steps"]) for p in parts)),
              "fit": int(cut), "validation": int(len(x) - cut), "test": int(len(test["position"])),
              "test_steps_recorded": int(test["all_steps"]), "max_depth": MAX_DEPTH, "knn_k": int(best_k),
-             "knn_validation_top1_by_k": {str(k): v for k, v in val_top1.items()}}
-    return {**sizes, "results": out}, tree, knn
+             "knn_validation_top1_by_k": {str(k): v for k, v in val_top1.items()},
+             "knn_previous_k": int(best_kw[0]), "knn_previous_weight": best_kw[1],
+             "knn_previous_lofo_top1": {f"k={k},w={w}": v for (k, w), v in lofo.items()}}
+    return {**sizes, "results": out}, tree, knn, knn_prev
 
 
 def write(report: dict, out: pathlib.Path) -> str:
@@ -88,7 +111,7 @@ def write(report: dict, out: pathlib.Path) -> str:
     for k in K_VALUES:
         pv, pt = PAPER_TOPK[k]
         row = {"K": k, "paper_validation": pv, "paper_test": pt}
-        for m in ("tree", "knn", "previous"):
+        for m in ("tree", "knn", "previous", "knn_previous"):
             for s in ("validation", "test"):
                 row[f"{m}_{s}"] = round(100 * res[m][s][k], 2)
         row["diff_validation"] = round(row["tree_validation"] - pv, 2)
@@ -97,13 +120,15 @@ def write(report: dict, out: pathlib.Path) -> str:
     report["table"] = rows
     (out / "topk.json").write_text(json.dumps(report, indent=2) + "\n")
     lines = ["| K | paper val. (%) | tree val. (%) | diff | paper test (%) | tree test (%) | diff | "
-             f"k-NN gain (k={report['knn_k']}) val. / test (%) | previous beam val. / test (%) |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             f"k-NN gain (k={report['knn_k']}) val. / test (%) | previous beam val. / test (%) | "
+             f"k-NN + previous (k={report['knn_previous_k']}, w={report['knn_previous_weight']}) val. / test (%) |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['K']} | {r['paper_validation']:.2f} | {r['tree_validation']:.2f} | "
                      f"{r['diff_validation']:+.2f} | {r['paper_test']:.2f} | {r['tree_test']:.2f} | "
                      f"{r['diff_test']:+.2f} | {r['knn_validation']:.2f} / {r['knn_test']:.2f} | "
-                     f"{r['previous_validation']:.2f} / {r['previous_test']:.2f} |")
+                     f"{r['previous_validation']:.2f} / {r['previous_test']:.2f} | "
+                     f"{r['knn_previous_validation']:.2f} / {r['knn_previous_test']:.2f} |")
     table = "\n".join(lines)
     import matplotlib
 
@@ -113,11 +138,12 @@ def write(report: dict, out: pathlib.Path) -> str:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4), sharey=True)
     idx = np.arange(len(K_VALUES))
     for ax, s in zip(axes, ("validation", "test"), strict=True):
-        w = 0.2
-        ax.bar(idx - 1.5 * w, [r[f"paper_{s}"] for r in rows], w, label="paper (tree)")
-        ax.bar(idx - 0.5 * w, [r[f"tree_{s}"] for r in rows], w, label="ours: tree")
-        ax.bar(idx + 0.5 * w, [r[f"knn_{s}"] for r in rows], w, label="ours: k-NN gain")
-        ax.bar(idx + 1.5 * w, [r[f"previous_{s}"] for r in rows], w, label="ours: previous beam")
+        w = 0.16
+        ax.bar(idx - 2 * w, [r[f"paper_{s}"] for r in rows], w, label="paper (tree)")
+        ax.bar(idx - w, [r[f"tree_{s}"] for r in rows], w, label="ours: tree")
+        ax.bar(idx, [r[f"knn_{s}"] for r in rows], w, label="ours: k-NN gain")
+        ax.bar(idx + w, [r[f"previous_{s}"] for r in rows], w, label="ours: previous beam")
+        ax.bar(idx + 2 * w, [r[f"knn_previous_{s}"] for r in rows], w, label="ours: k-NN + previous")
         ax.set(xticks=idx, xticklabels=[str(k) for k in K_VALUES], xlabel="K", title=f"top-K, {s}")
         ax.grid(True, axis="y")
     axes[0].set_ylabel("accuracy (%)")
@@ -137,10 +163,13 @@ def main(argv=None) -> None:
     ap.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/results/paper-protocol"))
     ap.add_argument("--model", type=pathlib.Path, default=pathlib.Path("models/paper-beam-tree.pkl"))
     ap.add_argument("--knn-model", type=pathlib.Path, default=pathlib.Path("models/paper-beam-knn.pkl"))
+    ap.add_argument("--knn-previous-model", type=pathlib.Path,
+                    default=pathlib.Path("models/paper-beam-knn-previous.pkl"))
     args = ap.parse_args(argv)
-    report, tree, knn = evaluate(args.train, args.test)
+    report, tree, knn, knn_prev = evaluate(args.train, args.test)
     save(tree, args.model)
     save(knn, args.knn_model)
+    save(knn_prev, args.knn_previous_model)
     table = write(report, args.out)
     (args.out / "topk.md").write_text(topk_md(report, table))
     print(table)
@@ -157,7 +186,9 @@ def topk_md(report: dict, table: str) -> str:
             f"*tree*: the paper's model (max depth 15 on x, y, z). *k-NN gain*: "
             f"`caviar_plugins.beam_selection.knn.GainKNN`, the pair of largest mean normalised gain among the "
             f"k nearest training positions (k chosen on validation). *previous beam*: the best pair of the "
-            f"previous step of the same flight (needs last step's beam sweep).\n")
+            f"previous step of the same flight (needs last step's beam sweep). *k-NN + previous*: the same k-NN "
+            f"given the previous step's gains, score = w · previous gains / max + (1 − w) · k-NN score (k and w "
+            f"chosen by leave-one-flight-out top-1 on the training flights).\n")
 
 
 if __name__ == "__main__":

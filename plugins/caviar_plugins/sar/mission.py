@@ -8,7 +8,8 @@ one is the same person. When the episode ends (the UAV reached its last waypoint
 
 ``protocol = "paper"`` (the 2023 loop, docs/paper-protocol.md): S uses the throughput
 of the previous step (the 2023 loop's lag); a detection while that throughput is 0
-counts nothing (the 2023 ZeroDivisionError); S is not capped; the hover itself is
+counts nothing (the 2023 ZeroDivisionError); a frame counts at most one rescue (the
+2023 loop counted one event per frame); S is not capped; the hover itself is
 served by the flight at the next waypoint (``waypoint-flight`` with the same
 protocol), and the mission time is the flight's clock, takeoff included.
 """
@@ -62,25 +63,34 @@ class Mission(caviar.Plugin):
                 if g is None or any(math.dist((g["x"], g["y"]), (r["x"], r["y"])) < p.same_target_m
                                     for r in self.rescues):
                     continue
-                megabits = p.images * p.image_mb * 8
-                if is_paper:
-                    mbps = previous.get(ue, 0.0)
-                    if mbps <= 0:
-                        continue
-                    seconds = megabits / mbps
-                else:
-                    mbps = self.throughput.get(ue, 0.0)
-                    seconds = min(megabits / mbps, p.max_hover_s) if mbps > 0 else p.max_hover_s
+                stop = self._stop(ue, previous if is_paper else self.throughput)
+                if stop is None:
+                    continue
+                mbps, seconds = stop
                 rescue = {"UE_Id": ue, "x": g["x"], "y": g["y"], "time": t, "throughput": mbps,
                           "hover_s": seconds}
                 self.rescues.append(rescue)
                 yield HOVER, {"UE_Id": ue, "seconds": seconds}
                 yield RESCUE, rescue
+                if is_paper:
+                    break  # 2023: one detection event per frame, whatever the number of boxes
         if end is not None:
-            result = {"mission_time_s": end.time, "rescued": len(self.rescues), "rescues": self.rescues}
-            if is_paper:
-                data = end.data if isinstance(end.data, dict) else {}
-                for key in ("mission_time_s", "clock_offset_s", "flight_time_s", "hover_s", "flown_m"):
-                    if key in data:
-                        result[key] = data[key]
-            yield RESULT, result
+            yield RESULT, self._result(end, is_paper)
+
+    def _stop(self, ue: str, throughput: dict[str, float]) -> tuple[float, float] | None:
+        """(throughput, hover seconds) of a rescue, or None when it does not count."""
+        p = self.ctx.params
+        mbps = throughput.get(ue, 0.0)
+        megabits = p.images * p.image_mb * 8
+        if p.protocol == "paper":
+            return None if mbps <= 0 else (mbps, megabits / mbps)
+        return mbps, (min(megabits / mbps, p.max_hover_s) if mbps > 0 else p.max_hover_s)
+
+    def _result(self, end, is_paper: bool) -> dict:
+        result = {"mission_time_s": end.time, "rescued": len(self.rescues), "rescues": self.rescues}
+        if is_paper:
+            data = end.data if isinstance(end.data, dict) else {}
+            for key in ("mission_time_s", "clock_offset_s", "flight_time_s", "hover_s", "flown_m"):
+                if key in data:
+                    result[key] = data[key]
+        return result

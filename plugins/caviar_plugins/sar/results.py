@@ -56,9 +56,16 @@ def run_all(config: pathlib.Path, tree: pathlib.Path, runs: pathlib.Path, method
 def summarise(logs: dict) -> list[dict]:
     rows = []
     for method, log in logs.items():
-        result = log.topic(RESULT).row(0, named=True)
-        extra = {k: result[k] for k in ("clock_offset_s", "flight_time_s", "hover_s", "flown_m")
-                 if result.get(k) is not None}
+        res = log.topic(RESULT)
+        if res.height:
+            result = res.row(0, named=True)
+        else:  # the episode hit its step limit before the mission ended: a lower bound
+            offset = _clock_offset(log)
+            result = {"mission_time_s": offset + float(log.topic(POSITIONS)["time"].max()),
+                      "rescued": log.topic(RESCUE).height, "clock_offset_s": offset}
+        extra = {"ended": bool(res.height)}
+        extra.update({k: result[k] for k in ("clock_offset_s", "flight_time_s", "hover_s", "flown_m")
+                      if result.get(k) is not None})
         paper_t, paper_r = PAPER.get(method, (None, None))
         if paper_t is not None:
             extra.update(paper_mission_time_s=paper_t, paper_rescued=paper_r,
@@ -75,6 +82,14 @@ def summarise(logs: dict) -> list[dict]:
                      "steps": log.status["steps_done"], "wall_s": log.status["wall_s"],
                      "run_dir": str(log.path)})
     return rows
+
+
+def _clock_offset(log) -> float:
+    """The flight's takeoff offset from the run's configuration (paper protocol), else 0."""
+    import tomllib
+
+    uav = tomllib.loads(log.config_text).get("modules", {}).get("uav", {}).get("params", {})
+    return float(uav.get("takeoff_s", 8.5)) if uav.get("protocol") == "paper" else 0.0
 
 
 def write(rows: list[dict], logs: dict, out: pathlib.Path, note: str = "") -> None:
@@ -121,10 +136,12 @@ def write_tables(rows: list[dict], out: pathlib.Path, note: str = "") -> str:
     for r in rows:
         pt, pr = PAPER.get(r["method"], (None, None))
         t = r["mission_time_s"]
+        ended = r.get("ended", True)
         diff = f"{t - pt:+.2f} | {100 * (t / pt - 1):+.1f}" if pt else "— | —"
         hover = f"{r['hover_s']:.1f}" if r.get("hover_s") is not None else "—"
         rescued_diff = f"{r['rescued'] - pr:+d}" if pr else "—"
-        lines.append(f"| {LABEL[r['method']]} | {pt if pt else '—'} | {t:.2f} | {diff} | {pr if pr else '—'} | "
+        shown = f"{t:.2f}" if ended else f"> {t:.2f}"
+        lines.append(f"| {LABEL[r['method']]} | {pt if pt else '—'} | {shown} | {diff} | {pr if pr else '—'} | "
                      f"{r['rescued']} | {rescued_diff} | {hover} | "
                      f"{r['throughput_mbps_mean']:.1f} / {r['throughput_mbps_median']:.1f} | "
                      f"{100 * r['frames_at_50pct_loss']:.0f} % |")

@@ -151,9 +151,11 @@ def export_onnx(detector: PixelDetector, path: pathlib.Path) -> None:
     path.write_bytes(model.SerializeToString())
 
 
-def frames(count: int, seed: int, loss_rates=(0.0, 0.0, 0.01, 0.25, 0.5)):
+def frames(count: int, seed: int, loss_rates=(0.0, 0.0, 0.01, 0.25, 0.5), loss: str = "packets"):
     """Rendered frames with labels: half over a target (at random offsets and
-    altitudes), half anywhere along the route; each with a random packet loss."""
+    altitudes), half anywhere along the route; each with a random packet loss
+    (``loss = "packets"``: the image link's 1400-byte packets; ``"bytes"``: single bytes
+    zeroed, the 2023 degradation of ``protocol = "paper"``)."""
     rng = np.random.default_rng(seed)
     visual = VisualScene(VisualConfig(), seed=seed)
     path = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
@@ -166,17 +168,22 @@ def frames(count: int, seed: int, loss_rates=(0.0, 0.0, 0.01, 0.25, 0.5)):
         z = rng.uniform(7.0, 12.0)
         image, labels = visual.render_labelled([xy[0], xy[1], z])
         rate = float(rng.choice(loss_rates))
-        if rate:
+        if rate and loss == "bytes":
+            from caviar_plugins.protocol import zero_bytes
+
+            image = zero_bytes(image, rate, rng)
+        elif rate:
             image = packet_loss(image, rate, rng)
         yield image, labels, rate
 
 
-def train(count: int = 240, seed: int = TRAINING_SEED, pixels_per_frame: int = 600) -> PixelDetector:
+def train(count: int = 240, seed: int = TRAINING_SEED, pixels_per_frame: int = 600,
+          loss: str = "packets") -> PixelDetector:
     from sklearn.ensemble import RandomForestClassifier
 
     rng = np.random.default_rng(seed)
     xs, ys = [], []
-    for image, labels, _ in frames(count, seed):
+    for image, labels, _ in frames(count, seed, loss=loss):
         f = features(image)
         y = (labels.reshape(-1) >= 0).astype(np.int8)
         pos, neg = np.flatnonzero(y), np.flatnonzero(y == 0)
@@ -189,14 +196,15 @@ def train(count: int = 240, seed: int = TRAINING_SEED, pixels_per_frame: int = 6
     return PixelDetector(forest)
 
 
-def evaluate(detector: PixelDetector, count: int = 120, seed: int = TRAINING_SEED + 1, min_visible: int = 12) -> dict:
+def evaluate(detector: PixelDetector, count: int = 120, seed: int = TRAINING_SEED + 1, min_visible: int = 12,
+             loss: str = "packets") -> dict:
     """Object-level precision and recall on frames not seen in training, per loss rate.
     A target counts when at least ``min_visible`` of its pixels are in the frame; a
     detection is correct when its region overlaps a target's pixels."""
     from scipy.ndimage import label
 
     stats: dict[float, dict[str, int]] = {}
-    for image, labels, rate in frames(count, seed):
+    for image, labels, rate in frames(count, seed, loss=loss):
         s = stats.setdefault(rate, {"tp": 0, "fp": 0, "fn": 0, "frames": 0})
         s["frames"] += 1
         mask, _ = detector.mask(image)
@@ -226,24 +234,32 @@ def cache_dir() -> pathlib.Path:
     return pathlib.Path(os.environ.get("CAVIAR_CACHE", pathlib.Path.home() / ".cache" / "caviar"))
 
 
-def builtin_model_path() -> pathlib.Path:
-    """Where the builtin model is cached (per model version and scikit-learn version)."""
+def builtin_model_path(loss: str = "packets") -> pathlib.Path:
+    """Where the builtin model is cached (per model version and scikit-learn version;
+    ``loss = "bytes"``: the one trained on the 2023 byte-level degradation)."""
     import sklearn
 
-    return cache_dir() / f"person-detector-v{MODEL_VERSION}-sklearn{sklearn.__version__}.pkl"
+    tag = "" if loss == "packets" else f"-{loss}"
+    return cache_dir() / f"person-detector-v{MODEL_VERSION}{tag}-sklearn{sklearn.__version__}.pkl"
 
 
-def builtin_model() -> PixelDetector:
-    """The project's detector, trained on first use and cached."""
-    path = builtin_model_path()
+def builtin_model(loss: str = "packets") -> PixelDetector:
+    """The project's detector, trained on first use and cached. ``loss = "bytes"``:
+    trained on frames degraded as in ``protocol = "paper"`` (bytes zeroed), the
+    ``builtin-paper`` model."""
+    path = builtin_model_path(loss)
     if path.exists():
         try:
             return PixelDetector.load(path)
         except ValueError:
             pass  # unreadable or stale: train again
-    detector = train()
+    detector = train(loss=loss)
     detector.save(path)
     return detector
+
+
+BUILTIN = {"builtin": "packets", "builtin-paper": "bytes"}
+"""Builtin models by name: the degradation they were trained on."""
 
 
 class PersonDetector(caviar.Plugin):
@@ -257,6 +273,8 @@ class PersonDetector(caviar.Plugin):
     @dataclasses.dataclass
     class Params:
         model: str = "builtin"
+        """``builtin`` (trained on packet loss), ``builtin-paper`` (trained on the 2023
+        byte-level loss of ``protocol = "paper"``) or a model file."""
         fov_deg: float = 70.0
         """Horizontal field of view of the camera (as in the camera module)."""
         workers: int = 0
@@ -270,7 +288,10 @@ class PersonDetector(caviar.Plugin):
         p = ctx.params
         if p.workers < 0:
             raise ValueError(f"params.workers = {p.workers}: expected 0 (one per CPU core) or more")
-        self.detector = builtin_model() if p.model == "builtin" else PixelDetector.load(ctx.resolve(p.model))
+        if p.model in BUILTIN:
+            self.detector = builtin_model(BUILTIN[p.model])
+        else:
+            self.detector = PixelDetector.load(ctx.resolve(p.model))
         self.positions: dict[str, np.ndarray] = {}
         workers = p.workers or os.cpu_count() or 1
         self.pool = ThreadPoolExecutor(workers, thread_name_prefix="detector") if workers > 1 else None
