@@ -6,6 +6,9 @@ max depth 15), or the random and oracle baselines.
   :mod:`~caviar_plugins.beam_selection.decision_tree`).
 * ``random``: a uniformly drawn pair (Rx 0–3 × Tx 0–63), seeded.
 * ``oracle``: publishes nothing, so the communications module uses the best pair.
+* ``tree`` also takes any pickled model with ``predict``; one with ``uses_previous``
+  (:class:`~caviar_plugins.beam_selection.knn.GainKNN`) is given the previous step's
+  gains from ``communications.beam_gains.<UE_Id>`` (publish_channels = true).
 * ``previous``: the best pair of the previous step (from ``communications.link``): the
   selector that is given last step's beam sweep; the first step uses the best pair.
 
@@ -25,13 +28,13 @@ import numpy as np
 import caviar
 from caviar_plugins import protocol as paper
 from caviar_plugins.beam_selection.decision_tree import load_tree
-from caviar_plugins.schema import BEAM_SELECTION, LINK, POSITIONS, read_position
+from caviar_plugins.schema import BEAM_GAINS, BEAM_SELECTION, LINK, POSITIONS, every_ue, read_position, ue_of
 
 METHODS = ("tree", "random", "oracle", "previous")
 
 
 class BeamSelector(caviar.Plugin):
-    subscribe = [POSITIONS, LINK]
+    subscribe = [POSITIONS, LINK, every_ue(BEAM_GAINS)]
     publishes = (BEAM_SELECTION,)
 
     @dataclasses.dataclass
@@ -59,11 +62,14 @@ class BeamSelector(caviar.Plugin):
             self.tree = load_tree(ctx.resolve(p.model))
         self.paper_rng = np.random.default_rng(1)
         self.last_best: dict[str, int] = {}
+        self.last_gains: dict[str, np.ndarray] = {}
 
     def step(self, t, inbox):
         p = self.ctx.params
         for m in inbox.on(LINK):
             self.last_best[m.data["UE_Id"]] = int(m.data["best_pair"])
+        for m in inbox.on(every_ue(BEAM_GAINS)):
+            self.last_gains[ue_of(m.topic)] = np.asarray(m.data, dtype=float).reshape(1, -1)
         if p.method == "oracle":
             return
         for m in inbox.on(POSITIONS):
@@ -76,6 +82,9 @@ class BeamSelector(caviar.Plugin):
                 pair = r * 64 + int(self.paper_rng.integers(0, 64))
             elif p.method == "random":
                 pair = int(self.ctx.rng.integers(p.pairs))
+            elif getattr(self.tree, "uses_previous", False):  # e.g. GainKNN given last step's sweep
+                prev = self.last_gains.get(m.data["UE_Id"])
+                pair = int(self.tree.predict(read_position(m.data)[None, :], previous_gains=prev)[0])
             else:
                 pair = int(self.tree.predict(read_position(m.data)[None, :])[0])
             yield BEAM_SELECTION, {"UE_Id": m.data["UE_Id"], "beam_pair": pair}
