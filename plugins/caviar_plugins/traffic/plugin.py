@@ -120,7 +120,10 @@ class SumoTraffic(caviar.Plugin):
             self.sumo = Sumo(args, work / "sumo.log", backend=p.backend, binary_name="sumo-gui" if p.gui else "sumo",
                              port=p.port, host=p.host, label=f"caviar-{ctx.name}")
         except SumoError as e:
-            user = ", ".join(str(f) for f in [net, *(ctx.resolve(r) for r in p.routes)] if f is not None)
+            if p.backend == "traci-connect":
+                raise caviar.ConfigError(f"no SUMO to connect to at {p.host}:{p.port} (start it with "
+                                         f"`sumo-gui --remote-port {p.port} ...`): {e}", "params.port") from None
+            user = ", ".join(str(f) for f in [net, *routes[:len(p.routes)]] if f is not None)
             key = "params.routes" if p.routes else "params.net"
             raise caviar.ConfigError(f"SUMO cannot load {user}: {e}", key) from None
         self.kind: dict[str, str] = {}
