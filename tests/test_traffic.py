@@ -212,3 +212,16 @@ def test_over_nats_sumo_runs_in_its_own_worker_with_the_same_positions(tmp_path,
     a, b = caviar.load_run(tmp_path / "inproc"), caviar.load_run(tmp_path / "nats")
     assert positions(a) == positions(b) and len(positions(a)) > 20
     assert (tmp_path / "nats" / "workers" / "traffic-0.log").exists()
+
+
+def test_the_osm_traffic_blueprint_runs(tmp_path):
+    from conftest import ROOT
+
+    log = caviar.Simulation.from_toml(ROOT / "blueprints" / "osm-traffic" / "config.toml",
+                                      overrides={"episode.steps": 3}, out=tmp_path / "run").run()
+    traffic = log.topic("3D.mobility.traffic")
+    assert traffic["vehicles"].to_list()[-1] > 5 and traffic["persons"].to_list()[-1] > 0
+    link = log.topic(LINK)
+    assert "uav1" in set(link["UE_Id"]) and set(link["UE_Id"]) <= {"uav1", "passenger6", "passenger10", "passenger24",
+                                                                    "passenger31", "passenger36"}
+    assert (tmp_path / "run" / "artifacts" / "monitor" / "throughput.png").exists()
