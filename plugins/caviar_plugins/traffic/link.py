@@ -82,6 +82,8 @@ class SionnaTrafficLinkParams(SionnaLinkParams):
 
     def __post_init__(self):
         super().__post_init__()
+        if getattr(self, "protocol", "physical") != "physical":
+            raise ValueError(f"protocol: sionna-traffic-link has only the physical link, got {self.protocol!r}")
         for name in ("vehicle_material", "person_material"):
             if getattr(self, name) not in ITU_TYPES:
                 raise ValueError(f"{name}: expected an ITU-R P.2040 material ({', '.join(ITU_TYPES)}), "
