@@ -25,8 +25,8 @@ import caviar
 from caviar_plugins.schema import IMAGE_QUALITY, POSITIONS, RESCUE, RESULT, THROUGHPUT, read_position
 
 PAPER = {"random": (424.94, 3), "tree": (98.50, 5), "oracle": (75.53, 5)}
-LABEL = {"random": "Random", "tree": "Decision tree", "oracle": "Oracle", "knn": "k-NN gain (ours)",
-         "previous": "Previous beam (ours)"}
+LABEL = {"random": "Random", "tree": "Decision tree", "oracle": "Oracle",
+         "knn": "k-NN gain + previous sweep (ours)", "previous": "Previous beam (ours)"}
 
 
 def run_all(config: pathlib.Path, tree: pathlib.Path, runs: pathlib.Path, methods, overrides=(),
@@ -61,9 +61,15 @@ def summarise(logs: dict) -> list[dict]:
             result = res.row(0, named=True)
         else:  # the episode hit its step limit before the mission ended: a lower bound
             offset = _clock_offset(log)
+            rescues = log.topic(RESCUE)
             result = {"mission_time_s": offset + float(log.topic(POSITIONS)["time"].max()),
-                      "rescued": log.topic(RESCUE).height, "clock_offset_s": offset}
+                      "rescued": rescues.height, "clock_offset_s": offset}
         extra = {"ended": bool(res.height)}
+        if not res.height:
+            extra["steps_limit"] = log.status.get("steps_planned")
+            if rescues.height:  # the hover the UAV was serving or about to serve
+                extra["last_rescue_hover_s"] = float(rescues["hover_s"][-1])
+                extra["last_rescue_throughput_mbps"] = float(rescues["throughput"][-1])
         extra.update({k: result[k] for k in ("clock_offset_s", "flight_time_s", "hover_s", "flown_m")
                       if result.get(k) is not None})
         paper_t, paper_r = PAPER.get(method, (None, None))
@@ -71,6 +77,7 @@ def summarise(logs: dict) -> list[dict]:
             extra.update(paper_mission_time_s=paper_t, paper_rescued=paper_r,
                          diff_s=round(result["mission_time_s"] - paper_t, 2),
                          diff_pct=round(100 * (result["mission_time_s"] / paper_t - 1), 1))
+        extra["rescued_at_a_person"] = _persons_rescued(log)
         thr = log.topic(THROUGHPUT)["throughput"].to_numpy()
         q = log.topic(IMAGE_QUALITY)
         psnr = np.minimum(q["psnr_db"].to_numpy(), 99.0)
@@ -82,6 +89,18 @@ def summarise(logs: dict) -> list[dict]:
                      "steps": log.status["steps_done"], "wall_s": log.status["wall_s"],
                      "run_dir": str(log.path)})
     return rows
+
+
+def _persons_rescued(log, within_m: float = 5.0) -> int:
+    """Rescues within ``within_m`` of a placed person (the rest are false detections)."""
+    import tomllib
+
+    from caviar_plugins.vision.camera import default_targets
+
+    cam = tomllib.loads(log.config_text).get("modules", {}).get("camera", {}).get("params", {})
+    targets = np.array(cam.get("targets") or default_targets(), dtype=float)
+    return sum(1 for r in log.topic(RESCUE).iter_rows(named=True)
+               if np.min(np.hypot(targets[:, 0] - r["x"], targets[:, 1] - r["y"])) < within_m)
 
 
 def _clock_offset(log) -> float:
@@ -131,7 +150,7 @@ def write_tables(rows: list[dict], out: pathlib.Path, note: str = "") -> str:
     out.mkdir(parents=True, exist_ok=True)
     (out / "mission.json").write_text(json.dumps(rows, indent=2) + "\n")
     lines = ["| approach | paper: time (s) | ours: time (s) | diff (s) | diff (%) | paper: rescued | ours: rescued "
-             "| diff | ours: hover total (s) | throughput mean / median (Mbit/s) | frames at 50 % loss |",
+             "(at a person) | diff | ours: hover total (s) | throughput mean / median (Mbit/s) | frames at 50 % loss |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         pt, pr = PAPER.get(r["method"], (None, None))
@@ -140,12 +159,21 @@ def write_tables(rows: list[dict], out: pathlib.Path, note: str = "") -> str:
         diff = f"{t - pt:+.2f} | {100 * (t / pt - 1):+.1f}" if pt else "— | —"
         hover = f"{r['hover_s']:.1f}" if r.get("hover_s") is not None else "—"
         rescued_diff = f"{r['rescued'] - pr:+d}" if pr else "—"
+        persons = f" ({r['rescued_at_a_person']})" if r.get("rescued_at_a_person") is not None else ""
         shown = f"{t:.2f}" if ended else f"> {t:.2f}"
         lines.append(f"| {LABEL[r['method']]} | {pt if pt else '—'} | {shown} | {diff} | {pr if pr else '—'} | "
-                     f"{r['rescued']} | {rescued_diff} | {hover} | "
+                     f"{r['rescued']}{persons} | {rescued_diff} | {hover} | "
                      f"{r['throughput_mbps_mean']:.1f} / {r['throughput_mbps_median']:.1f} | "
                      f"{100 * r['frames_at_50pct_loss']:.0f} % |")
     table = "\n".join(lines)
+    for r in rows:
+        if not r.get("ended", True):
+            table += (f"\n\n{LABEL[r['method']]}: the run was stopped at its step limit ({r.get('steps_limit')} steps) "
+                      f"before the mission ended, so its time is a lower bound")
+            if r.get("last_rescue_hover_s") is not None:
+                table += (f"; its last rescue asked for a hover of {r['last_rescue_hover_s']:.1f} s "
+                          f"(S = 320 Mbit / {r['last_rescue_throughput_mbps']:.4f} Mbit/s)")
+            table += "."
     (out / "mission.md").write_text(f"# SAR mission\n\n{note}\n\n{table}\n")
     print(table)
 
@@ -154,14 +182,18 @@ def write_tables(rows: list[dict], out: pathlib.Path, note: str = "") -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(9, 4.5))
     idx = np.arange(len(rows))
     ax.bar(idx - 0.2, [PAPER.get(r["method"], (np.nan,))[0] for r in rows], 0.4, label="paper")
-    ax.bar(idx + 0.2, [r["mission_time_s"] for r in rows], 0.4, label="ours")
+    ax.bar(idx + 0.2, [r["mission_time_s"] for r in rows], 0.4, label="ours", color="tab:orange",
+           hatch=[("" if r.get("ended", True) else "//") for r in rows])
     for i, r in enumerate(rows):
-        ax.annotate(f"{r['rescued']} rescued", (i + 0.2, r["mission_time_s"]), ha="center", va="bottom", fontsize=8)
-    ax.set(xticks=idx, xticklabels=[LABEL[r["method"]] for r in rows], ylabel="mission time (s)", yscale="log",
-           title=f"Mission time, paper vs ours ({out.name})")
+        bound = "" if r.get("ended", True) else "> "
+        ax.annotate(f"{bound}{r['mission_time_s']:.0f} s\n{r['rescued']} rescued", (i + 0.2, r["mission_time_s"]),
+                    ha="center", va="bottom", fontsize=8)
+    ax.set(xticks=idx, xticklabels=[LABEL[r["method"]].replace(" (ours)", "\n(ours)").replace(" + ", " +\n")
+                                    for r in rows], ylabel="mission time (s)", yscale="log",
+           title=f"Mission time, paper vs ours ({out.name}; hatched: stopped, lower bound)")
     ax.grid(True, axis="y")
     ax.legend()
     fig.tight_layout()
