@@ -24,7 +24,7 @@ MISSION_NOTE="Measured by \`python -m caviar_plugins.sar.results\` on blueprints
 + the flight to leaving waypoint 4 (208.3 m, 45 s without hovers) + hovers of (ceil(S/0.5) + 1) x 0.5 s, \
 S = 320 Mbit / R of the previous step. A person is rescued once (the 2023 code counted detection events). \
 Random: one run of the 2023 draw sequence (default_rng(1)); it is dominated by 1/R tails. \
-k-NN gain + previous sweep and previous beam: the better selectors of topk.md in the loop. Runs stop at \
+k-NN gain + previous sweep, previous beam and sweep forest: the better selectors of topk.md in the loop. Runs stop at \
 2400 steps (1200 s); a run stopped there has a lower bound ('>'). 'At a person': rescues within 5 m of a placed \
 person (the others are false detections on degraded frames). Sionna RT 2.x, 1e5 rays per source (1e6 in 2023)."
 train=()
@@ -38,13 +38,13 @@ completed runs/paper-test-flight || { rm -rf runs/paper-test-flight;
     caviar-core run blueprints/beam-dataset/paper-test-flight.toml --quiet --out runs/paper-test-flight; }
 python -m caviar_plugins.beam_selection.paper_topk --train "${train[@]}" --test runs/paper-test-flight \
     --out docs/results/paper-protocol --model models/paper-beam-tree.pkl --knn-model models/paper-beam-knn.pkl \
-    --knn-previous-model models/paper-beam-knn-previous.pkl
+    --knn-previous-model models/paper-beam-knn-previous.pkl --sweep-model models/paper-beam-sweep-forest.pkl
 python -m caviar_plugins.sar.results --config blueprints/sar-paper/config.toml --reuse --runs runs/paper \
     --tree models/paper-beam-tree.pkl --knn models/paper-beam-knn-previous.pkl --set episode.steps=2400 \
-    --methods random tree oracle knn previous \
+    --methods random tree oracle knn previous sweep \
     --out docs/results/paper-protocol --note "$MISSION_NOTE"
 python -m caviar_plugins.vision.degradation --protocol paper --out docs/results/paper-protocol \
-    --runs runs/paper/sar-random runs/paper/sar-tree runs/paper/sar-oracle runs/paper/sar-knn runs/paper/sar-previous
+    --runs runs/paper/sar-random runs/paper/sar-tree runs/paper/sar-oracle runs/paper/sar-knn runs/paper/sar-previous runs/paper/sar-sweep
 
 # --- physical protocol --------------------------------------------------------------------
 if [ "${FULL_PHYSICAL:-0}" = 1 ]; then

@@ -50,3 +50,36 @@ class GainKNN:
             a = np.where(g.max(axis=1, keepdims=True) > 0, self.previous_weight, 0.0)
             s = a * prev + (1 - a) * s
         return np.argmax(s, axis=1)
+
+
+class SweepForest:
+    """Extremely randomised trees on the UAV position and the previous step's beam sweep
+    (the gains of all pairs, each scaled by its maximum): a model given the previous
+    step's beam. Chosen by leave-one-flight-out top-1 on the training flights among
+    random forests and extra trees on (position, previous pair), (position, previous
+    gains) and (previous gains) (docs/paper-protocol.md). Without a previous sweep (first
+    step) the gains are zeros."""
+
+    uses_previous = True
+
+    def __init__(self, n_estimators: int = 300, seed: int = 0):
+        self.n_estimators = n_estimators
+        self.seed = seed
+
+    @staticmethod
+    def features(positions: np.ndarray, previous_gains: np.ndarray | None) -> np.ndarray:
+        pos = np.atleast_2d(np.asarray(positions, dtype=float))
+        if previous_gains is None:
+            return np.c_[pos, np.zeros((len(pos), 256))]
+        g = np.asarray(previous_gains, dtype=float).reshape(len(pos), -1)
+        return np.c_[pos, g / np.maximum(g.max(axis=1, keepdims=True), 1e-30)]
+
+    def fit(self, positions: np.ndarray, previous_gains: np.ndarray, best: np.ndarray) -> SweepForest:
+        from sklearn.ensemble import ExtraTreesClassifier
+
+        self.forest_ = ExtraTreesClassifier(self.n_estimators, random_state=self.seed, n_jobs=1)
+        self.forest_.fit(self.features(positions, previous_gains), best)
+        return self
+
+    def predict(self, positions: np.ndarray, previous_gains: np.ndarray | None = None) -> np.ndarray:
+        return self.forest_.predict(self.features(positions, previous_gains))

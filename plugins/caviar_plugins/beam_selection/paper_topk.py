@@ -26,7 +26,7 @@ import numpy as np
 
 from caviar_plugins.beam_selection.dataset import load
 from caviar_plugins.beam_selection.decision_tree import K_VALUES, MAX_DEPTH, save
-from caviar_plugins.beam_selection.knn import GainKNN
+from caviar_plugins.beam_selection.knn import GainKNN, SweepForest
 
 PAPER_TOPK = {1: (70.49, 38.58), 2: (80.93, 51.18), 3: (83.55, 55.11), 4: (85.11, 60.62), 5: (85.37, 60.62),
               10: (86.42, 63.77), 25: (89.55, 68.50), 50: (92.16, 77.16), 75: (95.03, 84.25), 100: (95.82, 85.03)}
@@ -124,8 +124,11 @@ def evaluate(train_runs, test_run, knn_ks=(1, 3, 5, 7, 10, 15, 20)) -> tuple[dic
              "knn_validation_top1_by_k": {str(k): v for k, v in val_top1.items()},
              "knn_previous_k": int(best_kw[0]), "knn_previous_weight": best_kw[1],
              "knn_previous_lofo_top1": {f"k={k},w={w}": v for (k, w), v in lofo.items()}}
+    forest = SweepForest().fit(x[:cut], prev_g[:cut], y[:cut])
+    out["sweep_forest"] = {name: hits(forest.predict(xs, pg), gs)
+                           for name, (xs, gs, pg) in (("validation", val_prev), ("test", test_prev))}
     sizes["diagnostics"] = diagnostics(parts, x, y, cut, test, tree)
-    return {**sizes, "results": out}, tree, knn, knn_prev
+    return {**sizes, "results": out}, tree, knn, knn_prev, forest
 
 
 def write(report: dict, out: pathlib.Path) -> str:
@@ -135,7 +138,7 @@ def write(report: dict, out: pathlib.Path) -> str:
     for k in K_VALUES:
         pv, pt = PAPER_TOPK[k]
         row = {"K": k, "paper_validation": pv, "paper_test": pt}
-        for m in ("tree", "knn", "previous", "knn_previous"):
+        for m in ("tree", "knn", "previous", "knn_previous", "sweep_forest"):
             for s in ("validation", "test"):
                 row[f"{m}_{s}"] = round(100 * res[m][s][k], 2)
         row["diff_validation"] = round(row["tree_validation"] - pv, 2)
@@ -145,14 +148,16 @@ def write(report: dict, out: pathlib.Path) -> str:
     (out / "topk.json").write_text(json.dumps(report, indent=2) + "\n")
     lines = ["| K | paper val. (%) | tree val. (%) | diff | paper test (%) | tree test (%) | diff | "
              f"k-NN gain (k={report['knn_k']}) val. / test (%) | previous beam val. / test (%) | "
-             f"k-NN + previous (k={report['knn_previous_k']}, w={report['knn_previous_weight']}) val. / test (%) |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             f"k-NN + previous (k={report['knn_previous_k']}, w={report['knn_previous_weight']}) val. / test (%) | "
+             "**sweep forest** val. / test (%) |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['K']} | {r['paper_validation']:.2f} | {r['tree_validation']:.2f} | "
                      f"{r['diff_validation']:+.2f} | {r['paper_test']:.2f} | {r['tree_test']:.2f} | "
                      f"{r['diff_test']:+.2f} | {r['knn_validation']:.2f} / {r['knn_test']:.2f} | "
                      f"{r['previous_validation']:.2f} / {r['previous_test']:.2f} | "
-                     f"{r['knn_previous_validation']:.2f} / {r['knn_previous_test']:.2f} |")
+                     f"{r['knn_previous_validation']:.2f} / {r['knn_previous_test']:.2f} | "
+                     f"**{r['sweep_forest_validation']:.2f} / {r['sweep_forest_test']:.2f}** |")
     table = "\n".join(lines)
     import matplotlib
 
@@ -162,12 +167,13 @@ def write(report: dict, out: pathlib.Path) -> str:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4), sharey=True)
     idx = np.arange(len(K_VALUES))
     for ax, s in zip(axes, ("validation", "test"), strict=True):
-        w = 0.16
-        ax.bar(idx - 2 * w, [r[f"paper_{s}"] for r in rows], w, label="paper (tree)")
-        ax.bar(idx - w, [r[f"tree_{s}"] for r in rows], w, label="ours: tree")
-        ax.bar(idx, [r[f"knn_{s}"] for r in rows], w, label="ours: k-NN gain")
-        ax.bar(idx + w, [r[f"previous_{s}"] for r in rows], w, label="ours: previous beam")
-        ax.bar(idx + 2 * w, [r[f"knn_previous_{s}"] for r in rows], w, label="ours: k-NN + previous")
+        w = 0.14
+        ax.bar(idx - 2.5 * w, [r[f"paper_{s}"] for r in rows], w, label="paper (tree)")
+        ax.bar(idx - 1.5 * w, [r[f"tree_{s}"] for r in rows], w, label="ours: tree")
+        ax.bar(idx - 0.5 * w, [r[f"knn_{s}"] for r in rows], w, label="ours: k-NN gain")
+        ax.bar(idx + 0.5 * w, [r[f"previous_{s}"] for r in rows], w, label="ours: previous beam")
+        ax.bar(idx + 1.5 * w, [r[f"knn_previous_{s}"] for r in rows], w, label="ours: k-NN + previous")
+        ax.bar(idx + 2.5 * w, [r[f"sweep_forest_{s}"] for r in rows], w, label="ours: sweep forest")
         ax.set(xticks=idx, xticklabels=[str(k) for k in K_VALUES], xlabel="K", title=f"top-K, {s}")
         ax.grid(True, axis="y")
     axes[0].set_ylabel("accuracy (%)")
@@ -189,8 +195,10 @@ def main(argv=None) -> None:
     ap.add_argument("--knn-model", type=pathlib.Path, default=pathlib.Path("models/paper-beam-knn.pkl"))
     ap.add_argument("--knn-previous-model", type=pathlib.Path,
                     default=pathlib.Path("models/paper-beam-knn-previous.pkl"))
+    ap.add_argument("--sweep-model", type=pathlib.Path, default=pathlib.Path("models/paper-beam-sweep-forest.pkl"))
     args = ap.parse_args(argv)
-    report, tree, knn, knn_prev = evaluate(args.train, args.test)
+    report, tree, knn, knn_prev, forest = evaluate(args.train, args.test)
+    save(forest, args.sweep_model)
     save(tree, args.model)
     save(knn, args.knn_model)
     save(knn_prev, args.knn_previous_model)
@@ -212,7 +220,10 @@ def topk_md(report: dict, table: str) -> str:
             f"k nearest training positions (k chosen on validation). *previous beam*: the best pair of the "
             f"previous step of the same flight (needs last step's beam sweep). *k-NN + previous*: the same k-NN "
             f"given the previous step's gains, score = w · previous gains / max + (1 − w) · k-NN score (k and w "
-            f"chosen by leave-one-flight-out top-1 on the training flights).\n\n"
+            f"chosen by leave-one-flight-out top-1 on the training flights). *sweep forest*: "
+            f"`caviar_plugins.beam_selection.knn.SweepForest`, extra trees on the position and the previous step's "
+            f"normalised gains of all 256 pairs (chosen by leave-one-flight-out top-1 among 6 variants, see "
+            f"docs/paper-protocol.md).\n\n"
             f"Diagnostics (`diagnostics` in topk.json): {_diag_text(report['diagnostics'])}\n")
 
 

@@ -26,11 +26,14 @@ from caviar_plugins.schema import IMAGE_QUALITY, POSITIONS, RESCUE, RESULT, THRO
 
 PAPER = {"random": (424.94, 3), "tree": (98.50, 5), "oracle": (75.53, 5)}
 LABEL = {"random": "Random", "tree": "Decision tree", "oracle": "Oracle",
-         "knn": "k-NN gain + previous sweep (ours)", "previous": "Previous beam (ours)"}
+         "knn": "k-NN gain + previous sweep (ours)", "previous": "Previous beam (ours)",
+         "sweep": "Sweep forest (ours)"}
+MODEL_METHODS = ("tree", "knn", "sweep")
+"""Methods run as the selector's ``tree`` method with a pickled model."""
 
 
 def run_all(config: pathlib.Path, tree: pathlib.Path, runs: pathlib.Path, methods, overrides=(),
-            knn: pathlib.Path | None = None, reuse: bool = False) -> dict:
+            knn: pathlib.Path | None = None, reuse: bool = False, sweep: pathlib.Path | None = None) -> dict:
     logs = {}
     for method in methods:
         out = runs / f"sar-{method}"
@@ -41,9 +44,10 @@ def run_all(config: pathlib.Path, tree: pathlib.Path, runs: pathlib.Path, method
             continue
         if out.exists():
             shutil.rmtree(out)
-        sets = {"modules.beams.params.method": "tree" if method == "knn" else method, "output.name": f"sar-{method}"}
-        if method in ("tree", "knn"):
-            model = tree if method == "tree" else knn
+        sets = {"modules.beams.params.method": "tree" if method in MODEL_METHODS else method,
+                "output.name": f"sar-{method}"}
+        if method in MODEL_METHODS:
+            model = {"tree": tree, "knn": knn, "sweep": sweep}[method]
             # Relative to the config file, as paths in it are: the saved config stays portable.
             sets["modules.beams.params.model"] = os.path.relpath(model.resolve(), config.resolve().parent)
         sim = caviar.Simulation.from_toml(config, overrides=[f"{k}={json.dumps(v)}" for k, v in sets.items()]
@@ -212,10 +216,12 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["random", "tree", "oracle"])
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--knn", type=pathlib.Path, default=pathlib.Path("models/paper-beam-knn.pkl"))
+    ap.add_argument("--sweep", type=pathlib.Path, default=pathlib.Path("models/paper-beam-sweep-forest.pkl"))
     ap.add_argument("--reuse", action="store_true", help="keep completed runs in --runs")
     ap.add_argument("--note", default="", help="text above the table in mission.md")
     args = ap.parse_args()
-    logs = run_all(args.config, args.tree, args.runs, args.methods, args.overrides, knn=args.knn, reuse=args.reuse)
+    logs = run_all(args.config, args.tree, args.runs, args.methods, args.overrides, knn=args.knn, reuse=args.reuse,
+                   sweep=args.sweep)
     write(summarise(logs), logs, args.out, args.note)
 
 
