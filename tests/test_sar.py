@@ -38,7 +38,9 @@ def test_every_plugin_declares_what_it_publishes(tmp_path):
     from conftest import ROOT
 
     ours = [ep for ep in entry_points(group="caviar.plugins") if ep.value.startswith("caviar_plugins.")]
-    assert len(ours) == 11
+    # The SAR and radio plugins; other domains (traffic, ...) add their own.
+    assert {"waypoint-flight", "random-waypoint-flight", "free-space-link", "sionna-link", "link-monitor", "camera",
+            "image-link", "person-detector", "beam-selector", "beam-dataset", "mission"} <= {ep.name for ep in ours}
     for ep in ours:
         publishes = ep.load().publishes
         assert isinstance(publishes, tuple) and publishes and all(isinstance(t, str) for t in publishes), ep.name
