@@ -263,3 +263,16 @@ def test_gain_knn_picks_the_pair_strong_around_a_position():
     assert model.predict(np.array([[49.0, 0, 0]])).tolist() == [2]  # distance weights: x = 50 dominates
     assert GainKNN(k=3, weights="uniform").fit(pos, gains).predict(np.array([[49.0, 0, 0]])).tolist() == [1]
     assert GainKNN(k=1).fit(pos, gains).predict(np.array([[49.0, 0, 0]])).tolist() == [2]
+
+
+def test_sweep_forest_uses_the_previous_sweep():
+    from caviar_plugins.beam_selection.knn import SweepForest
+
+    rng = np.random.default_rng(2)
+    pos = rng.uniform(0, 1, (200, 3))
+    prev = rng.uniform(0, 1, (200, 256))
+    best = np.argmax(prev, axis=1) % 4  # the label depends only on the previous sweep
+    model = SweepForest(n_estimators=50).fit(pos, prev, best)
+    assert SweepForest.features(pos[:3], None).shape == (3, 259)
+    assert np.mean(model.predict(pos, prev) == best) == 1.0
+    assert model.predict(pos[:2]).shape == (2,)  # first step: no sweep yet
