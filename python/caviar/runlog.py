@@ -7,7 +7,7 @@ import os
 import pathlib
 from typing import Literal, Optional, TypedDict
 
-from caviar._core import RawMessage
+from caviar._core import RawMessage, run_status
 from caviar.plugin import Message
 from caviar.topics import matches
 
@@ -33,7 +33,8 @@ class _RunStatusFields(TypedDict):
     """The fields of run.json present in every run."""
 
     caviar_version: str
-    status: Literal["running", "completed", "failed", "interrupted"]
+    status: Literal["running", "completed", "failed", "interrupted", "abandoned"]
+    """``abandoned``: run.json said running but the process that ran it is gone."""
     config_file: str
     overrides: list[str]
     seed: int
@@ -55,6 +56,15 @@ class RunStatus(_RunStatusFields, total=False):
     """Absent while running and in runs recorded before it was added."""
     ended_by: str
     """The module that published ``caviar.episode.end``, when that ended the episode."""
+    pid: int
+    """The process running the episode (while running)."""
+    last_step: int
+    """For a run left running: the step in progress when last seen, its stage and the
+    modules that had started it (``last_stage``, ``last_modules``)."""
+    last_stage: str
+    last_modules: list[str]
+    abandoned: str
+    """For an abandoned run: how far it got and what it was doing, in words."""
 
 
 def _read(run_dir: pathlib.Path, table: str):
@@ -83,7 +93,7 @@ class RunLog:
         status = self.path / "run.json"
         if not status.exists():
             raise FileNotFoundError(f"{self.path}: not a run directory (no run.json)")
-        self.status: RunStatus = json.loads(status.read_text())
+        self.status: RunStatus = json.loads(run_status(self.path))
         self.messages = _read(self.path, "messages")
         self.timings = _read(self.path, "timings")
 

@@ -19,7 +19,8 @@
 //! 6. [`engine`] (message, metrics, module, recorder, topic)
 //! 7. [`assembly`] (config, engine, module, replay, topic): built-in plugin names,
 //!    `build_modules`, `PrepareError`, wiring warnings
-//! 8. [`status`] (config, engine): run.json
+//! 8. [`status`] (config, engine, module): run.json, progress.json and the
+//!    in-process step watchdog ([`status::Monitor`])
 //! 9. [`transport::nats`] (assembly, config, engine, message, metrics, module, topic)
 //! 10. [`run`] (assembly, config, engine, module, recorder, status, topic, transport)
 //! 11. [`cli`] (assembly, config, engine, recorder, run, status)

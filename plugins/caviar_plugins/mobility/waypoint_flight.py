@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import pathlib
 
 import caviar
 from caviar_plugins.assets import DATA
@@ -40,11 +41,23 @@ class WaypointFlight(caviar.Plugin):
             if not self.speed > 0:
                 raise ValueError(f"speed: expected a positive number of m/s, got {self.speed}")
 
+    @staticmethod
+    def _waypoint_file(waypoints: str, config_dir) -> pathlib.Path:
+        """The CSV: relative to the config file, else a shipped trajectory."""
+        path = pathlib.Path(config_dir) / waypoints
+        if not path.exists() and (DATA / waypoints).exists():
+            path = DATA / waypoints
+        return path
+
+    @classmethod
+    def check_params(cls, params, config_dir):
+        path = cls._waypoint_file(params.waypoints, config_dir)
+        if not path.is_file():
+            raise ValueError(f"waypoints: no such file: {path} (nor a shipped trajectory of that name)")
+
     def setup(self, ctx):
         p = ctx.params
-        path = ctx.resolve(p.waypoints)
-        if not path.exists() and (DATA / p.waypoints).exists():
-            path = DATA / p.waypoints
+        path = self._waypoint_file(p.waypoints, ctx.config_dir)
         pts = read_waypoints(path)
         if p.frame == "airsim_ned":
             pts = airsim_ned_to_scene(pts)

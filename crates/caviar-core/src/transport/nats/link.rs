@@ -80,10 +80,11 @@ pub struct Timeouts {
 }
 
 impl Timeouts {
-    pub fn from_config(n: &NatsTransport) -> Self {
+    /// `step`: `LoadedConfig::step_timeout` (episode.step_timeout or its older name).
+    pub fn from_config(n: &NatsTransport, step: f64) -> Self {
         Timeouts {
             startup: Duration::from_secs_f64(n.startup_timeout),
-            step: Duration::from_secs_f64(n.step_timeout),
+            step: Duration::from_secs_f64(step),
             heartbeat: Duration::from_secs_f64(n.heartbeat_timeout),
             reconnect: Duration::from_secs_f64(n.reconnect_timeout),
         }
@@ -376,7 +377,7 @@ impl Link {
             if t0.elapsed() > timeout {
                 task.abort();
                 return Err(ModuleError::new(format!(
-                    "{what}: no reply within {:.0} s (transport.nats.step_timeout / startup_timeout)",
+                    "{what}: no reply within {:.0} s (episode.step_timeout / transport.nats.startup_timeout)",
                     timeout.as_secs_f64()
                 )));
             }

@@ -1,0 +1,101 @@
+"""Runs that die or hang (issue #13): the run record tells the truth."""
+
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import caviar
+from conftest import TESTS, write_config
+
+DYING = """
+[episode]
+ts = 0.1
+steps = 1000
+stages = ["a", "b"]
+
+[modules.counter]
+stage = "a"
+plugin = "sample_plugins:Counter"
+
+[modules.exiter]
+stage = "b"
+plugin = "sample_plugins:Exits"
+params = { at_step = 5 }
+"""
+
+
+def _env():
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+
+
+def _exe():
+    return str(pathlib.Path(sys.executable).parent / "caviar-core")
+
+
+def test_a_plugin_that_ends_the_process_leaves_an_abandoned_run(tmp_path, cli):
+    write_config(tmp_path, DYING)
+    p = cli("run", "exp.toml", "-q", "--out", "run")
+    assert p.returncode == 3, p.stderr
+    raw = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert raw["status"] == "running" and raw["pid"] > 0  # what the dead process left
+    log = caviar.load_run(tmp_path / "run")
+    s = log.status
+    assert s["status"] == "abandoned", s
+    assert s["steps_done"] == 5 and s["last_step"] == 5 and s["last_modules"] == ["exiter"], s
+    assert s["last_stage"] == "b"
+    assert "after step 4 (5 steps done)" in s["abandoned"] and "'exiter', at step 5" in s["abandoned"]
+    assert log.topic("count")["step"].to_list() == [0, 1, 2, 3, 4]  # step 5's parts were never written
+    text = cli("inspect", "run", check=0).stdout
+    assert "(abandoned)" in text and "'exiter', at step 5" in text, text
+
+
+def test_kill_9_of_the_core_leaves_an_abandoned_run(tmp_path, cli):
+    write_config(tmp_path, DYING.replace("sample_plugins:Exits", "sample_plugins:Slow")
+                 .replace("params = { at_step = 5 }", "params = { seconds = 0.02 }"))
+    proc = subprocess.Popen([_exe(), "run", "exp.toml", "-q", "--out", "run"], cwd=tmp_path, env=_env(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    parts = tmp_path / "run" / "messages"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(list(parts.glob("*.parquet"))) < 20:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=10)
+    s = caviar.load_run(tmp_path / "run").status
+    assert s["status"] == "abandoned", s
+    done = len(list(parts.glob("part-*.parquet")))
+    assert 20 <= s["steps_done"] and s["steps_done"] in (done, done - 1), (s, done)
+    assert s["last_step"] == s["steps_done"] and s["last_modules"] in (["counter"], ["exiter"]), s
+    assert "abandoned" in cli("inspect", "run", check=0).stdout
+
+
+def test_a_simulation_dropped_without_close_is_closed(tmp_path):
+    cfg = write_config(tmp_path, DYING.replace("at_step = 5", "at_step = 100000"))
+    sim = caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
+    for _ in range(3):
+        sim.step()
+    assert caviar.load_run(tmp_path / "run").status["status"] == "running"  # this process lives
+    del sim
+    s = caviar.load_run(tmp_path / "run").status
+    assert s["status"] == "completed" and s["end_reason"] == "closed" and s["steps_done"] == 3, s
+
+
+def test_a_step_that_never_ends_is_stopped_by_the_watchdog(tmp_path, cli):
+    write_config(tmp_path, DYING.replace("at_step = 5", "at_step = 5, hang = true")
+                 .replace("steps = 1000", "steps = 1000\nstep_timeout = 1.0"))
+    t0 = time.monotonic()
+    p = cli("run", "exp.toml", "-q", "--out", "run")
+    took = time.monotonic() - t0
+    assert p.returncode == 1, p.stderr
+    assert "module 'exiter' did not finish step 5 within 1 s (episode.step_timeout)" in p.stderr
+    assert "Traceback" not in p.stderr
+    log = caviar.load_run(tmp_path / "run")
+    s = log.status
+    assert s["status"] == "failed" and s["steps_done"] == 5 and s["end_reason"] == "error", s
+    assert s["error"]["module"] == "exiter" and s["error"]["step"] == 5, s
+    assert log.topic("count")["step"].to_list() == [0, 1, 2, 3, 4]  # finished steps readable
+    assert took < 10, took
+    print(f"watchdog: run stopped {took:.2f} s after start (step_timeout 1 s)")
