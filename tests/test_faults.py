@@ -99,3 +99,121 @@ def test_a_step_that_never_ends_is_stopped_by_the_watchdog(tmp_path, cli):
     assert log.topic("count")["step"].to_list() == [0, 1, 2, 3, 4]  # finished steps readable
     assert took < 10, took
     print(f"watchdog: run stopped {took:.2f} s after start (step_timeout 1 s)")
+
+
+# --- Ctrl-C and deadlines (D1-D4) ------------------------------------------------------------
+SLOW_IN_PROCESS = """
+[episode]
+ts = 0.1
+steps = 100000
+stages = ["a", "b"]
+[modules.slow]
+stage = "a"
+plugin = "sample_plugins:Slow"
+params = { seconds = 0.02 }
+[modules.count]
+stage = "b"
+plugin = "sample_plugins:Counter"
+"""
+
+NATS_SLOW = SLOW_IN_PROCESS.replace("[modules.slow]", '[transport]\nkind = "nats"\n[modules.slow]').replace(
+    "seconds = 0.02", "seconds = 60.0")
+
+
+def _start(tmp_path, out):
+    return subprocess.Popen([_exe(), "run", "exp.toml", "-q", "--out", out], cwd=tmp_path, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for(proc, cond, what, timeout=60):
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert proc.poll() is None, (what, proc.communicate())
+        assert time.monotonic() < deadline, what
+        time.sleep(0.02)
+
+
+def _started(run_dir, module):
+    def cond():
+        try:
+            return module in json.loads((run_dir / "progress.json").read_text().strip())["modules"]
+        except (OSError, ValueError, KeyError):
+            return False
+    return cond
+
+
+def test_ctrl_c_in_process_is_an_interruption_never_a_module_crash(tmp_path):
+    write_config(tmp_path, SLOW_IN_PROCESS)
+    for i in range(5):  # the signal lands inside the plugin's sleep most of the time
+        proc = _start(tmp_path, f"run{i}")
+        parts = tmp_path / f"run{i}" / "messages"
+        _wait_for(proc, lambda p=parts, n=3 + i: p.exists() and len(list(p.glob("*.parquet"))) >= n, "steps")
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+        assert proc.returncode == 130, err
+        assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+        s = caviar.load_run(tmp_path / f"run{i}").status
+        assert s["status"] == "interrupted" and s["end_reason"] == "interrupted", s
+
+
+def test_ctrl_c_stops_a_nats_run_waiting_for_a_step_at_once(tmp_path):
+    write_config(tmp_path, NATS_SLOW)
+    proc = _start(tmp_path, "run")
+    try:
+        _wait_for(proc, _started(tmp_path / "run", "slow"), "step 0 of 'slow' started")
+        time.sleep(0.3)
+        proc.send_signal(signal.SIGINT)
+        t0 = time.monotonic()
+        _, err = proc.communicate(timeout=60)
+        took = time.monotonic() - t0
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert caviar.load_run(tmp_path / "run").status["status"] == "interrupted"
+    print(f"NATS Ctrl-C: process ended {took:.2f} s after SIGINT")
+    assert took < 4, took
+
+
+def test_a_nats_step_past_its_deadline_ends_the_run_at_once(tmp_path):
+    write_config(tmp_path, NATS_SLOW.replace("steps = 100000", "steps = 100000\nstep_timeout = 1.0"))
+    proc = _start(tmp_path, "run")
+    try:
+        _wait_for(proc, _started(tmp_path / "run", "slow"), "step 0 of 'slow' started")
+        t0 = time.monotonic()
+        _, err = proc.communicate(timeout=90)
+        took = time.monotonic() - t0
+    finally:
+        proc.kill()
+    assert proc.returncode == 1, err
+    assert "module 'slow' failed at step 0" in err and "no reply within 1 s" in err, err
+    print(f"NATS step_timeout 1 s: process ended {took:.2f} s after the step started")
+    assert took < 5, took
+
+
+def test_a_nats_config_error_creates_no_run_directory(tmp_path, cli):
+    write_config(tmp_path, NATS_SLOW.replace("seconds = 60.0", 'seconds = "slow"'))
+    p = cli("run", "exp.toml", "-q", "--out", "run", check=2)
+    assert "modules.slow.params.seconds" in p.stderr, p.stderr
+    assert not (tmp_path / "run").exists()
+    cli("run", "exp.toml", "-q", check=2)
+    assert not (tmp_path / "runs" / "exp-001").exists()
+
+
+def test_ctrl_c_twice_stops_an_in_process_step_that_takes_long(tmp_path):
+    write_config(tmp_path, SLOW_IN_PROCESS.replace("seconds = 0.02", "seconds = 60.0"))
+    proc = _start(tmp_path, "run")
+    try:
+        _wait_for(proc, _started(tmp_path / "run", "slow"), "step 0 of 'slow' started")
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.3)
+        proc.send_signal(signal.SIGINT)
+        t0 = time.monotonic()
+        _, err = proc.communicate(timeout=30)
+        took = time.monotonic() - t0
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert "Ctrl-C again to stop at once" in err and "Traceback" not in err, err
+    s = caviar.load_run(tmp_path / "run").status
+    assert s["status"] == "interrupted" and s["last_modules"] == ["slow"], s
+    assert took < 2, took

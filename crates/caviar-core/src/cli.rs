@@ -206,6 +206,9 @@ fn run(
         }
     };
     let started = Instant::now();
+    // Ctrl-C sets a flag polled between steps and while NATS replies are awaited; a
+    // Python plugin never sees it as KeyboardInterrupt.
+    let sigint = crate::interrupt::Guard::install();
     let bar = progress_bar(&engine, quiet);
     let mut log = LogProgress::new(quiet);
     let result = engine.run(|engine, report| {
@@ -217,6 +220,7 @@ fn run(
     bar.finish_and_clear();
     let closed = engine.close();
     drop(monitor);
+    drop(sigint);
     let error = result.err().or(closed.err());
     let status = match &error {
         None => RunState::Completed,

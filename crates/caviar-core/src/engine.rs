@@ -431,7 +431,12 @@ impl Engine {
         }
         let result = self.setup().and_then(|()| self.run_step());
         if result.is_err() {
-            self.end.get_or_insert(EndReason::Error);
+            let reason = if crate::interrupt::requested() {
+                EndReason::Interrupted
+            } else {
+                EndReason::Error
+            };
+            self.end.get_or_insert(reason);
         }
         result.map(Some)
     }
@@ -471,6 +476,12 @@ impl Engine {
         let wall_s = wall_s + record_s;
         self.wall_s += wall_s;
         if let Some(f) = state.failure {
+            // A module step cut short by Ctrl-C (KeyboardInterrupt in a plugin, a NATS
+            // wait given up) is an interruption, not the module's failure.
+            if crate::interrupt::requested() {
+                self.end = Some(EndReason::Interrupted);
+                return Err(EngineError::Interrupted { step });
+            }
             return Err(f);
         }
         if let Some(module) = state.end_by {
@@ -719,7 +730,8 @@ impl Engine {
         mut after_step: impl FnMut(&Engine, &StepReport) -> bool,
     ) -> Result<(), EngineError> {
         while let Some(report) = self.step()? {
-            if !after_step(self, &report) && !report.ended {
+            let go_on = after_step(self, &report) && !crate::interrupt::requested();
+            if !go_on && !report.ended {
                 self.end = Some(EndReason::Interrupted);
                 return Err(EngineError::Interrupted { step: report.step });
             }

@@ -11,7 +11,7 @@
 //! Each module uses only modules listed before it (none imports a module that
 //! imports it back); transports are leaves that only the run reaches:
 //!
-//! 1. [`topic`], [`message`], [`metrics`]: leaves
+//! 1. [`topic`], [`message`], [`metrics`], [`interrupt`] (the Ctrl-C flag): leaves
 //! 2. [`module`] (message)
 //! 3. [`recorder`] (message, topic)
 //! 4. [`config`] (topic)
@@ -30,6 +30,7 @@ pub mod assembly;
 pub mod cli;
 pub mod config;
 pub mod engine;
+pub mod interrupt;
 pub mod message;
 pub mod metrics;
 pub mod module;

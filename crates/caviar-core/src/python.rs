@@ -30,8 +30,13 @@ fn host(py: Python<'_>) -> PyResult<Bound<'_, PyModule>> {
     py.import("caviar._host")
 }
 
-/// "Type: message" and the formatted traceback of a Python exception.
+/// "Type: message" and the formatted traceback of a Python exception. A
+/// KeyboardInterrupt is Ctrl-C reaching the plugin's code: the run is interrupted.
 fn module_error(py: Python<'_>, err: PyErr) -> ModuleError {
+    if err.is_instance_of::<pyo3::exceptions::PyKeyboardInterrupt>(py) {
+        crate::interrupt::request();
+        return ModuleError::new("interrupted (Ctrl-C)");
+    }
     let message = err.to_string();
     let trace = host(py)
         .and_then(|h| h.call_method1("format_exception", (err.value(py), err.traceback(py))))
@@ -352,6 +357,7 @@ impl Episode {
     #[new]
     #[pyo3(signature = (path, overrides, out=None))]
     fn new(path: PathBuf, overrides: Vec<String>, out: Option<PathBuf>) -> PyResult<Self> {
+        crate::interrupt::reset();
         let cfg = config::load(&path, &overrides).map_err(config_error)?;
         let (engine, monitor) = prepare_monitored(&cfg, &PyLoader, out.as_deref()).map_err(|e| match e {
             PrepareError::Config(c) => config_error(c),

@@ -151,7 +151,17 @@ pub fn prepare_monitored(
     fs::write(run_dir.join("config.toml"), &cfg.text).map_err(io)?;
     let (specs, tap) = match specs {
         Some(s) => (s, None),
-        None => nats::prepare(cfg, loader.worker_launcher(), &run_dir)?,
+        None => match nats::prepare(cfg, loader.worker_launcher(), &run_dir) {
+            Ok(prepared) => prepared,
+            Err(e) => {
+                // A configuration error (reported by a worker) starts no run: the run
+                // directory made for the workers' logs goes again.
+                if matches!(e, PrepareError::Config(_)) {
+                    let _ = fs::remove_dir_all(&run_dir);
+                }
+                return Err(e);
+            }
+        },
     };
     let exclude = cfg
         .config

@@ -376,10 +376,45 @@ fn watchdog(
     run_dir: PathBuf,
     limit: Duration,
 ) {
-    let tick = (limit / 10).clamp(Duration::from_millis(10), Duration::from_millis(200));
+    let tick = (limit / 10).clamp(Duration::from_millis(10), Duration::from_millis(100));
+    let mut announced = false;
     while !stop.load(std::sync::atomic::Ordering::Relaxed) {
         std::thread::sleep(tick);
         let Ok(c) = current.lock() else { return };
+        let presses = crate::interrupt::count();
+        if presses == 1 && !announced && !c.modules.is_empty() {
+            announced = true;
+            eprintln!(
+                "interrupting after module '{}' finishes step {} (Ctrl-C again to stop at once)",
+                c.modules.join("', '"),
+                c.step
+            );
+        }
+        if presses >= 2 && !c.modules.is_empty() {
+            let mut status = c.status.clone().unwrap_or_default();
+            status.status = RunState::Interrupted;
+            status.pid = None;
+            status.steps_done = status.steps_done.max(c.step);
+            status.virtual_time_s = status.steps_done as f64 * status.ts;
+            status.end_reason = Some(EndReason::Interrupted);
+            status.last_step = Some(c.step);
+            status.last_modules = c.modules.clone();
+            status.error = Some(RunErrorInfo::Other {
+                message: format!(
+                    "interrupted in step {} (Ctrl-C twice, module '{}' still running)",
+                    c.step,
+                    c.modules.join("', '")
+                ),
+            });
+            let _ = status.write(&run_dir);
+            eprintln!(
+                "{}: interrupted in step {}; what was recorded is in the run directory",
+                run_dir.display(),
+                c.step
+            );
+            // SAFETY: ends the process at once; the recorder has flushed every finished step.
+            unsafe { libc::_exit(130) };
+        }
         if c.modules.is_empty() || c.since.elapsed() < limit {
             continue;
         }

@@ -104,6 +104,8 @@ pub struct Link {
     started: Arc<std::sync::atomic::AtomicBool>,
     processes: Mutex<Vec<WorkerProcess>>,
     disconnected_since: Mutex<Option<Instant>>,
+    /// Set when the run ends badly (a step past its deadline, Ctrl-C).
+    abandoning: std::sync::atomic::AtomicBool,
     // Dropped last (fields drop in order): the workers and the client go before the server.
     _server: Option<SpawnedServer>,
 }
@@ -231,6 +233,7 @@ impl Link {
             started,
             processes: Mutex::new(Vec::new()),
             disconnected_since: Mutex::new(None),
+            abandoning: std::sync::atomic::AtomicBool::new(false),
             _server: server,
         }))
     }
@@ -374,14 +377,30 @@ impl Link {
                 task.abort();
                 return Err(ModuleError::new(format!("{what}: {why}")));
             }
+            if crate::interrupt::requested() {
+                task.abort();
+                self.abandon();
+                return Err(ModuleError::new(format!("{what}: interrupted (Ctrl-C)")));
+            }
             if t0.elapsed() > timeout {
                 task.abort();
+                self.abandon();
                 return Err(ModuleError::new(format!(
                     "{what}: no reply within {:.0} s (episode.step_timeout / transport.nats.startup_timeout)",
                     timeout.as_secs_f64()
                 )));
             }
         }
+    }
+
+    /// The run is ending badly (a step timed out, Ctrl-C): teardowns get a short grace.
+    pub fn abandon(&self) {
+        self.abandoning
+            .store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    pub fn abandoning(&self) -> bool {
+        self.abandoning.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Reaps the worker processes of `module` (they exit after teardown), killing any
@@ -434,8 +453,9 @@ impl Drop for Link {
             .iter()
             .map(|p| p.module.clone())
             .collect();
+        let grace = if self.abandoning() { 1 } else { 3 };
         for m in modules {
-            self.reap(&m, Duration::from_secs(3));
+            self.reap(&m, Duration::from_secs(grace));
         }
     }
 }
