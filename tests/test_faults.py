@@ -217,3 +217,60 @@ def test_ctrl_c_twice_stops_an_in_process_step_that_takes_long(tmp_path):
     s = caviar.load_run(tmp_path / "run").status
     assert s["status"] == "interrupted" and s["last_modules"] == ["slow"], s
     assert took < 2, took
+
+
+# --- Python API (D12) ----------------------------------------------------------------------------
+def test_python_api_mistakes_are_named(tmp_path):
+    import pytest
+
+    cfg = write_config(tmp_path, DYING.replace("at_step = 5", "at_step = 100000"))
+    with pytest.raises(TypeError, match="got the string 'episode.steps=5' \\(put it in a list\\)"):
+        caviar.Simulation.from_toml(cfg, overrides="episode.steps=5")
+    with caviar.Simulation.from_toml(cfg, overrides=["episode.steps=3"], out=tmp_path / "run") as sim:
+        sim.run()
+    log = caviar.load_run(tmp_path / "run")
+    with pytest.raises(ValueError, match="a..b"):
+        log.topic("a..b")
+    log.messages = log.messages.clear()  # as a run that recorded nothing
+    with pytest.raises(ValueError, match="a..b"):
+        log.topic("a..b")
+    (tmp_path / "run" / "messages.parquet").write_bytes(b"PAR1 not really")
+    with pytest.raises(ValueError, match="messages.parquet: not a readable Parquet file"):
+        caviar.load_run(tmp_path / "run")
+    (tmp_path / "run" / "run.json").write_text("{ half")
+    with pytest.raises(ValueError, match="run.json"):
+        caviar.load_run(tmp_path / "run")
+
+
+# --- the NATS server (D5, stale files) ----------------------------------------------------------
+def _children(pid: int, name: str) -> list[int]:
+    out = subprocess.run(["ps", "-o", "pid=,comm=", "--ppid", str(pid)], capture_output=True, text=True).stdout
+    return [int(line.split()[0]) for line in out.splitlines() if name in line]
+
+
+def test_a_dead_nats_server_is_named_at_once_and_leaves_no_files(tmp_path):
+    import tempfile
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stale = pathlib.Path(tempfile.gettempdir()) / f"caviar-nats-{dead.pid}-4222.conf"
+    stale.write_text("listen: 127.0.0.1:4222\n")
+    write_config(tmp_path, NATS_SLOW.replace("seconds = 60.0", "seconds = 0.05"))
+    proc = _start(tmp_path, "run")
+    try:
+        parts = tmp_path / "run" / "messages"
+        _wait_for(proc, lambda: parts.exists() and len(list(parts.glob("*.parquet"))) >= 3, "steps")
+        assert not stale.exists(), "a stale configuration of a dead run is removed"
+        own = list(pathlib.Path(tempfile.gettempdir()).glob(f"caviar-nats-{proc.pid}-*.conf"))
+        assert own == [], "the server has read its configuration: nothing is left for a kill -9"
+        (server,) = _children(proc.pid, "nats-server")
+        os.kill(server, signal.SIGKILL)
+        t0 = time.monotonic()
+        _, err = proc.communicate(timeout=60)
+        took = time.monotonic() - t0
+    finally:
+        proc.kill()
+    assert proc.returncode == 1, err
+    assert f"the nats-server this run started (pid {server}" in err and "exited" in err, err
+    print(f"dead nats-server: run ended {took:.2f} s after kill -9 of the server")
+    assert took < 5, took

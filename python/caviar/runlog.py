@@ -67,19 +67,28 @@ class RunStatus(_RunStatusFields, total=False):
     """For an abandoned run: how far it got and what it was doing, in words."""
 
 
+def _read_parquet(path: pathlib.Path):
+    import polars as pl
+
+    try:
+        return pl.read_parquet(path)
+    except Exception as e:  # polars raises several kinds for a damaged file
+        raise ValueError(f"{path}: not a readable Parquet file ({e})") from None
+
+
 def _read(run_dir: pathlib.Path, table: str):
     import polars as pl
 
     single = run_dir / f"{table}.parquet"
     if single.exists():
-        return pl.read_parquet(single)
+        return _read_parquet(single)
     if not (run_dir / table).is_dir():
         raise FileNotFoundError(f"{run_dir}: not a run directory (no {table}.parquet)")
     parts = sorted((run_dir / table).glob("*.parquet"))
     if not parts:  # a run that failed before its first step
         return pl.DataFrame()
     # Parts are what a run that crashed or is still going leaves: each is complete.
-    return pl.concat([pl.read_parquet(p) for p in parts])
+    return pl.concat([_read_parquet(p) for p in parts])
 
 
 class RunLog:
@@ -104,6 +113,7 @@ class RunLog:
     def _select(self, pattern: str):
         import polars as pl
 
+        matches(pattern, "x")  # ValueError for a pattern that is not valid, messages or not
         if self.messages.is_empty():
             return self.messages
         topics = [t for t in self.messages["topic"].unique().to_list() if matches(pattern, t)]

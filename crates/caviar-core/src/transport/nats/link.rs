@@ -107,7 +107,7 @@ pub struct Link {
     /// Set when the run ends badly (a step past its deadline, Ctrl-C).
     abandoning: std::sync::atomic::AtomicBool,
     // Dropped last (fields drop in order): the workers and the client go before the server.
-    _server: Option<SpawnedServer>,
+    server: Mutex<Option<SpawnedServer>>,
 }
 
 /// The module description a worker receives in reply to its hello.
@@ -234,7 +234,7 @@ impl Link {
             processes: Mutex::new(Vec::new()),
             disconnected_since: Mutex::new(None),
             abandoning: std::sync::atomic::AtomicBool::new(false),
-            _server: server,
+            server: Mutex::new(server),
         }))
     }
 
@@ -291,6 +291,9 @@ impl Link {
     /// Why `module` can no longer answer, if we can tell: a worker process of it that
     /// exited, workers that stopped beating, a connection that stayed down.
     pub fn check_alive(&self, module: &str, expected: &[String]) -> Result<(), String> {
+        if let Some(why) = self.server.lock().unwrap().as_mut().and_then(|s| s.exited()) {
+            return Err(why);
+        }
         for p in self
             .processes
             .lock()
@@ -375,6 +378,7 @@ impl Link {
             }
             if let Err(why) = self.check_alive(module, expected) {
                 task.abort();
+                self.abandon();
                 return Err(ModuleError::new(format!("{what}: {why}")));
             }
             if crate::interrupt::requested() {
@@ -442,9 +446,10 @@ impl Drop for Link {
     fn drop(&mut self) {
         // Tell every worker of the run to leave, then make sure the ones we started did.
         let (c, subject) = (self.client.clone(), format!("{}.stop", self.prefix));
+        let flush = Duration::from_millis(if self.abandoning() { 300 } else { 2000 });
         let _ = self.rt.block_on(async move {
             let _ = c.publish(subject, "{}".into()).await;
-            tokio::time::timeout(Duration::from_secs(2), c.flush()).await
+            tokio::time::timeout(flush, c.flush()).await
         });
         let modules: Vec<String> = self
             .processes
