@@ -242,6 +242,8 @@ for k in ("step_timeout", "startup_timeout", "heartbeat_timeout", "reconnect_tim
 case("range-nats-run_id", BASE + NATS + '[transport.nats]\nrun_id = "a.b"\n', "transport.nats.run_id")
 case("range-nats-spawn-and-url", BASE + NATS + '[transport.nats]\nspawn = true\nurl = "nats://127.0.0.1:1"\n',
      "transport.nats.spawn")
+for k in ("server", "credentials", "tls_ca"):
+    case(f"path-nats-{k}", BASE + NATS + f'[transport.nats]\n{k} = "no/such-{k}"\n', f"transport.nats.{k}")
 case("range-nats-tls-half", BASE + NATS + '[transport.nats]\ntls_cert = "c.pem"\n', "transport.nats.tls_cert")
 
 # --- bad paths ------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ use crate::config;
 use crate::engine::{EndReason, Engine, EngineError, StepReport};
 use crate::message::Message;
 use crate::recorder::{read_messages, read_timings, TimingRow, CORE};
-use crate::run::{check_output_dir, load_modules, prepare_monitored, PluginLoader};
+use crate::run::{check_paths, load_modules, prepare_monitored, PluginLoader};
 use crate::status::{write_status, RunErrorInfo, RunState, RunStatus};
 
 #[derive(Parser, Debug)]
@@ -87,7 +87,7 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
 
 fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
     let result = config::load(path, set).and_then(|cfg| {
-        check_output_dir(&cfg)?;
+        check_paths(&cfg)?;
         let specs = load_modules(&cfg, loader)?;
         let n = cfg.config.modules.len();
         Ok((wiring_warnings(&cfg, &specs), cfg, n))

@@ -113,6 +113,39 @@ pub fn check_output_dir(cfg: &LoadedConfig) -> Result<(), ConfigError> {
     }
 }
 
+/// What `validate` and the start of `run` check on the filesystem: run directories can
+/// be made under `output.dir`, and the files the NATS transport names exist.
+pub fn check_paths(cfg: &LoadedConfig) -> Result<(), ConfigError> {
+    check_output_dir(cfg)?;
+    if cfg.config.transport.kind != TransportKind::Nats {
+        return Ok(());
+    }
+    check_nats_files(cfg)
+}
+
+fn check_nats_files(cfg: &LoadedConfig) -> Result<(), ConfigError> {
+    let n = &cfg.config.transport.nats;
+    let files = [
+        ("server", &n.server),
+        ("credentials", &n.credentials),
+        ("tls_ca", &n.tls_ca),
+        ("tls_cert", &n.tls_cert),
+        ("tls_key", &n.tls_key),
+    ];
+    for (key, path) in files {
+        if let Some(p) = path {
+            let full = cfg.resolve(p);
+            if !full.is_file() {
+                return Err(cfg.error_at(
+                    &format!("transport.nats.{key}"),
+                    format!("no such file: {}", full.display()),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Loads every module, creates the run directory and the engine.
 /// `out`: the run directory to use instead of `output.dir/NAME-NNN`.
 ///
@@ -137,6 +170,9 @@ pub fn prepare_monitored(
     let in_process = cfg.config.transport.kind == TransportKind::Inprocess;
     if out.is_none() {
         check_output_dir(cfg)?;
+    }
+    if cfg.config.transport.kind == TransportKind::Nats {
+        check_nats_files(cfg)?;
     }
     let specs = if in_process {
         Some(load_modules(cfg, loader)?)
