@@ -218,10 +218,12 @@ def load_plugin(name: str, spec: str, params_json: str,
     """The hosted plugin, its default subscriptions and what it declares publishing."""
     cls = resolve_plugin(spec)
     params = check_params(cls, json.loads(params_json))
+    plugin_cls = typing.cast("type[Plugin]", cls)
     try:
-        cls.check_params(params, pathlib.Path(config_dir))
+        plugin_cls.check_params(params, pathlib.Path(config_dir))
     except (TypeError, ValueError) as e:  # ConfigError is a ValueError
-        fields = [f.name for f in dataclasses.fields(cls.Params)] if dataclasses.is_dataclass(cls.Params) else params
+        schema = plugin_cls.Params
+        fields = [f.name for f in dataclasses.fields(schema)] if dataclasses.is_dataclass(schema) else params
         raise _keyed(e, fields) from None
     publishes = declared_publishes(cls)
     plugin = cls()
