@@ -161,3 +161,36 @@ class DeclaredSink(caviar.Plugin):
 
 class BadPublishes(caviar.Plugin):
     publishes = ("a..b",)
+
+
+class Checked(caviar.Plugin):
+    """Checks its parameters with the ``check_params`` hook."""
+
+    @dataclasses.dataclass
+    class Params:
+        limit: int = 1
+
+    @classmethod
+    def check_params(cls, params, config_dir):
+        if params.limit < 0:
+            raise caviar.ConfigError(f"expected a limit >= 0, got {params.limit}", "limit")
+
+
+class Exits(caviar.Plugin):
+    """Ends the whole process (no cleanup) at step `at_step`, or hangs there for good."""
+
+    @dataclasses.dataclass
+    class Params:
+        at_step: int = 5
+        hang: bool = False
+
+    def step(self, t, inbox):
+        import os
+        import time
+
+        if self.ctx.step == self.ctx.params.at_step:
+            if self.ctx.params.hang:
+                while True:
+                    time.sleep(3600)
+            os._exit(3)
+        return [("exits.alive", {"step": self.ctx.step})]

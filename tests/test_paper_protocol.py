@@ -216,7 +216,7 @@ stage = "mobility"
 plugin = "waypoint-flight"
 params = { protocol = "2023" }
 """)
-    with pytest.raises(caviar.ConfigError, match=r"modules.uav.params: protocol: expected one of"):
+    with pytest.raises(caviar.ConfigError, match=r"exp.toml:8: modules.uav.params.protocol: expected one of"):
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
 
 

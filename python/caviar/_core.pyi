@@ -127,6 +127,12 @@ def main(argv: list[str]) -> int:
     """The ``caviar-core`` command line (``run``, ``validate``, ``inspect``); returns
     the exit code: 0 success, 1 the run failed, 2 bad input, 130 interrupted."""
 
+def run_status(run_dir: str | os.PathLike[str]) -> str:
+    """run.json as JSON text, with what a reader concludes about a run left running:
+    ``status`` ``abandoned`` when its process is gone (and ``abandoned``, in words),
+    ``last_step``/``last_stage``/``last_modules`` from progress.json. ValueError if it
+    cannot be read (naming the file)."""
+
 def inspect(run_dir: str | os.PathLike[str]) -> str:
     """The text ``caviar-core inspect RUN_DIR`` prints; ValueError if it is not a run
     directory."""

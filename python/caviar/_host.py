@@ -89,7 +89,36 @@ def _type_ok(value: Any, hint: Any) -> bool:
 
 
 def _type_name(hint: Any) -> str:
+    if typing.get_origin(hint) is not None:  # list[float], not "list"
+        return str(hint).replace("typing.", "")
     return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
+
+
+def _mismatch(value: Any, hint: Any) -> str:
+    """Why ``value`` is not a ``hint``: the first offending item of a list."""
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin in (list, typing.Sequence) and args and isinstance(value, list):
+        for i, v in enumerate(value):
+            if not _type_ok(v, args[0]):
+                return f"expected {_type_name(hint)}, item {i} is {type(v).__name__} {v!r}"
+    if origin is tuple and args and args[-1] is not Ellipsis and isinstance(value, list) and len(value) != len(args):
+        return f"expected {_type_name(hint)} ({len(args)} items), got {len(value)} items {value!r}"
+    return f"expected {_type_name(hint)}, got {type(value).__name__} {value!r}"
+
+
+def _keyed(e: Exception, fields: typing.Iterable[str]) -> ConfigError:
+    """A plugin's check failing as ``ValueError("speed: must be > 0")`` (or a ConfigError
+    with ``key="speed"``) becomes a ConfigError on ``params.speed``."""
+    message = getattr(e, "message", None) or str(e)
+    key = getattr(e, "key", None)
+    if key is None:
+        name, sep, rest = message.partition(": ")
+        if sep and name in fields:
+            key, message = name, rest
+    if key is None:
+        return ConfigError(message, "params")
+    return ConfigError(message, key if key.startswith("params") else f"params.{key}")
 
 
 def check_params(cls: type[Plugin], params: dict[str, Any]) -> Any:
@@ -107,8 +136,7 @@ def check_params(cls: type[Plugin], params: dict[str, Any]) -> Any:
                               f"{', '.join(fields) or 'none'}", f"params.{key}")
         hint = hints.get(key, Any)
         if not _type_ok(value, hint):
-            raise ConfigError(f"expected {_type_name(hint)}, got {type(value).__name__} {value!r}",
-                              f"params.{key}")
+            raise ConfigError(_mismatch(value, hint), f"params.{key}")
     missing = [n for n, f in fields.items() if n not in params
                and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
     if missing:
@@ -117,7 +145,7 @@ def check_params(cls: type[Plugin], params: dict[str, Any]) -> Any:
     try:
         return schema(**values)
     except (TypeError, ValueError) as e:  # __post_init__ checks of the plugin
-        raise ConfigError(str(e), "params") from None
+        raise _keyed(e, fields) from None
 
 
 class Hosted:
@@ -195,6 +223,13 @@ def load_plugin(name: str, spec: str, params_json: str,
     """The hosted plugin, its default subscriptions and what it declares publishing."""
     cls = resolve_plugin(spec)
     params = check_params(cls, json.loads(params_json))
+    plugin_cls = cls
+    try:
+        plugin_cls.check_params(params, pathlib.Path(config_dir))
+    except (TypeError, ValueError) as e:  # ConfigError is a ValueError
+        schema = plugin_cls.Params
+        fields = [f.name for f in dataclasses.fields(schema)] if dataclasses.is_dataclass(schema) else params
+        raise _keyed(e, fields) from None
     publishes = declared_publishes(cls)
     plugin = cls()
     return Hosted(name, plugin, params), list(cls.subscribe), publishes

@@ -211,6 +211,17 @@ class Plugin:
     ``ctx.shards``) from the inbox alone, so that several workers can share a step.
     The pieces' messages are merged in shard order."""
 
+    @classmethod
+    def check_params(cls, params: Any, config_dir: pathlib.Path) -> None:
+        """Checks the parameters at ``validate`` time (and before a run directory
+        exists), beyond what their types say: ranges, files that must exist.
+        ``params`` is the ``Params`` instance, ``config_dir`` the directory relative
+        paths are resolved against. Raise ``ValueError("KEY: what was expected")`` or
+        ``caviar.ConfigError(message, "KEY")``; the error is reported as
+        ``file:line: modules.NAME.params.KEY: …``. (A ``Params.__post_init__`` raising
+        ``ValueError("KEY: …")`` is reported the same way.)"""
+        return None
+
     def setup(self, ctx: Context) -> None:
         self.ctx = ctx
 

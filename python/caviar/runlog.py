@@ -7,7 +7,7 @@ import os
 import pathlib
 from typing import Literal, Optional, TypedDict
 
-from caviar._core import RawMessage
+from caviar._core import RawMessage, run_status
 from caviar.plugin import Message
 from caviar.topics import matches
 
@@ -33,7 +33,8 @@ class _RunStatusFields(TypedDict):
     """The fields of run.json present in every run."""
 
     caviar_version: str
-    status: Literal["running", "completed", "failed", "interrupted"]
+    status: Literal["running", "completed", "failed", "interrupted", "abandoned"]
+    """``abandoned``: run.json said running but the process that ran it is gone."""
     config_file: str
     overrides: list[str]
     seed: int
@@ -55,6 +56,24 @@ class RunStatus(_RunStatusFields, total=False):
     """Absent while running and in runs recorded before it was added."""
     ended_by: str
     """The module that published ``caviar.episode.end``, when that ended the episode."""
+    pid: int
+    """The process running the episode (while running)."""
+    last_step: int
+    """For a run left running: the step in progress when last seen, its stage and the
+    modules that had started it (``last_stage``, ``last_modules``)."""
+    last_stage: str
+    last_modules: list[str]
+    abandoned: str
+    """For an abandoned run: how far it got and what it was doing, in words."""
+
+
+def _read_parquet(path: pathlib.Path):
+    import polars as pl
+
+    try:
+        return pl.read_parquet(path)
+    except Exception as e:  # polars raises several kinds for a damaged file
+        raise ValueError(f"{path}: not a readable Parquet file ({e})") from None
 
 
 def _read(run_dir: pathlib.Path, table: str):
@@ -62,14 +81,14 @@ def _read(run_dir: pathlib.Path, table: str):
 
     single = run_dir / f"{table}.parquet"
     if single.exists():
-        return pl.read_parquet(single)
+        return _read_parquet(single)
     if not (run_dir / table).is_dir():
         raise FileNotFoundError(f"{run_dir}: not a run directory (no {table}.parquet)")
     parts = sorted((run_dir / table).glob("*.parquet"))
     if not parts:  # a run that failed before its first step
         return pl.DataFrame()
     # Parts are what a run that crashed or is still going leaves: each is complete.
-    return pl.concat([pl.read_parquet(p) for p in parts])
+    return pl.concat([_read_parquet(p) for p in parts])
 
 
 class RunLog:
@@ -83,7 +102,7 @@ class RunLog:
         status = self.path / "run.json"
         if not status.exists():
             raise FileNotFoundError(f"{self.path}: not a run directory (no run.json)")
-        self.status: RunStatus = json.loads(status.read_text())
+        self.status: RunStatus = json.loads(run_status(self.path))
         self.messages = _read(self.path, "messages")
         self.timings = _read(self.path, "timings")
 
@@ -94,6 +113,7 @@ class RunLog:
     def _select(self, pattern: str):
         import polars as pl
 
+        matches(pattern, "x")  # ValueError for a pattern that is not valid, messages or not
         if self.messages.is_empty():
             return self.messages
         topics = [t for t in self.messages["topic"].unique().to_list() if matches(pattern, t)]

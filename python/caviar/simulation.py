@@ -25,6 +25,9 @@ def _toml_value(value: Any) -> str:
 def _overrides(overrides: Mapping[str, Any] | Iterable[str] | None) -> list[str]:
     if overrides is None:
         return []
+    if isinstance(overrides, (str, bytes)):
+        raise TypeError(f"overrides: expected a mapping ({{'episode.steps': 5}}) or a list of 'KEY=VALUE' "
+                        f"strings, got the string {overrides!r} (put it in a list)")
     if isinstance(overrides, Mapping):
         return [f"{k}={_toml_value(v)}" for k, v in overrides.items()]
     return [str(o) for o in overrides]

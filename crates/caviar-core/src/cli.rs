@@ -16,7 +16,7 @@ use crate::config;
 use crate::engine::{EndReason, Engine, EngineError, StepReport};
 use crate::message::Message;
 use crate::recorder::{read_messages, read_timings, TimingRow, CORE};
-use crate::run::{load_modules, prepare, PluginLoader};
+use crate::run::{check_paths, load_modules, prepare_monitored, PluginLoader};
 use crate::status::{write_status, RunErrorInfo, RunState, RunStatus};
 
 #[derive(Parser, Debug)]
@@ -108,6 +108,7 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
 
 fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
     let result = config::load(path, set).and_then(|cfg| {
+        check_paths(&cfg)?;
         let specs = load_modules(&cfg, loader)?;
         let n = cfg.config.modules.len();
         Ok((wiring_warnings(&cfg, &specs), cfg, n))
@@ -218,7 +219,7 @@ fn run(
             return 2;
         }
     };
-    let mut engine = match prepare(&cfg, loader, out) {
+    let (mut engine, mut monitor) = match prepare_monitored(&cfg, loader, out) {
         Ok(e) => e,
         Err(e) => {
             eprintln!("error: {e}");
@@ -227,15 +228,21 @@ fn run(
     };
     let viewing = view_port.is_some_and(|port| start_viewer(loader, engine.run_dir(), port));
     let started = Instant::now();
+    // Ctrl-C sets a flag polled between steps and while NATS replies are awaited; a
+    // Python plugin never sees it as KeyboardInterrupt.
+    let sigint = crate::interrupt::Guard::install();
     let bar = progress_bar(&engine, quiet);
     let mut log = LogProgress::new(quiet);
     let result = engine.run(|engine, report| {
+        monitor.after_step(&cfg, engine);
         show_progress(&bar, engine, report);
         log.update(engine, report);
         !interrupted()
     });
     bar.finish_and_clear();
     let closed = engine.close();
+    drop(monitor);
+    drop(sigint);
     let error = result.err().or(closed.err());
     let status = match &error {
         None => RunState::Completed,
@@ -310,7 +317,7 @@ fn human_bytes(n: u64) -> String {
 
 /// The text `caviar-core inspect` prints.
 pub fn inspect(run_dir: &Path) -> Result<String, String> {
-    let status = RunStatus::read(run_dir)?;
+    let status = RunStatus::read_live(run_dir)?;
     let messages = read_messages(run_dir).map_err(|e| e.to_string())?;
     let timings = read_timings(run_dir).map_err(|e| e.to_string())?;
     let mut s = String::new();
@@ -372,6 +379,9 @@ fn write_summary(s: &mut String, run_dir: &Path, status: &RunStatus, messages: &
     .unwrap();
     if let Some(end) = end_text(status) {
         writeln!(s, "ended     {end}").unwrap();
+    }
+    if let Some(text) = status.abandoned_text() {
+        writeln!(s, "ended     {text}").unwrap();
     }
     if let Some(err) = &status.error {
         writeln!(s, "error     {}", err.message()).unwrap();

@@ -6,6 +6,7 @@
 //! duration = 60.0          # or `steps = 600`; neither: until a module ends the episode
 //! seed = 7
 //! stages = ["mobility", "communications", "ai"]
+//! step_timeout = 600.0     # s one module step may take, any transport (default 600)
 //!
 //! [modules.uav]
 //! stage = "mobility"
@@ -74,6 +75,10 @@ pub struct Episode {
     pub seed: u64,
     /// Stage names in execution order.
     pub stages: Vec<String>,
+    /// Seconds one step of one module may take before the run stops (default 600),
+    /// whatever the transport. In-process, a step past it cannot be interrupted: the
+    /// process writes run.json as `failed`, naming the module and step, and exits (1).
+    pub step_timeout: Option<f64>,
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -115,9 +120,8 @@ pub struct NatsTransport {
     /// Seconds to wait for every module's workers to connect and load their plugin.
     #[serde(default = "default_startup_timeout")]
     pub startup_timeout: f64,
-    /// Seconds one step of one module may take before the run stops.
-    #[serde(default = "default_step_timeout")]
-    pub step_timeout: f64,
+    /// Older name of `episode.step_timeout`, for the NATS transport only.
+    pub step_timeout: Option<f64>,
     /// Seconds without a heartbeat after which a worker counts as dead (workers beat every second).
     #[serde(default = "default_heartbeat_timeout")]
     pub heartbeat_timeout: f64,
@@ -133,9 +137,9 @@ pub struct NatsTransport {
 fn default_startup_timeout() -> f64 {
     60.0
 }
-fn default_step_timeout() -> f64 {
-    600.0
-}
+/// `episode.step_timeout` when not given.
+pub const DEFAULT_STEP_TIMEOUT: f64 = 600.0;
+
 fn default_heartbeat_timeout() -> f64 {
     5.0
 }
@@ -162,7 +166,7 @@ impl Default for NatsTransport {
             tls_key: None,
             tls_required: false,
             startup_timeout: default_startup_timeout(),
-            step_timeout: default_step_timeout(),
+            step_timeout: None,
             heartbeat_timeout: default_heartbeat_timeout(),
             reconnect_timeout: default_reconnect_timeout(),
             mirror: default_mirror(),
@@ -248,8 +252,17 @@ impl LoadedConfig {
     /// Number of steps, or `None` when the episode runs until a module ends it.
     pub fn steps(&self) -> Option<u64> {
         let e = &self.config.episode;
-        e.steps
-            .or_else(|| e.duration.map(|d| (d / e.ts - 1e-9).ceil().max(0.0) as u64))
+        e.steps.or_else(|| e.duration.map(|d| steps_of(d, e.ts) as u64))
+    }
+
+    /// Seconds one module step may take: `episode.step_timeout`, or the older
+    /// `transport.nats.step_timeout`, or 600.
+    pub fn step_timeout(&self) -> f64 {
+        let c = &self.config;
+        c.episode
+            .step_timeout
+            .or(c.transport.nats.step_timeout)
+            .unwrap_or(DEFAULT_STEP_TIMEOUT)
     }
 
     pub fn resolve(&self, path: &Path) -> PathBuf {
@@ -275,6 +288,15 @@ impl LoadedConfig {
     pub fn params_json(&self, module: &str) -> serde_json::Value {
         serde_json::to_value(&self.config.modules[module].params).expect("TOML is valid JSON")
     }
+}
+
+/// At most this many steps (2^53): step indices and virtual times stay exact in f64.
+pub const MAX_STEPS: u64 = 1 << 53;
+
+/// `ceil(duration / ts)`, at least 1 for a positive duration (the 1e-9 absorbs
+/// rounding noise: 0.3 / 0.1 is 3 steps, not 4).
+fn steps_of(duration: f64, ts: f64) -> f64 {
+    (duration / ts - 1e-9).ceil().max(1.0)
 }
 
 /// Reads, overrides and validates a configuration file.
@@ -312,9 +334,30 @@ pub fn parse(
     let config: Config = serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
         let inner = e.into_inner();
-        let line = inner.span().map(|s| line_at(&text, s.start));
-        let key = (path != "." && !path.is_empty()).then_some(path);
+        let mut line = inner.span().map(|s| line_at(&text, s.start));
+        let mut key = (path != "." && !path.is_empty()).then_some(path);
         let mut message = inner.message().to_string();
+        // "missing field `ts`" at `episode`: name the missing key, at its table's line.
+        if let Some(field) = message
+            .strip_prefix("missing field `")
+            .and_then(|m| m.strip_suffix('`'))
+        {
+            let full = match &key {
+                Some(k) => format!("{k}.{field}"),
+                None => field.to_string(),
+            };
+            let table: Vec<&str> = full.split('.').collect();
+            line = line_of_key(&text, &table[..table.len() - 1]).filter(|_| table.len() > 1);
+            key = Some(full);
+            message = "this required key is missing".into();
+        }
+        // serde sees a TOML date/time as a map: say what it is.
+        if message.starts_with("invalid type: map") {
+            let path: Vec<&str> = key.as_deref().unwrap_or("").split('.').collect();
+            if is_datetime_at(&text, &path) {
+                message = message.replace("invalid type: map", "invalid type: TOML date/time");
+            }
+        }
         if !overrides.is_empty() {
             message.push_str(" (after --set overrides)");
         }
@@ -355,10 +398,61 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
             ));
         }
     }
+    if let Some(t) = ep.step_timeout {
+        if !(t.is_finite() && t > 0.0) {
+            return Err(c.error_at(
+                "episode.step_timeout",
+                format!("expected a positive number of seconds, got {}", num(t)),
+            ));
+        }
+    }
+    if ep.steps == Some(0) {
+        return Err(c.error_at("episode.steps", "expected at least 1 step"));
+    }
+    let steps = match (ep.steps, ep.duration) {
+        (Some(n), _) => Some(n as f64),
+        (None, Some(d)) => Some(steps_of(d, ep.ts)),
+        (None, None) => None,
+    };
+    if let Some(n) = steps {
+        if n > MAX_STEPS as f64 {
+            let (key, what) = match ep.steps {
+                Some(_) => ("episode.steps", format!("{} steps", num(n))),
+                None => (
+                    "episode.duration",
+                    format!(
+                        "duration / ts = {} / {} = {} steps",
+                        num(ep.duration.unwrap_or(0.0)),
+                        num(ep.ts),
+                        num(n)
+                    ),
+                ),
+            };
+            return Err(c.error_at(
+                key,
+                format!("{what}: more than the 2^53 a run may have (raise episode.ts or shorten the episode)"),
+            ));
+        }
+    }
+    // Virtual time must stay finite for every step the run may take.
+    let last = steps.unwrap_or(MAX_STEPS as f64);
+    if !(ep.ts * last).is_finite() {
+        return Err(c.error_at(
+            "episode.ts",
+            format!(
+                "ts = {} s makes virtual time infinite within {} steps",
+                num(ep.ts),
+                num(last)
+            ),
+        ));
+    }
     if ep.stages.is_empty() {
         return Err(c.error_at("episode.stages", "expected at least one stage name"));
     }
     for (i, s) in ep.stages.iter().enumerate() {
+        if s.trim().is_empty() {
+            return Err(c.error_at("episode.stages", "a stage name may not be empty"));
+        }
         if ep.stages[..i].contains(s) {
             return Err(c.error_at("episode.stages", format!("stage '{s}' is listed twice")));
         }
@@ -414,6 +508,24 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
             Pattern::new(p).map_err(|e| c.error_at(&key("subscribe"), e.to_string()))?;
         }
     }
+    if let Some(name) = &cfg.output.name {
+        if name.is_empty()
+            || name == "."
+            || name == ".."
+            || name.contains(['/', '\\', '\0'])
+        {
+            return Err(c.error_at(
+                "output.name",
+                format!(
+                    "expected a plain name for the run directories (NAME-001, …) inside output.dir, got {name:?}"
+                ),
+            ));
+        }
+    }
+    if cfg.output.dir.as_ref().is_some_and(|d| d.as_os_str().is_empty()) {
+        return Err(c.error_at("output.dir", "expected a directory, got an empty path"));
+    }
+    validate_params(c)?;
     for p in &cfg.output.exclude {
         Pattern::new(p).map_err(|e| c.error_at("output.exclude", e.to_string()))?;
     }
@@ -421,6 +533,39 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
         return Err(c.error_at("output.flush_interval", "expected a number of seconds >= 0"));
     }
     validate_nats(c)
+}
+
+/// Parameter values JSON cannot carry to a plugin (NaN, infinities, TOML dates) are
+/// refused here, naming the key: they would reach Python as `None` or a private table.
+fn validate_params(c: &LoadedConfig) -> Result<(), ConfigError> {
+    fn walk(c: &LoadedConfig, key: &str, v: &toml::Value) -> Result<(), ConfigError> {
+        match v {
+            toml::Value::Float(f) if !f.is_finite() => Err(c.error_at(
+                key,
+                format!("expected a finite float, got {}", num(*f)),
+            )),
+            toml::Value::Datetime(d) => Err(c.error_at(
+                key,
+                format!("a TOML date/time is not a parameter value; write it as a string (\"{d}\")"),
+            )),
+            toml::Value::Array(items) => items.iter().enumerate().try_for_each(|(i, v)| {
+                walk(c, key, v).map_err(|mut e| {
+                    e.message = format!("item {i}: {}", e.message);
+                    e
+                })
+            }),
+            toml::Value::Table(t) => t
+                .iter()
+                .try_for_each(|(k, v)| walk(c, &format!("{key}.{k}"), v)),
+            _ => Ok(()),
+        }
+    }
+    for (name, m) in &c.config.modules {
+        for (k, v) in &m.params {
+            walk(c, &format!("modules.{name}.params.{k}"), v)?;
+        }
+    }
+    Ok(())
 }
 
 fn validate_nats(c: &LoadedConfig) -> Result<(), ConfigError> {
@@ -440,9 +585,15 @@ fn validate_nats(c: &LoadedConfig) -> Result<(), ConfigError> {
         }
     }
     let n = &cfg.transport.nats;
+    if n.step_timeout.is_some() && cfg.episode.step_timeout.is_some() {
+        return Err(c.error_at(
+            "transport.nats.step_timeout",
+            "give `episode.step_timeout` (every transport) only; this is its older name",
+        ));
+    }
     let seconds = [
         ("startup_timeout", n.startup_timeout),
-        ("step_timeout", n.step_timeout),
+        ("step_timeout", n.step_timeout.unwrap_or(DEFAULT_STEP_TIMEOUT)),
         ("heartbeat_timeout", n.heartbeat_timeout),
         ("reconnect_timeout", n.reconnect_timeout),
     ];
@@ -512,6 +663,34 @@ fn apply_overrides(text: &str, overrides: &[String]) -> Result<String, String> {
         table.insert(path[path.len() - 1], toml_edit::Item::Value(value));
     }
     Ok(doc.to_string())
+}
+
+fn is_datetime_at(text: &str, path: &[&str]) -> bool {
+    let Ok(doc) = toml_edit::ImDocument::parse(text) else {
+        return false;
+    };
+    let mut item: &toml_edit::Item = doc.as_item();
+    for part in path {
+        match item.get(part) {
+            Some(i) => item = i,
+            None => return false,
+        }
+    }
+    item.as_datetime().is_some()
+}
+
+/// A number for messages: plain when readable, else in scientific notation.
+fn num(x: f64) -> String {
+    if x == 0.0 || (1e-4..1e9).contains(&x.abs()) {
+        format!("{x}")
+    } else if x.is_finite() {
+        let s = format!("{x:.3e}");
+        let (mantissa, exp) = s.split_once('e').expect("scientific notation");
+        let mantissa = mantissa.trim_end_matches('0').trim_end_matches('.');
+        format!("{mantissa}e{exp}")
+    } else {
+        format!("{x}").to_lowercase()
+    }
 }
 
 /// 1-based line of byte offset `pos`.
@@ -648,6 +827,35 @@ speed = 5.0
     }
 
     #[test]
+    fn numeric_edges_are_config_errors() {
+        let e = parse_str(&GOOD.replace("steps = 4", "steps = 0"), &[]).unwrap_err();
+        assert_eq!(e.key.as_deref(), Some("episode.steps"), "{e}");
+        let tiny = GOOD.replace("ts = 0.5\nsteps = 4", "ts = 1e-300\nduration = 1.0");
+        let e = parse_str(&tiny, &[]).unwrap_err();
+        assert_eq!(e.key.as_deref(), Some("episode.duration"), "{e}");
+        assert!(e.message.contains("1e300 steps") && e.message.contains("ts"), "{e}");
+        let e = parse_str(&GOOD.replace("ts = 0.5", "ts = 1e308"), &[]).unwrap_err();
+        assert_eq!(e.key.as_deref(), Some("episode.ts"), "{e}");
+        assert!(e.message.contains("infinite"), "{e}");
+        let e = parse_str(&GOOD.replace("speed = 5.0", "speed = nan"), &[]).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "exp.toml:19: modules.first.params.speed: expected a finite float, got nan"
+        );
+        let e = parse_str(&GOOD.replace("speed = 5.0", "at = 1979-05-27"), &[]).unwrap_err();
+        assert_eq!(e.key.as_deref(), Some("modules.first.params.at"), "{e}");
+        let e = parse_str(&GOOD.replace("seed = 3", "seed = 1979-05-27"), &[]).unwrap_err();
+        assert!(e.message.contains("TOML date/time"), "{e}");
+        for bad in ["\"../up\"", "\"a/b\"", "\"\"", "\"..\""] {
+            let text = format!("{GOOD}\n[output]\nname = {bad}\n");
+            let e = parse_str(&text, &[]).unwrap_err();
+            assert_eq!(e.key.as_deref(), Some("output.name"), "{e}");
+        }
+        let e = parse_str(&GOOD.replace("ts = 0.5\n", ""), &[]).unwrap_err();
+        assert_eq!(e.to_string(), "exp.toml:2: episode.ts: this required key is missing");
+    }
+
+    #[test]
     fn duration_gives_the_step_count() {
         let c = parse_str(&GOOD.replace("steps = 4", "duration = 1.2"), &[]).unwrap();
         assert_eq!(c.steps(), Some(3)); // 1.2 / 0.5 -> 2.4 -> 3 steps
@@ -657,5 +865,7 @@ speed = 5.0
         )
         .unwrap();
         assert_eq!(c.steps(), Some(3)); // no extra step from rounding noise
+        let c = parse_str(&GOOD.replace("steps = 4", "duration = 1e-12"), &[]).unwrap();
+        assert_eq!(c.steps(), Some(1)); // a positive duration is at least one step
     }
 }

@@ -81,6 +81,11 @@ fn trace(e: &ModuleError) -> String {
 /// mirror them onto a message bus, where a later stage's outside helper may answer).
 pub type Tap = Box<dyn FnMut(&[SharedMessage]) + Send>;
 
+/// Told, before a stage's modules start their step, which ones (in start order), and
+/// with an empty list when the stage is over: what a run record and a watchdog need to
+/// name the module a dead or stuck run was in.
+pub type StartHook = Box<dyn FnMut(StepInfo, &str, &[&str]) + Send>;
+
 /// How a module takes part in an episode.
 pub struct ModuleSpec {
     pub name: String,
@@ -149,6 +154,7 @@ pub struct Engine {
     record_s: f64,
     tap: Option<Tap>,
     probe: Option<Box<dyn ResourceProbe>>,
+    on_start: Option<StartHook>,
 }
 
 /// Why an episode ended (`end_reason` in run.json).
@@ -170,6 +176,7 @@ pub enum EndReason {
 /// An in-process module's step, ready to run.
 struct LocalStep<'a> {
     slot: usize,
+    name: &'a str,
     module: &'a mut Box<dyn Module>,
     inbox: Vec<SharedMessage>,
 }
@@ -177,6 +184,7 @@ struct LocalStep<'a> {
 /// A remote module's step, ready to start.
 struct RemoteStep<'a> {
     slot: usize,
+    name: &'a str,
     module: &'a mut Box<dyn RemoteModule>,
     inbox: Vec<SharedMessage>,
 }
@@ -297,12 +305,17 @@ impl Engine {
             record_s: 0.0,
             tap: None,
             probe: None,
+            on_start: None,
         })
     }
 
     /// Samples GPU use after each stage for the in-process modules.
     pub fn set_probe(&mut self, probe: Box<dyn ResourceProbe>) {
         self.probe = Some(probe);
+    }
+
+    pub fn set_start_hook(&mut self, hook: StartHook) {
+        self.on_start = Some(hook);
     }
 
     pub fn set_tap(&mut self, tap: Tap) {
@@ -418,7 +431,12 @@ impl Engine {
         }
         let result = self.setup().and_then(|()| self.run_step());
         if result.is_err() {
-            self.end.get_or_insert(EndReason::Error);
+            let reason = if crate::interrupt::requested() {
+                EndReason::Interrupted
+            } else {
+                EndReason::Error
+            };
+            self.end.get_or_insert(reason);
         }
         result.map(Some)
     }
@@ -458,6 +476,12 @@ impl Engine {
         let wall_s = wall_s + record_s;
         self.wall_s += wall_s;
         if let Some(f) = state.failure {
+            // A module step cut short by Ctrl-C (KeyboardInterrupt in a plugin, a NATS
+            // wait given up) is an interruption, not the module's failure.
+            if crate::interrupt::requested() {
+                self.end = Some(EndReason::Interrupted);
+                return Err(EngineError::Interrupted { step });
+            }
             return Err(f);
         }
         if let Some(module) = state.end_by {
@@ -619,9 +643,11 @@ impl Engine {
                 continue;
             }
             let inbox = std::mem::take(&mut slot.inbox);
+            let name = slot.name.as_str();
             match &mut slot.module {
                 AnyModule::Remote(module) => remote.push(RemoteStep {
                     slot: i,
+                    name,
                     module,
                     inbox,
                 }),
@@ -629,6 +655,7 @@ impl Engine {
                     let concurrent = module.concurrent();
                     let s = LocalStep {
                         slot: i,
+                        name,
                         module,
                         inbox,
                     };
@@ -641,13 +668,32 @@ impl Engine {
                 }
             }
         }
+        let stage_name = self.opts.stages[stage].as_str();
+        let mut hook = self.on_start.as_mut();
+        let mut running: Vec<&str> = remote.iter().map(|s| s.name).collect();
         // Remote modules first: they work while this process runs the local ones.
+        if let Some(h) = hook.as_mut().filter(|_| !running.is_empty()) {
+            h(at, stage_name, &running);
+        }
         let started: Vec<_> = remote.iter_mut().map(|s| start_remote(s, at)).collect();
         let mut ran = if parallel.len() <= 1 {
             // Not worth a thread hop.
             serial.append(&mut parallel);
-            serial.iter_mut().map(|s| run_local(s, at)).collect()
+            let mut ran = Vec::with_capacity(serial.len());
+            for s in serial.iter_mut() {
+                if let Some(h) = hook.as_mut() {
+                    running.push(s.name);
+                    h(at, stage_name, &running);
+                    running.pop();
+                }
+                ran.push(run_local(s, at));
+            }
+            ran
         } else {
+            if let Some(h) = hook.as_mut() {
+                running.extend(parallel.iter().chain(serial.iter()).map(|s| s.name));
+                h(at, stage_name, &running);
+            }
             let (mut a, b) = rayon::join(
                 || {
                     parallel
@@ -671,6 +717,9 @@ impl Engine {
                 .zip(started)
                 .map(|(s, r)| finish_remote(s, r)),
         );
+        if let Some(h) = hook {
+            h(at, stage_name, &[]);
+        }
         ran
     }
 
@@ -681,7 +730,8 @@ impl Engine {
         mut after_step: impl FnMut(&Engine, &StepReport) -> bool,
     ) -> Result<(), EngineError> {
         while let Some(report) = self.step()? {
-            if !after_step(self, &report) && !report.ended {
+            let go_on = after_step(self, &report) && !crate::interrupt::requested();
+            if !go_on && !report.ended {
                 self.end = Some(EndReason::Interrupted);
                 return Err(EngineError::Interrupted { step: report.step });
             }

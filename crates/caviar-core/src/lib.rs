@@ -11,7 +11,7 @@
 //! Each module uses only modules listed before it (none imports a module that
 //! imports it back); transports are leaves that only the run reaches:
 //!
-//! 1. [`topic`], [`message`], [`metrics`]: leaves
+//! 1. [`topic`], [`message`], [`metrics`], [`interrupt`] (the Ctrl-C flag): leaves
 //! 2. [`module`] (message)
 //! 3. [`recorder`] (message, topic)
 //! 4. [`config`] (topic)
@@ -19,7 +19,8 @@
 //! 6. [`engine`] (message, metrics, module, recorder, topic)
 //! 7. [`assembly`] (config, engine, module, replay, topic): built-in plugin names,
 //!    `build_modules`, `PrepareError`, wiring warnings
-//! 8. [`status`] (config, engine): run.json
+//! 8. [`status`] (config, engine, module): run.json, progress.json and the
+//!    in-process step watchdog ([`status::Monitor`])
 //! 9. [`transport::nats`] (assembly, config, engine, message, metrics, module, topic)
 //! 10. [`run`] (assembly, config, engine, module, recorder, status, topic, transport)
 //! 11. [`cli`] (assembly, config, engine, recorder, run, status)
@@ -29,6 +30,7 @@ pub mod assembly;
 pub mod cli;
 pub mod config;
 pub mod engine;
+pub mod interrupt;
 pub mod message;
 pub mod metrics;
 pub mod module;

@@ -15,8 +15,8 @@ use crate::config::{self, ConfigError, LoadedConfig};
 use crate::engine::{Engine, EngineError};
 use crate::message::{Message, Outgoing, Payload, SharedMessage};
 use crate::module::{Module, ModuleError, ResourceProbe, SetupContext, StepInfo, Usage};
-use crate::run::{prepare, PluginLoader};
-use crate::status::{write_status, RunState};
+use crate::run::{prepare_monitored, PluginLoader};
+use crate::status::{write_status, Monitor, RunState, RunStatus};
 use crate::transport::nats::wire::{self, WireError};
 use crate::transport::nats::WorkerLauncher;
 
@@ -30,8 +30,13 @@ fn host(py: Python<'_>) -> PyResult<Bound<'_, PyModule>> {
     py.import("caviar._host")
 }
 
-/// "Type: message" and the formatted traceback of a Python exception.
+/// "Type: message" and the formatted traceback of a Python exception. A
+/// KeyboardInterrupt is Ctrl-C reaching the plugin's code: the run is interrupted.
 fn module_error(py: Python<'_>, err: PyErr) -> ModuleError {
+    if err.is_instance_of::<pyo3::exceptions::PyKeyboardInterrupt>(py) {
+        crate::interrupt::request();
+        return ModuleError::new("interrupted (Ctrl-C)");
+    }
     let message = err.to_string();
     let trace = host(py)
         .and_then(|h| h.call_method1("format_exception", (err.value(py), err.traceback(py))))
@@ -354,6 +359,7 @@ fn run_error(e: &EngineError, run_dir: &std::path::Path) -> PyErr {
 struct Episode {
     cfg: LoadedConfig,
     engine: Engine,
+    monitor: Monitor,
     closed: bool,
 }
 
@@ -362,14 +368,16 @@ impl Episode {
     #[new]
     #[pyo3(signature = (path, overrides, out=None))]
     fn new(path: PathBuf, overrides: Vec<String>, out: Option<PathBuf>) -> PyResult<Self> {
+        crate::interrupt::reset();
         let cfg = config::load(&path, &overrides).map_err(config_error)?;
-        let engine = prepare(&cfg, &PyLoader, out.as_deref()).map_err(|e| match e {
+        let (engine, monitor) = prepare_monitored(&cfg, &PyLoader, out.as_deref()).map_err(|e| match e {
             PrepareError::Config(c) => config_error(c),
             PrepareError::Io(s) => pyo3::exceptions::PyOSError::new_err(s),
         })?;
         Ok(Episode {
             cfg,
             engine,
+            monitor,
             closed: false,
         })
     }
@@ -381,7 +389,10 @@ impl Episode {
         }
         let engine = &mut self.engine;
         match py.allow_threads(|| engine.step()) {
-            Ok(Some(report)) => Ok(Some(raw_messages(py, &report.messages)?)),
+            Ok(Some(report)) => {
+                self.monitor.after_step(&self.cfg, &self.engine);
+                Ok(Some(raw_messages(py, &report.messages)?))
+            }
             Ok(None) => Ok(None),
             Err(e) => Err(self.fail(py, e)),
         }
@@ -394,9 +405,10 @@ impl Episode {
         if self.closed {
             return Ok(());
         }
-        let engine = &mut self.engine;
+        let (engine, monitor, cfg) = (&mut self.engine, &mut self.monitor, &self.cfg);
         let result = py.allow_threads(|| {
             engine.run(|e, _| {
+                monitor.after_step(cfg, e);
                 Python::with_gil(|py| {
                     if let Some(cb) = &progress {
                         if cb
@@ -462,6 +474,25 @@ impl Episode {
     }
 }
 
+/// An episode dropped without `close()` (`del sim`) is closed here, so that run.json
+/// does not stay `running`.
+impl Drop for Episode {
+    fn drop(&mut self) {
+        if self.closed {
+            return;
+        }
+        self.closed = true;
+        match self.engine.close() {
+            Ok(()) => {
+                let _ = write_status(&self.cfg, &self.engine, RunState::Completed, None);
+            }
+            Err(e) => {
+                let _ = write_status(&self.cfg, &self.engine, RunState::Failed, Some(&e));
+            }
+        }
+    }
+}
+
 impl Episode {
     /// After a failed step: close what can be closed, write run.json, raise RunError.
     fn fail(&mut self, py: Python<'_>, e: EngineError) -> PyErr {
@@ -486,6 +517,18 @@ fn main(py: Python<'_>, argv: Vec<String>) -> i32 {
             Python::with_gil(|py| py.check_signals().is_err())
         })
     })
+}
+
+/// run.json of RUN_DIR as JSON text, with what a reader concludes about a run left
+/// `running` (`abandoned` when its process is gone, the step and modules it was in).
+#[pyfunction]
+fn run_status(run_dir: PathBuf) -> PyResult<String> {
+    let s = RunStatus::read_live(&run_dir).map_err(pyo3::exceptions::PyValueError::new_err)?;
+    let mut v = serde_json::to_value(&s).expect("json");
+    if let Some(text) = s.abandoned_text() {
+        v["abandoned"] = text.into();
+    }
+    Ok(v.to_string())
 }
 
 /// The text of `caviar-core inspect RUN_DIR`.
@@ -582,6 +625,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<StepRequest>()?;
     m.add_function(wrap_pyfunction!(main, m)?)?;
     m.add_function(wrap_pyfunction!(inspect, m)?)?;
+    m.add_function(wrap_pyfunction!(run_status, m)?)?;
     m.add_function(wrap_pyfunction!(matches, m)?)?;
     m.add_function(wrap_pyfunction!(resident_mib, m)?)?;
     m.add_function(wrap_pyfunction!(decode_request, m)?)?;

@@ -13,7 +13,7 @@ use crate::config::{ConfigError, LoadedConfig, TransportKind};
 use crate::engine::{Engine, EngineOptions, ModuleSpec};
 use crate::module::{AnyModule, Module, ResourceProbe};
 use crate::recorder::Recorder;
-use crate::status::{write_status, RunState};
+use crate::status::{write_status, Monitor, RunState};
 use crate::topic::Pattern;
 use crate::transport::nats::{self, WorkerLauncher};
 
@@ -70,6 +70,88 @@ pub fn load_modules(
     })
 }
 
+/// The parent of numbered run directories: `output.dir` (relative to the config
+/// file), or `runs` in the current directory.
+fn output_parent(cfg: &LoadedConfig) -> PathBuf {
+    match &cfg.config.output.dir {
+        Some(d) => cfg.resolve(d),
+        None => PathBuf::from("runs"),
+    }
+}
+
+/// Checks that run directories can be made under `output.dir` (what `validate` and the
+/// start of `run` check), without leaving anything behind: the nearest existing
+/// directory on the way must be a directory we can create entries in (probed with a
+/// directory created and removed at once).
+pub fn check_output_dir(cfg: &LoadedConfig) -> Result<(), ConfigError> {
+    let parent = output_parent(cfg);
+    let key = if cfg.config.output.dir.is_some() {
+        "output.dir"
+    } else {
+        "output"
+    };
+    let fail = |why: String| cfg.error_at(key, format!("{}: {why}", parent.display()));
+    let mut existing = parent.as_path();
+    loop {
+        match fs::metadata(existing) {
+            Ok(m) if m.is_dir() => break,
+            Ok(_) => return Err(fail(format!("{} is not a directory", existing.display()))),
+            Err(_) => match existing.parent() {
+                Some(p) if !p.as_os_str().is_empty() => existing = p,
+                _ => {
+                    existing = Path::new(".");
+                    break;
+                }
+            },
+        }
+    }
+    let probe = existing.join(format!(".caviar-probe-{}", std::process::id()));
+    match fs::create_dir(&probe) {
+        Ok(()) => {
+            let _ = fs::remove_dir(&probe);
+            Ok(())
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(()),
+        Err(e) => Err(fail(format!(
+            "cannot create run directories in {}: {e}",
+            existing.display()
+        ))),
+    }
+}
+
+/// What `validate` and the start of `run` check on the filesystem: run directories can
+/// be made under `output.dir`, and the files the NATS transport names exist.
+pub fn check_paths(cfg: &LoadedConfig) -> Result<(), ConfigError> {
+    check_output_dir(cfg)?;
+    if cfg.config.transport.kind != TransportKind::Nats {
+        return Ok(());
+    }
+    check_nats_files(cfg)
+}
+
+fn check_nats_files(cfg: &LoadedConfig) -> Result<(), ConfigError> {
+    let n = &cfg.config.transport.nats;
+    let files = [
+        ("server", &n.server),
+        ("credentials", &n.credentials),
+        ("tls_ca", &n.tls_ca),
+        ("tls_cert", &n.tls_cert),
+        ("tls_key", &n.tls_key),
+    ];
+    for (key, path) in files {
+        if let Some(p) = path {
+            let full = cfg.resolve(p);
+            if !full.is_file() {
+                return Err(cfg.error_at(
+                    &format!("transport.nats.{key}"),
+                    format!("no such file: {}", full.display()),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Loads every module, creates the run directory and the engine.
 /// `out`: the run directory to use instead of `output.dir/NAME-NNN`.
 ///
@@ -80,7 +162,24 @@ pub fn prepare(
     loader: &dyn PluginLoader,
     out: Option<&Path>,
 ) -> Result<Engine, PrepareError> {
+    prepare_monitored(cfg, loader, out).map(|(engine, _)| engine)
+}
+
+/// [`prepare`], with the [`Monitor`] that keeps run.json and progress.json true as the
+/// run goes on (call its `after_step`) and, in-process, stops a module step that
+/// outlasts `episode.step_timeout` (the NATS transport has its own deadline).
+pub fn prepare_monitored(
+    cfg: &LoadedConfig,
+    loader: &dyn PluginLoader,
+    out: Option<&Path>,
+) -> Result<(Engine, Monitor), PrepareError> {
     let in_process = cfg.config.transport.kind == TransportKind::Inprocess;
+    if out.is_none() {
+        check_output_dir(cfg)?;
+    }
+    if cfg.config.transport.kind == TransportKind::Nats {
+        check_nats_files(cfg)?;
+    }
     let specs = if in_process {
         Some(load_modules(cfg, loader)?)
     } else {
@@ -94,7 +193,17 @@ pub fn prepare(
     fs::write(run_dir.join("config.toml"), &cfg.text).map_err(io)?;
     let (specs, tap) = match specs {
         Some(s) => (s, None),
-        None => nats::prepare(cfg, loader.worker_launcher(), &run_dir)?,
+        None => match nats::prepare(cfg, loader.worker_launcher(), &run_dir) {
+            Ok(prepared) => prepared,
+            Err(e) => {
+                // A configuration error (reported by a worker) starts no run: the run
+                // directory made for the workers' logs goes again.
+                if matches!(e, PrepareError::Config(_)) {
+                    let _ = fs::remove_dir_all(&run_dir);
+                }
+                return Err(e);
+            }
+        },
     };
     let exclude = cfg
         .config
@@ -126,7 +235,10 @@ pub fn prepare(
         engine.set_probe(probe);
     }
     write_status(cfg, &engine, RunState::Running, None).map_err(PrepareError::Io)?;
-    Ok(engine)
+    let watchdog = in_process.then(|| Duration::from_secs_f64(cfg.step_timeout()));
+    let mut monitor = Monitor::install(&mut engine, watchdog);
+    monitor.started(cfg, &engine);
+    Ok((engine, monitor))
 }
 
 fn create_exact(dir: &Path) -> Result<PathBuf, PrepareError> {
@@ -146,10 +258,7 @@ fn create_exact(dir: &Path) -> Result<PathBuf, PrepareError> {
 
 /// `output.dir/NAME-001`, `NAME-002`, …: the first free one.
 fn create_numbered(cfg: &LoadedConfig) -> Result<PathBuf, PrepareError> {
-    let parent = match &cfg.config.output.dir {
-        Some(d) => cfg.resolve(d),
-        None => PathBuf::from("runs"),
-    };
+    let parent = output_parent(cfg);
     let name = cfg.config.output.name.clone().unwrap_or_else(|| {
         Path::new(&cfg.file)
             .file_stem()

@@ -4,12 +4,17 @@
 //! Fields added after the first release carry `#[serde(default)]`: runs recorded
 //! before them still read.
 
-use std::path::Path;
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 
 use crate::config::LoadedConfig;
-use crate::engine::{EndReason, Engine, EngineError};
+use crate::engine::{EndReason, Engine, EngineError, StartHook};
+use crate::module::StepInfo;
 
 /// `status` in run.json.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -20,6 +25,9 @@ pub enum RunState {
     Completed,
     Failed,
     Interrupted,
+    /// Never written: what a reader concludes when run.json says `running` but the
+    /// process that wrote it is gone (killed, or exited without closing the run).
+    Abandoned,
 }
 
 impl RunState {
@@ -29,6 +37,7 @@ impl RunState {
             RunState::Completed => "completed",
             RunState::Failed => "failed",
             RunState::Interrupted => "interrupted",
+            RunState::Abandoned => "abandoned",
         }
     }
 }
@@ -109,6 +118,18 @@ pub struct RunStatus {
     /// The module that ended it by publishing `caviar.episode.end`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ended_by: Option<String>,
+    /// The process running the episode (while `running`: whether it still lives tells a
+    /// reader if the run was abandoned).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pid: Option<u32>,
+    /// Where the run was last seen (from `progress.json`, updated as modules start):
+    /// the step in progress, its stage and the modules that had started it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_step: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_stage: Option<String>,
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub last_modules: Vec<String>,
 }
 
 impl RunStatus {
@@ -143,7 +164,53 @@ impl RunStatus {
             ended_by: end_reason
                 .filter(|r| *r == EndReason::Module)
                 .and_then(|_| engine.ended_by().map(String::from)),
+            pid: (status == RunState::Running).then(std::process::id),
+            last_step: None,
+            last_stage: None,
+            last_modules: Vec::new(),
         }
+    }
+
+    /// Reads `RUN_DIR/run.json` and tells the truth about a run that was left running:
+    /// the step reached and the modules in it from `progress.json`, and `abandoned`
+    /// when the process that ran it is gone.
+    pub fn read_live(run_dir: &Path) -> Result<Self, String> {
+        let mut s = Self::read(run_dir)?;
+        if s.status != RunState::Running {
+            return Ok(s);
+        }
+        if let Some(p) = read_progress(run_dir) {
+            s.steps_done = s.steps_done.max(p.steps_done);
+            s.virtual_time_s = s.virtual_time_s.max(s.steps_done as f64 * s.ts);
+            s.last_step = Some(p.step);
+            s.last_stage = Some(p.stage);
+            s.last_modules = p.modules;
+        }
+        if s.pid.is_some_and(|pid| !process_alive(pid)) {
+            s.status = RunState::Abandoned;
+        }
+        Ok(s)
+    }
+
+    /// One line on an abandoned run: how far it got and what it was doing.
+    pub fn abandoned_text(&self) -> Option<String> {
+        if self.status != RunState::Abandoned {
+            return None;
+        }
+        let after = match self.steps_done {
+            0 => "before its first step ended".to_string(),
+            n => format!("after step {} ({n} steps done)", n - 1),
+        };
+        let doing = match (&self.last_step, self.last_modules.as_slice()) {
+            (Some(k), [one]) => format!("; the last module started was '{one}', at step {k}"),
+            (Some(k), []) => format!("; no module was running (step {k}, between stages)"),
+            (Some(k), many) => format!("; modules {many:?} had started step {k}"),
+            (None, _) => String::new(),
+        };
+        Some(format!(
+            "abandoned {after}: the process (pid {}) is gone without closing the run{doing}",
+            self.pid.map_or("?".into(), |p| p.to_string())
+        ))
     }
 
     /// Reads `RUN_DIR/run.json`.
@@ -154,11 +221,235 @@ impl RunStatus {
         serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))
     }
 
-    /// Writes `RUN_DIR/run.json`.
+    /// Writes `RUN_DIR/run.json` atomically (a temporary file renamed over it): a reader
+    /// or a crash never sees half of it.
     pub fn write(&self, run_dir: &Path) -> Result<(), String> {
         let path = run_dir.join("run.json");
+        let tmp = run_dir.join(".run.json.tmp");
         let text = serde_json::to_string_pretty(self).expect("json");
-        std::fs::write(&path, text + "\n").map_err(|e| format!("{}: {e}", path.display()))
+        std::fs::write(&tmp, text + "\n")
+            .and_then(|()| std::fs::rename(&tmp, &path))
+            .map_err(|e| format!("{}: {e}", path.display()))
+    }
+}
+
+/// Whether process `pid` exists (signal 0: permission denied still means it does).
+fn process_alive(pid: u32) -> bool {
+    // SAFETY: kill with signal 0 only checks.
+    let r = unsafe { libc::kill(pid as libc::pid_t, 0) };
+    r == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
+}
+
+/// `progress.json`: rewritten in place (one `pwrite` of a fixed-size, space-padded JSON
+/// object) before every module's step, so that a process killed in any way leaves
+/// where it was. Cheap enough for every step; readers trim the padding.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(default)]
+struct ProgressRecord {
+    steps_done: u64,
+    step: u64,
+    stage: String,
+    modules: Vec<String>,
+}
+
+const PROGRESS_FILE: &str = "progress.json";
+const PROGRESS_SIZE: usize = 1024;
+
+fn read_progress(run_dir: &Path) -> Option<ProgressRecord> {
+    let text = std::fs::read_to_string(run_dir.join(PROGRESS_FILE)).ok()?;
+    serde_json::from_str(text.trim()).ok()
+}
+
+/// What the watchdog sees: the module step in progress and since when.
+struct Current {
+    step: u64,
+    modules: Vec<String>,
+    since: Instant,
+    /// The last run.json written, to write it again as `failed`.
+    status: Option<RunStatus>,
+}
+
+/// Keeps run.json and progress.json true while a run goes on, and stops a run whose
+/// module step outlasts `episode.step_timeout` (in-process modules cannot be
+/// interrupted: the process writes run.json as `failed` and exits with status 1).
+pub struct Monitor {
+    run_dir: PathBuf,
+    current: Arc<Mutex<Current>>,
+    last_write: Option<Instant>,
+    stop: Arc<std::sync::atomic::AtomicBool>,
+}
+
+/// run.json is rewritten after a step at most this often.
+const STATUS_EVERY: Duration = Duration::from_secs(1);
+
+impl Monitor {
+    /// The monitor of `engine`'s run: installs the engine's start hook, and a watchdog
+    /// thread when `step_timeout` is given.
+    pub fn install(engine: &mut Engine, step_timeout: Option<Duration>) -> Monitor {
+        let run_dir = engine.run_dir().to_path_buf();
+        let current = Arc::new(Mutex::new(Current {
+            step: 0,
+            modules: Vec::new(),
+            since: Instant::now(),
+            status: None,
+        }));
+        let file = File::create(run_dir.join(PROGRESS_FILE)).ok();
+        let shared = current.clone();
+        let hook: StartHook = Box::new(move |at: StepInfo, stage: &str, modules: &[&str]| {
+            if let Ok(mut c) = shared.lock() {
+                c.step = at.step;
+                c.modules = modules.iter().map(|m| m.to_string()).collect();
+                c.since = Instant::now();
+            }
+            if let (Some(f), false) = (&file, modules.is_empty()) {
+                write_progress(f, at.step, stage, modules);
+            }
+        });
+        engine.set_start_hook(hook);
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        if let Some(limit) = step_timeout {
+            let (current, stop, run_dir) = (current.clone(), stop.clone(), run_dir.clone());
+            std::thread::Builder::new()
+                .name("caviar-watchdog".into())
+                .spawn(move || watchdog(current, stop, run_dir, limit))
+                .expect("watchdog thread");
+        }
+        Monitor {
+            run_dir,
+            current,
+            last_write: None,
+            stop,
+        }
+    }
+
+    /// After a step: rewrites run.json (running, steps so far) at most once a second.
+    pub fn after_step(&mut self, cfg: &LoadedConfig, engine: &Engine) {
+        if self.last_write.is_some_and(|t| t.elapsed() < STATUS_EVERY) {
+            return;
+        }
+        self.last_write = Some(Instant::now());
+        let status = RunStatus::of(cfg, engine, RunState::Running, None);
+        let _ = status.write(&self.run_dir);
+        if let Ok(mut c) = self.current.lock() {
+            c.status = Some(status);
+        }
+    }
+
+    /// Remembers run.json as first written (what the watchdog rewrites before a step).
+    pub fn started(&mut self, cfg: &LoadedConfig, engine: &Engine) {
+        if let Ok(mut c) = self.current.lock() {
+            c.status = Some(RunStatus::of(cfg, engine, RunState::Running, None));
+        }
+    }
+}
+
+impl Drop for Monitor {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+fn write_progress(f: &File, step: u64, stage: &str, modules: &[&str]) {
+    let mut rec = ProgressRecord {
+        steps_done: step,
+        step,
+        stage: stage.to_string(),
+        modules: modules.iter().map(|m| m.to_string()).collect(),
+    };
+    let mut text = serde_json::to_string(&rec).expect("json");
+    while text.len() > PROGRESS_SIZE && !rec.modules.is_empty() {
+        rec.modules.pop();
+        text = serde_json::to_string(&rec).expect("json");
+    }
+    if text.len() > PROGRESS_SIZE {
+        return;
+    }
+    let mut buf = text.into_bytes();
+    buf.resize(PROGRESS_SIZE - 1, b' ');
+    buf.push(b'\n');
+    let _ = f.write_at(&buf, 0);
+}
+
+fn watchdog(
+    current: Arc<Mutex<Current>>,
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    run_dir: PathBuf,
+    limit: Duration,
+) {
+    let tick = (limit / 10).clamp(Duration::from_millis(10), Duration::from_millis(100));
+    let mut announced = false;
+    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+        std::thread::sleep(tick);
+        let Ok(c) = current.lock() else { return };
+        let presses = crate::interrupt::count();
+        if presses == 1 && !announced && !c.modules.is_empty() {
+            announced = true;
+            eprintln!(
+                "interrupting after module '{}' finishes step {} (Ctrl-C again to stop at once)",
+                c.modules.join("', '"),
+                c.step
+            );
+        }
+        if presses >= 2 && !c.modules.is_empty() {
+            let mut status = c.status.clone().unwrap_or_default();
+            status.status = RunState::Interrupted;
+            status.pid = None;
+            status.steps_done = status.steps_done.max(c.step);
+            status.virtual_time_s = status.steps_done as f64 * status.ts;
+            status.end_reason = Some(EndReason::Interrupted);
+            status.last_step = Some(c.step);
+            status.last_modules = c.modules.clone();
+            status.error = Some(RunErrorInfo::Other {
+                message: format!(
+                    "interrupted in step {} (Ctrl-C twice, module '{}' still running)",
+                    c.step,
+                    c.modules.join("', '")
+                ),
+            });
+            let _ = status.write(&run_dir);
+            eprintln!(
+                "{}: interrupted in step {}; what was recorded is in the run directory",
+                run_dir.display(),
+                c.step
+            );
+            // SAFETY: ends the process at once; the recorder has flushed every finished step.
+            unsafe { libc::_exit(130) };
+        }
+        if c.modules.is_empty() || c.since.elapsed() < limit {
+            continue;
+        }
+        let module = c.modules.join("', '");
+        let message = format!(
+            "module '{module}' did not finish step {} within {} s (episode.step_timeout); \
+             the run was stopped (a module running in this process cannot be interrupted)",
+            c.step,
+            limit.as_secs_f64()
+        );
+        let mut status = c.status.clone().unwrap_or_default();
+        status.status = RunState::Failed;
+        status.pid = None;
+        status.steps_done = status.steps_done.max(c.step);
+        status.virtual_time_s = status.steps_done as f64 * status.ts;
+        status.end_reason = Some(EndReason::Error);
+        status.last_step = Some(c.step);
+        status.last_modules = c.modules.clone();
+        status.error = Some(RunErrorInfo::Module {
+            module: c.modules[0].clone(),
+            phase: "step".into(),
+            step: Some(c.step),
+            time: Some(c.step as f64 * status.ts),
+            message: message.clone(),
+            trace: None,
+        });
+        let _ = status.write(&run_dir);
+        eprintln!("error: {message}");
+        eprintln!(
+            "{}: failed after {} steps; what was recorded is in the run directory",
+            run_dir.display(),
+            status.steps_done
+        );
+        // SAFETY: ends the process at once; the recorder has flushed every finished step.
+        unsafe { libc::_exit(1) };
     }
 }
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import pathlib
 
 import numpy as np
 
@@ -64,11 +65,23 @@ class WaypointFlight(caviar.Plugin):
             if not self.acceleration > 0 or self.takeoff_s < 0 or self.last_waypoint < 1:
                 raise ValueError("acceleration must be > 0, takeoff_s >= 0 and last_waypoint >= 1")
 
+    @staticmethod
+    def _waypoint_file(waypoints: str, config_dir) -> pathlib.Path:
+        """The CSV: relative to the config file, else a shipped trajectory."""
+        path = pathlib.Path(config_dir) / waypoints
+        if not path.exists() and (DATA / waypoints).exists():
+            path = DATA / waypoints
+        return path
+
+    @classmethod
+    def check_params(cls, params, config_dir):
+        path = cls._waypoint_file(params.waypoints, config_dir)
+        if not path.is_file():
+            raise ValueError(f"waypoints: no such file: {path} (nor a shipped trajectory of that name)")
+
     def setup(self, ctx):
         p = ctx.params
-        path = ctx.resolve(p.waypoints)
-        if not path.exists() and (DATA / p.waypoints).exists():
-            path = DATA / p.waypoints
+        path = self._waypoint_file(p.waypoints, ctx.config_dir)
         pts = read_waypoints(path)
         if p.frame == "airsim_ned":
             pts = airsim_ned_to_scene(pts)

@@ -33,6 +33,8 @@ class FreeSpaceLink(caviar.Plugin):
         def __post_init__(self):
             if len(self.tx_position) != 3:
                 raise ValueError(f"tx_position: expected [x, y, z], got {self.tx_position}")
+            if not self.frequency_hz > 0:
+                raise ValueError(f"frequency_hz: expected a positive frequency in Hz, got {self.frequency_hz}")
 
     def setup(self, ctx):
         p = ctx.params

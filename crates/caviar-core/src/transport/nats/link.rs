@@ -80,10 +80,11 @@ pub struct Timeouts {
 }
 
 impl Timeouts {
-    pub fn from_config(n: &NatsTransport) -> Self {
+    /// `step`: `LoadedConfig::step_timeout` (episode.step_timeout or its older name).
+    pub fn from_config(n: &NatsTransport, step: f64) -> Self {
         Timeouts {
             startup: Duration::from_secs_f64(n.startup_timeout),
-            step: Duration::from_secs_f64(n.step_timeout),
+            step: Duration::from_secs_f64(step),
             heartbeat: Duration::from_secs_f64(n.heartbeat_timeout),
             reconnect: Duration::from_secs_f64(n.reconnect_timeout),
         }
@@ -103,8 +104,10 @@ pub struct Link {
     started: Arc<std::sync::atomic::AtomicBool>,
     processes: Mutex<Vec<WorkerProcess>>,
     disconnected_since: Mutex<Option<Instant>>,
+    /// Set when the run ends badly (a step past its deadline, Ctrl-C).
+    abandoning: std::sync::atomic::AtomicBool,
     // Dropped last (fields drop in order): the workers and the client go before the server.
-    _server: Option<SpawnedServer>,
+    server: Mutex<Option<SpawnedServer>>,
 }
 
 /// The module description a worker receives in reply to its hello.
@@ -230,7 +233,8 @@ impl Link {
             started,
             processes: Mutex::new(Vec::new()),
             disconnected_since: Mutex::new(None),
-            _server: server,
+            abandoning: std::sync::atomic::AtomicBool::new(false),
+            server: Mutex::new(server),
         }))
     }
 
@@ -287,6 +291,9 @@ impl Link {
     /// Why `module` can no longer answer, if we can tell: a worker process of it that
     /// exited, workers that stopped beating, a connection that stayed down.
     pub fn check_alive(&self, module: &str, expected: &[String]) -> Result<(), String> {
+        if let Some(why) = self.server.lock().unwrap().as_mut().and_then(|s| s.exited()) {
+            return Err(why);
+        }
         for p in self
             .processes
             .lock()
@@ -371,16 +378,33 @@ impl Link {
             }
             if let Err(why) = self.check_alive(module, expected) {
                 task.abort();
+                self.abandon();
                 return Err(ModuleError::new(format!("{what}: {why}")));
+            }
+            if crate::interrupt::requested() {
+                task.abort();
+                self.abandon();
+                return Err(ModuleError::new(format!("{what}: interrupted (Ctrl-C)")));
             }
             if t0.elapsed() > timeout {
                 task.abort();
+                self.abandon();
                 return Err(ModuleError::new(format!(
-                    "{what}: no reply within {:.0} s (transport.nats.step_timeout / startup_timeout)",
+                    "{what}: no reply within {:.0} s (episode.step_timeout / transport.nats.startup_timeout)",
                     timeout.as_secs_f64()
                 )));
             }
         }
+    }
+
+    /// The run is ending badly (a step timed out, Ctrl-C): teardowns get a short grace.
+    pub fn abandon(&self) {
+        self.abandoning
+            .store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    pub fn abandoning(&self) -> bool {
+        self.abandoning.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Reaps the worker processes of `module` (they exit after teardown), killing any
@@ -422,9 +446,10 @@ impl Drop for Link {
     fn drop(&mut self) {
         // Tell every worker of the run to leave, then make sure the ones we started did.
         let (c, subject) = (self.client.clone(), format!("{}.stop", self.prefix));
+        let flush = Duration::from_millis(if self.abandoning() { 300 } else { 2000 });
         let _ = self.rt.block_on(async move {
             let _ = c.publish(subject, "{}".into()).await;
-            tokio::time::timeout(Duration::from_secs(2), c.flush()).await
+            tokio::time::timeout(flush, c.flush()).await
         });
         let modules: Vec<String> = self
             .processes
@@ -433,8 +458,9 @@ impl Drop for Link {
             .iter()
             .map(|p| p.module.clone())
             .collect();
+        let grace = if self.abandoning() { 1 } else { 3 };
         for m in modules {
-            self.reap(&m, Duration::from_secs(3));
+            self.reap(&m, Duration::from_secs(grace));
         }
     }
 }

@@ -166,7 +166,7 @@ fn connect(
         "config_dir": cfg.base_dir.canonicalize().unwrap_or_else(|_| cfg.base_dir.clone()),
     });
     let id = run_id(cfg, run_dir);
-    let timeouts = Timeouts::from_config(n);
+    let timeouts = Timeouts::from_config(n, cfg.step_timeout());
     Link::connect(&url, options, &id, offers, base, timeouts, server).map_err(PrepareError::Io)
 }
 

@@ -30,6 +30,9 @@ pub(crate) struct WorkerModule {
     shards: u64,
     pending: Vec<Pending>,
     at: Option<StepInfo>,
+    /// A step of it was given up (past its deadline, Ctrl-C): its workers are busy
+    /// with it and cannot tear down; they are killed at once.
+    stuck: bool,
 }
 
 #[derive(Deserialize)]
@@ -49,6 +52,7 @@ impl WorkerModule {
             shards,
             pending: Vec::new(),
             at: None,
+            stuck: false,
         }
     }
 
@@ -171,13 +175,16 @@ impl RemoteModule for WorkerModule {
             } else {
                 "step".into()
             };
-            let reply = self.link.wait(
-                &self.name,
-                &self.workers,
-                &what,
-                task,
-                self.link.timeouts.step,
-            )?;
+            let reply = self
+                .link
+                .wait(
+                    &self.name,
+                    &self.workers,
+                    &what,
+                    task,
+                    self.link.timeouts.step,
+                )
+                .inspect_err(|_| self.stuck = true)?;
             let reply = reply.map_err(|e| request_error(&what, e))?;
             let u = wire::decode_reply(&reply.payload, out)?;
             // Shards run side by side: the step takes as long as the slowest; CPU adds up.
@@ -195,14 +202,21 @@ impl RemoteModule for WorkerModule {
         for t in self.pending.drain(..) {
             t.abort();
         }
-        // Workers that already died cannot tear down; the others get a few seconds.
+        // Workers that already died or are stuck in a step given up cannot tear down:
+        // the stuck ones are killed at once. The others get a few seconds (30 s, 2 s
+        // when the run is ending badly).
+        if self.stuck {
+            self.link.reap(&self.name, Duration::ZERO);
+            return Ok(());
+        }
         let alive = self.link.check_alive(&self.name, &self.workers).is_ok();
+        let (grace, reap) = if self.link.abandoning() { (2, 1) } else { (30, 5) };
         let result = if alive {
-            self.control("teardown", &serde_json::json!({}), Duration::from_secs(30))
+            self.control("teardown", &serde_json::json!({}), Duration::from_secs(grace))
         } else {
             Ok(())
         };
-        self.link.reap(&self.name, Duration::from_secs(5));
+        self.link.reap(&self.name, Duration::from_secs(reap));
         result
     }
 }

