@@ -252,7 +252,8 @@ impl LoadedConfig {
     /// Number of steps, or `None` when the episode runs until a module ends it.
     pub fn steps(&self) -> Option<u64> {
         let e = &self.config.episode;
-        e.steps.or_else(|| e.duration.map(|d| steps_of(d, e.ts) as u64))
+        e.steps
+            .or_else(|| e.duration.map(|d| steps_of(d, e.ts) as u64))
     }
 
     /// Seconds one module step may take: `episode.step_timeout`, or the older
@@ -509,11 +510,7 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
         }
     }
     if let Some(name) = &cfg.output.name {
-        if name.is_empty()
-            || name == "."
-            || name == ".."
-            || name.contains(['/', '\\', '\0'])
-        {
+        if name.is_empty() || name == "." || name == ".." || name.contains(['/', '\\', '\0']) {
             return Err(c.error_at(
                 "output.name",
                 format!(
@@ -522,7 +519,12 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
             ));
         }
     }
-    if cfg.output.dir.as_ref().is_some_and(|d| d.as_os_str().is_empty()) {
+    if cfg
+        .output
+        .dir
+        .as_ref()
+        .is_some_and(|d| d.as_os_str().is_empty())
+    {
         return Err(c.error_at("output.dir", "expected a directory, got an empty path"));
     }
     validate_params(c)?;
@@ -540,13 +542,14 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
 fn validate_params(c: &LoadedConfig) -> Result<(), ConfigError> {
     fn walk(c: &LoadedConfig, key: &str, v: &toml::Value) -> Result<(), ConfigError> {
         match v {
-            toml::Value::Float(f) if !f.is_finite() => Err(c.error_at(
-                key,
-                format!("expected a finite float, got {}", num(*f)),
-            )),
+            toml::Value::Float(f) if !f.is_finite() => {
+                Err(c.error_at(key, format!("expected a finite float, got {}", num(*f))))
+            }
             toml::Value::Datetime(d) => Err(c.error_at(
                 key,
-                format!("a TOML date/time is not a parameter value; write it as a string (\"{d}\")"),
+                format!(
+                    "a TOML date/time is not a parameter value; write it as a string (\"{d}\")"
+                ),
             )),
             toml::Value::Array(items) => items.iter().enumerate().try_for_each(|(i, v)| {
                 walk(c, key, v).map_err(|mut e| {
@@ -593,7 +596,10 @@ fn validate_nats(c: &LoadedConfig) -> Result<(), ConfigError> {
     }
     let seconds = [
         ("startup_timeout", n.startup_timeout),
-        ("step_timeout", n.step_timeout.unwrap_or(DEFAULT_STEP_TIMEOUT)),
+        (
+            "step_timeout",
+            n.step_timeout.unwrap_or(DEFAULT_STEP_TIMEOUT),
+        ),
         ("heartbeat_timeout", n.heartbeat_timeout),
         ("reconnect_timeout", n.reconnect_timeout),
     ];
@@ -833,7 +839,10 @@ speed = 5.0
         let tiny = GOOD.replace("ts = 0.5\nsteps = 4", "ts = 1e-300\nduration = 1.0");
         let e = parse_str(&tiny, &[]).unwrap_err();
         assert_eq!(e.key.as_deref(), Some("episode.duration"), "{e}");
-        assert!(e.message.contains("1e300 steps") && e.message.contains("ts"), "{e}");
+        assert!(
+            e.message.contains("1e300 steps") && e.message.contains("ts"),
+            "{e}"
+        );
         let e = parse_str(&GOOD.replace("ts = 0.5", "ts = 1e308"), &[]).unwrap_err();
         assert_eq!(e.key.as_deref(), Some("episode.ts"), "{e}");
         assert!(e.message.contains("infinite"), "{e}");
@@ -852,7 +861,10 @@ speed = 5.0
             assert_eq!(e.key.as_deref(), Some("output.name"), "{e}");
         }
         let e = parse_str(&GOOD.replace("ts = 0.5\n", ""), &[]).unwrap_err();
-        assert_eq!(e.to_string(), "exp.toml:2: episode.ts: this required key is missing");
+        assert_eq!(
+            e.to_string(),
+            "exp.toml:2: episode.ts: this required key is missing"
+        );
     }
 
     #[test]

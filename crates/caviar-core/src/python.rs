@@ -370,10 +370,11 @@ impl Episode {
     fn new(path: PathBuf, overrides: Vec<String>, out: Option<PathBuf>) -> PyResult<Self> {
         crate::interrupt::reset();
         let cfg = config::load(&path, &overrides).map_err(config_error)?;
-        let (engine, monitor) = prepare_monitored(&cfg, &PyLoader, out.as_deref()).map_err(|e| match e {
-            PrepareError::Config(c) => config_error(c),
-            PrepareError::Io(s) => pyo3::exceptions::PyOSError::new_err(s),
-        })?;
+        let (engine, monitor) =
+            prepare_monitored(&cfg, &PyLoader, out.as_deref()).map_err(|e| match e {
+                PrepareError::Config(c) => config_error(c),
+                PrepareError::Io(s) => pyo3::exceptions::PyOSError::new_err(s),
+            })?;
         Ok(Episode {
             cfg,
             engine,

@@ -291,7 +291,13 @@ impl Link {
     /// Why `module` can no longer answer, if we can tell: a worker process of it that
     /// exited, workers that stopped beating, a connection that stayed down.
     pub fn check_alive(&self, module: &str, expected: &[String]) -> Result<(), String> {
-        if let Some(why) = self.server.lock().unwrap().as_mut().and_then(|s| s.exited()) {
+        if let Some(why) = self
+            .server
+            .lock()
+            .unwrap()
+            .as_mut()
+            .and_then(|s| s.exited())
+        {
             return Err(why);
         }
         for p in self

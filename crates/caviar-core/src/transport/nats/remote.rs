@@ -210,9 +210,17 @@ impl RemoteModule for WorkerModule {
             return Ok(());
         }
         let alive = self.link.check_alive(&self.name, &self.workers).is_ok();
-        let (grace, reap) = if self.link.abandoning() { (2, 1) } else { (30, 5) };
+        let (grace, reap) = if self.link.abandoning() {
+            (2, 1)
+        } else {
+            (30, 5)
+        };
         let result = if alive {
-            self.control("teardown", &serde_json::json!({}), Duration::from_secs(grace))
+            self.control(
+                "teardown",
+                &serde_json::json!({}),
+                Duration::from_secs(grace),
+            )
         } else {
             Ok(())
         };
