@@ -87,7 +87,7 @@ def ue_of(topic: str) -> str:
     return topic.rsplit(".", 1)[1]
 
 
-def position_payload(ue_id: str, xyz: Sequence[float], ue_type: str = "UAV") -> dict[str, Any]:
+def position_payload(ue_id: str, xyz: Sequence[float] | np.ndarray, ue_type: str = "UAV") -> dict[str, Any]:
     """The paper's position payload of a UE at ``xyz`` (metres, scene frame)."""
     x, y, z = (float(v) for v in xyz)
     return {"UE_type": ue_type, "UE_Id": ue_id, "position": {"x": x, "y": y, "z": z}}
@@ -99,6 +99,6 @@ def read_position(payload: Mapping[str, Any]) -> np.ndarray:
     return np.array([p["x"], p["y"], p["z"]], dtype=float)
 
 
-def throughput_payload(ue_type: str, ue_id: str, mbps: float) -> dict[str, Any]:
+def throughput_payload(ue_type: str, ue_id: str, mbps: float | np.floating | np.ndarray) -> dict[str, Any]:
     """The paper's throughput payload (Mbit/s)."""
     return {"UE_type": ue_type, "UE_Id": ue_id, "throughput": float(mbps)}

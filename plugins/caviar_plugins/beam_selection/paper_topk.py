@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+from typing import Any
 
 import numpy as np
 
@@ -78,7 +79,8 @@ def diagnostics(parts, x, y, cut, test, tree) -> dict:
                 [p["best_pair"][1:] == p["best_pair"][:-1] for p in parts])))}
 
 
-def evaluate(train_runs, test_run, knn_ks=(1, 3, 5, 7, 10, 15, 20)) -> tuple[dict, object, object]:
+def evaluate(train_runs, test_run, knn_ks=(1, 3, 5, 7, 10, 15, 20)) -> tuple[dict, Any, Any, Any, Any]:
+    """(report, tree, k-NN, k-NN given the previous sweep, sweep forest)."""
     from sklearn.tree import DecisionTreeClassifier
     from sklearn.utils import shuffle
 

@@ -22,6 +22,7 @@ Choices go to ``ai.beam.selection`` as ``{"UE_Id": …, "beam_pair": i}``.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -57,7 +58,7 @@ class BeamSelector(caviar.Plugin):
     def setup(self, ctx):
         self.ctx = ctx
         p = ctx.params
-        self.tree = None
+        self.tree: Any = None
         if p.method == "tree":
             self.tree = load_tree(ctx.resolve(p.model))
         self.paper_rng = np.random.default_rng(1)

@@ -90,7 +90,7 @@ class WaypointFlight(caviar.Plugin):
         self.s = min(max(p.start_m, 0.0), self.path.length)  # arc length flown
         self.hover_until = -1.0
         self.ts = ctx.ts
-        self.paper = None
+        self.paper: PaperFlight | None = None
         if p.protocol == "paper":
             if p.last_waypoint >= len(pts):
                 raise ValueError(f"last_waypoint = {p.last_waypoint}: the route has {len(pts)} waypoints")
@@ -98,7 +98,7 @@ class WaypointFlight(caviar.Plugin):
 
     def step(self, t, inbox):
         if self.paper is not None:
-            yield from self._paper_step(t, inbox)
+            yield from self._paper_step(self.paper, t, inbox)
             return
         for m in inbox.on(HOVER):
             if m.data.get("UE_Id") == self.p.ue_id:
@@ -109,8 +109,7 @@ class WaypointFlight(caviar.Plugin):
         if t + 1e-9 >= self.hover_until:
             self.s += self.p.speed * self.ts
 
-    def _paper_step(self, t, inbox):
-        f = self.paper
+    def _paper_step(self, f: PaperFlight, t, inbox):
         for m in inbox.on(HOVER):
             if m.data.get("UE_Id") == self.p.ue_id:
                 f.request_hover(float(m.data["seconds"]))

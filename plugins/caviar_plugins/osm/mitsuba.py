@@ -76,5 +76,6 @@ def scene_shapes(xml_path) -> list[tuple[str, pathlib.Path, str]]:
         fname = next((s.get("value") for s in shape.iter("string") if s.get("name") == "filename"), None)
         ref = next((r.get("id") for r in shape.iter("ref")), None)
         if fname:
-            out.append((shape.get("id"), (xml_path.parent / fname).resolve(), types.get(ref, "")))
+            sid = shape.get("id") or pathlib.Path(fname).stem
+            out.append((sid, (xml_path.parent / fname).resolve(), types.get(ref or "", "") or ""))
     return out

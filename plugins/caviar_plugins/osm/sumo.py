@@ -43,10 +43,10 @@ def netconvert_binary() -> str:
             return str(exe)
     except ImportError:
         pass
-    exe = shutil.which("netconvert")
-    if not exe:
+    found = shutil.which("netconvert")
+    if not found:
         raise BuildError("--sumo: netconvert not found; install the 'osm' extra (eclipse-sumo) of caviar-plugins")
-    return exe
+    return found
 
 
 def street_level(tags: dict[str, str]) -> bool:
@@ -143,7 +143,8 @@ def junctions(net: pathlib.Path) -> list[dict]:
     out = []
     for _, el in ET.iterparse(net):
         if el.tag == "junction" and el.get("type") != "internal":
-            out.append({"id": el.get("id"), "type": el.get("type"), "x": float(el.get("x")), "y": float(el.get("y"))})
+            out.append({"id": el.get("id"), "type": el.get("type"),
+                        "x": float(el.get("x", "nan")), "y": float(el.get("y", "nan"))})
         el.clear() if el.tag in ("edge", "junction", "connection") else None
     return out
 

@@ -14,6 +14,7 @@ import dataclasses
 import glob
 import os
 import pathlib
+from typing import Any
 
 import numpy as np
 
@@ -166,8 +167,8 @@ class RadioScene:
         else:
             self.w_tx = dft_codebook(np.array(s.tx_array.positions(s.wavelength)))
             self.w_rx = dft_codebook(np.array(s.rx_array.positions(s.wavelength)))
-        self.receivers: dict[str, object] = {}
-        self.bodies: dict[str, object] = {}
+        self.receivers: dict[str, Any] = {}
+        self.bodies: dict[str, Any] = {}
         # The scene is static and the solver seeded: the same positions give the same
         # paths, so a step in which no UAV moved (hovering) reuses the last solve.
         self._placed: tuple = ()

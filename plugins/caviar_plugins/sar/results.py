@@ -18,6 +18,7 @@ import json
 import os
 import pathlib
 import shutil
+from typing import Any
 
 import numpy as np
 
@@ -48,6 +49,7 @@ def run_all(config: pathlib.Path, tree: pathlib.Path, runs: pathlib.Path, method
                 "output.name": f"sar-{method}"}
         if method in MODEL_METHODS:
             model = {"tree": tree, "knn": knn, "sweep": sweep}[method]
+            assert model is not None, f"{method}: no model file given"
             # Relative to the config file, as paths in it are: the saved config stays portable.
             sets["modules.beams.params.model"] = os.path.relpath(model.resolve(), config.resolve().parent)
         sim = caviar.Simulation.from_toml(config, overrides=[f"{k}={json.dumps(v)}" for k, v in sets.items()]
@@ -68,7 +70,7 @@ def summarise(logs: dict) -> list[dict]:
             rescues = log.topic(RESCUE)
             result = {"mission_time_s": offset + float(log.topic(POSITIONS)["time"].max()),
                       "rescued": rescues.height, "clock_offset_s": offset}
-        extra = {"ended": bool(res.height)}
+        extra: dict[str, Any] = {"ended": bool(res.height)}
         if not res.height:
             extra["steps_limit"] = log.status.get("steps_planned")
             if rescues.height:  # the hover the UAV was serving or about to serve

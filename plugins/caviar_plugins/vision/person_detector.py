@@ -22,6 +22,7 @@ import os
 import pathlib
 import pickle
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import numpy as np
 
@@ -314,7 +315,7 @@ class PersonDetector(caviar.Plugin):
             pos = self.positions.get(ue)
             found = []
             for d in detections:
-                item = {"row": d.row, "col": d.col, "pixels": d.pixels, "score": round(d.score, 4)}
+                item: dict[str, Any] = {"row": d.row, "col": d.col, "pixels": d.pixels, "score": round(d.score, 4)}
                 if pos is not None:
                     item["ground"] = pixel_to_ground(d.row, d.col, image.shape, pos, self.ctx.params.fov_deg)
                 found.append(item)
