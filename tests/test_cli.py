@@ -5,6 +5,7 @@ import math
 import shutil
 
 import numpy as np
+import pytest
 
 import caviar
 from caviar._gpu import open_sampler
@@ -165,7 +166,10 @@ def test_run_json_is_complete(tmp_path, cli):
     assert status["steps_done"] == 3 and status["ts"] == 0.1
     assert math.isclose(status["virtual_time_s"], 0.3)
     assert status["modules"] == ["uav", "comm", "monitor"]
-    assert status["rtf"] > 0 and status["error"] is None
+    assert status["error"] is None
+    # The paper's RTF: wall-clock time over virtual time.
+    assert status["rtf"] == pytest.approx(status["wall_s"] / status["virtual_time_s"])
+    assert status["rtf_definition"].startswith("T_p/T_v")
 
 
 def test_report_draws_resource_figures_across_runs(tmp_path, cli):

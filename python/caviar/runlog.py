@@ -45,6 +45,8 @@ class _RunStatusFields(TypedDict):
     wall_s: float
     record_s: float
     rtf: Optional[float]
+    """The paper's RTF = T_p/T_v, wall-clock s per virtual s (runs without
+    ``rtf_definition`` stored the inverse)."""
     modules: list[str]
     error: Optional[RunErrorInfo]
 
@@ -52,6 +54,8 @@ class _RunStatusFields(TypedDict):
 class RunStatus(_RunStatusFields, total=False):
     """run.json, as the core writes it (``caviar_core::status::RunStatus``)."""
 
+    rtf_definition: str
+    """What ``rtf`` means, in words (absent in runs that stored the inverse)."""
     end_reason: EndReason
     """Absent while running and in runs recorded before it was added."""
     ended_by: str

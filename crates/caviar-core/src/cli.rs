@@ -174,8 +174,8 @@ impl LogProgress {
             .map(|n| format!("/{n}"))
             .unwrap_or_default();
         eprintln!(
-            "step {done}{of}, t = {virtual_s:.2} s, wall {wall:.1} s, RTF {:.3}{eta}",
-            virtual_s / wall
+            "step {done}{of}, t = {virtual_s:.2} s, wall {wall:.1} s, RTF {}{eta}",
+            rtf_text(wall, virtual_s)
         );
     }
 }
@@ -199,8 +199,8 @@ fn progress_bar(engine: &Engine, quiet: bool) -> ProgressBar {
 fn show_progress(bar: &ProgressBar, engine: &Engine, report: &StepReport) {
     bar.set_position(report.step + 1);
     let virtual_s = engine.virtual_time_s();
-    let rtf = virtual_s / engine.wall_s().max(1e-12);
-    bar.set_message(format!("t = {virtual_s:.2} s  RTF {rtf:.3}"));
+    let rtf = rtf_text(engine.wall_s(), virtual_s);
+    bar.set_message(format!("t = {virtual_s:.2} s  RTF {rtf}"));
 }
 
 fn run(
@@ -262,6 +262,15 @@ fn run(
     code
 }
 
+/// The paper's real-time factor RTF = T_p / T_v (wall-clock time over virtual time),
+/// three decimals; "-" before any virtual time has passed.
+fn rtf_text(wall_s: f64, virtual_s: f64) -> String {
+    match crate::status::rtf(wall_s, virtual_s) {
+        Some(r) => format!("{r:.3}"),
+        None => "-".into(),
+    }
+}
+
 /// Starts the host's viewer on the run directory; prints where, or why not.
 fn start_viewer(loader: &dyn PluginLoader, run_dir: &Path, port: u16) -> bool {
     match loader.start_viewer(run_dir, port) {
@@ -285,9 +294,10 @@ fn finish_line(engine: &Engine, status: RunState, error: Option<EngineError>, wa
     match error {
         None => {
             println!(
-                "{dir}: {status}, {} steps, {virtual_s:.2} s virtual in {wall:.2} s wall (RTF {:.3})",
+                "{dir}: {status}, {} steps, {virtual_s:.2} s virtual in {wall:.2} s wall \
+                 (RTF = T_p/T_v = {})",
                 engine.steps_done(),
-                virtual_s / wall.max(1e-12)
+                rtf_text(wall, virtual_s)
             );
             0
         }
@@ -362,13 +372,14 @@ fn write_summary(s: &mut String, run_dir: &Path, status: &RunStatus, messages: &
         serde_json::json!(status.ts)
     )
     .unwrap();
-    let rtf = if wall > 0.0 {
-        format!("{:.3}", virt / wall)
-    } else {
-        "-".into()
-    };
+    let rtf = rtf_text(wall, virt);
     let record = status.record_s;
-    writeln!(s, "wall      {wall:.3} s in steps ({record:.3} s of it recording), RTF {rtf} (virtual s per wall s)").unwrap();
+    writeln!(
+        s,
+        "wall      {wall:.3} s in steps ({record:.3} s of it recording), RTF {rtf} \
+         (T_p/T_v: wall-clock s per virtual s; < 1 is faster than real time)"
+    )
+    .unwrap();
     let total_bytes: u64 = messages.iter().map(|m| m.payload.len() as u64).sum();
     writeln!(
         s,

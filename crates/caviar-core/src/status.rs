@@ -16,6 +16,14 @@ use crate::config::LoadedConfig;
 use crate::engine::{EndReason, Engine, EngineError, StartHook};
 use crate::module::StepInfo;
 
+/// `rtf_definition` of run.json.
+pub const RTF_DEFINITION: &str = "T_p/T_v: wall-clock seconds per virtual second (the paper's RTF)";
+
+/// The paper's real-time factor, T_p / T_v; `None` before any virtual time passed.
+pub fn rtf(wall_s: f64, virtual_s: f64) -> Option<f64> {
+    (virtual_s > 0.0).then(|| wall_s / virtual_s)
+}
+
 /// `status` in run.json.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -108,8 +116,13 @@ pub struct RunStatus {
     pub wall_s: f64,
     /// Of `wall_s`, the seconds spent writing the recording.
     pub record_s: f64,
-    /// Real-time factor: virtual seconds per wall second (`None` before the first step).
+    /// The paper's real-time factor RTF = T_p / T_v: wall-clock seconds per virtual
+    /// second (< 1: faster than real time; `None` before any virtual time passed). Runs
+    /// recorded before `rtf_definition` existed stored the inverse here.
     pub rtf: Option<f64>,
+    /// What `rtf` means, spelled out in the file ("T_p/T_v …").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rtf_definition: Option<String>,
     pub modules: Vec<String>,
     pub error: Option<RunErrorInfo>,
     /// Why the episode ended (absent while running, and in runs recorded before it).
@@ -157,7 +170,8 @@ impl RunStatus {
             virtual_time_s: virtual_s,
             wall_s: engine.wall_s(),
             record_s: engine.record_s(),
-            rtf: (engine.wall_s() > 0.0).then(|| virtual_s / engine.wall_s()),
+            rtf: rtf(engine.wall_s(), virtual_s),
+            rtf_definition: Some(RTF_DEFINITION.into()),
             modules: engine.module_names().map(String::from).collect(),
             error: error.map(RunErrorInfo::of),
             end_reason,
