@@ -85,7 +85,7 @@ class ScattererPool:
         self.slots: dict[str, list] = {}  # group -> [SceneObject]
         self.free: dict[str, list[int]] = {}
         self.used: dict[str, tuple[str, int]] = {}  # key -> (group, slot)
-        self.state: dict[tuple[str, int], tuple] = {}  # what each slot shows now
+        self.state: dict[tuple[str, int], tuple | None] = {}  # what each slot shows now
         self.rt = rt
         self.prefix = prefix
         self.materials = dict(materials)
@@ -182,7 +182,7 @@ class ScattererPool:
         else:
             verts, vel = box_vertices(state[0], state[1], state[2]), state[3]
         params[obj.mi_mesh.id() + ".vertex_positions"] = self.mi.Float(verts.ravel().astype(np.float32))
-        if tuple(np.asarray(obj.velocity).ravel()) != tuple(np.float32(vel)):
+        if tuple(np.asarray(obj.velocity).ravel()) != tuple(np.asarray(vel, dtype=np.float32)):
             obj.velocity = [float(v) for v in vel]
 
     def slot_of(self, key: str):

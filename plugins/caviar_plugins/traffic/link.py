@@ -292,7 +292,7 @@ class SionnaTrafficLink(caviar.Plugin):
         u = d / np.maximum(dist, 1e-9)[:, None]
         ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.full(len(keys), v)) for v in tx)),
                        mi.Vector3f(*(mi.Float(u[:, j]) for j in range(3))))
-        ray.maxt = mi.Float(np.maximum(dist - 0.05, 0.0))
+        ray.maxt = mi.Float(np.maximum(dist - 0.05, 0.0))  # type: ignore[assignment]
         si = self.radio.scene.mi_scene.ray_intersect(ray)
         hit = np.array(si.is_valid())
         ids = np.array(dr.reinterpret_array(mi.UInt32, si.shape))

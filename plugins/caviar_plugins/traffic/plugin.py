@@ -103,7 +103,7 @@ class SumoTraffic(caviar.Plugin):
                 raise caviar.ConfigError(f"{r}: no such route file", f"params.routes[{i}]")
         work = ctx.artifact_dir
         seed = ctx.seed % 2**31
-        if p.backend != "traci-connect" and (sum(p.vehicles.values()) or p.pedestrians):
+        if net is not None and p.backend != "traci-connect" and (sum(p.vehicles.values()) or p.pedestrians):
             try:
                 routes += random_trips(net, work / "demand", p.vehicles, p.pedestrians, seed, p.window_s,
                                        p.min_trip_m)
