@@ -49,6 +49,55 @@ def features(image: np.ndarray) -> np.ndarray:
                           axis=2).reshape(-1, 10)
 
 
+def unique_rows(words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices ``first`` of the distinct rows of a (M, K) uint64 array and ``inverse``
+    such that ``words[first][inverse]`` equals ``words``.
+
+    Rows are hashed (a multiply-add over their words) and sorted once; a hash collision
+    is caught by comparing each row with its representative, and the colliding rows
+    get representatives of their own: the result is exact whatever the hash does."""
+    n = len(words)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    coef = np.random.default_rng(0x5EED).integers(1, 2**63, size=words.shape[1], dtype=np.uint64) | np.uint64(1)
+    h = np.zeros(n, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        for j in range(words.shape[1]):
+            h = h * np.uint64(0x100000001B3) + words[:, j] * coef[j]
+    _, first, inverse = np.unique(h, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    rep = first[inverse]
+    differs = words[rep, 0] != words[:, 0]
+    for j in range(1, words.shape[1]):
+        differs |= words[rep, j] != words[:, j]
+    bad = np.flatnonzero(differs)
+    if len(bad):  # hash collisions: those rows stand for themselves
+        inverse = inverse.copy()
+        inverse[bad] = len(first) + np.arange(len(bad))
+        first = np.concatenate([first, bad])
+    return first, inverse
+
+
+def feature_parts(images: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The parts of :func:`features` for a stack of images (N, H, W, 3), image by image
+    the same values (the filters have size 1 along the stack): colour, 5×5 mean
+    colour, chroma, 9×9 mean chroma, each flattened to (N·H·W, C)."""
+    from scipy.ndimage import uniform_filter
+
+    x = images.astype(np.float32) / 255.0
+    local = uniform_filter(x, size=(1, 5, 5, 1))
+    # max/min over 3 channels written out (numpy's reduce over a short last axis is slow).
+    r, g, b = x[..., 0], x[..., 1], x[..., 2]
+    chroma = (np.maximum(np.maximum(r, g), b) - np.minimum(np.minimum(r, g), b))[..., None]
+    wide = uniform_filter(chroma, size=(1, 9, 9, 1))
+    return x.reshape(-1, 3), local.reshape(-1, 3), chroma.reshape(-1, 1), wide.reshape(-1, 1)
+
+
+def assemble_features(x: np.ndarray, local: np.ndarray, chroma: np.ndarray, wide: np.ndarray) -> np.ndarray:
+    """The (M, 10) rows of :func:`features` from its parts (rows of :func:`feature_parts`)."""
+    return np.concatenate([x, local, chroma, wide, x[:, :1] - x[:, 1:2], x[:, 2:3] - x[:, 1:2]], axis=1)
+
+
 @dataclasses.dataclass
 class Detection:
     row: float
@@ -73,17 +122,57 @@ class PixelDetector:
         return (prob >= self.threshold) & ~missing, prob
 
     def detect(self, image: np.ndarray) -> list[Detection]:
-        from scipy.ndimage import label
-
         mask, prob = self.mask(image)
+        return self._regions(mask, prob)
+
+    def _regions(self, mask: np.ndarray, prob: np.ndarray) -> list[Detection]:
+        from scipy.ndimage import find_objects, label
+
         regions, n = label(mask)
         out = []
-        for k in range(1, n + 1):
-            rows, cols = np.nonzero(regions == k)
+        # Each region searched inside its bounding box: the same pixels in the same
+        # (row-major) order as over the whole image, so the same sums.
+        for k, box in enumerate(find_objects(regions), start=1):
+            if box is None:
+                continue
+            rows, cols = np.nonzero(regions[box] == k)
             if len(rows) >= self.min_pixels:
+                rows, cols = rows + box[0].start, cols + box[1].start
                 out.append(Detection(float(rows.mean()), float(cols.mean()), int(len(rows)),
                                      float(prob[rows, cols].mean())))
         return out
+
+    def detect_many(self, images: list[np.ndarray]) -> list[list[Detection]]:
+        """:meth:`detect` for a step's images in one batch, the same detections: the
+        features of all images at once, one classification of their distinct feature
+        rows (:func:`unique_rows`), then connected regions per image."""
+        from scipy.ndimage import binary_dilation, generate_binary_structure
+
+        if not images:
+            return []
+        shapes = {im.shape for im in images}
+        if len(shapes) > 1:
+            return [self.detect(im) for im in images]
+        stack = np.stack(images)
+        n, h, w = stack.shape[:3]
+        x, local, chroma, wide = feature_parts(stack)
+        # A feature row is a function of the pixel's colour (3 bytes), its 5×5 mean
+        # colour and 9×9 mean chroma (float32 bits): 3 words identify it exactly.
+        rgb = stack.reshape(-1, 3).astype(np.uint64)
+        lb = local.view(np.uint32).astype(np.uint64)
+        words = np.stack([rgb[:, 0] | rgb[:, 1] << np.uint64(8) | rgb[:, 2] << np.uint64(16)
+                          | wide.view(np.uint32)[:, 0].astype(np.uint64) << np.uint64(32),
+                          lb[:, 0] | lb[:, 1] << np.uint64(32), lb[:, 2]], axis=1)
+        first, inverse = unique_rows(words)
+        f = assemble_features(x[first], local[first], chroma[first], wide[first])
+        prob = self.forest.predict_proba(f)[:, 1][inverse].reshape(n, h, w)
+        # The 2-D cross of binary_dilation's default, on each image alone.
+        cross = generate_binary_structure(2, 1)[None]
+        cross = np.concatenate([np.zeros_like(cross), cross, np.zeros_like(cross)])
+        black = (stack[..., 0] == 0) & (stack[..., 1] == 0) & (stack[..., 2] == 0)
+        missing = binary_dilation(black, structure=cross, iterations=2)
+        mask = (prob >= self.threshold) & ~missing
+        return [self._regions(mask[i], prob[i]) for i in range(n)]
 
     def save(self, path: pathlib.Path) -> None:
         # The forest and plain settings only: the file does not depend on where this
@@ -282,7 +371,11 @@ class PersonDetector(caviar.Plugin):
         """Threads that detect in a step's images side by side; 0 = one per CPU core.
         Each image is classified whole by one thread, so the detections do not depend on
         this number. Only parts of the work release the GIL (the forest's tree walk): 16
-        threads measured 1.4x one at 20 UAVs."""
+        threads measured 1.4x one at 20 UAVs. Used only with ``batch = false``."""
+        batch: bool = True
+        """Classify all images of a step in one batch (:meth:`PixelDetector.detect_many`,
+        the same detections, ~3x faster at 50 UAVs); ``false``: image by image on
+        ``workers`` threads, as before issue #18."""
 
     def setup(self, ctx):
         self.ctx = ctx
@@ -305,7 +398,9 @@ class PersonDetector(caviar.Plugin):
         for m in inbox.on(POSITIONS):
             self.positions[m.data["UE_Id"]] = read_position(m.data)
         images = list(inbox.on(every_ue(IMAGES)))
-        if self.pool is not None and len(images) > 1:
+        if self.ctx.params.batch and len(images) > 1:
+            results = self.detector.detect_many([m.data for m in images])
+        elif self.pool is not None and len(images) > 1:
             results = list(self.pool.map(lambda m: self.detector.detect(m.data), images))
         else:
             results = [self.detector.detect(m.data) for m in images]
