@@ -61,3 +61,113 @@ def test_unique_rows_is_exact_even_with_hash_collisions(monkeypatch):
     monkeypatch.setattr(detector.np, "unique", colliding)
     first, inverse = detector.unique_rows(words)
     np.testing.assert_array_equal(words[first][inverse], words)
+
+
+# --- Ray tracing: path-buffer overflow, look-ahead -------------------------------
+
+from caviar_plugins.radio import RadioConfig, RadioScene  # noqa: E402
+from caviar_plugins.radio.scene import LookaheadTracer  # noqa: E402
+
+FAST = dict(samples_per_src=20_000, max_depth=3, uav_mesh=False, threads=1)
+P0, P1, P2 = np.array([-60.0, 20.0, 30.0]), np.array([-57.5, 20.0, 30.0]), np.array([-55.0, 20.0, 30.0])
+
+
+def fresh(position, **kw) -> object:
+    radio = RadioScene(RadioConfig(**{**FAST, **kw}), seed=3)
+    radio.place({"uav1": position})
+    return radio.solve()["uav1"]
+
+
+@pytest.fixture(scope="module")
+def tracer():
+    return LookaheadTracer(RadioScene(RadioConfig(**FAST), seed=3), steps=2, tolerance_m=0.01)
+
+
+def test_lookahead_cache_hit_is_the_channel_a_fresh_trace_gives(tracer):
+    first = tracer.links({"uav1": P0}, {"uav1": [P1, P2]})["uav1"]
+    assert tracer.solves == 1
+    hit = tracer.links({"uav1": P1 + 0.004}, {})["uav1"]  # within the 1 cm tolerance
+    assert tracer.solves == 1 and tracer.hits == 1
+    np.testing.assert_array_equal(first.h, fresh(P0).h)
+    ref = fresh(P1)
+    # Same seed, one thread: the same rays and paths; the sum over paths may run in
+    # another order in a solve with more receivers, so equal to float32 rounding.
+    np.testing.assert_allclose(hit.h, ref.h, rtol=1e-5, atol=1e-6 * np.abs(ref.h).max())
+    assert hit.best_pair == ref.best_pair and hit.n_paths == ref.n_paths
+
+
+def test_a_ue_off_its_forecast_is_traced_on_demand(tracer):
+    tracer.links({"uav1": P0}, {"uav1": [P1, P2]})
+    solves = tracer.solves
+    off = np.array([-40.0, 35.0, 25.0])
+    link = tracer.links({"uav1": off}, {})["uav1"]
+    assert tracer.solves == solves + 1
+    ref = fresh(off)
+    np.testing.assert_allclose(link.h, ref.h, rtol=1e-5, atol=1e-6 * np.abs(ref.h).max())
+
+
+def test_lookahead_refuses_moving_uav_bodies():
+    from caviar_plugins.radio import SionnaLinkParams
+
+    with pytest.raises(ValueError, match="uav_mesh = false"):
+        SionnaLinkParams(lookahead=True, uav_mesh=True)
+
+
+def test_path_buffer_overflow_is_detected_and_reported():
+    with pytest.warns(RuntimeWarning, match="path buffer overflowed"):
+        link = fresh(P0, max_num_paths_per_src=5)
+    assert link.paths_dropped > 0
+    assert fresh(P0).paths_dropped == 0
+
+
+def lookahead_run(tmp_path, name: str, lookahead: bool):
+    import caviar
+    from caviar_plugins import DATA
+    from conftest import write_config
+
+    cfg = write_config(tmp_path, f"""
+[episode]
+ts = 0.5
+steps = 8
+seed = 2
+stages = ["mobility", "communications"]
+
+[modules.uav1]
+stage = "mobility"
+plugin = "waypoint-flight"
+[modules.uav1.params]
+waypoints = "{(DATA / "central_park_path0_scene.csv").as_posix()}"
+frame = "scene"
+forecast_steps = 3
+end_at_last = false
+
+[modules.comm]
+stage = "communications"
+plugin = "sionna-link"
+[modules.comm.params]
+samples_per_src = 10000
+max_depth = 3
+uav_mesh = false
+threads = 1
+lookahead = {str(lookahead).lower()}
+lookahead_steps = 3
+""", name=f"{name}.toml")
+    return caviar.Simulation.from_toml(cfg, out=tmp_path / name).run()
+
+
+def test_lookahead_runs_are_deterministic_and_solve_once_per_forecast(tmp_path):
+    a, b = lookahead_run(tmp_path, "a", True), lookahead_run(tmp_path, "b", True)
+    cols = ["step", "source", "topic", "text"]
+    assert a.messages.select(cols).equals(b.messages.select(cols))
+    for x, y in zip(a.decoded("communications.channel.uav1"), b.decoded("communications.channel.uav1"), strict=True):
+        np.testing.assert_array_equal(x.data, y.data)
+    assert len(a.topic("3D.mobility.forecast")) == 8
+    # 8 steps, 1 + 3 positions per solve: solves at steps 0 and 4 only. The comm
+    # module's timings show it: two slow steps.
+    t = a.timings.filter(a.timings["module"] == "comm")["wall_s"].to_list()
+    fast = sorted(t)[:6]
+    assert max(fast) < 0.2 * min(sorted(t)[6:]), t
+    # Every step's throughput equals tracing every step, to Monte Carlo-free float noise.
+    plain = lookahead_run(tmp_path, "plain", False)
+    np.testing.assert_allclose(a.topic("communications.throughput")["throughput"].to_numpy(),
+                               plain.topic("communications.throughput")["throughput"].to_numpy(), rtol=1e-4)

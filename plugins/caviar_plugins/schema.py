@@ -30,6 +30,10 @@ ARRIVED = "3D.mobility.arrived"
 TRAFFIC = "3D.mobility.traffic"
 """Once a step from the traffic simulator: ``{"sumo_time", "vehicles", "persons", "departed", "arrived"}``,
 ``sumo_time`` being the simulator's own clock (equal to the engine's)."""
+FORECAST = "3D.mobility.forecast"
+"""Where a UE expects to be next (opt-in, e.g. waypoint-flight's ``forecast_steps``):
+``{"UE_type", "UE_Id", "ts", "positions": [{"x", "y", "z"}, …]}``, the positions at the
+next steps (one per ``ts``), assuming no new command (hover) arrives."""
 CAMERA = "3D.camera"
 """Prefix: ``3D.camera.<UE_Id>`` a nadir camera image (uint8, H × W × 3, binary);
 ``3D.camera.<UE_Id>.file`` the same image as a PNG artifact."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import pathlib
@@ -13,7 +14,7 @@ from caviar_plugins import protocol as paper
 from caviar_plugins.assets import DATA
 from caviar_plugins.mobility.frames import airsim_ned_to_scene
 from caviar_plugins.mobility.waypoints import Path, read_waypoints
-from caviar_plugins.schema import HOVER, POSITIONS, position_payload
+from caviar_plugins.schema import FORECAST, HOVER, POSITIONS, position_payload
 
 
 class WaypointFlight(caviar.Plugin):
@@ -31,7 +32,7 @@ class WaypointFlight(caviar.Plugin):
     """
 
     subscribe = [HOVER]
-    publishes = (POSITIONS, caviar.END_TOPIC)
+    publishes = (POSITIONS, FORECAST, caviar.END_TOPIC)
 
     @dataclasses.dataclass
     class Params:
@@ -55,6 +56,10 @@ class WaypointFlight(caviar.Plugin):
         """paper: mission clock when the UAV first leaves waypoint 0 (takeoff, an estimate)."""
         acceleration: float = paper.PAPER_ACCELERATION
         """paper: m/s² of the stop-and-go legs."""
+        forecast_steps: int = 0
+        """Also publish ``3D.mobility.forecast``: the positions of the next this many
+        steps, as the flight will compute them if no hover request arrives (for the
+        look-ahead ray tracing of sionna-link). 0: no forecast (the default)."""
 
         def __post_init__(self):
             paper.check_protocol(self.protocol)
@@ -64,6 +69,8 @@ class WaypointFlight(caviar.Plugin):
                 raise ValueError(f"speed: expected a positive number of m/s, got {self.speed}")
             if not self.acceleration > 0 or self.takeoff_s < 0 or self.last_waypoint < 1:
                 raise ValueError("acceleration must be > 0, takeoff_s >= 0 and last_waypoint >= 1")
+            if self.forecast_steps < 0:
+                raise ValueError(f"forecast_steps: expected >= 0, got {self.forecast_steps}")
 
     @staticmethod
     def _waypoint_file(waypoints: str, config_dir) -> pathlib.Path:
@@ -104,6 +111,15 @@ class WaypointFlight(caviar.Plugin):
             if m.data.get("UE_Id") == self.p.ue_id:
                 self.hover_until = max(self.hover_until, t + float(m.data["seconds"]))
         yield POSITIONS, position_payload(self.p.ue_id, self.path.at(self.s))
+        if self.p.forecast_steps:
+            # The same additions the next steps will make (bit-identical positions),
+            # holding while a hover already requested lasts.
+            s, ahead = self.s, []
+            for k in range(self.p.forecast_steps):
+                if t + k * self.ts + 1e-9 >= self.hover_until:
+                    s += self.p.speed * self.ts
+                ahead.append(self.path.at(s))
+            yield FORECAST, forecast_payload(self.p.ue_id, ahead, self.ts)
         if self.s >= self.path.length and self.p.end_at_last:
             yield caviar.END_TOPIC, {"reason": f"{self.p.ue_id} reached its last waypoint"}
         if t + 1e-9 >= self.hover_until:
@@ -127,6 +143,21 @@ class WaypointFlight(caviar.Plugin):
             f.advance()
         f.k += 1
         yield POSITIONS, position_payload(self.p.ue_id, f.pos)
+        if self.p.forecast_steps:
+            # The flight's own logic run ahead on a copy, with no new hover requests.
+            g, ahead = copy.deepcopy(f), []
+            for _ in range(self.p.forecast_steps):
+                if g.decide():
+                    break
+                g.advance()
+                ahead.append(g.pos.copy())
+            yield FORECAST, forecast_payload(self.p.ue_id, ahead, self.ts)
+
+
+def forecast_payload(ue_id: str, positions, ts: float, ue_type: str = "UAV") -> dict:
+    """A ``3D.mobility.forecast`` payload: the positions of the next steps."""
+    return {"UE_type": ue_type, "UE_Id": ue_id, "ts": float(ts),
+            "positions": [{"x": float(p[0]), "y": float(p[1]), "z": float(p[2])} for p in positions]}
 
 
 class PaperFlight:

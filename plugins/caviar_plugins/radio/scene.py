@@ -14,6 +14,7 @@ import dataclasses
 import glob
 import os
 import pathlib
+import warnings
 from typing import Any
 
 import numpy as np
@@ -93,6 +94,10 @@ class RadioConfig:
     normalize: bool = False
     """Scale each link's H to unit mean |H_mn|² (the 2023 code's ``normalize=True``):
     path loss and distance cancel. A link without paths stays zero."""
+    max_num_paths_per_src: int = 1_000_000
+    """Sionna's candidate-path buffer per source (its default). Candidates beyond it are
+    dropped silently by Sionna (NVlabs/sionna#1172); :meth:`RadioScene.solve` detects
+    it, warns and reports the number dropped in :attr:`Link.paths_dropped`."""
     threads: int = 0
     """Dr.Jit CPU threads; 0 = all cores. On CPU the solver's parallel sums differ in the
     last float bits from run to run; ``threads = 1`` makes runs bit-identical (measured
@@ -109,6 +114,8 @@ class RadioConfig:
                 raise ValueError(f"{name}: expected [rows, columns], got {getattr(self, name)}")
         if self.max_depth < 0 or self.samples_per_src < 1:
             raise ValueError("max_depth must be >= 0 and samples_per_src >= 1")
+        if self.max_num_paths_per_src < 1:
+            raise ValueError(f"max_num_paths_per_src: expected >= 1, got {self.max_num_paths_per_src}")
 
 
 @dataclasses.dataclass
@@ -121,6 +128,9 @@ class Link:
     """Beam-pair gains |w_rx^H H w_tx|², (C_rx, C_tx)."""
     los: bool
     n_paths: int
+    paths_dropped: int = 0
+    """Candidate paths of this solve that Sionna's buffer (``max_num_paths_per_src``)
+    could not hold and dropped: when > 0 the channel may miss paths."""
 
     @property
     def path_gain(self) -> float:
@@ -161,6 +171,7 @@ class RadioScene:
         s.rx_array = self._array(cfg.rx_array)
         s.add(rt.Transmitter("tx", position=cfg.tx_position, orientation=cfg.tx_orientation))
         self.solver = rt.PathSolver()
+        self._watch_path_buffer()
         if cfg.codebook == "flat-dft":
             self.w_tx = flat_dft_codebook(s.tx_array.num_ant)
             self.w_rx = flat_dft_codebook(s.rx_array.num_ant)
@@ -175,6 +186,34 @@ class RadioScene:
         self._solved: tuple[tuple, dict] | None = None
         self._body_template = s.objects.get("Cube")
         self._bodies_on = cfg.uav_mesh
+
+    def _watch_path_buffer(self) -> None:
+        """Keeps a reference to the per-source candidate counter of Sionna's
+        shoot-and-bounce (``paths_counter_per_source``, incremented for every candidate
+        *before* the ``max_num_paths_per_src`` cap is applied): after a solve, a count
+        above the cap is the number of candidates dropped (NVlabs/sionna#1172)."""
+        self._path_counter = None
+        gen = getattr(self.solver, "_candidate_generator", None)
+        if gen is None:
+            return
+        for name, index in (("_los", 4), ("_shoot_and_bounce", 7)):
+            method = getattr(gen, name, None)
+            if method is None:
+                continue
+
+            def spy(*args, _method=method, _index=index, _name=name, **kwargs):
+                counter = kwargs.get("paths_counter_per_source", args[_index] if len(args) > _index else None)
+                self._path_counter = counter
+                return _method(*args, **kwargs)
+
+            setattr(gen, name, spy)
+
+    def paths_dropped(self) -> int:
+        """Candidates the last solve dropped for lack of buffer (0: none)."""
+        if self._path_counter is None:
+            return 0
+        counts = np.array(self._path_counter, dtype=np.int64).reshape(-1)
+        return int(np.maximum(counts - self.cfg.max_num_paths_per_src, 0).sum())
 
     def _array(self, shape):
         return self.rt.PlanarArray(num_rows=shape[0], num_cols=shape[1], vertical_spacing=self.cfg.spacing,
@@ -233,7 +272,13 @@ class RadioScene:
         paths = self.solver(self.scene, max_depth=c.max_depth, samples_per_src=c.samples_per_src,
                             synthetic_array=True, los=c.los, specular_reflection=c.specular_reflection,
                             diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
-                            diffraction=c.diffraction, seed=self.seed)
+                            diffraction=c.diffraction, seed=self.seed,
+                            max_num_paths_per_src=c.max_num_paths_per_src)
+        dropped = self.paths_dropped()
+        if dropped:
+            warnings.warn(f"Sionna's path buffer overflowed: {dropped} candidate paths dropped "
+                          f"(max_num_paths_per_src = {c.max_num_paths_per_src}); raise it", RuntimeWarning,
+                          stacklevel=2)
         # paths.a lacks the carrier phase: the CFR at the carrier includes it.
         cfr = paths.cfr(frequencies=np.array([c.frequency_hz]), normalize_delays=False, out_type="numpy")
         valid = np.array(paths.valid).reshape(len(self.receivers), -1)  # [rx, paths] (one tx)
@@ -249,6 +294,62 @@ class RadioScene:
             if c.normalize:
                 h = normalize_channel(h)
             out[key] = Link(h=h, gains=beam_gains(h, self.w_tx, self.w_rx), los=bool(los[i]),
-                            n_paths=int(valid[i].sum()))
+                            n_paths=int(valid[i].sum()), paths_dropped=dropped)
         self._solved = (self._placed, out)
         return out
+
+
+class LookaheadTracer:
+    """Look-ahead ray tracing: one solve traces every UE's current position and its
+    forecast (the next ``steps`` positions its mobility module expects), and caches each
+    position's :class:`Link`. A later step whose positions are all within
+    ``tolerance_m`` of cached ones (a forecast that came true, a hovering UAV) costs no
+    solve; otherwise (a UE left its forecast, or the forecast is used up) one new
+    solve traces all UEs again. Receivers are ``steps + 1`` per UE in every solve (a
+    missing forecast is padded with the last position): stable shapes, reused kernels.
+
+    The static scene makes this exact: a position's paths do not depend on the other
+    receivers of the solve (same rays, same seed). UAV bodies are scatterers that move,
+    and one solve can place a body at one position only, so the radio scene must have
+    ``uav_mesh = false`` (checked)."""
+
+    def __init__(self, radio: RadioScene, steps: int, tolerance_m: float = 0.01):
+        if radio.cfg.uav_mesh:
+            raise ValueError("look-ahead needs uav_mesh = false: a solve places each UAV body at one position, "
+                             "so forecast positions would see the bodies where the UAVs are now")
+        if steps < 0 or tolerance_m < 0:
+            raise ValueError("look-ahead steps and tolerance must be >= 0")
+        self.radio, self.steps, self.tolerance_m = radio, steps, tolerance_m
+        self.cache: dict[str, list[tuple[np.ndarray, Link]]] = {}
+        self.solves = 0
+        self.hits = 0
+
+    def lookup(self, ue: str, position) -> Link | None:
+        p = np.asarray(position, dtype=float)
+        best, best_d = None, self.tolerance_m
+        for q, link in self.cache.get(ue, []):
+            d = float(np.linalg.norm(q - p))
+            if d <= best_d:
+                best, best_d = link, d
+        return best
+
+    def links(self, current: dict[str, np.ndarray], forecast: dict[str, list] | None = None) -> dict[str, Link]:
+        """Each UE's link at its current position, from the cache or from one new solve."""
+        forecast = forecast or {}
+        cached = {ue: self.lookup(ue, p) for ue, p in current.items()}
+        if all(link is not None for link in cached.values()):
+            self.hits += 1
+            return {ue: link for ue, link in cached.items() if link is not None}
+        slots: dict[str, np.ndarray] = {}
+        for ue, p in current.items():
+            ahead = [np.asarray(q, dtype=float) for q in forecast.get(ue, [])][: self.steps]
+            seq = [np.asarray(p, dtype=float), *ahead]
+            seq += [seq[-1]] * (self.steps + 1 - len(seq))
+            for k, q in enumerate(seq):
+                slots[f"{ue}@{k}"] = q
+        self.radio.place(slots)
+        links = self.radio.solve()
+        self.solves += 1
+        self.cache = {ue: [(slots[f"{ue}@{k}"], links[f"{ue}@{k}"]) for k in range(self.steps + 1)]
+                      for ue in current}
+        return {ue: links[f"{ue}@0"] for ue in current}

@@ -22,11 +22,12 @@ import numpy as np
 import caviar
 from caviar_plugins import protocol as paper
 from caviar_plugins.radio.link_budget import LinkBudget
-from caviar_plugins.radio.scene import RadioConfig, RadioScene
+from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene
 from caviar_plugins.schema import (
     BEAM_GAINS,
     BEAM_SELECTION,
     CHANNEL,
+    FORECAST,
     LINK,
     POSITIONS,
     STATE,
@@ -51,6 +52,17 @@ class SionnaLinkParams(RadioConfig):
     dropped, unit-energy H, no refraction or diffuse reflection, 5.714 λ spacing, the
     flat 64-point DFT, Rx 8.23 m below the UAV, R = 40 MHz · log2(1 + |g|²/3248.11).
     It fixes those fields whatever they are set to."""
+    lookahead: bool = False
+    """Look-ahead ray tracing (:class:`~caviar_plugins.radio.scene.LookaheadTracer`):
+    one solve traces each UE's current position and the next ``lookahead_steps``
+    positions of its ``3D.mobility.forecast`` (waypoint-flight's ``forecast_steps``),
+    and later steps whose positions are within ``cache_tolerance_m`` of a traced one
+    reuse its channel without a solve. Needs ``uav_mesh = false`` (moving UAV bodies
+    cannot be at their current and future positions in one solve)."""
+    lookahead_steps: int = 4
+    """Forecast positions traced per UE and solve (receivers per solve: UEs × (1 + this))."""
+    cache_tolerance_m: float = 0.01
+    """A position within this distance of a traced one reuses its channel."""
 
     def __post_init__(self):
         paper.check_protocol(self.protocol)
@@ -68,6 +80,11 @@ class SionnaLinkParams(RadioConfig):
             self.uav_mesh = True
             self.bandwidth_hz = paper.PAPER_BANDWIDTH_HZ
         super().__post_init__()
+        if self.lookahead and self.uav_mesh:
+            raise ValueError("lookahead = true needs uav_mesh = false (a solve places each UAV body at one "
+                             "position; forecast positions would see the bodies where the UAVs are now)")
+        if self.lookahead_steps < 0 or self.cache_tolerance_m < 0:
+            raise ValueError("lookahead_steps and cache_tolerance_m must be >= 0")
 
     def radio(self) -> RadioConfig:
         names = {f.name for f in dataclasses.fields(RadioConfig)}
@@ -75,7 +92,7 @@ class SionnaLinkParams(RadioConfig):
 
 
 class SionnaLink(caviar.Plugin):
-    subscribe = [POSITIONS, BEAM_SELECTION]
+    subscribe = [POSITIONS, BEAM_SELECTION, FORECAST]
     publishes = (THROUGHPUT, LINK, every_ue(CHANNEL), every_ue(BEAM_GAINS), STATE)
     Params = SionnaLinkParams
 
@@ -88,6 +105,8 @@ class SionnaLink(caviar.Plugin):
         self.ue_type: dict[str, str] = {}
         self.positions: dict[str, np.ndarray] = {}
         self.selected: dict[str, int] = {}
+        self.forecast: dict[str, list[np.ndarray]] = {}
+        self.lookahead = LookaheadTracer(self.radio, p.lookahead_steps, p.cache_tolerance_m) if p.lookahead else None
 
     def step(self, t, inbox):
         for m in inbox:
@@ -96,10 +115,15 @@ class SionnaLink(caviar.Plugin):
                 self.positions[m.data["UE_Id"]] = read_position(m.data)
             elif m.topic == BEAM_SELECTION:
                 self.selected[m.data["UE_Id"]] = int(m.data["beam_pair"])
+            elif m.topic == FORECAST:
+                self.forecast[m.data["UE_Id"]] = [read_position({"position": q}) for q in m.data["positions"]]
         if not self.positions:
             return
-        self.radio.place(self.positions)
-        links = self.radio.solve()
+        if self.lookahead is not None:
+            links = self.lookahead.links(self.positions, self.forecast)
+        else:
+            self.radio.place(self.positions)
+            links = self.radio.solve()
         n_pairs = self.radio.w_rx.shape[1] * self.radio.n_tx_beams
         for ue, link in links.items():
             pair = self.selected.get(ue, link.best_pair)
@@ -113,6 +137,8 @@ class SionnaLink(caviar.Plugin):
                 "best_pair": link.best_pair, "pair": pair, "selected": ue in self.selected,
                 "path_gain_db": _db(link.path_gain), "snr_db": _db(self._snr(gain)),
                 "best_throughput": self._mbps(float(link.gains.max())),
+                # Only when it happened: Sionna's path buffer dropped candidates (sionna#1172).
+                **({"paths_dropped": link.paths_dropped} if link.paths_dropped else {}),
             }
             if self.p.publish_channels:
                 yield per_ue(CHANNEL, ue), link.h.astype(np.complex64)
