@@ -225,13 +225,16 @@ class SionnaTrafficLink(caviar.Plugin):
             ue_type = self.ue_type[ue]
             yield THROUGHPUT, throughput_payload(ue_type, ue, self.budget.throughput_mbps(gain))
             info = extra[slot]
-            yield LINK, {
+            payload = {
                 "UE_type": ue_type, "UE_Id": ue, "los": link.los, "n_paths": link.n_paths,
                 "best_pair": link.best_pair, "pair": pair, "selected": ue in self.selected,
                 "path_gain_db": _db(link.path_gain), "snr_db": _db(float(self.budget.sinr(gain))),
                 "best_throughput": float(self.budget.throughput_mbps(link.gains.max())),
                 "speed": float(np.linalg.norm(self.rx_vel[slot])), "blocker": blockers[slot], **info,
             }
+            if getattr(link, "paths_dropped", 0):  # Sionna's path buffer overflowed (as sionna-link)
+                payload["paths_dropped"] = link.paths_dropped
+            yield LINK, payload
             if self.p.publish_channels:
                 yield per_ue(CHANNEL, ue), link.h.astype(np.complex64)
                 yield per_ue(BEAM_GAINS, ue), link.gains.astype(np.float32)
