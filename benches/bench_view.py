@@ -49,7 +49,8 @@ class Crowd(caviar.Plugin):
             r, z = 40 + 5 * i, {"UAV": 40.0, "car": 1.0, "pedestrian": 0.0}[kind]
             a = 0.05 * t * (1 + i % 7) + i
             yield "3D.mobility.positions", {"UE_type": kind, "UE_Id": f"{kind.lower()}{i}",
-                                             "position": {"x": -150 + r * math.cos(a), "y": 60 + r * math.sin(a), "z": z}}
+                                             "position": {"x": -150 + r * math.cos(a), "y": 60 + r * math.sin(a),
+                                                          "z": z}}
 
 
 class Link(caviar.Plugin):
@@ -116,7 +117,8 @@ FPS_JS = """async (seconds) => {
 }"""
 
 GL_JS = """() => {
-  const gl = document.createElement('canvas').getContext('webgl2') || document.createElement('canvas').getContext('webgl');
+  const canvas = document.createElement('canvas');
+  const gl = canvas.getContext('webgl2') || canvas.getContext('webgl');
   if (!gl) return null;
   const ext = gl.getExtension('WEBGL_debug_renderer_info');
   return ext ? gl.getParameter(ext.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
@@ -132,8 +134,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=pathlib.Path, default=OUT)
     args = ap.parse_args(argv)
 
-    from caviar.view import RunData, start_server
     from playwright.sync_api import sync_playwright
+
+    from caviar.view import RunData, start_server
 
     with tempfile.TemporaryDirectory(prefix="bench-view-") as d:
         run, run_s = make_run(pathlib.Path(d), args.steps, args.entities)
