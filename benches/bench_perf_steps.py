@@ -1,0 +1,344 @@
+"""Issue #18 "Faster steps": each fast path against today's path, measured in the same
+run (the old paths stay selectable: camera/detector ``batch = false``, sionna-link
+without ``lookahead``).
+
+    .venv/bin/python benches/bench_perf_steps.py [--sar-duration 10] [--samples 1000000] [--reps 5]
+
+* ``camera_50uav``: 50 nadir views, one ``mi.render`` each vs ``render_many`` (interleaved, median of reps);
+* ``detector_50uav``: 50 received images, per image on the plugin's default thread pool vs ``detect_many``;
+* ``raytrace_{1,10}uav``: one solve at ``--samples``: the bare Sionna calls of today's ``RadioScene.solve``
+  (PathSolver + CFR) vs ``RadioScene.solve`` (with overflow detection), and where the time goes
+  (Dr.Jit kernel execution, codegen, backend compile, CFR, post-processing);
+* ``sar{D}_{1,10}uav_tp_tv``: wall/virtual time of bench_scaling's SAR loop (camera, sionna-link, image link,
+  detector; no rescue stops) for ``--sar-duration`` virtual seconds: today's modules vs batched camera and
+  detector + look-ahead ray tracing (waypoint-flight ``forecast_steps``, sionna-link ``lookahead``, which needs
+  ``uav_mesh = false``); the accuracy effect (best pair, throughput) of the new run against the old one, step by
+  step, as bench_radio's ``accuracy`` compares sample counts.
+
+Writes docs/results/perf-steps.json and docs/results/perf-steps.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from caviar_plugins import DATA
+from caviar_plugins.mobility import Path, read_waypoints
+from caviar_plugins.radio import configure_drjit
+
+configure_drjit()
+
+OUT = pathlib.Path("docs/results")
+ROUTE = "central_park_path0_scene.csv"
+
+
+def machine() -> str:
+    import drjit
+
+    cpu = "unknown CPU"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return (f"{cpu}, {os.cpu_count()} cores (shared with another engineer's work: timings ±30 %), no GPU; "
+            f"{platform.platform()}; Dr.Jit {drjit.__version__} LLVM, sionna-rt "
+            f"{__import__('sionna.rt').rt.__version__}")
+
+
+def interleaved(old, new, reps: int) -> tuple[float, float]:
+    a, b = [], []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        old()
+        t1 = time.perf_counter()
+        new()
+        b.append(time.perf_counter() - t1)
+        a.append(t1 - t0)
+    return statistics.median(a), statistics.median(b)
+
+
+def views(n: int) -> list[np.ndarray]:
+    """n UAVs spread along the route at 7-12 m (the SAR altitudes), half over targets."""
+    from caviar_plugins.vision.camera import default_targets
+
+    rng = np.random.default_rng(0)
+    path = Path(read_waypoints(DATA / ROUTE))
+    targets = np.array(default_targets())
+    out = []
+    for i in range(n):
+        xy = targets[i % len(targets)] + rng.normal(0, 2.5, 2) if i % 2 == 0 else \
+            path.at(rng.uniform(0, path.length))[:2]
+        out.append(np.r_[xy, rng.uniform(7.0, 12.0)])
+    return out
+
+
+def bench_vision(reps: int) -> dict:
+    from caviar_plugins.vision import VisualConfig, VisualScene, packet_loss
+    from caviar_plugins.vision.person_detector import builtin_model
+
+    visual = VisualScene(VisualConfig(), seed=1)
+    pos = views(50)
+    visual.render(pos[0])
+    visual.render_many(pos)  # kernels compiled, ray cache filled
+    same = all(np.array_equal(a[0], visual.render(p)) for a, p in zip(visual.render_many(pos), pos, strict=True))
+    old_s, new_s = interleaved(lambda: [visual.render(p) for p in pos], lambda: visual.render_many(pos), reps)
+    out = {"camera_50uav": {"old_s": old_s, "new_s": new_s, "ratio": new_s / old_s, "images_identical": same}}
+    print(f"camera, 50 UAVs: {old_s:.3f} s -> {new_s:.3f} s ({new_s / old_s:.2f}x), identical: {same}", flush=True)
+
+    rng = np.random.default_rng(1)
+    images = [packet_loss(im, rate, rng) for (im, _), rate in
+              zip(visual.render_many(pos), [0.0, 0.0, 0.01, 0.25, 0.5] * 10, strict=True)]
+    det = builtin_model()
+    pool = ThreadPoolExecutor(os.cpu_count() or 1)  # the plugin's default (workers = 0)
+    same = list(pool.map(det.detect, images)) == det.detect_many(images)
+    old_s, new_s = interleaved(lambda: list(pool.map(det.detect, images)), lambda: det.detect_many(images), reps)
+    pool.shutdown()
+    out["detector_50uav"] = {"old_s": old_s, "new_s": new_s, "ratio": new_s / old_s, "detections_identical": same}
+    print(f"detector, 50 UAVs: {old_s:.3f} s -> {new_s:.3f} s ({new_s / old_s:.2f}x), identical: {same}",
+          flush=True)
+    return out
+
+
+def bench_solve(n_rx: int, samples: int, reps: int) -> dict:
+    import drjit as dr
+
+    from caviar_plugins.radio import RadioConfig, RadioScene
+
+    path = Path(read_waypoints(DATA / ROUTE))
+    starts = np.linspace(0, path.length * 0.9, n_rx)
+    radio = RadioScene(RadioConfig(samples_per_src=samples), seed=0)
+    c = radio.cfg
+    k = [0]
+
+    def move():
+        k[0] += 1
+        radio.place({f"uav{i + 1}": path.at(s + 2.5 * k[0]) for i, s in enumerate(starts)})
+
+    def bare():  # today's RadioScene.solve: the Sionna calls, then numpy
+        move()
+        paths = radio.solver(radio.scene, max_depth=c.max_depth, samples_per_src=c.samples_per_src,
+                             synthetic_array=True, los=c.los, specular_reflection=c.specular_reflection,
+                             diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
+                             diffraction=c.diffraction, seed=radio.seed)
+        paths.cfr(frequencies=np.array([c.frequency_hz]), normalize_delays=False, out_type="numpy")
+
+    def new():
+        move()
+        radio.solve()
+
+    new()  # compile
+    old_s, new_s = interleaved(bare, new, reps)
+    # Where a solve's time goes.
+    move()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    t0 = time.perf_counter()
+    paths = radio.solver(radio.scene, max_depth=c.max_depth, samples_per_src=c.samples_per_src, synthetic_array=True,
+                         los=c.los, specular_reflection=c.specular_reflection,
+                         diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
+                         diffraction=c.diffraction, seed=radio.seed)
+    t1 = time.perf_counter()
+    hist = dr.kernel_history()
+    paths.cfr(frequencies=np.array([c.frequency_hz]), normalize_delays=False, out_type="numpy")
+    t2 = time.perf_counter()
+    radio._solved = None
+    radio.solve()
+    t3 = time.perf_counter()
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
+    ms = lambda key: sum((h.get(key) or 0.0) for h in hist) / 1e3  # noqa: E731
+    biggest = max((h.get("execution_time") or 0.0) for h in hist) / 1e3
+    breakdown = {"solver_s": t1 - t0, "kernel_exec_s": ms("execution_time"), "largest_kernel_s": biggest,
+                 "codegen_s": ms("codegen_time"), "backend_compile_s": ms("backend_compile_time"),
+                 "kernels": len(hist), "cfr_s": t2 - t1,
+                 # A second solve minus the solver and CFR of the first: mostly the two solves' noise.
+                 "solve_minus_solver_and_cfr_s": (t3 - t2) - (t1 - t0) - (t2 - t1),
+                 "paths_dropped": radio.paths_dropped()}
+    print(f"solve, {n_rx} UAV(s), {samples:.0e} samples: {old_s:.2f} s -> {new_s:.2f} s ({new_s / old_s:.2f}x); "
+          f"{breakdown}", flush=True)
+    return {"old_s": old_s, "new_s": new_s, "ratio": new_s / old_s, "breakdown": breakdown}
+
+
+def sar_config(n: int, duration: float, samples: int, new: bool, forecast: int) -> str:
+    length = Path(read_waypoints(DATA / ROUTE)).length
+    text = f"""
+[episode]
+ts = 0.5
+duration = {duration}
+seed = 1
+stages = ["mobility", "camera", "communications", "link", "detection"]
+
+[output]
+exclude = ["3D.camera.>", "ai.images.>"]
+"""
+    for i in range(n):
+        text += f"""
+[modules.uav{i + 1}]
+stage = "mobility"
+plugin = "waypoint-flight"
+[modules.uav{i + 1}.params]
+waypoints = "{ROUTE}"
+frame = "scene"
+ue_id = "uav{i + 1}"
+end_at_last = false
+start_m = {i * length / n:.1f}
+forecast_steps = {forecast if new else 0}
+"""
+    comm = (f"samples_per_src = {samples}, publish_channels = false"
+            + (f", uav_mesh = false, lookahead = true, lookahead_steps = {forecast}" if new else ""))
+    text += f"""
+[modules.camera]
+stage = "camera"
+plugin = "camera"
+params = {{ batch = {str(new).lower()} }}
+
+[modules.comm]
+stage = "communications"
+plugin = "sionna-link"
+params = {{ {comm} }}
+
+[modules.link]
+stage = "link"
+plugin = "image-link"
+
+[modules.detector]
+stage = "detection"
+plugin = "person-detector"
+params = {{ batch = {str(new).lower()} }}
+"""
+    return text
+
+
+def bench_sar(n: int, duration: float, samples: int, forecast: int, work: pathlib.Path) -> dict:
+    import caviar
+    from caviar.report import summary
+
+    res: dict = {"uavs": n, "virtual_s": duration, "lookahead_steps": forecast}
+    logs = {}
+    for label, new in (("old", False), ("new", True)):
+        cfg = work / f"sar-{n}-{label}.toml"
+        cfg.write_text(sar_config(n, duration, samples, new, forecast))
+        run = work / f"run-{n}-{label}"
+        if run.exists():
+            shutil.rmtree(run)
+        logs[label] = caviar.Simulation.from_toml(cfg, out=run).run()
+        s = summary(run)
+        m = s["modules"]
+        res[label] = {"wall_s": s["wall_s"], "tp_tv": s["wall_s"] / s["virtual_time_s"],
+                      **{f"{k}_s_per_step": m[k]["wall_s_per_step"] for k in ("comm", "camera", "detector")}}
+        print(f"SAR {n} UAV(s) {label}: T_p/T_v = {res[label]['tp_tv']:.2f} {res[label]}", flush=True)
+    res["ratio"] = res["new"]["tp_tv"] / res["old"]["tp_tv"]
+    # Accuracy of the new run's links against the old run's (every step traced, UAV bodies on).
+    a, b = (logs[k].topic("communications.link").sort(["step", "UE_Id"]) for k in ("old", "new"))
+    thr_a, thr_b = a["best_throughput"].to_numpy(), b["best_throughput"].to_numpy()
+    res["accuracy_vs_old"] = {
+        "links": len(a),
+        "same_best_pair_pct": float(100 * np.mean(a["best_pair"].to_numpy() == b["best_pair"].to_numpy())),
+        "best_throughput_error_mbps_median": float(np.median(np.abs(thr_a - thr_b))),
+        "best_throughput_error_mbps_p95": float(np.percentile(np.abs(thr_a - thr_b), 95)),
+        "old_best_throughput_mbps_median": float(np.median(thr_a)),
+        "los_agreement_pct": float(100 * np.mean(a["los"].to_numpy() == b["los"].to_numpy())),
+        "note": "new = look-ahead with uav_mesh = false; old = every step traced with the UAV bodies (default). "
+                "Look-ahead against every step traced with uav_mesh = false is exact up to float32 rounding "
+                "(tests/test_perf_correctness.py): the differences here are the UAV bodies'.",
+    }
+    print(f"  accuracy: {res['accuracy_vs_old']}", flush=True)
+    return res
+
+
+def plot(results: dict, path: pathlib.Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [k for k, v in results["ratios"].items() if v is not None]
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    ax.bar(names, [results["ratios"][k] for k in names], color="tab:blue")
+    ax.axhline(1.0, color="k", lw=0.8)
+    ax.set(ylabel="new / old time", title="Issue #18: faster steps (lower is better)")
+    for i, k in enumerate(names):
+        ax.text(i, results["ratios"][k], f"{results['ratios'][k]:.2f}", ha="center", va="bottom")
+    plt.setp(ax.get_xticklabels(), rotation=15)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--samples", type=int, default=10**6)
+    ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--solve-reps", type=int, default=3)
+    ap.add_argument("--sar-duration", type=float, default=10.0)
+    ap.add_argument("--forecast-1", type=int, default=9, help="look-ahead steps with 1 UAV")
+    ap.add_argument("--forecast-10", type=int, default=4, help="look-ahead steps with 10 UAVs")
+    ap.add_argument("--skip", nargs="*", default=[], choices=["vision", "solve", "sar1", "sar10"])
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the items of docs/results/perf-steps.json that this run skips")
+    args = ap.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    absolute: dict = {}
+    reasons: dict = {}
+    ratios: dict = {k: None for k in ("raytrace_1uav", "raytrace_10uav", "sar60_1uav_tp_tv", "sar60_10uav_tp_tv",
+                                      "camera_50uav", "detector_50uav")}
+    if args.merge and (OUT / "perf-steps.json").exists():
+        old = json.loads((OUT / "perf-steps.json").read_text())
+        ratios.update({k: v for k, v in old["ratios"].items() if v is not None})
+        absolute.update(old["absolute"])
+    if "vision" not in args.skip:
+        for k in ("camera_50uav", "detector_50uav"):  # a merged earlier measurement stays on record
+            if k in absolute:
+                absolute.setdefault("earlier_runs", {}).setdefault(k, []).append(absolute[k])
+        absolute.update(bench_vision(args.reps))
+        ratios["camera_50uav"] = absolute["camera_50uav"]["ratio"]
+        ratios["detector_50uav"] = absolute["detector_50uav"]["ratio"]
+    else:
+        reasons["camera_50uav"] = reasons["detector_50uav"] = "skipped in this run (--skip vision)"
+    if "solve" not in args.skip:
+        for n in (1, 10):
+            absolute[f"raytrace_{n}uav"] = bench_solve(n, args.samples, args.solve_reps)
+            ratios[f"raytrace_{n}uav"] = absolute[f"raytrace_{n}uav"]["ratio"]
+    else:
+        reasons["raytrace_1uav"] = reasons["raytrace_10uav"] = "skipped in this run (--skip solve)"
+    with tempfile.TemporaryDirectory(prefix="perf-steps-") as tmp:
+        for n, forecast in ((1, args.forecast_1), (10, args.forecast_10)):
+            key = f"sar60_{n}uav_tp_tv"
+            if f"sar{n}" in args.skip:
+                reasons[key] = f"skipped in this run (--skip sar{n}): not enough time on the shared machine"
+                continue
+            absolute[key] = bench_sar(n, args.sar_duration, args.samples, forecast, pathlib.Path(tmp))
+            ratios[key] = absolute[key]["ratio"]
+    results = {
+        "ratios": ratios, "absolute": absolute, "machine": machine(),
+        "missing": {k: reasons.get(k, "not measured") for k, v in ratios.items() if v is None},
+        "notes": {
+            "ratios": "new time / old time, measured in the same run (interleaved for camera, detector, solve).",
+            "sar": f"The sar60_* items ran {args.sar_duration:g} s of virtual time (not 60 s) at Ts = 0.5 s, "
+                   f"{args.samples:.0e} samples per source, to fit the time budget; the first step's kernel "
+                   "compilation is included in both runs. Ratio of T_p/T_v (wall / virtual time).",
+            "raytrace": "One solve: the old path is the bare PathSolver + CFR that RadioScene.solve called; the "
+                        "new one is RadioScene.solve with overflow detection. A solve is one shoot-and-bounce "
+                        "kernel (see breakdown): nothing outside it is large enough to cut.",
+        },
+    }
+    (OUT / "perf-steps.json").write_text(json.dumps(results, indent=2) + "\n")
+    plot(results, OUT / "perf-steps.png")
+    print(json.dumps(results["ratios"], indent=2))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
