@@ -27,7 +27,6 @@ import pathlib
 import platform
 import shutil
 import statistics
-import sys
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -56,8 +55,8 @@ def machine() -> str:
     except OSError:
         pass
     return (f"{cpu}, {os.cpu_count()} cores (shared with another engineer's work: timings ±30 %), no GPU; "
-            f"{platform.platform()}; Dr.Jit {drjit.__version__} LLVM, sionna-rt "
-            f"{__import__('sionna.rt').rt.__version__}")
+            f"{platform.platform()}; Dr.Jit {getattr(drjit, '__version__', '?')} LLVM, sionna-rt "
+            f"{getattr(__import__('sionna.rt').rt, '__version__', '?')}")
 
 
 def interleaved(old, new, reps: int) -> tuple[float, float]:
@@ -320,6 +319,8 @@ def main() -> None:
             if f"sar{n}" in args.skip:
                 reasons[key] = f"skipped in this run (--skip sar{n}): not enough time on the shared machine"
                 continue
+            if key in absolute:
+                absolute.setdefault("earlier_runs", {}).setdefault(key, []).append(absolute[key])
             absolute[key] = bench_sar(n, args.sar_duration, args.samples, forecast, pathlib.Path(tmp))
             ratios[key] = absolute[key]["ratio"]
     results = {
@@ -341,4 +342,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()
