@@ -89,16 +89,20 @@ def test_lockstep_and_same_seed_same_positions(tmp_path, grid):
 
 
 def test_bad_input_is_a_clear_error_naming_the_file(tmp_path, grid, cli):
-    # A network that does not exist.
+    # A network that does not exist: found by validate, before a run directory exists.
     cfg = traffic_config(tmp_path, tmp_path / "missing.net.xml")
-    with pytest.raises(caviar.RunError, match=r"missing\.net\.xml: no such SUMO network file"):
-        caviar.Simulation.from_toml(cfg, out=tmp_path / "r1").run()
+    with pytest.raises(caviar.ConfigError, match=r"modules\.traffic\.params\.net: .*missing\.net\.xml: no such SUMO"):
+        caviar.Simulation.from_toml(cfg, out=tmp_path / "r1")
+    assert not (tmp_path / "r1").exists()
     # A route file on edges the network does not have.
     routes = tmp_path / "other.rou.xml"
     routes.write_text('<routes><vehicle id="v0" depart="0"><route edges="nowhere elsewhere"/></vehicle></routes>')
     cfg = traffic_config(tmp_path, grid, demand=f'routes = ["{routes}"]')
     with pytest.raises(caviar.RunError, match=r"SUMO cannot load .*other\.rou\.xml.*nowhere"):
         caviar.Simulation.from_toml(cfg, out=tmp_path / "r2").run()
+    # On the command line that is bad input, not a crash: exit 2, the file named, no traceback.
+    p = cli("run", cfg, "--out", tmp_path / "r2-cli")
+    assert p.returncode == 2 and "other.rou.xml" in p.stderr and "Traceback" not in p.stderr, p.stderr
     # A vehicle type the route file does not define.
     routes.write_text('<routes><vehicle id="v0" depart="0" type="spaceship"><route edges="A0B0 B0C0"/></vehicle>'
                       '</routes>')

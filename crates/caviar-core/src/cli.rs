@@ -307,10 +307,10 @@ fn finish_line(engine: &Engine, status: RunState, error: Option<EngineError>, wa
                 "{dir}: {status} after {} steps; what was recorded is in the run directory",
                 engine.steps_done()
             );
-            if matches!(e, EngineError::Interrupted { .. }) {
-                130
-            } else {
-                1
+            match e {
+                EngineError::Interrupted { .. } => 130,
+                EngineError::Module { error, .. } if error.bad_input => 2,
+                _ => 1,
             }
         }
     }

@@ -48,7 +48,8 @@ pub enum EngineError {
         phase: &'static str,
         step: Option<u64>,
         time: Option<f64>,
-        error: ModuleError,
+        /// Boxed: keeps `Result<_, EngineError>` small.
+        error: Box<ModuleError>,
     },
     #[error("module '{module}' published on topic '{topic}' in step {step}: {reason}")]
     Publish {
@@ -402,7 +403,7 @@ impl Engine {
                     phase: "setup",
                     step: None,
                     time: None,
-                    error,
+                    error: Box::new(error),
                 })?;
             slot.set_up = true;
         }
@@ -544,7 +545,7 @@ impl Engine {
                         phase: "step",
                         step: Some(at.step),
                         time: Some(at.time),
-                        error,
+                        error: Box::new(error),
                     });
                     Vec::new()
                 }
@@ -754,7 +755,7 @@ impl Engine {
                     phase: "teardown",
                     step: None,
                     time: None,
-                    error,
+                    error: Box::new(error),
                 });
             }
         }

@@ -12,17 +12,30 @@ use std::path::PathBuf;
 use crate::message::{Outgoing, SharedMessage};
 
 /// A module's failure. `trace` carries a traceback or backtrace when there is one.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct ModuleError {
     pub message: String,
     pub trace: Option<String>,
+    /// The failure is bad input that the module could only find out when it loaded it
+    /// (a file its parameters name that its tool rejects), not a crash: the run ends
+    /// with exit code 2 and the message, without a traceback.
+    pub bad_input: bool,
 }
 
 impl ModuleError {
     pub fn new(message: impl Into<String>) -> Self {
         ModuleError {
             message: message.into(),
-            trace: None,
+            ..Default::default()
+        }
+    }
+
+    /// A failure caused by bad input (see [`ModuleError::bad_input`]).
+    pub fn bad_input(message: impl Into<String>) -> Self {
+        ModuleError {
+            message: message.into(),
+            bad_input: true,
+            ..Default::default()
         }
     }
 }

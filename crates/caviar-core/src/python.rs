@@ -37,12 +37,31 @@ fn module_error(py: Python<'_>, err: PyErr) -> ModuleError {
         crate::interrupt::request();
         return ModuleError::new("interrupted (Ctrl-C)");
     }
+    if err.is_instance_of::<errors::ConfigError>(py) {
+        // caviar.ConfigError from a plugin: bad input it found, not a crash; its key
+        // is relative to the module's table.
+        let value = err.value(py);
+        let key = value
+            .getattr("key")
+            .and_then(|k| k.extract::<Option<String>>())
+            .ok()
+            .flatten();
+        let message = value.to_string();
+        return ModuleError::bad_input(match key {
+            Some(k) => format!("{k}: {message}"),
+            None => message,
+        });
+    }
     let message = err.to_string();
     let trace = host(py)
         .and_then(|h| h.call_method1("format_exception", (err.value(py), err.traceback(py))))
         .and_then(|t| t.extract::<String>())
         .ok();
-    ModuleError { message, trace }
+    ModuleError {
+        message,
+        trace,
+        bad_input: false,
+    }
 }
 
 /// A Python plugin, wrapped by `caviar._host.Hosted`.

@@ -32,6 +32,7 @@ impl Module for Probe {
             return Err(ModuleError {
                 message: "boom".into(),
                 trace: Some("Traceback: probe.rs".into()),
+                bad_input: false,
             });
         }
         let mut seen = self.seen.lock().unwrap();

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import pathlib
 from typing import Optional
 
 import caviar
@@ -89,6 +90,17 @@ class SumoTrafficParams:
 class SumoTraffic(caviar.Plugin):
     publishes = (POSITIONS, DEPARTED, ARRIVED, TRAFFIC, caviar.END_TOPIC)
     Params = SumoTrafficParams
+
+    @classmethod
+    def check_params(cls, params, config_dir):
+        """The network and route files exist (``validate`` catches them; whether SUMO
+        accepts them is known only when it loads them, in setup)."""
+        base = pathlib.Path(config_dir)
+        if params.net and not (base / params.net).is_file():
+            raise caviar.ConfigError(f"{base / params.net}: no such SUMO network file", "net")
+        for i, r in enumerate(params.routes):
+            if not (base / r).is_file():
+                raise caviar.ConfigError(f"{base / r}: no such route file", f"routes[{i}]")
 
     def setup(self, ctx):
         p = ctx.params

@@ -232,6 +232,7 @@ pub fn failure(error: Option<WireError>) -> ModuleError {
         Some(e) => ModuleError {
             message: e.message,
             trace: e.trace,
+            bad_input: false,
         },
         None => ModuleError::new("the worker reported a failure without details"),
     }
