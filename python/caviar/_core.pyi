@@ -81,6 +81,33 @@ class StepRequest:
         """The module's inbox, in delivery order."""
 
 @final
+class Guard:
+    """A worker's side of the run's authentication: the run key (64 hex digits, or
+    from ``CAVIAR_RUN_KEY`` / ``CAVIAR_RUN_KEY_FILE`` when ``key`` is None), the core's
+    sequence numbers seen, the worker's own counter and its step schedule."""
+
+    def __new__(cls, run: str, key: Optional[str] = None) -> Guard: ...
+    def seal(self, subject: str, body: bytes) -> bytes:
+        """``body`` with this worker's next sequence number and its HMAC for ``subject``."""
+    def open(self, subject: str, frame: bytes) -> bytes:
+        """The body of a frame of the core received on ``subject``; ValueError (counted)
+        if it fails authentication or repeats a sequence number."""
+    def schedule(self, every: int, offset: int, steps: Optional[int], shards: int, exclusive: bool) -> None: ...
+    def accept_step(self, step: int, shard: int) -> None:
+        """ValueError (counted) for a step out of sequence."""
+    def refuse(self) -> None:
+        """Counts a refusal decided by the worker."""
+    @property
+    def rejected(self) -> int:
+        """Frames refused so far."""
+
+def sign(key: str, run: str, subject: str, seq: int, body: bytes) -> bytes:
+    """``body`` sealed with the run key ``key`` (hex) for ``subject`` of run ``run``."""
+
+def verify(key: str, run: str, subject: str, frame: bytes) -> tuple[int, bytes]:
+    """``(seq, body)`` of a sealed frame; ValueError when it fails authentication."""
+
+@final
 class Episode:
     """An episode driven from Python; :class:`caviar.Simulation` wraps it.
 

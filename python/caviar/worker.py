@@ -8,6 +8,11 @@ run ends. It beats every second so that the core notices a worker that hangs or
 dies. The plugin code is the same as in-process (``caviar._host.Hosted``); the wire
 format is in docs/nats-protocol.md and its frames are encoded and decoded by the core
 (``caviar._core.decode_request``, ``encode_reply``, ``encode_failure``).
+
+Every frame of the core is authenticated with the run key (``CAVIAR_RUN_KEY``, or the
+file named by ``CAVIAR_RUN_KEY_FILE``) and every answer sealed with it, by the core's
+own code (``caviar._core.Guard``); frames that fail, repeat a sequence number or carry
+an unexpected step are refused, logged and counted (reported in the heartbeat).
 """
 
 from __future__ import annotations
@@ -16,11 +21,13 @@ import argparse
 import asyncio
 import json
 import os
+import pathlib
 import socket
 import ssl
 import sys
 import threading
 import time
+from collections.abc import MutableMapping
 from typing import TYPE_CHECKING
 
 from caviar import _core
@@ -49,6 +56,22 @@ def error_reply(exc: BaseException) -> dict:
     return {"ok": False, "error": {"message": f"{type(exc).__name__}: {exc}", "trace": format_exception(exc)}}
 
 
+def key_env(env: MutableMapping[str, str]) -> None:
+    """With ``CAVIAR_RUN_KEY_FILE`` naming a run key file written by the core (lines
+    ``NAME=value``), takes the NATS credentials in it that the environment lacks."""
+    path = env.get("CAVIAR_RUN_KEY_FILE")
+    if not path or "CAVIAR_RUN_KEY" in env:
+        return
+    try:
+        text = pathlib.Path(path).read_text()
+    except OSError:
+        return  # the core's Guard says what is missing
+    for line in text.splitlines():
+        name, sep, value = line.strip().partition("=")
+        if sep and name in ("NATS_USER", "NATS_PASSWORD", "NATS_TOKEN"):
+            env.setdefault(name, value)
+
+
 class Worker:
     """Plugin calls (load, setup, step, teardown) run on the event loop's thread: no
     thread hop per step (the barrier's latency) and one thread for libraries with
@@ -65,9 +88,27 @@ class Worker:
         self.done = asyncio.Event()
         self.gpu = open_sampler()
         self.exit_code = 0
+        key_env(os.environ)  # NATS credentials of a run key file, before connecting
+        self.guard = _core.Guard(self.run)
 
     def log(self, text: str) -> None:
         print(f"caviar worker {self.id}: {text}", file=sys.stderr, flush=True)
+
+    def _open(self, msg: Msg) -> bytes | None:
+        """The body of a frame of the core, or None (logged, counted) when it is refused."""
+        try:
+            return self.guard.open(msg.subject, msg.data)
+        except ValueError as e:
+            self.log(f"security: refused {e} ({self.guard.rejected} refused so far)")
+            return None
+
+    def _refuse(self, why: str) -> None:
+        self.guard.refuse()
+        self.log(f"security: refused {why} ({self.guard.rejected} refused so far)")
+
+    async def _respond(self, msg: Msg, body: bytes) -> None:
+        """Answers the core's request, sealed for its reply subject."""
+        await self.nc.publish(msg.reply, self.guard.seal(msg.reply, body))
 
     async def connect(self):
         import nats
@@ -107,10 +148,14 @@ class Worker:
         body = json.dumps({"protocol": PROTOCOL, "module": self.module, "worker": self.id,
                            "host": socket.gethostname(), "pid": os.getpid()}).encode()
         deadline = time.monotonic() + self.args.wait
+        subject = f"{self.prefix}.hello"
         while True:
             try:
-                reply = await self.nc.request(f"{self.prefix}.hello", body, timeout=5)
-                return json.loads(reply.data)
+                reply = await self.nc.request(subject, self.guard.seal(subject, body), timeout=5)
+                answer = self._open(reply)
+                if answer is not None:
+                    return json.loads(answer)
+                raise nats.errors.TimeoutError  # someone without the key answered: ask again
             except (nats.errors.NoRespondersError, nats.errors.TimeoutError):
                 if time.monotonic() > deadline:
                     raise TimeoutError(f"no core answered on {self.prefix}.hello within {self.args.wait:.0f} s "
@@ -146,7 +191,8 @@ class Worker:
         try:
             self.hosted, subscribe, publishes = self._load()
         except Exception as e:  # the core reports it as a configuration error
-            await self.nc.publish(loaded, json.dumps({"worker": self.id, **error_reply(e)}).encode())
+            await self.nc.publish(loaded, self.guard.seal(loaded, json.dumps({"worker": self.id,
+                                                                                **error_reply(e)}).encode()))
             await self.nc.flush()
             self.log(f"cannot load plugin {self.spec['plugin']!r}: {e}")
             return 2
@@ -154,8 +200,8 @@ class Worker:
         await self.nc.subscribe(f"{me}.setup", cb=self.on_setup)
         await self.nc.subscribe(f"{me}.teardown", cb=self.on_teardown)
         await self.nc.subscribe(f"{self.prefix}.stop", cb=self.on_stop)
-        await self.nc.publish(loaded, json.dumps({"worker": self.id, "subscribe": subscribe,
-                                                  "publishes": publishes}).encode())
+        await self.nc.publish(loaded, self.guard.seal(loaded, json.dumps(
+            {"worker": self.id, "subscribe": subscribe, "publishes": publishes}).encode()))
         await self.nc.flush()
         stop_beating = threading.Event()
         beat = threading.Thread(target=self.heartbeat, args=(stop_beating,), name="heartbeat", daemon=True)
@@ -176,10 +222,11 @@ class Worker:
         async def beat():
             nc = await nats.connect(**dict(self.options, name=f"caviar-worker {self.id} heartbeat",
                                            closed_cb=None, disconnected_cb=None, reconnected_cb=None))
-            body = json.dumps({"worker": self.id}).encode()
+            subject = f"{self.prefix}.heartbeat"
             while not stop.is_set():
                 try:
-                    await nc.publish(f"{self.prefix}.heartbeat", body)
+                    body = json.dumps({"worker": self.id, "rejected": self.guard.rejected}).encode()
+                    await nc.publish(subject, self.guard.seal(subject, body))
                     # nats-py annotates timeout as int; it is seconds for asyncio.wait_for, a float is fine.
                     await nc.flush(timeout=HEARTBEAT_S)  # type: ignore[arg-type]
                 except Exception as e:  # reconnecting: the core times us out if it lasts
@@ -190,17 +237,24 @@ class Worker:
         asyncio.run(beat())
 
     async def on_setup(self, msg: Msg) -> None:
-        s, c = self.spec, json.loads(msg.data)
+        data = self._open(msg)
+        if data is None:
+            return
+        if not msg.reply:
+            self._refuse("a setup without a reply subject")
+            return
+        s, c = self.spec, json.loads(data)
+        self.guard.schedule(c["every"], c["offset"], c["steps"], s.get("shards", 1), bool(c.get("exclusive")))
         try:
             self._plugin().setup(c["seed"], c["ts"], c["steps"], c["every"], c["offset"],
                               s["run_dir"], s["config_dir"], s.get("shards", 1))
         except Exception as e:
-            await msg.respond(json.dumps(error_reply(e)).encode())
+            await self._respond(msg, json.dumps(error_reply(e)).encode())
             return
         # Steps come through the module's queue group: several workers share them.
         await self.nc.subscribe(f"{self.prefix}.{self.module}.step", queue=self.module, cb=self.on_step)
         await self.nc.flush()  # subscribed on the server before the core's first step
-        await msg.respond(b'{"ok":true}')
+        await self._respond(msg, b'{"ok":true}')
 
     def _step(self, req: _core.StepRequest) -> bytes:
         t0, c0 = time.perf_counter(), time.process_time()
@@ -209,24 +263,45 @@ class Worker:
         return encode_reply(out, wall, cpu, self.gpu.sample() if self.gpu else None)
 
     async def on_step(self, msg: Msg) -> None:
+        data = self._open(msg)
+        if data is None:
+            return
         try:
-            reply = self._step(_core.decode_request(msg.data))
+            req = _core.decode_request(data)
+        except Exception as e:
+            await self._respond(msg, _core.encode_failure(**error_reply(e)["error"]))
+            return
+        try:
+            self.guard.accept_step(req.step, req.shard)
+        except ValueError as e:
+            self.log(f"security: refused {e} ({self.guard.rejected} refused so far)")
+            return
+        try:
+            reply = self._step(req)
         except Exception as e:
             reply = _core.encode_failure(**error_reply(e)["error"])
-        await msg.respond(reply)
+        await self._respond(msg, reply)
 
     async def on_teardown(self, msg: Msg) -> None:
+        if self._open(msg) is None:
+            return
+        if not msg.reply:
+            self._refuse("a teardown without a reply subject")
+            return
+        result: dict
         try:
             self._plugin().teardown()
-            reply = b'{"ok":true}'
+            result = {"ok": True}
         except Exception as e:
-            reply = json.dumps(error_reply(e)).encode()
-        await msg.respond(reply)
+            result = error_reply(e)
+        result["rejected"] = self.guard.rejected
+        await self._respond(msg, json.dumps(result).encode())
         await self.nc.flush()
         self.done.set()
 
     async def on_stop(self, msg: Msg) -> None:
-        self.done.set()
+        if self._open(msg) is not None:
+            self.done.set()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -245,9 +320,15 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if bool(args.tls_cert) != bool(args.tls_key):
         p.error("--tls-cert and --tls-key go together")
-    # NATS_TOKEN / NATS_USER / NATS_PASSWORD come from the environment: not on the command line.
+    # NATS_TOKEN / NATS_USER / NATS_PASSWORD and the run key come from the environment:
+    # not on the command line, where every user of the machine can read them.
     try:
-        return asyncio.run(Worker(args).serve())
+        worker = Worker(args)
+    except ValueError as e:
+        print(f"caviar worker: {e}", file=sys.stderr)
+        return 2
+    try:
+        return asyncio.run(worker.serve())
     except KeyboardInterrupt:
         return 130
 

@@ -117,6 +117,9 @@ pub struct NatsTransport {
     pub tls_key: Option<PathBuf>,
     #[serde(default)]
     pub tls_required: bool,
+    /// The run key (64 hex digits) that authenticates the run's frames, for workers
+    /// started elsewhere that must share it; default: a fresh random key per run.
+    pub key_file: Option<PathBuf>,
     /// Seconds to wait for every module's workers to connect and load their plugin.
     #[serde(default = "default_startup_timeout")]
     pub startup_timeout: f64,
@@ -165,6 +168,7 @@ impl Default for NatsTransport {
             tls_cert: None,
             tls_key: None,
             tls_required: false,
+            key_file: None,
             startup_timeout: default_startup_timeout(),
             step_timeout: None,
             heartbeat_timeout: default_heartbeat_timeout(),

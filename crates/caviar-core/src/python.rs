@@ -636,6 +636,104 @@ fn encode_failure(
     PyBytes::new(py, &wire::encode_failure(&error))
 }
 
+/// A worker's side of the run's authentication (transport/nats/auth.rs): the run
+/// key, the core's sequence numbers seen, the worker's own counter and its step
+/// schedule. Thread-safe (the heartbeat thread seals too).
+#[pyclass(frozen, module = "caviar._core")]
+struct Guard(std::sync::Mutex<crate::transport::nats::auth::Guard>);
+
+#[pymethods]
+impl Guard {
+    /// `key`: 64 hex digits; `None` reads CAVIAR_RUN_KEY or CAVIAR_RUN_KEY_FILE.
+    #[new]
+    #[pyo3(signature = (run, key=None))]
+    fn new(run: &str, key: Option<&str>) -> PyResult<Self> {
+        use crate::transport::nats::auth::RunKey;
+        let key = match key {
+            Some(k) => RunKey::from_hex(k),
+            None => RunKey::from_env(),
+        }
+        .map_err(PyValueError::new_err)?;
+        Ok(Guard(std::sync::Mutex::new(
+            crate::transport::nats::auth::Guard::new(key, run),
+        )))
+    }
+
+    /// `body` sealed for `subject` with this worker's next sequence number.
+    fn seal<'py>(&self, py: Python<'py>, subject: &str, body: &[u8]) -> Bound<'py, PyBytes> {
+        PyBytes::new(py, &self.0.lock().unwrap().seal(subject, body.to_vec()))
+    }
+
+    /// The body of a frame of the core received on `subject`; ValueError (counted) if it
+    /// fails authentication or repeats a sequence number.
+    fn open<'py>(
+        &self,
+        py: Python<'py>,
+        subject: &str,
+        frame: &[u8],
+    ) -> PyResult<Bound<'py, PyBytes>> {
+        let mut g = self.0.lock().unwrap();
+        let body = g.open(subject, frame).map_err(PyValueError::new_err)?;
+        Ok(PyBytes::new(py, body))
+    }
+
+    /// The module's schedule, from its setup.
+    fn schedule(&self, every: u64, offset: u64, steps: Option<u64>, shards: u64, exclusive: bool) {
+        self.0
+            .lock()
+            .unwrap()
+            .schedule(every, offset, steps, shards, exclusive);
+    }
+
+    /// Accepts a step, or ValueError (counted) when it is out of sequence.
+    fn accept_step(&self, step: u64, shard: u64) -> PyResult<()> {
+        self.0
+            .lock()
+            .unwrap()
+            .accept_step(step, shard)
+            .map_err(PyValueError::new_err)
+    }
+
+    /// Counts a refusal decided by the worker (a teardown without a reply subject).
+    fn refuse(&self) {
+        self.0.lock().unwrap().refuse();
+    }
+
+    /// Core frames refused so far.
+    #[getter]
+    fn rejected(&self) -> u64 {
+        self.0.lock().unwrap().rejected
+    }
+}
+
+/// `body` sealed with the run key `key` (hex) for `subject` of run `run`, sequence `seq`.
+#[pyfunction]
+fn sign<'py>(
+    py: Python<'py>,
+    key: &str,
+    run: &str,
+    subject: &str,
+    seq: u64,
+    body: &[u8],
+) -> PyResult<Bound<'py, PyBytes>> {
+    let k = crate::transport::nats::auth::RunKey::from_hex(key).map_err(PyValueError::new_err)?;
+    Ok(PyBytes::new(py, &k.seal(run, subject, seq, body.to_vec())))
+}
+
+/// `(seq, body)` of a sealed frame, or ValueError when it fails authentication.
+#[pyfunction]
+fn verify<'py>(
+    py: Python<'py>,
+    key: &str,
+    run: &str,
+    subject: &str,
+    frame: &[u8],
+) -> PyResult<(u64, Bound<'py, PyBytes>)> {
+    let k = crate::transport::nats::auth::RunKey::from_hex(key).map_err(PyValueError::new_err)?;
+    let (seq, body) = k.open(run, subject, frame).map_err(PyValueError::new_err)?;
+    Ok((seq, PyBytes::new(py, body)))
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -651,5 +749,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(decode_request, m)?)?;
     m.add_function(wrap_pyfunction!(encode_reply, m)?)?;
     m.add_function(wrap_pyfunction!(encode_failure, m)?)?;
+    m.add_class::<Guard>()?;
+    m.add_function(wrap_pyfunction!(sign, m)?)?;
+    m.add_function(wrap_pyfunction!(verify, m)?)?;
     Ok(())
 }

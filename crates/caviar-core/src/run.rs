@@ -137,6 +137,7 @@ fn check_nats_files(cfg: &LoadedConfig) -> Result<(), ConfigError> {
         ("tls_ca", &n.tls_ca),
         ("tls_cert", &n.tls_cert),
         ("tls_key", &n.tls_key),
+        ("key_file", &n.key_file),
     ];
     for (key, path) in files {
         if let Some(p) = path {

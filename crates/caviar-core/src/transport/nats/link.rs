@@ -11,6 +11,7 @@ use futures_util::StreamExt;
 use serde::Deserialize;
 use serde_json::json;
 
+use super::auth::{RunKey, SeqWindow};
 use super::server::{DieWithParent, SpawnedServer};
 use super::wire::{WireError, PROTOCOL};
 use crate::config::NatsTransport;
@@ -63,6 +64,57 @@ struct Loaded {
 #[derive(Deserialize)]
 struct Beat {
     worker: String,
+    /// Core frames the worker refused so far.
+    #[serde(default)]
+    rejected: u64,
+}
+
+/// What was refused during the run: by the core (worker messages that failed
+/// authentication) and by each worker (core frames it refused, as it reported them).
+#[derive(Debug, Default)]
+pub struct Security {
+    pub rejected_by_core: u64,
+    pub rejected_by_workers: HashMap<String, u64>,
+    /// The first refusals, in words.
+    pub warnings: Vec<String>,
+    /// Sequence numbers seen per worker and subject (hello, loaded, heartbeat).
+    seqs: HashMap<(String, String), SeqWindow>,
+}
+
+impl Security {
+    const MAX_WARNINGS: usize = 50;
+
+    /// Records a message the core refused and says so on stderr.
+    pub fn reject(&mut self, why: String) {
+        eprintln!("caviar: security: refused {why}");
+        self.rejected_by_core += 1;
+        if self.warnings.len() < Self::MAX_WARNINGS {
+            self.warnings.push(why);
+        }
+    }
+
+    /// A worker's own count of refused core frames (they only grow).
+    pub fn worker_reports(&mut self, worker: &str, rejected: u64) {
+        let n = self.rejected_by_workers.entry(worker.into()).or_default();
+        if rejected > *n {
+            eprintln!(
+                "caviar: security: worker {worker} refused {} core frame(s) that failed authentication or were out of sequence",
+                rejected - *n
+            );
+            *n = rejected;
+        }
+    }
+
+    /// `security` in run.json.
+    pub fn to_json(&self) -> serde_json::Value {
+        let by_workers: u64 = self.rejected_by_workers.values().sum();
+        json!({
+            "rejected": self.rejected_by_core + by_workers,
+            "rejected_by_core": self.rejected_by_core,
+            "rejected_by_workers": self.rejected_by_workers,
+            "warnings": self.warnings,
+        })
+    }
 }
 
 /// A worker process this run started, and where its output goes.
@@ -106,6 +158,13 @@ pub struct Link {
     disconnected_since: Mutex<Option<Instant>>,
     /// Set when the run ends badly (a step past its deadline, Ctrl-C).
     abandoning: std::sync::atomic::AtomicBool,
+    /// The run key: every frame is sealed and checked with it (auth.rs).
+    pub key: RunKey,
+    /// The core's sequence number, one counter for every frame it sends.
+    seq: Arc<std::sync::atomic::AtomicU64>,
+    pub security: Arc<Mutex<Security>>,
+    /// Where run.json is, to record `security` in it when the run ends.
+    run_dir: PathBuf,
     // Dropped last (fields drop in order): the workers and the client go before the server.
     server: Mutex<Option<SpawnedServer>>,
 }
@@ -154,12 +213,15 @@ pub fn connect_options(
 
 impl Link {
     /// Connects and starts answering workers' hellos with `offers`.
+    #[allow(clippy::too_many_arguments)]
     pub fn connect(
         url: &str,
         options: async_nats::ConnectOptions,
         run_id: &str,
+        key: RunKey,
         offers: HashMap<String, ModuleOffer>,
         base: serde_json::Value,
+        run_dir: &Path,
         timeouts: Timeouts,
         server: Option<SpawnedServer>,
     ) -> Result<Arc<Link>, String> {
@@ -194,18 +256,46 @@ impl Link {
             })
             .map_err(|e| format!("NATS subscribe on {prefix}.*: {e}"))?;
         let (c, w, s) = (client.clone(), workers.clone(), started.clone());
+        let security: Arc<Mutex<Security>> = Arc::default();
+        let seq = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let (sec, k, run, hello_seq) = (
+            security.clone(),
+            key.clone(),
+            run_id.to_string(),
+            seq.clone(),
+        );
         rt.spawn(async move {
             while let Some(msg) = subs.next().await {
                 let subject = msg.subject.as_str();
+                // Only workers that hold the run key are heard.
+                let body = match k.open(&run, subject, &msg.payload) {
+                    Ok((n, body)) => {
+                        let who = serde_json::from_slice::<Beat>(body)
+                            .map(|b| b.worker)
+                            .unwrap_or_default();
+                        let leaf = subject.rsplit('.').next().unwrap_or("").to_string();
+                        let mut sec = sec.lock().unwrap();
+                        if let Err(e) = sec.seqs.entry((who.clone(), leaf)).or_default().accept(n) {
+                            sec.reject(format!("{subject} from '{who}': {e}"));
+                            continue;
+                        }
+                        body
+                    }
+                    Err(e) => {
+                        sec.lock().unwrap().reject(e);
+                        continue;
+                    }
+                };
                 if subject.ends_with(".hello") {
-                    let answer = answer_hello(&msg.payload, &offers, &base, &w, &s);
+                    let answer = answer_hello(body, &offers, &base, &w, &s);
                     if let Some(reply) = msg.reply {
-                        let _ = c
-                            .publish(reply, serde_json::to_vec(&answer).expect("json").into())
-                            .await;
+                        let n = hello_seq.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+                        let sealed =
+                            k.seal(&run, &reply, n, serde_json::to_vec(&answer).expect("json"));
+                        let _ = c.publish(reply, sealed.into()).await;
                     }
                 } else if subject.ends_with(".loaded") {
-                    if let Ok(l) = serde_json::from_slice::<Loaded>(&msg.payload) {
+                    if let Ok(l) = serde_json::from_slice::<Loaded>(body) {
                         if let Some(info) = w.lock().unwrap().get_mut(&l.worker) {
                             info.last_beat = Instant::now();
                             let plugin = LoadedPlugin {
@@ -215,10 +305,11 @@ impl Link {
                             info.loaded = Some(l.error.map_or(Ok(plugin), Err));
                         }
                     }
-                } else if let Ok(b) = serde_json::from_slice::<Beat>(&msg.payload) {
+                } else if let Ok(b) = serde_json::from_slice::<Beat>(body) {
                     if let Some(info) = w.lock().unwrap().get_mut(&b.worker) {
                         info.last_beat = Instant::now();
                     }
+                    sec.lock().unwrap().worker_reports(&b.worker, b.rejected);
                 }
             }
         });
@@ -234,8 +325,57 @@ impl Link {
             processes: Mutex::new(Vec::new()),
             disconnected_since: Mutex::new(None),
             abandoning: std::sync::atomic::AtomicBool::new(false),
+            key,
+            seq,
+            security,
+            run_dir: run_dir.to_path_buf(),
             server: Mutex::new(server),
         }))
+    }
+
+    /// Seals a frame of the core for `subject` with the next sequence number.
+    pub fn seal(&self, subject: &str, body: Vec<u8>) -> Vec<u8> {
+        let n = self.seq.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+        self.key.seal(&self.run_id, subject, n, body)
+    }
+
+    /// Checks a worker's reply received on `subject` (its own inbox: a reply cannot be
+    /// moved to another request); a refusal is recorded.
+    pub fn open_reply<'a>(
+        &self,
+        what: &str,
+        subject: &str,
+        frame: &'a [u8],
+    ) -> Result<&'a [u8], ModuleError> {
+        self.key
+            .open(&self.run_id, subject, frame)
+            .map(|(_, body)| body)
+            .map_err(|e| {
+                self.security.lock().unwrap().reject(format!("reply to {what}: {e}"));
+                ModuleError::new(format!(
+                    "{what}: the reply failed authentication (someone without the run key answered; see security in run.json)"
+                ))
+            })
+    }
+
+    /// Records `security` in run.json (the run's status is written before the link goes).
+    fn record_security(&self) {
+        let path = self.run_dir.join("run.json");
+        let Ok(text) = std::fs::read_to_string(&path) else {
+            return;
+        };
+        let Ok(mut status) = serde_json::from_str::<serde_json::Value>(&text) else {
+            return;
+        };
+        let Some(o) = status.as_object_mut() else {
+            return;
+        };
+        o.insert("security".into(), self.security.lock().unwrap().to_json());
+        let tmp = self.run_dir.join("run.json.security.tmp");
+        let text = serde_json::to_string_pretty(&status).expect("json");
+        if std::fs::write(&tmp, text).is_ok() {
+            let _ = std::fs::rename(&tmp, &path);
+        }
     }
 
     /// Starts a worker process for `module`; its output goes to `log`.
@@ -452,9 +592,10 @@ impl Drop for Link {
     fn drop(&mut self) {
         // Tell every worker of the run to leave, then make sure the ones we started did.
         let (c, subject) = (self.client.clone(), format!("{}.stop", self.prefix));
+        let stop = self.seal(&subject, b"{}".to_vec());
         let flush = Duration::from_millis(if self.abandoning() { 300 } else { 2000 });
         let _ = self.rt.block_on(async move {
-            let _ = c.publish(subject, "{}".into()).await;
+            let _ = c.publish(subject, stop.into()).await;
             tokio::time::timeout(flush, c.flush()).await
         });
         let modules: Vec<String> = self
@@ -468,6 +609,7 @@ impl Drop for Link {
         for m in modules {
             self.reap(&m, Duration::from_secs(grace));
         }
+        self.record_security();
     }
 }
 
@@ -494,7 +636,10 @@ fn answer_hello(
         return json!({"ok": false, "error": "the run has already started; workers must join before the first step"});
     }
     let mut w = workers.lock().unwrap();
-    if w.contains_key(&hello.worker) {
+    let again = w
+        .get(&hello.worker)
+        .is_some_and(|o| o.pid == hello.pid && o.host == hello.host && o.loaded.is_none());
+    if w.contains_key(&hello.worker) && !again {
         return json!({"ok": false, "error": format!("a worker with id '{}' already joined", hello.worker)});
     }
     w.insert(

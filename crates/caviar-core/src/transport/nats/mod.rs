@@ -10,6 +10,7 @@
 //! bindings (which reach the wire format) uses it. Public for benchmarks and tests:
 //! [`prepare`], [`WorkerLauncher`], [`server`] and the Rust [`worker`].
 
+pub mod auth;
 pub(crate) mod bridge;
 pub(crate) mod link;
 pub(crate) mod remote;
@@ -22,9 +23,10 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use auth::{RunKey, KEY_ENV, KEY_FILE_ENV};
 use link::{connect_options, Link, ModuleOffer, Timeouts};
 use remote::{Ready, WorkerModule};
-use server::{find_server, SpawnedServer};
+use server::{find_server, write_private, ServerAuth, SpawnedServer};
 use wire::MIRROR_SOURCE_HEADER;
 
 use crate::assembly::{build_modules, is_builtin, PrepareError, BRIDGE_PLUGIN};
@@ -66,8 +68,14 @@ fn remote_modules(cfg: &LoadedConfig) -> impl Iterator<Item = (&String, &ModuleC
         .filter(|(_, m)| !is_builtin(&m.plugin))
 }
 
-/// Arguments that give a worker the run's connection settings (secrets go by environment).
-fn connection_args(cfg: &LoadedConfig) -> (Vec<String>, Vec<(String, String)>) {
+/// Arguments that give a worker the run's connection settings; secrets (the server's
+/// password, the run key) go by environment, never on the command line, where any
+/// user of the machine can read them.
+fn connection_args(
+    cfg: &LoadedConfig,
+    link: &Link,
+    auth: Option<&ServerAuth>,
+) -> (Vec<String>, Vec<(String, String)>) {
     let n = &cfg.config.transport.nats;
     let mut args = Vec::new();
     let path = |p: &PathBuf| cfg.resolve(p).to_string_lossy().into_owned();
@@ -91,6 +99,13 @@ fn connection_args(cfg: &LoadedConfig) -> (Vec<String>, Vec<(String, String)>) {
             envs.push((var.to_string(), v.clone()));
         }
     }
+    if let Some(a) = auth {
+        // A server of our own: its credentials, made for this run.
+        envs.retain(|(k, _)| !k.starts_with("NATS_"));
+        envs.push(("NATS_USER".into(), a.user.clone()));
+        envs.push(("NATS_PASSWORD".into(), a.password.clone()));
+    }
+    envs.push((KEY_ENV.into(), link.key.hex().into()));
     (args, envs)
 }
 
@@ -102,8 +117,9 @@ pub fn prepare(
     run_dir: &Path,
 ) -> Result<(Vec<ModuleSpec>, Option<Tap>), PrepareError> {
     let server = start_server(cfg, launcher.as_ref(), run_dir)?;
+    let auth = server.as_ref().and_then(|s| s.auth.clone());
     let link = connect(cfg, run_dir, server)?;
-    spawn_workers(cfg, launcher.as_ref(), &link, run_dir)?;
+    spawn_workers(cfg, launcher.as_ref(), &link, auth.as_ref(), run_dir)?;
     let mut ready = wait_for_workers(cfg, &link)?;
     let specs = build_modules(cfg, |name, m| {
         Ok(Some(if m.plugin == BRIDGE_PLUGIN {
@@ -133,8 +149,10 @@ fn start_server(
     )
     .map_err(|e| cfg.error_at("transport.nats.spawn", e))?;
     let log = run_dir.join("nats-server.log");
+    let auth = ServerAuth::generate().map_err(PrepareError::Io)?;
     Ok(Some(
-        SpawnedServer::start(&bin, "127.0.0.1", &log).map_err(PrepareError::Io)?,
+        SpawnedServer::start_with_auth(&bin, "127.0.0.1", &log, Some(auth))
+            .map_err(PrepareError::Io)?,
     ))
 }
 
@@ -150,7 +168,28 @@ fn connect(
         .map(|s| s.url.clone())
         .or_else(|| n.url.clone())
         .expect("validated: url or spawn");
-    let options = connect_options(n, &|p| cfg.resolve(p)).map_err(PrepareError::Io)?;
+    let mut options = connect_options(n, &|p| cfg.resolve(p)).map_err(PrepareError::Io)?;
+    if let Some(a) = server.as_ref().and_then(|s| s.auth.as_ref()) {
+        options = options.user_and_password(a.user.clone(), a.password.clone());
+    }
+    let key = match &n.key_file {
+        Some(f) => {
+            let path = cfg.resolve(f);
+            let text = std::fs::read_to_string(&path).map_err(|e| {
+                cfg.error_at(
+                    "transport.nats.key_file",
+                    format!("{}: {e}", path.display()),
+                )
+            })?;
+            key_from_text(&text).map_err(|e| {
+                cfg.error_at(
+                    "transport.nats.key_file",
+                    format!("{}: {e}", path.display()),
+                )
+            })?
+        }
+        None => RunKey::generate().map_err(PrepareError::Io)?,
+    };
     let offers = remote_modules(cfg)
         .map(|(name, m)| {
             let offer = ModuleOffer {
@@ -167,7 +206,10 @@ fn connect(
     });
     let id = run_id(cfg, run_dir);
     let timeouts = Timeouts::from_config(n, cfg.step_timeout());
-    Link::connect(&url, options, &id, offers, base, timeouts, server).map_err(PrepareError::Io)
+    Link::connect(
+        &url, options, &id, key, offers, base, run_dir, timeouts, server,
+    )
+    .map_err(PrepareError::Io)
 }
 
 /// Starts the workers this run owns; tells the user about the ones it waits for.
@@ -175,15 +217,43 @@ fn spawn_workers(
     cfg: &LoadedConfig,
     launcher: Option<&WorkerLauncher>,
     link: &Link,
+    auth: Option<&ServerAuth>,
     run_dir: &Path,
 ) -> Result<(), PrepareError> {
     let (url, id) = (&link.url, &link.run_id);
-    let (extra_args, envs) = connection_args(cfg);
+    let (extra_args, envs) = connection_args(cfg, link, auth);
     let logs = run_dir.join("workers");
+    let mut key_file = cfg
+        .config
+        .transport
+        .nats
+        .key_file
+        .as_ref()
+        .map(|f| cfg.resolve(f));
     for (name, m) in remote_modules(cfg) {
         let count = m.workers.unwrap_or(m.shards);
         if count == 0 {
-            eprintln!("caviar: waiting for module '{name}': start `caviar worker --nats {url} --run {id} --module {name}`");
+            let file = match &key_file {
+                Some(f) => f.clone(),
+                None => {
+                    // Workers started by hand need the run key (and a server of our
+                    // own's credentials): in a file only this user can read.
+                    let f = run_dir.join("run.key");
+                    let mut text = format!("{KEY_ENV}={}\n", link.key.hex());
+                    if let Some(a) = auth {
+                        text += &format!("NATS_USER={}\nNATS_PASSWORD={}\n", a.user, a.password);
+                    }
+                    write_private(&f, &text)
+                        .map_err(|e| PrepareError::Io(format!("{}: {e}", f.display())))?;
+                    key_file = Some(f.clone());
+                    f
+                }
+            };
+            let file = file.canonicalize().unwrap_or(file);
+            eprintln!(
+                "caviar: waiting for module '{name}': start `{KEY_FILE_ENV}={} caviar worker --nats {url} --run {id} --module {name}`",
+                file.display()
+            );
             continue;
         }
         let Some(l) = launcher else {
@@ -321,4 +391,15 @@ fn mirror_tap(cfg: &LoadedConfig, link: Arc<Link>) -> Option<Tap> {
             }
         });
     }))
+}
+
+/// The run key in a key file: 64 hex digits, alone or as `CAVIAR_RUN_KEY=…` among
+/// other `NAME=value` lines (the `run.key` the core writes for hand-started workers).
+pub fn key_from_text(text: &str) -> Result<RunKey, String> {
+    let line = text
+        .lines()
+        .map(str::trim)
+        .find_map(|l| l.strip_prefix(&format!("{KEY_ENV}=")))
+        .unwrap_or(text.trim());
+    RunKey::from_hex(line)
 }

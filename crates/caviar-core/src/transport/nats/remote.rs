@@ -40,6 +40,9 @@ struct Ack {
     ok: bool,
     #[serde(default)]
     error: Option<WireError>,
+    /// Core frames the worker refused (in its teardown answer).
+    #[serde(default)]
+    rejected: Option<u64>,
 }
 
 impl WorkerModule {
@@ -60,7 +63,9 @@ impl WorkerModule {
         format!("{}.{}.{leaf}", self.link.prefix, self.name)
     }
 
+    /// Sends `payload` sealed with the run key (the sequence number is taken now).
     fn request(&self, subject: String, payload: Vec<u8>) -> Pending {
+        let payload = self.link.seal(&subject, payload);
         let client = self.link.client.clone();
         self.link.rt.spawn(async move {
             client
@@ -98,8 +103,18 @@ impl WorkerModule {
                 .link
                 .wait(&self.name, &self.workers, &what, task, timeout)?
                 .map_err(|e| request_error(&what, e))?;
-            let ack: Ack = serde_json::from_slice(&reply.payload)
+            let body = self
+                .link
+                .open_reply(&what, reply.subject.as_str(), &reply.payload)?;
+            let ack: Ack = serde_json::from_slice(body)
                 .map_err(|e| ModuleError::new(format!("{what}: bad reply: {e}")))?;
+            if let Some(n) = ack.rejected {
+                self.link
+                    .security
+                    .lock()
+                    .unwrap()
+                    .worker_reports(&worker, n);
+            }
             if !ack.ok {
                 return Err(wire::failure(ack.error));
             }
@@ -133,6 +148,8 @@ impl RemoteModule for WorkerModule {
         self.link.mark_started();
         let body = serde_json::json!({
             "seed": ctx.seed, "ts": ctx.ts, "steps": ctx.steps, "every": ctx.every, "offset": ctx.offset,
+            // The only worker of the module sees every step: it expects exactly the next one.
+            "exclusive": self.workers.len() == 1,
         });
         self.control("setup", &body, self.link.timeouts.startup)
     }
@@ -143,7 +160,7 @@ impl RemoteModule for WorkerModule {
         let max = self.link.client.server_info().max_payload;
         for shard in 0..self.shards {
             let payload = wire::encode_request(at, shard, self.shards, inbox);
-            if payload.len() > max {
+            if payload.len() + super::auth::TRAILER > max {
                 self.pending.clear();
                 return Err(ModuleError::new(format!(
                     "its inbox of {} messages is {} bytes on the wire, above the NATS server's max_payload of {max} \
@@ -186,7 +203,10 @@ impl RemoteModule for WorkerModule {
                 )
                 .inspect_err(|_| self.stuck = true)?;
             let reply = reply.map_err(|e| request_error(&what, e))?;
-            let u = wire::decode_reply(&reply.payload, out)?;
+            let body = self
+                .link
+                .open_reply(&what, reply.subject.as_str(), &reply.payload)?;
+            let u = wire::decode_reply(body, out)?;
             // Shards run side by side: the step takes as long as the slowest; CPU adds up.
             usage.wall_s = usage.wall_s.max(u.wall_s);
             usage.cpu_s += u.cpu_s;

@@ -30,9 +30,46 @@ impl DieWithParent for Command {
     }
 }
 
+/// The user and password a server of our own requires: made fresh for each run.
+#[derive(Clone)]
+pub struct ServerAuth {
+    pub user: String,
+    pub password: String,
+}
+
+impl ServerAuth {
+    pub fn generate() -> Result<Self, String> {
+        Ok(ServerAuth {
+            user: format!("caviar-{}", super::auth::random_hex(4)?),
+            password: super::auth::random_hex(24)?,
+        })
+    }
+}
+
+impl std::fmt::Debug for ServerAuth {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "ServerAuth({}, …)", self.user)
+    }
+}
+
+/// Writes `text` to a new file only its owner can read (it may hold a password).
+pub(crate) fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut o = std::fs::OpenOptions::new();
+    o.write(true).create(true).truncate(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        o.mode(0o600);
+    }
+    o.open(path)?.write_all(text.as_bytes())
+}
+
 pub struct SpawnedServer {
     child: Child,
     pub url: String,
+    /// What clients must present (None: the server lets anyone in).
+    pub auth: Option<ServerAuth>,
     conf: PathBuf,
     log: PathBuf,
 }
@@ -97,6 +134,16 @@ impl SpawnedServer {
     /// Starts `binary` on 127.0.0.1 and a free port; `host` other than loopback is for
     /// tests that reach it from another network namespace.
     pub fn start(binary: &Path, host: &str, log: &Path) -> Result<Self, String> {
+        Self::start_with_auth(binary, host, log, None)
+    }
+
+    /// [`SpawnedServer::start`] requiring `auth` of every client (the run's own server).
+    pub fn start_with_auth(
+        binary: &Path,
+        host: &str,
+        log: &Path,
+        auth: Option<ServerAuth>,
+    ) -> Result<Self, String> {
         // A free port can be taken between our probe and the server's bind: try again.
         let mut last = String::new();
         remove_stale_confs(&std::env::temp_dir());
@@ -105,11 +152,14 @@ impl SpawnedServer {
             let conf = std::env::temp_dir()
                 .join(format!("caviar-nats-{}-{port}.conf", std::process::id()));
             // Camera images and ray-traced channels exceed the 1 MiB default payload.
-            std::fs::write(
-                &conf,
-                format!("listen: \"{host}:{port}\"\nmax_payload: 67108864\n"),
-            )
-            .map_err(|e| format!("{}: {e}", conf.display()))?;
+            let mut text = format!("listen: \"{host}:{port}\"\nmax_payload: 67108864\n");
+            if let Some(a) = &auth {
+                text += &format!(
+                    "authorization {{\n  user: \"{}\"\n  password: \"{}\"\n}}\n",
+                    a.user, a.password
+                );
+            }
+            write_private(&conf, &text).map_err(|e| format!("{}: {e}", conf.display()))?;
             let log_file =
                 std::fs::File::create(log).map_err(|e| format!("{}: {e}", log.display()))?;
             let mut child = Command::new(binary)
@@ -137,6 +187,7 @@ impl SpawnedServer {
                     return Ok(SpawnedServer {
                         child,
                         url: format!("nats://{host}:{port}"),
+                        auth,
                         conf,
                         log: log.to_path_buf(),
                     });

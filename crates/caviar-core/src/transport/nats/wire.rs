@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use crate::message::{Message, Outgoing, Payload, PayloadKind};
 use crate::module::{ModuleError, StepInfo, Usage};
 
-pub const PROTOCOL: u32 = 1;
+pub const PROTOCOL: u32 = 2;
 
 /// Header naming the source module on mirrored messages (and marking them as ours).
 pub const MIRROR_SOURCE_HEADER: &str = "Caviar-Source";

@@ -2,19 +2,22 @@
 //! does for Python plugins. Benchmarks and tests use it to measure the protocol
 //! without an interpreter in the way; it is also the reference for other languages.
 
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use async_nats::{Client, Subscriber};
 use futures_util::StreamExt;
 use serde_json::{json, Value};
 
+use super::auth::{Guard, RunKey};
 use super::wire::{self, WireError, PROTOCOL};
 use crate::message::SharedMessage;
 use crate::metrics::{process_cpu_seconds, resident_mib};
 use crate::module::{Module, ModuleError, SetupContext, StepInfo, Usage};
 
 /// Serves `module` as worker `worker_id` of module `name` in run `run_id` until the
-/// run ends. Waits up to `wait` for the core to answer its hello.
+/// run ends. Waits up to `wait` for the core to answer its hello. `key` is the run
+/// key: every frame of the core is checked with it, every answer sealed.
 pub fn serve(
     url: &str,
     run_id: &str,
@@ -22,6 +25,7 @@ pub fn serve(
     worker_id: &str,
     module: Box<dyn Module>,
     wait: Duration,
+    key: RunKey,
 ) -> Result<(), String> {
     // The select loop (and so every step) runs on the calling thread; the connection
     // and the heartbeat on the runtime's own thread, so a long step does not silence
@@ -44,6 +48,7 @@ pub fn serve(
             id: worker_id.into(),
             module,
             spec: Value::Null,
+            guard: Arc::new(Mutex::new(Guard::new(key, run_id))),
         };
         w.spec = w.hello(wait).await?;
         w.run().await
@@ -60,6 +65,8 @@ struct Worker {
     module: Box<dyn Module>,
     /// The core's answer to the hello: plugin parameters and directories.
     spec: Value,
+    /// The run key, sequence numbers and step schedule (shared with the heartbeat).
+    guard: Arc<Mutex<Guard>>,
 }
 
 fn err(e: impl std::fmt::Display) -> String {
@@ -82,12 +89,13 @@ impl Worker {
         let deadline = Instant::now() + wait;
         let subject = format!("{}.hello", self.prefix);
         let spec: Value = loop {
-            match self
-                .client
-                .request(subject.clone(), hello.to_string().into())
-                .await
-            {
-                Ok(m) => break serde_json::from_slice(&m.payload).map_err(err)?,
+            let body = self.seal(&subject, hello.to_string().into_bytes());
+            match self.client.request(subject.clone(), body.into()).await {
+                Ok(m) => match self.open(&m.subject, &m.payload) {
+                    Some(b) => break serde_json::from_slice(&b).map_err(err)?,
+                    // Someone without the key answered first: ask again.
+                    None => tokio::time::sleep(Duration::from_millis(50)).await,
+                },
                 Err(_) if Instant::now() < deadline => {
                     tokio::time::sleep(Duration::from_millis(50)).await
                 }
@@ -110,9 +118,41 @@ impl Worker {
         body: Vec<u8>,
     ) -> Result<(), String> {
         match reply {
-            Some(r) => self.client.publish(r, body.into()).await.map_err(err),
+            Some(r) => {
+                let body = self.seal(&r, body);
+                self.client.publish(r, body.into()).await.map_err(err)
+            }
             None => Ok(()),
         }
+    }
+
+    fn seal(&self, subject: &str, body: Vec<u8>) -> Vec<u8> {
+        self.guard.lock().unwrap().seal(subject, body)
+    }
+
+    /// The body of a frame of the core, or None (logged and counted) if it fails
+    /// authentication or repeats a sequence number.
+    fn open(&self, subject: &str, frame: &[u8]) -> Option<Vec<u8>> {
+        let mut g = self.guard.lock().unwrap();
+        match g.open(subject, frame) {
+            Ok(b) => Some(b.to_vec()),
+            Err(e) => {
+                eprintln!(
+                    "caviar worker {}: security: refused {e} ({} refused so far)",
+                    self.id, g.rejected
+                );
+                None
+            }
+        }
+    }
+
+    fn refuse(&self, why: &str) {
+        let mut g = self.guard.lock().unwrap();
+        g.refuse();
+        eprintln!(
+            "caviar worker {}: security: refused {why} ({} refused so far)",
+            self.id, g.rejected
+        );
     }
 
     /// Says the plugin is loaded, beats, and answers the core until teardown or stop.
@@ -124,8 +164,9 @@ impl Worker {
         let loaded = json!({"worker": self.id, "subscribe": self.module.default_subscriptions(),
                             "publishes": self.module.publishes()});
         let subject = format!("{}.loaded", self.prefix);
+        let body = self.seal(&subject, loaded.to_string().into_bytes());
         self.client
-            .publish(subject, loaded.to_string().into())
+            .publish(subject, body.into())
             .await
             .map_err(err)?;
         self.client.flush().await.map_err(err)?;
@@ -134,19 +175,36 @@ impl Worker {
         let result = loop {
             tokio::select! {
                 Some(m) = setup.next() => {
-                    let (answer, sub) = self.setup(&m.payload).await?;
+                    let Some(body) = self.open(&m.subject, &m.payload) else { continue };
+                    if m.reply.is_none() {
+                        self.refuse("a setup without a reply subject");
+                        continue;
+                    }
+                    let (answer, sub) = self.setup(&body).await?;
                     steps = sub.or(steps);
                     self.respond(m.reply, answer.to_string().into_bytes()).await?;
                 }
                 Some(m) = async { match steps.as_mut() { Some(s) => s.next().await, None => std::future::pending().await } } => {
-                    let reply = step_reply(self.module.as_mut(), &m.payload);
+                    let Some(body) = self.open(&m.subject, &m.payload) else { continue };
+                    let Some(reply) = step_reply(self.module.as_mut(), &body, &self.guard, &self.id) else { continue };
                     self.respond(m.reply, reply).await?;
                 }
                 Some(m) = teardown.next() => {
-                    let answer = ack(self.module.teardown());
+                    let Some(_) = self.open(&m.subject, &m.payload) else { continue };
+                    if m.reply.is_none() {
+                        self.refuse("a teardown without a reply subject");
+                        continue;
+                    }
+                    let mut answer = ack(self.module.teardown());
+                    answer["rejected"] = self.guard.lock().unwrap().rejected.into();
                     break self.respond(m.reply, answer.to_string().into_bytes()).await;
                 }
-                _ = stop.next() => break Ok(()),
+                Some(m) = stop.next() => {
+                    if self.open(&m.subject, &m.payload).is_some() {
+                        break Ok(());
+                    }
+                }
+                else => break Ok(()),
             }
         };
         beat.abort();
@@ -157,10 +215,15 @@ impl Worker {
     /// Beats every second on the runtime's thread.
     fn heartbeat(&self) -> tokio::task::JoinHandle<()> {
         let (client, subject) = (self.client.clone(), format!("{}.heartbeat", self.prefix));
-        let body = json!({"worker": self.id}).to_string();
+        let (id, guard) = (self.id.clone(), self.guard.clone());
         tokio::spawn(async move {
             loop {
-                let _ = client.publish(subject.clone(), body.clone().into()).await;
+                let body = {
+                    let mut g = guard.lock().unwrap();
+                    let beat = json!({"worker": id, "rejected": g.rejected}).to_string();
+                    g.seal(&subject, beat.into_bytes())
+                };
+                let _ = client.publish(subject.clone(), body.into()).await;
                 tokio::time::sleep(Duration::from_secs(1)).await;
             }
         })
@@ -182,6 +245,13 @@ impl Worker {
             params: spec["params"].clone(),
         };
         let result = self.module.setup(&ctx);
+        self.guard.lock().unwrap().schedule(
+            ctx.every,
+            ctx.offset,
+            ctx.steps,
+            spec["shards"].as_u64().unwrap_or(1),
+            c["exclusive"].as_bool().unwrap_or(false),
+        );
         if result.is_err() {
             return Ok((ack(result), None));
         }
@@ -196,7 +266,13 @@ impl Worker {
     }
 }
 
-fn step_reply(module: &mut dyn Module, payload: &[u8]) -> Vec<u8> {
+/// The reply to a step request, or None when the step is out of sequence (refused).
+fn step_reply(
+    module: &mut dyn Module,
+    payload: &[u8],
+    guard: &Mutex<Guard>,
+    id: &str,
+) -> Option<Vec<u8>> {
     let failed = |message: String| {
         wire::encode_failure(&WireError {
             message,
@@ -206,8 +282,18 @@ fn step_reply(module: &mut dyn Module, payload: &[u8]) -> Vec<u8> {
     };
     let (req, inbox) = match wire::decode_request(payload) {
         Ok(r) => r,
-        Err(e) => return failed(e),
+        Err(e) => return Some(failed(e)),
     };
+    {
+        let mut g = guard.lock().unwrap();
+        if let Err(e) = g.accept_step(req.step, req.shard) {
+            eprintln!(
+                "caviar worker {id}: security: refused {e} ({} refused so far)",
+                g.rejected
+            );
+            return None;
+        }
+    }
     let inbox: Vec<SharedMessage> = inbox.into_iter().map(std::sync::Arc::new).collect();
     let (t0, c0) = (Instant::now(), process_cpu_seconds());
     let mut out = Vec::new();
@@ -224,8 +310,8 @@ fn step_reply(module: &mut dyn Module, payload: &[u8]) -> Vec<u8> {
                 gpu_util_pct: None,
                 gpu_mem_mib: None,
             };
-            wire::encode_reply(&out, usage)
+            Some(wire::encode_reply(&out, usage))
         }
-        Err(e) => failed(e.message),
+        Err(e) => Some(failed(e.message)),
     }
 }
