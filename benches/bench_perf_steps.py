@@ -173,53 +173,13 @@ def bench_solve(n_rx: int, samples: int, reps: int) -> dict:
 
 
 def sar_config(n: int, duration: float, samples: int, new: bool, forecast: int) -> str:
-    length = Path(read_waypoints(DATA / ROUTE)).length
-    text = f"""
-[episode]
-ts = 0.5
-duration = {duration}
-seed = 1
-stages = ["mobility", "camera", "communications", "link", "detection"]
+    """bench_scaling's SAR loop, with the new code paths (batches, look-ahead) or the old."""
+    from bench_scaling import config
 
-[output]
-exclude = ["3D.camera.>", "ai.images.>"]
-"""
-    for i in range(n):
-        text += f"""
-[modules.uav{i + 1}]
-stage = "mobility"
-plugin = "waypoint-flight"
-[modules.uav{i + 1}.params]
-waypoints = "{ROUTE}"
-frame = "scene"
-ue_id = "uav{i + 1}"
-end_at_last = false
-start_m = {i * length / n:.1f}
-forecast_steps = {forecast if new else 0}
-"""
-    comm = (f"samples_per_src = {samples}, publish_channels = false"
-            + (f", uav_mesh = false, lookahead = true, lookahead_steps = {forecast}" if new else ""))
-    text += f"""
-[modules.camera]
-stage = "camera"
-plugin = "camera"
-params = {{ batch = {str(new).lower()} }}
-
-[modules.comm]
-stage = "communications"
-plugin = "sionna-link"
-params = {{ {comm} }}
-
-[modules.link]
-stage = "link"
-plugin = "image-link"
-
-[modules.detector]
-stage = "detection"
-plugin = "person-detector"
-params = {{ batch = {str(new).lower()} }}
-"""
-    return text
+    batch = f"batch = {str(new).lower()}"
+    return config(n, duration, samples, uav_extra=f"forecast_steps = {forecast if new else 0}\n", camera=batch,
+                  comm=f"uav_mesh = false, lookahead = true, lookahead_steps = {forecast}" if new else "",
+                  detector=batch)
 
 
 def bench_sar(n: int, duration: float, samples: int, forecast: int, work: pathlib.Path) -> dict:

@@ -25,7 +25,11 @@ from caviar_plugins.mobility import Path, read_waypoints
 ROUTE = "central_park_path0_scene.csv"
 
 
-def config(n: int, duration: float, samples: int) -> str:
+def config(n: int, duration: float, samples: int, uav_extra: str = "", camera: str = "", comm: str = "",
+           detector: str = "") -> str:
+    """The SAR loop with ``n`` UAVs spread along the route. ``uav_extra`` (TOML lines) is added
+    to each UAV's params; ``camera``, ``comm`` and ``detector`` (inline-table entries) to
+    those modules' params (benches/bench_perf_steps.py switches code paths with them)."""
     length = Path(read_waypoints(DATA / ROUTE)).length
     text = f"""
 [episode]
@@ -49,16 +53,19 @@ frame = "scene"
 ue_id = "uav{i + 1}"
 end_at_last = false
 start_m = {i * length / n:.1f}
-"""
+{uav_extra}"""
+    comm = f"samples_per_src = {samples}, publish_channels = false" + (f", {comm}" if comm else "")
+    camera_params = f"params = {{ {camera} }}\n" if camera else ""
+    detector_params = f"params = {{ {detector} }}\n" if detector else ""
     text += f"""
 [modules.camera]
 stage = "camera"
 plugin = "camera"
-
+{camera_params}
 [modules.comm]
 stage = "communications"
 plugin = "sionna-link"
-params = {{ samples_per_src = {samples}, publish_channels = false }}
+params = {{ {comm} }}
 
 [modules.link]
 stage = "link"
@@ -67,7 +74,7 @@ plugin = "image-link"
 [modules.detector]
 stage = "detection"
 plugin = "person-detector"
-"""
+{detector_params}"""
     return text
 
 
