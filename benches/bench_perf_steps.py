@@ -5,7 +5,8 @@ without ``lookahead``).
     .venv/bin/python benches/bench_perf_steps.py [--sar-duration 10] [--samples 1000000] [--reps 5]
 
 * ``camera_50uav``: 50 nadir views, one ``mi.render`` each vs ``render_many`` (interleaved, median of reps);
-* ``detector_50uav``: 50 received images, per image on the plugin's default thread pool vs ``detect_many``;
+* ``detector_50uav``: 50 received images, per image on the plugin's default thread pool vs ``detect_many`` in
+  two batches per thread on the same pool;
 * ``raytrace_{1,10}uav``: one solve at ``--samples``: the bare Sionna calls of today's ``RadioScene.solve``
   (PathSolver + CFR) vs ``RadioScene.solve`` (with overflow detection), and where the time goes
   (Dr.Jit kernel execution, codegen, backend compile, CFR, post-processing);
@@ -104,8 +105,10 @@ def bench_vision(reps: int) -> dict:
               zip(visual.render_many(pos), [0.0, 0.0, 0.01, 0.25, 0.5] * 10, strict=True)]
     det = builtin_model()
     pool = ThreadPoolExecutor(os.cpu_count() or 1)  # the plugin's default (workers = 0)
-    same = list(pool.map(det.detect, images)) == det.detect_many(images)
-    old_s, new_s = interleaved(lambda: list(pool.map(det.detect, images)), lambda: det.detect_many(images), reps)
+    chunks = 2 * (os.cpu_count() or 1)  # the plugin's default: two batches per thread
+    same = list(pool.map(det.detect, images)) == det.detect_many(images, pool=pool, chunks=chunks)
+    old_s, new_s = interleaved(lambda: list(pool.map(det.detect, images)),
+                               lambda: det.detect_many(images, pool=pool, chunks=chunks), reps)
     pool.shutdown()
     out["detector_50uav"] = {"old_s": old_s, "new_s": new_s, "ratio": new_s / old_s, "detections_identical": same}
     print(f"detector, 50 UAVs: {old_s:.3f} s -> {new_s:.3f} s ({new_s / old_s:.2f}x), identical: {same}",

@@ -1,5 +1,7 @@
 """Issue #18 (faster steps): each fast path gives what the path it replaces gives."""
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
@@ -43,6 +45,10 @@ def test_vectorised_detector_finds_what_the_per_image_detector_finds(visual, mod
     batch = model.detect_many(images)
     single = [model.detect(im) for im in images]
     assert batch == single
+    # Split into batches detected side by side (uneven chunks, more chunks than threads).
+    with ThreadPoolExecutor(2) as pool:
+        for chunks in (2, 5, 12, 40):
+            assert model.detect_many(images, pool=pool, chunks=chunks) == single
     assert sum(len(d) for d in single) > 0, "nothing detected: the test shows nothing"
 
 

