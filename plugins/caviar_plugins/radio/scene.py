@@ -22,6 +22,7 @@ import numpy as np
 from caviar_plugins.assets import SCENES
 from caviar_plugins.radio.beams import beam_gains, dft_codebook, flat_dft_codebook
 from caviar_plugins.radio.link_budget import SPEED_OF_LIGHT
+from caviar_plugins.radio.shoot_cache import ShootCache
 
 CODEBOOKS = ("kronecker", "flat-dft")
 UAV_BODY = SCENES / "central_park" / "meshes" / "Cube.ply"  # a 2 m cube
@@ -98,6 +99,13 @@ class RadioConfig:
     """Sionna's candidate-path buffer per source (its default). Candidates beyond it are
     dropped silently by Sionna (NVlabs/sionna#1172); :meth:`RadioScene.solve` detects
     it, warns and reports the number dropped in :attr:`Link.paths_dropped`."""
+    shoot_cache: bool = True
+    """Keep the rays' bounces of a solve and, while the geometry stays the same (objects,
+    materials, frequency, transmitters), trace only the receivers' visibility tests in
+    later solves (:mod:`~caviar_plugins.radio.shoot_cache`): the candidates of Sionna's
+    loop, 0.26x its time for 1 receiver, 0.36x for 10 (1e6 samples, 2 cores). Moving
+    scatterers (UAV bodies, vehicles) change the geometry: such solves run Sionna's loop
+    unchanged. ``false``: always Sionna's loop."""
     threads: int = 0
     """Dr.Jit CPU threads; 0 = all cores. On CPU the solver's parallel sums differ in the
     last float bits from run to run; ``threads = 1`` makes runs bit-identical (measured
@@ -172,6 +180,10 @@ class RadioScene:
         s.add(rt.Transmitter("tx", position=cfg.tx_position, orientation=cfg.tx_orientation))
         self.solver = rt.PathSolver()
         self._watch_path_buffer()
+        self.shoot_cache: ShootCache | None = None
+        if cfg.shoot_cache:
+            self.shoot_cache = ShootCache(self.solver._candidate_generator, self.geometry_fingerprint)
+            self.solver._candidate_generator = self.shoot_cache
         if cfg.codebook == "flat-dft":
             self.w_tx = flat_dft_codebook(s.tx_array.num_ant)
             self.w_rx = flat_dft_codebook(s.rx_array.num_ant)
@@ -208,11 +220,37 @@ class RadioScene:
 
             setattr(gen, name, spy)
 
+    def geometry_fingerprint(self) -> tuple:
+        """What the rays' bounces depend on besides the transmitters and the solver's
+        settings: every object's name, position, orientation, scale and material, every
+        material's parameters and the frequency (the shoot cache's key)."""
+        objects = tuple((name, *(tuple(np.asarray(getattr(obj, a), dtype=float).ravel().tolist())
+                                 for a in ("position", "orientation", "scaling")), obj.radio_material.name)
+                        for name, obj in self.scene.objects.items())
+        materials = []
+        for name, mat in self.scene.radio_materials.items():
+            values: list[Any] = []
+            for a in ("relative_permittivity", "conductivity", "scattering_coefficient", "xpd_coefficient",
+                      "thickness"):
+                v = getattr(mat, a, None)
+                values.append(None if v is None else tuple(np.asarray(v, dtype=float).ravel().tolist()))
+            pattern = getattr(mat, "scattering_pattern", None)
+            values.append(type(pattern).__name__)
+            for a in ("alpha_r", "alpha_i", "lambda_"):
+                v = getattr(pattern, a, None)
+                if v is not None:
+                    values.append(tuple(np.asarray(v, dtype=float).ravel().tolist()))
+            materials.append((name, type(mat).__name__, *values))
+        return objects, tuple(materials), float(np.asarray(self.scene.frequency).ravel()[0])
+
     def paths_dropped(self) -> int:
         """Candidates the last solve dropped for lack of buffer (0: none)."""
-        if self._path_counter is None:
+        counter = self._path_counter
+        if self.shoot_cache is not None and self.shoot_cache.paths_counter_per_source is not None:
+            counter = self.shoot_cache.paths_counter_per_source
+        if counter is None:
             return 0
-        counts = np.array(self._path_counter, dtype=np.int64).reshape(-1)
+        counts = np.array(counter, dtype=np.int64).reshape(-1)
         return int(np.maximum(counts - self.cfg.max_num_paths_per_src, 0).sum())
 
     def _array(self, shape):

@@ -117,6 +117,9 @@ class SionnaTrafficLink(caviar.Plugin):
         self.uav_offset = np.asarray(radio_cfg.antenna_offset, dtype=float)
         radio_cfg.antenna_offset = [0.0, 0.0, 0.0]  # receivers are placed at their antennas here
         radio_cfg.uav_mesh = False  # UAV bodies are boxes of the pool
+        # Moving vehicles and people change the geometry every step: the shoot cache would
+        # only cost its fingerprint (0.25 ms per object), so it is on without scatterers only.
+        radio_cfg.shoot_cache = radio_cfg.shoot_cache and not p.scatterers
         self.radio = RadioScene(radio_cfg, seed=ctx.seed, base_dir=ctx.config_dir)
         self.radio.solver = _Recorder(self.radio.solver)
         self.budget = LinkBudget(bandwidth_hz=p.bandwidth_hz, tx_power_w=p.tx_power_w,

@@ -1,0 +1,100 @@
+"""The shoot cache (issue #18): solves served from recorded bounces find what Sionna's
+own shoot-and-bounce loop finds, and the cache steps aside when the geometry changes."""
+
+import numpy as np
+import pytest
+
+from caviar_plugins import DATA
+from caviar_plugins.mobility import Path, read_waypoints
+from caviar_plugins.radio import RadioConfig, RadioScene
+
+# Diffuse reflection only adds paths where a material scatters: give concrete a
+# scattering coefficient so that the diffuse branch (paths finalised in the loop) is
+# exercised along with specular chains, refraction and diffraction.
+SETTINGS = dict(samples_per_src=30_000, max_depth=4, threads=1)
+ROUTE = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
+RECEIVERS = {"a": ROUTE.at(0.0), "b": ROUTE.at(60.0), "c": ROUTE.at(150.0)}  # the SAR flight
+
+
+def scene(shoot_cache: bool, scattering: float = 0.3, **kw) -> RadioScene:
+    radio = RadioScene(RadioConfig(**{**SETTINGS, "uav_mesh": False, "shoot_cache": shoot_cache, **kw}), seed=5)
+    radio.scene.radio_materials["itu_concrete"].scattering_coefficient = scattering
+    return radio
+
+
+def solve(radio: RadioScene, shift: float):
+    radio.place({k: p + [shift, 0.0, 0.0] for k, p in RECEIVERS.items()})
+    return radio.solve()
+
+
+def assert_same_links(got, ref):
+    for key in ref:
+        x, y = got[key], ref[key]
+        assert x.n_paths == y.n_paths, key
+        assert x.los == y.los, key
+        # The same paths, summed in another order (candidates land depth-major in the
+        # buffer): equal to float32 noise.
+        scale = np.abs(y.h).max()
+        np.testing.assert_allclose(x.h, y.h, rtol=0, atol=2e-3 * scale, err_msg=key)
+        assert abs(10 * np.log10(x.path_gain / y.path_gain)) < 0.01, key
+        assert x.best_pair == y.best_pair, key
+
+
+def test_cached_solves_find_the_paths_of_sionnas_loop():
+    cached, plain = scene(True), scene(False)
+    diffuse_paths = 0
+    for shift in (0.0, 1.5, 3.0, 4.5):
+        got, ref = solve(cached, shift), solve(plain, shift)
+        assert_same_links(got, ref)
+        diffuse_paths += sum(link.n_paths for link in ref.values())
+    # The first solve of a geometry runs Sionna's loop, the second records the bounces,
+    # every later one is served from them.
+    assert cached.shoot_cache.shoots == 1 and cached.shoot_cache.connects == 3
+    assert plain.shoot_cache is None
+    assert diffuse_paths > 100
+
+
+def test_without_scattering_the_cache_still_agrees():
+    cached, plain = scene(True, scattering=0.0), scene(False, scattering=0.0)
+    for shift in (0.0, 2.0, 4.0):
+        assert_same_links(solve(cached, shift), solve(plain, shift))
+    assert cached.shoot_cache.connects == 2
+
+
+def test_a_changed_geometry_is_never_served_from_the_cache():
+    cached = scene(True)
+    for shift in (0.0, 1.0, 2.0):
+        solve(cached, shift)
+    assert cached.shoot_cache.connects == 2
+    # A material changes: the next solve runs Sionna's loop on the new material.
+    cached.scene.radio_materials["itu_concrete"].scattering_coefficient = 0.6
+    fresh = scene(False, scattering=0.6)
+    assert_same_links(solve(cached, 3.0), solve(fresh, 3.0))
+    assert cached.shoot_cache.connects == 2
+    # An object moves (the scene's 2 m cube, 3 m east): the same.
+    cube = cached.scene.objects["Cube"]
+    cube.position = np.asarray(cube.position, dtype=float).ravel() + [3.0, 0.0, 0.0]
+    got = solve(cached, 3.0)
+    assert cached.shoot_cache.connects == 2
+    moved = scene(False, scattering=0.6)
+    moved.scene.objects["Cube"].position = cube.position
+    assert_same_links(got, solve(moved, 3.0))
+
+
+def test_moving_uav_bodies_run_sionnas_loop_every_step():
+    cached = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True), seed=5)
+    plain = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True, shoot_cache=False), seed=5)
+    for shift in (0.0, 2.5, 5.0):
+        for radio in (cached, plain):
+            radio.place({"u": RECEIVERS["a"] + [shift, 0.0, 0.0]})
+        assert_same_links(cached.solve(), plain.solve())
+    assert cached.shoot_cache.connects == 0 and cached.shoot_cache.shoots == 0
+
+
+def test_path_buffer_overflow_is_reported_from_cached_solves():
+    cached = scene(True, max_num_paths_per_src=5)
+    with pytest.warns(RuntimeWarning, match="path buffer overflowed"):
+        for shift in (0.0, 1.0, 2.0):
+            links = solve(cached, shift)
+    assert cached.shoot_cache.connects == 2
+    assert links["a"].paths_dropped > 0
