@@ -312,16 +312,14 @@ def _first_visible(mi_scene, rec: dict, tgt_positions, num_targets: int):
 def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src: int) -> None:
     """Sionna's inner loop over targets, depth by depth, with exact deduplication:
     specular chains are grouped by hash, and a (chain, target) pair is stored from the
-    first ray of the chain that sees the target, in ray order. Sionna's rule for its two hashes (round, floor)
-    is kept: a chain is new if neither hash was stored before for that target; a ray
-    whose first hash is new marks its second. No table, so no collisions."""
+    first ray of the chain that sees the target, in ray order. Sionna's rule for its two
+    hashes (round, floor) is kept: a chain is new if neither hash was stored before for
+    that target. No table, so no collisions."""
     import numpy as np
 
     dr, mi = _jit()
     num_targets = dr.shape(tgt_positions)[1]
     mix = np.uint64(0x9E3779B97F4A7C15)
-    seen0 = np.zeros(0, dtype=np.uint64)
-    seen1 = np.zeros(0, dtype=np.uint64)
     for depth, rec in enumerate(shots.depths, start=1):
         if dr.width(rec["lane"]) == 0:
             break
@@ -330,16 +328,15 @@ def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_pat
         rays, targets = first[hit], pair_target[hit]
         order = np.lexsort((rays, targets))
         rays, targets = rays[order], targets[order]
-        t64 = targets.astype(np.uint64) * mix
+        # Each stored ray has a first hash of its own (one per group and target); of rays
+        # sharing a second hash, the first in order is new. Chains of different depths
+        # hash different numbers of interactions: they meet only by a 64-bit collision,
+        # so the sets of seen hashes are kept per depth.
         with np.errstate(over="ignore"):
-            k0, k1 = rec["h0"][rays] ^ t64, rec["h1"][rays] ^ t64
-        new0 = ~np.isin(k0, seen0)
-        rays, targets, k0, k1 = rays[new0], targets[new0], k0[new0], k1[new0]
+            k1 = rec["h1"][rays] ^ (targets.astype(np.uint64) * mix)
         _, once = np.unique(k1, return_index=True)
         new1 = np.zeros(len(k1), dtype=bool)
         new1[once] = True
-        new1 &= ~np.isin(k1, seen1)
-        seen0, seen1 = np.union1d(seen0, k0), np.union1d(seen1, k1)
         chain_rays, chain_targets = rays[new1], targets[new1]
         # Diffuse rays: every one the target sees on its side ends a valid path.
         diffuse = rec["diffuse_rays"]
