@@ -155,7 +155,7 @@ class VisualScene:
         """An sRGB uint8 image (H, W, 3) seen from ``position`` straight down."""
         return self.render_labelled(position)[0]
 
-    def render_many(self, positions, chunk: int = 16) -> list[tuple[np.ndarray, np.ndarray]]:
+    def render_many(self, positions, chunk: int = 64) -> list[tuple[np.ndarray, np.ndarray]]:
         """:meth:`render_labelled` for many positions at once, identical images.
 
         Instead of one ``mi.render`` per view (a sensor, a kernel launch and a film
@@ -165,7 +165,9 @@ class VisualScene:
         the same film: the same sub-pixel offsets for every view), the sensor's own
         ``sample_ray`` for the camera-space directions (once per distinct look-at
         rotation, usually one), and the origin ``translation + d · near_t`` added in
-        float32 as the sensor does. ``chunk`` views per wavefront bound the memory."""
+        float32 as the sensor does. ``chunk`` views per wavefront bound the memory (64
+        views of 160 × 120 at 2 × 2 supersampling: 0.46 GB more at peak, 16 views: 0.16 GB;
+        50 views in one wavefront take 0.74x the time of chunks of 16)."""
         pos = np.array([[float(v) for v in p] for p in positions], dtype=np.float64).reshape(-1, 3)
         chunk = max(1, chunk)
         out: list[tuple[np.ndarray, np.ndarray]] = []
