@@ -68,7 +68,8 @@ def run(n: int, steps: int, seed: int = 0) -> dict:
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     radio = RadioScene(RadioConfig(scene=str(SCENE), tx_position=TX, tx_orientation=[-2.72, 0.1, 0.0],
-                                   samples_per_src=100_000, uav_mesh=False, antenna_offset=[0.0, 0.0, 0.0]))
+                                   samples_per_src=100_000, uav_mesh=False, antenna_offset=[0.0, 0.0, 0.0],
+                                   shoot_cache=False))  # movers change the geometry: as sionna-traffic-link
     load_s = time.perf_counter() - t0
     rt = radio.rt
     t0 = time.perf_counter()
