@@ -8,6 +8,7 @@ exact where the line of sight is clear; the Sionna RT module replaces it.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -49,7 +50,10 @@ class FreeSpaceLink(caviar.Plugin):
         for m in inbox.on(POSITIONS):
             latest[(m.data["UE_type"], m.data["UE_Id"])] = read_position(m.data)
         for (ue_type, ue_id), pos in latest.items():
-            d = float(np.linalg.norm(pos - self.tx))
+            # Plain IEEE arithmetic: np.linalg.norm goes through BLAS, whose kernels
+            # (chosen per CPU) round differently, so recorded runs would differ by machine.
+            dx, dy, dz = (float(v) for v in pos - self.tx)
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
             gain = friis_path_gain(d, self.p.frequency_hz) * self.array_gain
             yield THROUGHPUT, throughput_payload(ue_type, ue_id, self.budget.throughput_mbps(gain))
         if latest:
