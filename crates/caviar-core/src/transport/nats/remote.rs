@@ -102,7 +102,7 @@ impl WorkerModule {
             let reply = self
                 .link
                 .wait(&self.name, &self.workers, &what, task, timeout)?
-                .map_err(|e| request_error(&what, e))?;
+                .map_err(|e| self.request_error(&what, e))?;
             let body = self
                 .link
                 .open_reply(&what, reply.subject.as_str(), &reply.payload)?;
@@ -120,6 +120,23 @@ impl WorkerModule {
             }
         }
         Ok(())
+    }
+}
+
+impl WorkerModule {
+    /// A failed request, with the cause when it can be found: "no responders" right after
+    /// a worker died races with reaping its process, so its exit is looked for briefly
+    /// (up to 0.5 s) before falling back to the bare symptom.
+    fn request_error(&self, what: &str, e: async_nats::RequestError) -> ModuleError {
+        if e.kind() == RequestErrorKind::NoResponders {
+            for _ in 0..10 {
+                if let Err(why) = self.link.check_alive(&self.name, &self.workers) {
+                    return ModuleError::new(format!("{what}: {why}"));
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        }
+        request_error(what, e)
     }
 }
 
@@ -202,7 +219,7 @@ impl RemoteModule for WorkerModule {
                     self.link.timeouts.step,
                 )
                 .inspect_err(|_| self.stuck = true)?;
-            let reply = reply.map_err(|e| request_error(&what, e))?;
+            let reply = reply.map_err(|e| self.request_error(&what, e))?;
             let body = self
                 .link
                 .open_reply(&what, reply.subject.as_str(), &reply.payload)?;
