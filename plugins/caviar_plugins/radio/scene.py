@@ -105,8 +105,8 @@ class RadioConfig:
     later solves (:mod:`~caviar_plugins.radio.shoot_cache`): the paths of Sionna's loop
     (without the specular chains its hash table drops), 0.08x its time for 1 receiver,
     0.36x for 10 (1e6 samples, 2 cores). Moving scatterers (UAV bodies, vehicles) change
-    the geometry: such solves run Sionna's loop unchanged. ``false``: always Sionna's
-    loop."""
+    the geometry: such solves run Sionna's loop unchanged, as does the first solve of a
+    geometry and any solve with more than one source. ``false``: always Sionna's loop."""
     threads: int = 0
     """Dr.Jit CPU threads; 0 = all cores. On CPU the solver's parallel sums differ in the
     last float bits from run to run; ``threads = 1`` makes runs bit-identical (measured

@@ -87,7 +87,9 @@ class ShootCache:
         flags = (specular_reflection, diffuse_reflection, refraction, diffraction, edge_diffraction)
         key = (self.fingerprint(), id(mi_scene), tuple(dr.ravel(src_positions).numpy().tolist()), samples_per_src,
                max_depth, flags, seed)
-        if src_boxes is not None or max_depth == 0 or key != self._seen:
+        # More than one source (several transmitters, or synthetic_array = false): Sionna
+        # deduplicates chains per source, this cache does not yet, so Sionna's loop runs.
+        if src_boxes is not None or max_depth == 0 or dr.shape(src_positions)[1] != 1 or key != self._seen:
             # New geometry (or options this cache does not cover): Sionna's own loop.
             self._seen = None if src_boxes is not None else key
             self._key = self._shots = None
@@ -223,6 +225,8 @@ def _group_chains(record: dict) -> None:
     record["sizes"] = np.diff(np.r_[starts, len(grouped)])
     record["diffuse_rays"] = np.flatnonzero(np.asarray(record["diffuse"], dtype=bool))
     record["h0"], record["h1"] = h0, np.asarray(record["hashes"][1]).astype(np.uint64)
+    for key in ("diffuse", "specular_chain", "hashes"):  # grouped above: not needed any more
+        del record[key]
 
 
 class _SampleView:
