@@ -67,7 +67,9 @@ def test_kill_9_of_the_core_leaves_an_abandoned_run(tmp_path, cli):
     s = caviar.load_run(tmp_path / "run").status
     assert s["status"] == "abandoned", s
     done = len(list(parts.glob("part-*.parquet")))
-    assert 20 <= s["steps_done"] and s["steps_done"] in (done, done - 1), (s, done)
+    # A step's part is written before its progress: a kill between the two leaves the
+    # status one step behind the parts, never ahead.
+    assert done >= 20 and s["steps_done"] in (done, done - 1), (s, done)
     assert s["last_step"] == s["steps_done"] and s["last_modules"] in (["counter"], ["exiter"]), s
     assert "abandoned" in cli("inspect", "run", check=0).stdout
 
