@@ -75,9 +75,6 @@ class ShootCache:
         self.connects = 0
         """Solves served from a recorded shoot phase."""
 
-    def invalidate(self) -> None:
-        self._seen = self._key = self._shots = None
-
     def __call__(self, mi_scene, src_positions, tgt_positions, samples_per_src: int, max_num_paths_per_src: int,
                  max_depth: int, los: bool, specular_reflection: bool, diffuse_reflection: bool, refraction: bool,
                  diffraction: bool, edge_diffraction: bool, seed: int = 1, src_boxes=None):
@@ -126,7 +123,6 @@ class _Shots:
         self.diffraction_depth: Any = None  # depth of that diffraction, 0 if none
         self.src_indices: Any = None
         self.k_tx: Any = None
-        self.num_sources = 0
 
 
 def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, flags, seed: int) -> _Shots:
@@ -140,7 +136,6 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
     num_sources = dr.shape(src_positions)[1]
     n = samples_per_src * num_sources
     shots = _Shots()
-    shots.num_sources = num_sources
     sampler = gen._sampler
     sampler.seed(seed, n)
     shots.width = n
