@@ -122,9 +122,11 @@ fn barrier(c: &mut Criterion, url: &str, dir: &Path) {
             .collect();
         let run_dir = dir.join(&id);
         std::fs::create_dir_all(&run_dir).unwrap();
-        let (specs, _) = nats::prepare(&cfg, None, &run_dir)
+        // The connection stays open while the engine steps (dropped with it).
+        let prepared = nats::prepare(&cfg, None, &run_dir)
             .map_err(|e| e.to_string())
             .unwrap();
+        let (specs, _connection) = (prepared.modules, prepared.connection);
         let opts = EngineOptions {
             ts: 0.1,
             steps: None,

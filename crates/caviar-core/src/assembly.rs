@@ -4,7 +4,7 @@
 //! the names of the built-in plugins, the order, stage, period and subscriptions of
 //! every module, and the checks of how modules connect (what `validate` warns about).
 
-use crate::config::{ConfigError, LoadedConfig, ModuleConfig, TransportKind};
+use crate::config::{ConfigError, LoadedConfig, ModuleConfig};
 use crate::engine::{ModuleSpec, END_TOPIC};
 use crate::module::AnyModule;
 use crate::replay::{self, Replay};
@@ -13,12 +13,10 @@ use crate::topic::{validate_topic, Pattern};
 /// `caviar.replay`: republishes topics of a recorded run ([`crate::replay`]).
 pub const REPLAY_PLUGIN: &str = replay::PLUGIN;
 
-/// `caviar.nats-bridge`: brings plain NATS messages into the episode (NATS transport).
-pub const BRIDGE_PLUGIN: &str = "caviar.nats-bridge";
-
-/// True for a plugin the core provides itself (no worker, no Python).
+/// True for a plugin the core provides itself, whatever the transport (no worker, no
+/// Python). Transports may add their own (`crate::transport::Transport::builtin_plugins`).
 pub fn is_builtin(plugin: &str) -> bool {
-    plugin == REPLAY_PLUGIN || plugin == BRIDGE_PLUGIN
+    plugin == REPLAY_PLUGIN
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -29,20 +27,6 @@ pub enum PrepareError {
     Io(String),
 }
 
-/// Built-in plugins that need what the configuration does not give them.
-fn check_builtins(cfg: &LoadedConfig) -> Result<(), ConfigError> {
-    let nats = cfg.config.transport.kind == TransportKind::Nats;
-    for (name, m) in &cfg.config.modules {
-        if m.plugin == BRIDGE_PLUGIN && !nats {
-            return Err(cfg.error_at(
-                &format!("modules.{name}.plugin"),
-                "the NATS bridge needs the NATS transport (transport.kind = \"nats\")",
-            ));
-        }
-    }
-    Ok(())
-}
-
 /// The modules of the configuration in its order, with their stage, period and
 /// subscriptions: built-in replays here, every other module by `make` (`None`
 /// leaves it out).
@@ -50,7 +34,6 @@ pub fn build_modules(
     cfg: &LoadedConfig,
     mut make: impl FnMut(&str, &ModuleConfig) -> Result<Option<AnyModule>, ConfigError>,
 ) -> Result<Vec<ModuleSpec>, ConfigError> {
-    check_builtins(cfg)?;
     let mut specs = Vec::new();
     for (name, m) in &cfg.config.modules {
         let module = if m.plugin == REPLAY_PLUGIN {
@@ -82,18 +65,16 @@ struct Wiring {
     publishes: Option<Vec<String>>,
 }
 
-fn wiring(cfg: &LoadedConfig, specs: &[ModuleSpec]) -> Vec<Wiring> {
+/// What a module that was not built (it needs a live connection) declares publishing.
+pub type Unbuilt<'a> = &'a dyn Fn(&str) -> Option<Vec<String>>;
+
+fn wiring(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuilt) -> Vec<Wiring> {
     let mut out = Vec::new();
     for (name, m) in &cfg.config.modules {
         let spec = specs.iter().find(|s| s.name == *name);
         let (defaults, publishes) = match spec {
             Some(s) => (s.module.default_subscriptions(), s.module.publishes()),
-            // Not built without a live connection: the bridge publishes its subjects.
-            None if m.plugin == BRIDGE_PLUGIN => (
-                Vec::new(),
-                serde_json::from_value(cfg.params_json(name)["subjects"].clone()).ok(),
-            ),
-            None => (Vec::new(), None),
+            None => (Vec::new(), unbuilt(name)),
         };
         out.push(Wiring {
             name: name.clone(),
@@ -109,14 +90,15 @@ fn patterns(texts: &[String]) -> Vec<Pattern> {
     texts.iter().filter_map(|t| Pattern::new(t).ok()).collect()
 }
 
-/// Warnings about how the modules connect, for `validate` (not errors: a module may
-/// well publish only for the recording):
+/// Warnings about how the modules connect, for `validate` and the start of `run` (not
+/// errors, unless `episode.strict_wiring`: a module may well publish only for the
+/// recording). `unbuilt`: what modules missing from `specs` publish.
 ///
 /// * a subscription that no module declares publishing (only when every module
 ///   declared what it publishes: one that did not may publish anything);
 /// * a declared publication that no module subscribes to.
-pub fn wiring_warnings(cfg: &LoadedConfig, specs: &[ModuleSpec]) -> Vec<String> {
-    let modules = wiring(cfg, specs);
+pub fn wiring_warnings(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuilt) -> Vec<String> {
+    let modules = wiring(cfg, specs, unbuilt);
     let mut warnings = Vec::new();
     let all_declared = modules.iter().all(|m| m.publishes.is_some());
     let published: Vec<Pattern> = modules
@@ -218,7 +200,7 @@ mod tests {
             })))
         })
         .unwrap();
-        wiring_warnings(&cfg, &specs)
+        wiring_warnings(&cfg, &specs, &|_| None)
     }
 
     const HEAD: &str = "[episode]\nts = 1.0\nsteps = 1\nstages = [\"s\"]\n";
@@ -265,14 +247,5 @@ mod tests {
         );
         let w = warnings(&text, &[("a", &["x.>"], None), ("b", &["nobody.*"], None)]);
         assert!(w.is_empty(), "{w:?}");
-    }
-
-    #[test]
-    fn the_bridge_needs_the_nats_transport() {
-        let text = format!("{HEAD}[modules.a]\nstage = \"s\"\nplugin = \"{BRIDGE_PLUGIN}\"\n");
-        let cfg = crate::config::parse(&text, "c.toml", std::path::Path::new("."), &[]).unwrap();
-        let err = build_modules(&cfg, |_, _| Ok(None)).err().unwrap();
-        assert_eq!(err.key.as_deref(), Some("modules.a.plugin"));
-        assert!(err.message.contains("needs the NATS transport"), "{err}");
     }
 }

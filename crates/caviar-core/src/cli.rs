@@ -3,7 +3,6 @@
 //! Exit codes: 0 success, 1 the run failed (a module error), 2 bad input (usage,
 //! configuration, unreadable run directory), 130 interrupted.
 
-use std::collections::BTreeMap;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -11,13 +10,11 @@ use std::time::Instant;
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
-use crate::assembly::wiring_warnings;
+use crate::assembly::PrepareError;
 use crate::config;
-use crate::engine::{EndReason, Engine, EngineError, StepReport};
-use crate::message::Message;
-use crate::recorder::{read_messages, read_timings, TimingRow, CORE};
-use crate::run::{check_paths, load_modules, prepare_monitored, PluginLoader};
-use crate::status::{write_status, RunErrorInfo, RunState, RunStatus};
+use crate::engine::{Engine, EngineError, StepReport};
+use crate::run::{self, PluginLoader, RunSession};
+use crate::status::{rtf_text, RunState};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -51,12 +48,19 @@ enum Command {
         /// Port of the view (default: a free one).
         #[arg(long, requires = "view", value_name = "PORT")]
         view_port: Option<u16>,
+        /// Refuse to run when the modules are not wired together (a subscription
+        /// nothing publishes, a topic nobody reads): `episode.strict_wiring = true`.
+        #[arg(long)]
+        strict: bool,
     },
     /// Check a configuration and load its plugins without running anything.
     Validate {
         config: PathBuf,
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
+        /// Wiring warnings are errors (`episode.strict_wiring = true`).
+        #[arg(long)]
+        strict: bool,
     },
     /// Summarise a recorded run: steps, topics, message counts, time per module, RTF.
     Inspect { run_dir: PathBuf },
@@ -80,8 +84,10 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
             quiet,
             view,
             view_port,
+            strict,
         } => {
             let view = view.then_some(view_port.unwrap_or(0));
+            let set = with_strict(set, strict);
             run(
                 &config,
                 &set,
@@ -92,8 +98,12 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
                 interrupted,
             )
         }
-        Command::Validate { config, set } => validate(&config, &set, loader),
-        Command::Inspect { run_dir } => match inspect(&run_dir) {
+        Command::Validate {
+            config,
+            set,
+            strict,
+        } => validate(&config, &with_strict(set, strict), loader),
+        Command::Inspect { run_dir } => match crate::inspect::inspect(&run_dir) {
             Ok(text) => {
                 print!("{text}");
                 0
@@ -106,15 +116,18 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
     }
 }
 
+/// `--strict` is `--set episode.strict_wiring=true`.
+fn with_strict(mut set: Vec<String>, strict: bool) -> Vec<String> {
+    if strict {
+        set.push("episode.strict_wiring=true".into());
+    }
+    set
+}
+
 fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
-    let result = config::load(path, set).and_then(|cfg| {
-        check_paths(&cfg)?;
-        let specs = load_modules(&cfg, loader)?;
-        let n = cfg.config.modules.len();
-        Ok((wiring_warnings(&cfg, &specs), cfg, n))
-    });
+    let result = config::load(path, set).and_then(|cfg| Ok((run::check(&cfg, loader)?, cfg)));
     match result {
-        Ok((warnings, cfg, n)) => {
+        Ok((warnings, cfg)) => {
             for w in warnings {
                 eprintln!("warning: {w}");
             }
@@ -124,8 +137,9 @@ fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
                     format!("{s} steps")
                 });
             println!(
-                "{}: ok ({n} modules in {} stages, Ts = {} s, {steps})",
+                "{}: ok ({} modules in {} stages, Ts = {} s, {steps})",
                 path.display(),
+                cfg.config.modules.len(),
                 cfg.config.episode.stages.len(),
                 cfg.config.episode.ts
             );
@@ -212,63 +226,49 @@ fn run(
     loader: &dyn PluginLoader,
     interrupted: &dyn Fn() -> bool,
 ) -> i32 {
-    let cfg = match config::load(path, set) {
-        Ok(c) => c,
+    let session = config::load(path, set)
+        .map_err(PrepareError::from)
+        .and_then(|cfg| RunSession::start(cfg, loader, out));
+    let mut session = match session {
+        Ok(s) => s,
         Err(e) => {
             eprintln!("error: {e}");
             return 2;
         }
     };
-    let (mut engine, mut monitor) = match prepare_monitored(&cfg, loader, out) {
-        Ok(e) => e,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return 2;
-        }
-    };
-    let viewing = view_port.is_some_and(|port| start_viewer(loader, engine.run_dir(), port));
+    for w in session.warnings() {
+        eprintln!("warning: {w}");
+    }
+    let viewing =
+        view_port.is_some_and(|port| start_viewer(loader, session.engine().run_dir(), port));
     let started = Instant::now();
-    // Ctrl-C sets a flag polled between steps and while NATS replies are awaited; a
-    // Python plugin never sees it as KeyboardInterrupt.
+    // Ctrl-C sets a flag polled between steps and while transport replies are awaited;
+    // a Python plugin never sees it as KeyboardInterrupt.
     let sigint = crate::interrupt::Guard::install();
-    let bar = progress_bar(&engine, quiet);
+    let bar = progress_bar(session.engine(), quiet);
     let mut log = LogProgress::new(quiet);
-    let result = engine.run(|engine, report| {
-        monitor.after_step(&cfg, engine);
+    let result = session.run(|engine, report| {
         show_progress(&bar, engine, report);
         log.update(engine, report);
         !interrupted()
     });
     bar.finish_and_clear();
-    let closed = engine.close();
-    drop(monitor);
+    let error = session.finish(result).err();
     drop(sigint);
-    let error = result.err().or(closed.err());
-    let status = match &error {
-        None => RunState::Completed,
-        Some(EngineError::Interrupted { .. }) => RunState::Interrupted,
-        Some(_) => RunState::Failed,
-    };
-    if let Err(e) = write_status(&cfg, &engine, status, error.as_ref()) {
-        eprintln!("error: {e}");
-    }
-    let code = finish_line(&engine, status, error, started.elapsed().as_secs_f64());
-    if viewing && std::io::stderr().is_terminal() && status != RunState::Interrupted {
+    let state = session.ended().expect("finished");
+    let code = finish_line(
+        session.engine(),
+        state,
+        error,
+        started.elapsed().as_secs_f64(),
+    );
+    if viewing && std::io::stderr().is_terminal() && state != RunState::Interrupted {
         eprintln!("view: still serving the finished run; Ctrl-C to stop");
         while !interrupted() {
             std::thread::sleep(std::time::Duration::from_millis(200));
         }
     }
     code
-}
-
-/// The paper's real-time factor RTF = T_p / T_v (wall-clock time over virtual time),
-/// three decimals; "-" before any virtual time has passed.
-fn rtf_text(wall_s: f64, virtual_s: f64) -> String {
-    match crate::status::rtf(wall_s, virtual_s) {
-        Some(r) => format!("{r:.3}"),
-        None => "-".into(),
-    }
 }
 
 /// Starts the host's viewer on the run directory; prints where, or why not.
@@ -312,253 +312,6 @@ fn finish_line(engine: &Engine, status: RunState, error: Option<EngineError>, wa
                 EngineError::Module { error, .. } if error.bad_input => 2,
                 _ => 1,
             }
-        }
-    }
-}
-
-fn human_bytes(n: u64) -> String {
-    match n {
-        n if n >= 1 << 30 => format!("{:.1} GiB", n as f64 / (1u64 << 30) as f64),
-        n if n >= 1 << 20 => format!("{:.1} MiB", n as f64 / (1u64 << 20) as f64),
-        n if n >= 1 << 10 => format!("{:.1} KiB", n as f64 / 1024.0),
-        n => format!("{n} B"),
-    }
-}
-
-/// The text `caviar-core inspect` prints.
-pub fn inspect(run_dir: &Path) -> Result<String, String> {
-    let status = RunStatus::read_live(run_dir)?;
-    let messages = read_messages(run_dir).map_err(|e| e.to_string())?;
-    let timings = read_timings(run_dir).map_err(|e| e.to_string())?;
-    let mut s = String::new();
-    write_summary(&mut s, run_dir, &status, &messages);
-    write_topics(&mut s, &messages);
-    write_modules(&mut s, module_rows(&timings));
-    Ok(s)
-}
-
-/// How the episode ended, in words.
-fn end_text(status: &RunStatus) -> Option<String> {
-    Some(match status.end_reason? {
-        EndReason::Steps => "all planned steps ran".into(),
-        EndReason::Module => format!(
-            "module '{}' published caviar.episode.end",
-            status.ended_by.as_deref().unwrap_or("?")
-        ),
-        EndReason::Error => "an error (below)".into(),
-        EndReason::Interrupted => "interrupted (Ctrl-C)".into(),
-        EndReason::Closed => "closed by the host before its end".into(),
-    })
-}
-
-/// The head: status, steps, wall time, messages, how it ended, the error.
-fn write_summary(s: &mut String, run_dir: &Path, status: &RunStatus, messages: &[Message]) {
-    use std::fmt::Write;
-    let planned = status
-        .steps_planned
-        .map_or("open-ended".to_string(), |n| n.to_string());
-    let (wall, virt) = (status.wall_s, status.virtual_time_s);
-    writeln!(
-        s,
-        "run       {}  ({})",
-        run_dir.display(),
-        status.status.as_str()
-    )
-    .unwrap();
-    writeln!(
-        s,
-        "steps     {} of {planned}, Ts = {} s, {virt:.3} s virtual",
-        status.steps_done,
-        serde_json::json!(status.ts)
-    )
-    .unwrap();
-    let rtf = rtf_text(wall, virt);
-    let record = status.record_s;
-    writeln!(
-        s,
-        "wall      {wall:.3} s in steps ({record:.3} s of it recording), RTF {rtf} \
-         (T_p/T_v: wall-clock s per virtual s; < 1 is faster than real time)"
-    )
-    .unwrap();
-    let total_bytes: u64 = messages.iter().map(|m| m.payload.len() as u64).sum();
-    writeln!(
-        s,
-        "messages  {} ({})",
-        messages.len(),
-        human_bytes(total_bytes)
-    )
-    .unwrap();
-    if let Some(end) = end_text(status) {
-        writeln!(s, "ended     {end}").unwrap();
-    }
-    if let Some(text) = status.abandoned_text() {
-        writeln!(s, "ended     {text}").unwrap();
-    }
-    if let Some(err) = &status.error {
-        writeln!(s, "error     {}", err.message()).unwrap();
-        if let RunErrorInfo::Module {
-            module,
-            phase,
-            step,
-            ..
-        } = err
-        {
-            let step = serde_json::json!(step);
-            writeln!(s, "          in module '{module}', {phase} at step {step}").unwrap();
-        }
-    }
-}
-
-/// One row per topic: kind, count, steps, bytes, sources.
-fn write_topics(s: &mut String, messages: &[Message]) {
-    use std::fmt::Write;
-    struct TopicRow {
-        kind: &'static str,
-        count: u64,
-        first: u64,
-        last: u64,
-        bytes: u64,
-        sources: Vec<String>,
-    }
-    let mut topics: BTreeMap<&str, TopicRow> = BTreeMap::new();
-    for m in messages {
-        let row = topics.entry(&m.topic).or_insert(TopicRow {
-            kind: m.payload.kind().as_str(),
-            count: 0,
-            first: m.step,
-            last: m.step,
-            bytes: 0,
-            sources: Vec::new(),
-        });
-        row.count += 1;
-        row.last = m.step;
-        row.bytes += m.payload.len() as u64;
-        if !row.sources.contains(&m.source) {
-            row.sources.push(m.source.clone());
-        }
-    }
-    let w = topics.keys().map(|t| t.len()).max().unwrap_or(5).max(5);
-    writeln!(
-        s,
-        "\n{:<w$}  {:<8} {:>9} {:>13} {:>10}  from",
-        "topic", "kind", "messages", "steps", "bytes"
-    )
-    .unwrap();
-    for (t, r) in &topics {
-        writeln!(
-            s,
-            "{t:<w$}  {:<8} {:>9} {:>13} {:>10}  {}",
-            r.kind,
-            r.count,
-            format!("{}-{}", r.first, r.last),
-            human_bytes(r.bytes),
-            r.sources.join(", ")
-        )
-        .unwrap();
-    }
-}
-
-/// A module's timings added up over the run.
-#[derive(Default)]
-struct ModuleRow {
-    runs: u64,
-    wall: f64,
-    cpu: f64,
-    rss_max: f64,
-    msgs_in: u64,
-    msgs_out: u64,
-    gpu_util_sum: f64,
-    gpu_util_n: u64,
-    gpu_mem_max: Option<f64>,
-}
-
-impl ModuleRow {
-    fn add(&mut self, t: &TimingRow) {
-        self.runs += 1;
-        self.wall += t.wall_s;
-        self.cpu += t.cpu_s;
-        self.rss_max = self.rss_max.max(t.rss_mib);
-        self.msgs_in += t.msgs_in as u64;
-        self.msgs_out += t.msgs_out as u64;
-        if let Some(u) = t.gpu_util_pct {
-            self.gpu_util_sum += u;
-            self.gpu_util_n += 1;
-        }
-        if let Some(m) = t.gpu_mem_mib {
-            self.gpu_mem_max = Some(self.gpu_mem_max.map_or(m, |x: f64| x.max(m)));
-        }
-    }
-}
-
-/// Per module in order of first appearance, the core's row last (it is the overhead
-/// of everything above it).
-fn module_rows(timings: &[TimingRow]) -> Vec<(String, ModuleRow)> {
-    let mut modules: Vec<(String, ModuleRow)> = Vec::new();
-    for t in timings {
-        let i = match modules.iter().position(|(n, _)| *n == t.module) {
-            Some(i) => i,
-            None => {
-                modules.push((t.module.clone(), ModuleRow::default()));
-                modules.len() - 1
-            }
-        };
-        modules[i].1.add(t);
-    }
-    modules.sort_by_key(|(n, _)| n == CORE);
-    modules
-}
-
-fn write_modules(s: &mut String, modules: Vec<(String, ModuleRow)>) {
-    use std::fmt::Write;
-    // GPU columns only where a GPU was measured.
-    let gpu = modules
-        .iter()
-        .any(|(_, r)| r.gpu_util_n > 0 || r.gpu_mem_max.is_some());
-    let total: f64 = modules.iter().map(|(_, r)| r.wall).sum::<f64>().max(1e-12);
-    let w = modules
-        .iter()
-        .map(|(n, _)| n.len())
-        .max()
-        .unwrap_or(6)
-        .max(6);
-    writeln!(
-        s,
-        "\n{:<w$}  {:>6} {:>10} {:>7} {:>10} {:>9} {:>11} {:>8} {:>8}{}",
-        "module",
-        "steps",
-        "wall s",
-        "share",
-        "mean ms",
-        "cpu s",
-        "max RSS MiB",
-        "in",
-        "out",
-        if gpu { "  mean GPU %  max GPU MiB" } else { "" }
-    )
-    .unwrap();
-    for (n, r) in &modules {
-        writeln!(
-            s,
-            "{n:<w$}  {:>6} {:>10.4} {:>6.1}% {:>10.3} {:>9.4} {:>11.1} {:>8} {:>8}",
-            r.runs,
-            r.wall,
-            100.0 * r.wall / total,
-            1e3 * r.wall / r.runs.max(1) as f64,
-            r.cpu,
-            r.rss_max,
-            r.msgs_in,
-            r.msgs_out
-        )
-        .unwrap();
-        if gpu {
-            s.pop(); // the newline: the GPU columns continue the row
-            let util = if r.gpu_util_n > 0 {
-                format!("{:.1}", r.gpu_util_sum / r.gpu_util_n as f64)
-            } else {
-                "-".into()
-            };
-            let mem = r.gpu_mem_max.map_or("-".into(), |m| format!("{m:.0}"));
-            writeln!(s, "  {util:>10} {mem:>12}").unwrap();
         }
     }
 }

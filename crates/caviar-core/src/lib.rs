@@ -9,27 +9,36 @@
 //! # Dependency order
 //!
 //! Each module uses only modules listed before it (none imports a module that
-//! imports it back); transports are leaves that only the run reaches:
+//! imports it back: `tests/layering.rs` checks it from the sources); transports are
+//! leaves behind [`transport::interface`], and only the registry in [`transport`]
+//! names one:
 //!
 //! 1. [`topic`], [`message`], [`metrics`], [`interrupt`] (the Ctrl-C flag): leaves
 //! 2. [`module`] (message)
-//! 3. [`recorder`] (message, topic)
-//! 4. [`config`] (topic)
+//! 3. [`recorder`] (message, topic): the run directory's tables, written and read
+//! 4. [`config`] (topic): the experiment file; `[transport]` kept as written
 //! 5. [`replay`] (config, message, module, recorder, topic)
 //! 6. [`engine`] (message, metrics, module, recorder, topic)
-//! 7. [`assembly`] (config, engine, module, replay, topic): built-in plugin names,
-//!    `build_modules`, `PrepareError`, wiring warnings
+//! 7. [`assembly`] (config, engine, module, replay, topic): the core's built-in
+//!    plugins, `build_modules`, `PrepareError`, wiring warnings
 //! 8. [`status`] (config, engine, module): run.json, progress.json and the
 //!    in-process step watchdog ([`status::Monitor`])
-//! 9. [`transport::nats`] (assembly, config, engine, message, metrics, module, topic)
-//! 10. [`run`] (assembly, config, engine, module, recorder, status, topic, transport)
-//! 11. [`cli`] (assembly, config, engine, recorder, run, status)
-//! 12. `python` (feature `python`: the `caviar._core` extension; everything above)
+//! 9. [`inspect`] (engine, message, recorder, status): `caviar-core inspect`'s report
+//!    and the per-module totals
+//! 10. [`transport::interface`] (assembly, config, engine); the transports
+//!     ([`transport::nats`]: assembly, config, engine, message, metrics, module,
+//!     topic, interface) and the registry [`transport`] (config, interface, nats)
+//! 11. [`run`] (assembly, config, engine, module, recorder, status, topic,
+//!     transport): [`run::RunSession`], one run from start to run.json
+//! 12. [`cli`] (assembly, config, engine, inspect, run, status)
+//! 13. `py_messages`, `python` (feature `python`: the `caviar._core` extension;
+//!     everything above, the transports through their registry)
 
 pub mod assembly;
 pub mod cli;
 pub mod config;
 pub mod engine;
+pub mod inspect;
 pub mod interrupt;
 pub mod message;
 pub mod metrics;
@@ -41,6 +50,8 @@ pub mod status;
 pub mod topic;
 pub mod transport;
 
+#[cfg(feature = "python")]
+mod py_messages;
 #[cfg(feature = "python")]
 mod python;
 

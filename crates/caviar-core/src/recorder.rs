@@ -365,13 +365,14 @@ fn read_file(path: &Path, out: &mut Vec<RecordBatch>) -> Result<(), RecordError>
     Ok(())
 }
 
-/// Reads a recorded table (`messages` or `timings`) of a run, finished or not.
-pub fn read_table(run_dir: &Path, table: &str) -> Result<Vec<RecordBatch>, RecordError> {
+/// The Parquet files that hold a recorded table (`messages` or `timings`), in order:
+/// `TABLE.parquet` once the run was compacted, else `TABLE/part-NNNNNN.parquet` (a
+/// run in progress or one that was killed). The one place that knows the layout: the
+/// readers of the Rust side and of the Python side (`caviar._core.table_files`) use it.
+pub fn table_files(run_dir: &Path, table: &str) -> Result<Vec<PathBuf>, RecordError> {
     let single = run_dir.join(format!("{table}.parquet"));
-    let mut out = Vec::new();
     if single.exists() {
-        read_file(&single, &mut out)?;
-        return Ok(out);
+        return Ok(vec![single]);
     }
     let parts_dir = run_dir.join(table);
     if !parts_dir.is_dir() {
@@ -380,8 +381,14 @@ pub fn read_table(run_dir: &Path, table: &str) -> Result<Vec<RecordBatch>, Recor
             message: format!("not a run directory: neither {table}.parquet nor {table}/ is there"),
         });
     }
-    for part in part_files(&parts_dir)? {
-        read_file(&part, &mut out)?;
+    part_files(&parts_dir)
+}
+
+/// Reads a recorded table (`messages` or `timings`) of a run, finished or not.
+pub fn read_table(run_dir: &Path, table: &str) -> Result<Vec<RecordBatch>, RecordError> {
+    let mut out = Vec::new();
+    for file in table_files(run_dir, table)? {
+        read_file(&file, &mut out)?;
     }
     Ok(out)
 }

@@ -1,4 +1,6 @@
-//! From a configuration to a running engine, and the run directory around it.
+//! From a configuration to a running engine, and the run directory around it: one
+//! [`RunSession`] for the command line (`caviar-core run`) and for Python
+//! (`caviar.Simulation`), from loading the modules to the last line of run.json.
 //!
 //! A run directory holds `config.toml` (the exact configuration, overrides applied),
 //! `run.json` (status, counts, error), `messages.parquet`, `timings.parquet` and
@@ -8,21 +10,21 @@ use std::fs;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::assembly::{build_modules, PrepareError, BRIDGE_PLUGIN, REPLAY_PLUGIN};
-use crate::config::{ConfigError, LoadedConfig, TransportKind};
-use crate::engine::{Engine, EngineOptions, ModuleSpec};
+use crate::assembly::{build_modules, wiring_warnings, PrepareError, REPLAY_PLUGIN};
+use crate::config::{ConfigError, LoadedConfig};
+use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec, StepReport};
 use crate::module::{AnyModule, Module, ResourceProbe};
 use crate::recorder::Recorder;
-use crate::status::{write_status, Monitor, RunState};
+use crate::status::{Monitor, RunState, RunStatus};
 use crate::topic::Pattern;
-use crate::transport::nats::{self, WorkerLauncher};
+use crate::transport::{self, Connection, WorkerLauncher};
 
 /// Builds the module of a `[modules.NAME]` table. Loading and checking parameters
 /// happens here, before any run directory exists: a config error never starts a run.
 pub trait PluginLoader {
     fn load(&self, cfg: &LoadedConfig, name: &str) -> Result<Box<dyn Module>, ConfigError>;
 
-    /// How to start a `caviar worker` process for the NATS transport, if this host can.
+    /// How to start a worker process of a transport, if this host can.
     fn worker_launcher(&self) -> Option<WorkerLauncher> {
         None
     }
@@ -55,19 +57,46 @@ impl PluginLoader for BuiltinsOnly {
     }
 }
 
-/// Loads every module of the configuration (what `validate` checks).
+/// Loads every module of the configuration in this process (what `validate` checks);
+/// a transport's own built-ins, which need its connection, are left out.
 pub fn load_modules(
     cfg: &LoadedConfig,
     loader: &dyn PluginLoader,
 ) -> Result<Vec<ModuleSpec>, ConfigError> {
     build_modules(cfg, |name, m| {
-        if m.plugin == BRIDGE_PLUGIN {
-            // Needs a live NATS connection: built by `nats::prepare` (allowed only with
-            // the NATS transport, so only `validate` gets here).
+        if transport::is_transport_builtin(&m.plugin) {
             return Ok(None);
         }
         loader.load(cfg, name).map(|m| Some(AnyModule::Local(m)))
     })
+}
+
+/// Everything `validate` checks, nothing run: the transport's section, the paths, every
+/// module loaded with its parameters. Returns the wiring warnings (errors where
+/// `episode.strict_wiring`).
+pub fn check(cfg: &LoadedConfig, loader: &dyn PluginLoader) -> Result<Vec<String>, ConfigError> {
+    transport::check(cfg)?;
+    check_paths(cfg)?;
+    let specs = load_modules(cfg, loader)?;
+    let warnings = wiring_warnings(cfg, &specs, &|name| transport::builtin_publishes(cfg, name));
+    strict_wiring(cfg, &warnings)?;
+    Ok(warnings)
+}
+
+/// With `episode.strict_wiring`, wiring warnings are an error (as mosaik refuses a bad
+/// `connect`).
+fn strict_wiring(cfg: &LoadedConfig, warnings: &[String]) -> Result<(), ConfigError> {
+    if !cfg.config.episode.strict_wiring || warnings.is_empty() {
+        return Ok(());
+    }
+    Err(cfg.error_at(
+        "episode.strict_wiring",
+        format!(
+            "the modules are not wired together ({} problem(s)):\n  {}",
+            warnings.len(),
+            warnings.join("\n  ")
+        ),
+    ))
 }
 
 /// The parent of numbered run directories: `output.dir` (relative to the config
@@ -120,92 +149,198 @@ pub fn check_output_dir(cfg: &LoadedConfig) -> Result<(), ConfigError> {
 }
 
 /// What `validate` and the start of `run` check on the filesystem: run directories can
-/// be made under `output.dir`, and the files the NATS transport names exist.
+/// be made under `output.dir`, and the files the transport names exist.
 pub fn check_paths(cfg: &LoadedConfig) -> Result<(), ConfigError> {
     check_output_dir(cfg)?;
-    if cfg.config.transport.kind != TransportKind::Nats {
-        return Ok(());
+    match transport::by_kind(cfg.transport_kind()) {
+        Some(t) => t.check_files(cfg),
+        None => Ok(()),
     }
-    check_nats_files(cfg)
 }
 
-fn check_nats_files(cfg: &LoadedConfig) -> Result<(), ConfigError> {
-    let n = &cfg.config.transport.nats;
-    let files = [
-        ("server", &n.server),
-        ("credentials", &n.credentials),
-        ("tls_ca", &n.tls_ca),
-        ("tls_cert", &n.tls_cert),
-        ("tls_key", &n.tls_key),
-        ("key_file", &n.key_file),
-    ];
-    for (key, path) in files {
-        if let Some(p) = path {
-            let full = cfg.resolve(p);
-            if !full.is_file() {
-                return Err(cfg.error_at(
-                    &format!("transport.nats.{key}"),
-                    format!("no such file: {}", full.display()),
-                ));
-            }
+/// A run from start to end: the engine, the monitor that keeps run.json and
+/// progress.json true as it goes, the transport's connection, and the one place that
+/// turns how the run ended into run.json.
+pub struct RunSession {
+    cfg: LoadedConfig,
+    engine: Engine,
+    monitor: Option<Monitor>,
+    connection: Option<Box<dyn Connection>>,
+    warnings: Vec<String>,
+    ended: Option<RunState>,
+}
+
+impl RunSession {
+    /// Checks the transport, loads every module, creates the run directory and the
+    /// engine. `out`: the run directory to use instead of `output.dir/NAME-NNN`.
+    ///
+    /// In-process, the plugins are loaded before the run directory exists. A transport
+    /// loads them in its workers: the run directory comes first (worker logs go into
+    /// it), then its servers and workers; a configuration error there removes the
+    /// run directory again.
+    pub fn start(
+        cfg: LoadedConfig,
+        loader: &dyn PluginLoader,
+        out: Option<&Path>,
+    ) -> Result<Self, PrepareError> {
+        let transport = transport::check(&cfg)?;
+        if out.is_none() {
+            check_output_dir(&cfg)?;
         }
-    }
-    Ok(())
-}
-
-/// Loads every module, creates the run directory and the engine.
-/// `out`: the run directory to use instead of `output.dir/NAME-NNN`.
-///
-/// With the NATS transport the plugins are loaded by their workers, not here: the run
-/// directory comes first (worker logs go into it), then the server and the workers.
-pub fn prepare(
-    cfg: &LoadedConfig,
-    loader: &dyn PluginLoader,
-    out: Option<&Path>,
-) -> Result<Engine, PrepareError> {
-    prepare_monitored(cfg, loader, out).map(|(engine, _)| engine)
-}
-
-/// [`prepare`], with the [`Monitor`] that keeps run.json and progress.json true as the
-/// run goes on (call its `after_step`) and, in-process, stops a module step that
-/// outlasts `episode.step_timeout` (the NATS transport has its own deadline).
-pub fn prepare_monitored(
-    cfg: &LoadedConfig,
-    loader: &dyn PluginLoader,
-    out: Option<&Path>,
-) -> Result<(Engine, Monitor), PrepareError> {
-    let in_process = cfg.config.transport.kind == TransportKind::Inprocess;
-    if out.is_none() {
-        check_output_dir(cfg)?;
-    }
-    if cfg.config.transport.kind == TransportKind::Nats {
-        check_nats_files(cfg)?;
-    }
-    let specs = if in_process {
-        Some(load_modules(cfg, loader)?)
-    } else {
-        None
-    };
-    let run_dir = match out {
-        Some(dir) => create_exact(dir)?,
-        None => create_numbered(cfg)?,
-    };
-    let io = |e: std::io::Error| PrepareError::Io(format!("{}: {e}", run_dir.display()));
-    fs::write(run_dir.join("config.toml"), &cfg.text).map_err(io)?;
-    let (specs, tap) = match specs {
-        Some(s) => (s, None),
-        None => match nats::prepare(cfg, loader.worker_launcher(), &run_dir) {
-            Ok(prepared) => prepared,
-            Err(e) => {
-                // A configuration error (reported by a worker) starts no run: the run
-                // directory made for the workers' logs goes again.
-                if matches!(e, PrepareError::Config(_)) {
-                    let _ = fs::remove_dir_all(&run_dir);
-                }
-                return Err(e);
+        if let Some(t) = &transport {
+            t.check_files(&cfg)?;
+        }
+        let local = match transport {
+            None => Some(load_modules(&cfg, loader)?),
+            Some(_) => None,
+        };
+        // In-process, the wiring is known (and refused where strict) before the run
+        // directory exists; a transport knows it once its workers loaded the plugins.
+        let mut warnings = Vec::new();
+        if let Some(specs) = &local {
+            warnings = wiring_warnings(&cfg, specs, &|_| None);
+            strict_wiring(&cfg, &warnings)?;
+        }
+        let run_dir = match out {
+            Some(dir) => create_exact(dir)?,
+            None => create_numbered(&cfg)?,
+        };
+        let io = |e: std::io::Error| PrepareError::Io(format!("{}: {e}", run_dir.display()));
+        fs::write(run_dir.join("config.toml"), &cfg.text).map_err(io)?;
+        let (specs, tap, connection) = match (local, transport) {
+            (Some(specs), _) => (specs, None, None),
+            (None, Some(t)) => {
+                let prepared = t
+                    .prepare(&cfg, loader.worker_launcher().as_ref(), &run_dir)
+                    .and_then(|p| {
+                        warnings = wiring_warnings(&cfg, &p.modules, &|_| None);
+                        strict_wiring(&cfg, &warnings)?;
+                        Ok(p)
+                    })
+                    .inspect_err(|e| {
+                        // A configuration error (reported by a worker) starts no run.
+                        if matches!(e, PrepareError::Config(_)) {
+                            let _ = fs::remove_dir_all(&run_dir);
+                        }
+                    })?;
+                (prepared.modules, prepared.tap, Some(prepared.connection))
             }
-        },
-    };
+            (None, None) => unreachable!("in-process modules are loaded above"),
+        };
+        let mut engine = new_engine(&cfg, &run_dir, specs)?;
+        if let Some(tap) = tap {
+            engine.set_tap(tap);
+        }
+        if let Some(probe) = loader.resource_probe() {
+            engine.set_probe(probe);
+        }
+        // A transport has its own step deadline; in-process, the monitor's watchdog.
+        let watchdog = connection
+            .is_none()
+            .then(|| Duration::from_secs_f64(cfg.step_timeout()));
+        let mut monitor = Monitor::install(&mut engine, watchdog);
+        RunStatus::of(&cfg, &engine, RunState::Running, None)
+            .write(&run_dir)
+            .map_err(PrepareError::Io)?;
+        monitor.started(&cfg, &engine);
+        Ok(RunSession {
+            cfg,
+            engine,
+            monitor: Some(monitor),
+            connection,
+            warnings,
+            ended: None,
+        })
+    }
+
+    pub fn engine(&self) -> &Engine {
+        &self.engine
+    }
+
+    pub fn config(&self) -> &LoadedConfig {
+        &self.cfg
+    }
+
+    /// The wiring warnings of the run's modules (the start of `run` prints them).
+    pub fn warnings(&self) -> &[String] {
+        &self.warnings
+    }
+
+    /// How the run ended; `None` while it goes on.
+    pub fn ended(&self) -> Option<RunState> {
+        self.ended
+    }
+
+    /// Runs one step; `None` when the episode is over.
+    pub fn step(&mut self) -> Result<Option<StepReport>, EngineError> {
+        let report = self.engine.step()?;
+        if let (Some(m), Some(_)) = (&mut self.monitor, &report) {
+            m.after_step(&self.cfg, &self.engine);
+        }
+        Ok(report)
+    }
+
+    /// Runs to the end of the episode; `on_step` after every step, `false` stops it
+    /// (interrupted).
+    pub fn run(
+        &mut self,
+        mut on_step: impl FnMut(&Engine, &StepReport) -> bool,
+    ) -> Result<(), EngineError> {
+        let (monitor, cfg) = (&mut self.monitor, &self.cfg);
+        self.engine.run(|engine, report| {
+            if let Some(m) = monitor.as_mut() {
+                m.after_step(cfg, engine);
+            }
+            on_step(engine, report)
+        })
+    }
+
+    /// Ends the run with `result` (how running went): tears the modules down,
+    /// compacts the recording, shuts the transport down and writes run.json:
+    /// `completed`, `interrupted` (Ctrl-C) or `failed`, with the error. The error of
+    /// the run, or else of the teardown, is returned. Once; later calls return `Ok`.
+    pub fn finish(&mut self, result: Result<(), EngineError>) -> Result<(), EngineError> {
+        if self.ended.is_some() {
+            return Ok(());
+        }
+        let closed = self.engine.close();
+        // The watchdog stops before the last run.json is written.
+        self.monitor = None;
+        if let Some(c) = &self.connection {
+            c.shutdown();
+        }
+        let error = result.err().or(closed.err());
+        let state = match &error {
+            None => RunState::Completed,
+            Some(EngineError::Interrupted { .. }) => RunState::Interrupted,
+            Some(_) => RunState::Failed,
+        };
+        self.ended = Some(state);
+        let mut status = RunStatus::of(&self.cfg, &self.engine, state, error.as_ref());
+        if let Some(c) = &self.connection {
+            status.transport = c.status();
+        }
+        if let Err(e) = status.write(self.engine.run_dir()) {
+            eprintln!("error: {e}");
+        }
+        error.map_or(Ok(()), Err)
+    }
+}
+
+/// A session dropped before its end (`del sim`, a host that returned early) is
+/// finished here, so that run.json does not stay `running`.
+impl Drop for RunSession {
+    fn drop(&mut self) {
+        let _ = self.finish(Ok(()));
+    }
+}
+
+/// The engine of a run: its recorder in `run_dir`, the episode's timing and stages.
+fn new_engine(
+    cfg: &LoadedConfig,
+    run_dir: &Path,
+    specs: Vec<ModuleSpec>,
+) -> Result<Engine, PrepareError> {
     let exclude = cfg
         .config
         .output
@@ -214,7 +349,7 @@ pub fn prepare_monitored(
         .map(|p| Pattern::new(p).expect("validated"))
         .collect();
     let recorder = Recorder::create(
-        &run_dir,
+        run_dir,
         exclude,
         Duration::from_secs_f64(cfg.config.output.flush_interval),
     )
@@ -225,21 +360,10 @@ pub fn prepare_monitored(
         steps: cfg.steps(),
         seed: ep.seed,
         stages: ep.stages.clone(),
-        run_dir: run_dir.clone(),
+        run_dir: run_dir.to_path_buf(),
         config_dir: cfg.base_dir.clone(),
     };
-    let mut engine = Engine::new(opts, specs, Some(recorder)).map_err(PrepareError::Io)?;
-    if let Some(tap) = tap {
-        engine.set_tap(tap);
-    }
-    if let Some(probe) = loader.resource_probe() {
-        engine.set_probe(probe);
-    }
-    write_status(cfg, &engine, RunState::Running, None).map_err(PrepareError::Io)?;
-    let watchdog = in_process.then(|| Duration::from_secs_f64(cfg.step_timeout()));
-    let mut monitor = Monitor::install(&mut engine, watchdog);
-    monitor.started(cfg, &engine);
-    Ok((engine, monitor))
+    Engine::new(opts, specs, Some(recorder)).map_err(PrepareError::Io)
 }
 
 fn create_exact(dir: &Path) -> Result<PathBuf, PrepareError> {

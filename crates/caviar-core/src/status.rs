@@ -24,6 +24,15 @@ pub fn rtf(wall_s: f64, virtual_s: f64) -> Option<f64> {
     (virtual_s > 0.0).then(|| wall_s / virtual_s)
 }
 
+/// The paper's real-time factor RTF = T_p / T_v (wall-clock time over virtual time),
+/// three decimals; "-" before any virtual time has passed.
+pub fn rtf_text(wall_s: f64, virtual_s: f64) -> String {
+    match rtf(wall_s, virtual_s) {
+        Some(r) => format!("{r:.3}"),
+        None => "-".into(),
+    }
+}
+
 /// `status` in run.json.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -143,11 +152,12 @@ pub struct RunStatus {
     pub last_stage: Option<String>,
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub last_modules: Vec<String>,
-    /// NATS runs: frames refused for failing authentication or being out of sequence
-    /// (`{rejected, rejected_by_core, rejected_by_workers, warnings}`), added when the
-    /// run's connection closes (docs/nats-protocol.md).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub security: Option<serde_json::Value>,
+    /// What the transport records when the run ends, as top-level fields: NATS runs
+    /// add `security`, the frames refused for failing authentication or being out of
+    /// sequence (`{rejected, rejected_by_core, rejected_by_workers, warnings}`,
+    /// docs/nats-protocol.md).
+    #[serde(flatten)]
+    pub transport: serde_json::Map<String, serde_json::Value>,
 }
 
 impl RunStatus {
@@ -187,7 +197,7 @@ impl RunStatus {
             last_step: None,
             last_stage: None,
             last_modules: Vec::new(),
-            security: None,
+            transport: serde_json::Map::new(),
         }
     }
 
@@ -410,77 +420,67 @@ fn watchdog(
                 c.step
             );
         }
-        if presses >= 2 && !c.modules.is_empty() {
-            let mut status = c.status.clone().unwrap_or_default();
-            status.status = RunState::Interrupted;
-            status.pid = None;
-            status.steps_done = status.steps_done.max(c.step);
-            status.virtual_time_s = status.steps_done as f64 * status.ts;
-            status.end_reason = Some(EndReason::Interrupted);
-            status.last_step = Some(c.step);
-            status.last_modules = c.modules.clone();
-            status.error = Some(RunErrorInfo::Other {
-                message: format!(
-                    "interrupted in step {} (Ctrl-C twice, module '{}' still running)",
-                    c.step,
-                    c.modules.join("', '")
-                ),
-            });
-            let _ = status.write(&run_dir);
-            eprintln!(
-                "{}: interrupted in step {}; what was recorded is in the run directory",
-                run_dir.display(),
-                c.step
-            );
-            // SAFETY: ends the process at once; the recorder has flushed every finished step.
-            unsafe { libc::_exit(130) };
-        }
-        if c.modules.is_empty() || c.since.elapsed() < limit {
+        if c.modules.is_empty() {
             continue;
         }
-        let module = c.modules.join("', '");
+        let modules = c.modules.join("', '");
+        if presses >= 2 {
+            let message = format!(
+                "interrupted in step {} (Ctrl-C twice, module '{modules}' still running)",
+                c.step
+            );
+            let error = RunErrorInfo::Other { message };
+            end_now(&c, &run_dir, RunState::Interrupted, error);
+        }
+        if c.since.elapsed() < limit {
+            continue;
+        }
         let message = format!(
-            "module '{module}' did not finish step {} within {} s (episode.step_timeout); \
+            "module '{modules}' did not finish step {} within {} s (episode.step_timeout); \
              the run was stopped (a module running in this process cannot be interrupted)",
             c.step,
             limit.as_secs_f64()
         );
-        let mut status = c.status.clone().unwrap_or_default();
-        status.status = RunState::Failed;
-        status.pid = None;
-        status.steps_done = status.steps_done.max(c.step);
-        status.virtual_time_s = status.steps_done as f64 * status.ts;
-        status.end_reason = Some(EndReason::Error);
-        status.last_step = Some(c.step);
-        status.last_modules = c.modules.clone();
-        status.error = Some(RunErrorInfo::Module {
+        eprintln!("error: {message}");
+        let error = RunErrorInfo::Module {
             module: c.modules[0].clone(),
             phase: "step".into(),
             step: Some(c.step),
-            time: Some(c.step as f64 * status.ts),
-            message: message.clone(),
+            time: Some(c.step as f64 * c.status.as_ref().map_or(0.0, |s| s.ts)),
+            message,
             trace: None,
-        });
-        let _ = status.write(&run_dir);
-        eprintln!("error: {message}");
-        eprintln!(
-            "{}: failed after {} steps; what was recorded is in the run directory",
-            run_dir.display(),
-            status.steps_done
-        );
-        // SAFETY: ends the process at once; the recorder has flushed every finished step.
-        unsafe { libc::_exit(1) };
+        };
+        end_now(&c, &run_dir, RunState::Failed, error);
     }
 }
 
-/// Writes `run.json` for `engine`'s run: what ran, how far it got and how it ended.
-pub fn write_status(
-    cfg: &LoadedConfig,
-    engine: &Engine,
-    status: RunState,
-    error: Option<&EngineError>,
-) -> Result<(), String> {
-    RunStatus::of(cfg, engine, status, error).write(engine.run_dir())
+/// Ends the process at once from the watchdog, with run.json saying how: `failed` (a
+/// step past its deadline, exit 1) or `interrupted` (Ctrl-C twice, exit 130), at the
+/// step and modules in progress. The recorder has flushed every finished step.
+fn end_now(c: &Current, run_dir: &Path, state: RunState, error: RunErrorInfo) -> ! {
+    let mut status = c.status.clone().unwrap_or_default();
+    status.status = state;
+    status.pid = None;
+    status.steps_done = status.steps_done.max(c.step);
+    status.virtual_time_s = status.steps_done as f64 * status.ts;
+    status.end_reason = Some(match state {
+        RunState::Interrupted => EndReason::Interrupted,
+        _ => EndReason::Error,
+    });
+    status.last_step = Some(c.step);
+    status.last_modules = c.modules.clone();
+    status.error = Some(error);
+    let _ = status.write(run_dir);
+    let (what, code) = match state {
+        RunState::Interrupted => (format!("interrupted in step {}", c.step), 130),
+        _ => (format!("failed after {} steps", status.steps_done), 1),
+    };
+    eprintln!(
+        "{}: {what}; what was recorded is in the run directory",
+        run_dir.display()
+    );
+    // SAFETY: ends the process at once; the recorder has flushed every finished step.
+    unsafe { libc::_exit(code) };
 }
 
 #[cfg(test)]

@@ -74,7 +74,7 @@ params = { run = "original", topics = ["3D.>"] }
         .all(|m| m.topic == "3D.mobility.positions" && m.source == "mobility"));
     let status = fs::read_to_string(out.join("run.json")).unwrap();
     assert!(status.contains("\"status\": \"completed\""), "{status}");
-    assert!(cli::inspect(&out)
+    assert!(caviar_core::inspect::inspect(&out)
         .unwrap()
         .contains("3D.mobility.positions"));
 

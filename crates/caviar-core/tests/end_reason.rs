@@ -4,7 +4,7 @@
 use std::sync::{Arc, Mutex};
 
 use caviar_core::recorder::Recorder;
-use caviar_core::status::{write_status, RunState, RunStatus};
+use caviar_core::status::{RunState, RunStatus};
 use caviar_core::{
     AnyModule, EndReason, Engine, EngineError, EngineOptions, Module, ModuleError, ModuleSpec,
     Outgoing, Payload, RemoteModule, SharedMessage, StepInfo, Usage, END_TOPIC,
@@ -117,7 +117,9 @@ fn status_of(
 ) -> RunStatus {
     let text = "[episode]\nts = 0.5\nstages = [\"a\", \"b\"]\n[modules.local]\nstage = \"a\"\nplugin = \"x\"\n";
     let cfg = caviar_core::config::parse(text, "c.toml", dir, &[]).unwrap();
-    write_status(&cfg, e, state, err).unwrap();
+    RunStatus::of(&cfg, e, state, err)
+        .write(e.run_dir())
+        .unwrap();
     RunStatus::read(dir).unwrap()
 }
 
@@ -174,7 +176,7 @@ fn a_module_that_publishes_the_end_topic_is_named_as_the_end() {
     let s = status_of(dir.path(), &e, RunState::Completed, None);
     assert_eq!(s.end_reason, Some(EndReason::Module));
     assert_eq!(s.ended_by.as_deref(), Some("local"));
-    let text = caviar_core::cli::inspect(dir.path()).unwrap();
+    let text = caviar_core::inspect::inspect(dir.path()).unwrap();
     assert!(
         text.contains("ended     module 'local' published caviar.episode.end"),
         "{text}"
@@ -197,7 +199,7 @@ fn errors_interruptions_and_early_closes_are_told_apart() {
     assert_eq!(e.end_reason(), Some(EndReason::Error));
     let s = status_of(dir.path(), &e, RunState::Failed, Some(&err));
     assert_eq!(s.end_reason, Some(EndReason::Error));
-    assert!(caviar_core::cli::inspect(dir.path())
+    assert!(caviar_core::inspect::inspect(dir.path())
         .unwrap()
         .contains("ended     an error"));
 

@@ -398,7 +398,7 @@ fn gpu_use_is_sampled_after_each_stage_and_charged_to_its_modules() {
         .filter(|r| r.module != CORE)
         .all(|r| r.gpu_util_pct == Some(50.0)));
     std::fs::write(dir.path().join("run.json"), r#"{"status": "completed"}"#).unwrap();
-    let text = caviar_core::cli::inspect(dir.path()).unwrap();
+    let text = caviar_core::inspect::inspect(dir.path()).unwrap();
     assert!(text.contains("mean GPU %  max GPU MiB"), "{text}");
     assert!(
         text.lines()
@@ -418,7 +418,7 @@ fn without_a_gpu_the_gpu_columns_are_empty_and_inspect_leaves_them_out() {
         .iter()
         .all(|r| r.gpu_util_pct.is_none() && r.gpu_mem_mib.is_none()));
     std::fs::write(dir.path().join("run.json"), r#"{"status": "completed"}"#).unwrap();
-    assert!(!caviar_core::cli::inspect(dir.path())
+    assert!(!caviar_core::inspect::inspect(dir.path())
         .unwrap()
         .contains("GPU"));
 }

@@ -7,9 +7,10 @@ use std::time::{Duration, Instant};
 
 use caviar_core::config;
 use caviar_core::recorder::{read_messages, read_timings};
-use caviar_core::run::{prepare, BuiltinsOnly};
+use caviar_core::run::{BuiltinsOnly, RunSession};
 use caviar_core::transport::nats::auth::RunKey;
 use caviar_core::transport::nats::server::{find_server, SpawnedServer};
+use caviar_core::transport::nats::settings::NatsSettings;
 use caviar_core::transport::nats::worker;
 use caviar_core::{
     Engine, EngineError, Message, Module, ModuleError, ModuleSpec, Outgoing, Payload,
@@ -156,20 +157,20 @@ fn run_nats(
     let file = dir.join("config.toml");
     std::fs::write(&file, text).unwrap();
     let cfg = config::load(&file, &[]).unwrap();
-    let n = &cfg.config.transport.nats;
+    let n = NatsSettings::from_config(&cfg).unwrap();
     let (url, id) = (n.url.clone().unwrap(), n.run_id.clone().unwrap());
     let workers = vec![
         start_worker(&url, &id, "counter", Box::new(counter)),
         start_worker(&url, &id, "summer", Box::new(Summer { total: 0 })),
     ];
     let out = dir.join("run");
-    let mut engine = prepare(&cfg, &BuiltinsOnly, Some(&out))
+    let mut session = RunSession::start(cfg, &BuiltinsOnly, Some(&out))
         .map_err(|e| e.to_string())
         .unwrap();
-    let result = engine.run(|_, _| true);
-    let closed = engine.close();
-    drop(engine);
-    (out, result.and(closed), workers)
+    let result = session.run(|_, _| true);
+    let result = session.finish(result);
+    drop(session);
+    (out, result, workers)
 }
 
 fn in_process(dir: &Path) -> Vec<Message> {
@@ -309,7 +310,7 @@ fn a_worker_that_never_comes_is_named_after_the_startup_timeout() {
     let file = dir.path().join("config.toml");
     std::fs::write(&file, text).unwrap();
     let cfg = config::load(&file, &[]).unwrap();
-    let err = match prepare(&cfg, &BuiltinsOnly, Some(&dir.path().join("run"))) {
+    let err = match RunSession::start(cfg, &BuiltinsOnly, Some(&dir.path().join("run"))) {
         Ok(_) => panic!("started without workers"),
         Err(e) => e.to_string(),
     };

@@ -1,6 +1,97 @@
 //! Transports: how modules that run outside this process take part in an episode.
-//! Each transport is a folder of its own and a leaf of the crate: it uses the engine,
-//! the configuration and module assembly, and nothing above it uses its internals
-//! (the run prepares it through [`nats::prepare`]).
+//!
+//! The interface is [`interface`] ([`Transport`], [`Connection`], [`Prepared`],
+//! [`WorkerLauncher`]); this file is the registry: the transports this core has, by
+//! `transport.kind`, and the checks of `[transport]` that do not depend on one.
+//! Each transport is a folder of its own and a leaf of the crate: nothing outside
+//! `transport/` names one. Adding a transport (shared memory, ZeroMQ, …) is a new
+//! folder here that implements [`Transport`] and one line in `all()` below
+//! (docs/architecture.md, "A transport").
 
+pub mod interface;
 pub mod nats;
+
+pub use interface::{Connection, Prepared, Transport, WorkerLauncher};
+
+use crate::config::{ConfigError, LoadedConfig, IN_PROCESS};
+
+/// The bindings the transports' Python workers need, added to `caviar._core`.
+#[cfg(feature = "python")]
+pub fn register_python(m: &pyo3::Bound<'_, pyo3::types::PyModule>) -> pyo3::PyResult<()> {
+    nats::python::register(m)
+}
+
+/// Every transport this core has, in-process excepted.
+fn all() -> Vec<Box<dyn Transport>> {
+    vec![Box::new(nats::Nats)]
+}
+
+/// The transport `kind` names; `None` for [`IN_PROCESS`] or an unknown name.
+pub fn by_kind(kind: &str) -> Option<Box<dyn Transport>> {
+    all().into_iter().find(|t| t.kind() == kind)
+}
+
+/// True for a built-in plugin of some transport (not loaded by the plugin host).
+pub fn is_transport_builtin(plugin: &str) -> bool {
+    all().iter().any(|t| t.builtin_plugins().contains(&plugin))
+}
+
+/// What module `name`, a transport's built-in that `validate` does not build, publishes.
+pub fn builtin_publishes(cfg: &LoadedConfig, name: &str) -> Option<Vec<String>> {
+    let plugin = &cfg.config.modules.get(name)?.plugin;
+    all()
+        .into_iter()
+        .find(|t| t.builtin_plugins().contains(&plugin.as_str()))?
+        .builtin_publishes(cfg, name)
+}
+
+/// Checks `[transport]`: a known `kind`, no section of an unknown transport, the chosen
+/// transport's own section, and built-in plugins used only with their transport.
+/// Returns the chosen transport (`None`: in-process).
+pub fn check(cfg: &LoadedConfig) -> Result<Option<Box<dyn Transport>>, ConfigError> {
+    let kind = cfg.transport_kind();
+    let transports = all();
+    let known: Vec<&str> = std::iter::once(IN_PROCESS)
+        .chain(transports.iter().map(|t| t.kind()))
+        .collect();
+    if !known.contains(&kind) {
+        return Err(cfg.error_at(
+            "transport.kind",
+            format!("unknown transport '{kind}', expected one of {known:?}"),
+        ));
+    }
+    for key in cfg.config.transport.keys() {
+        if key != "kind" && !transports.iter().any(|t| t.kind() == key) {
+            return Err(cfg.error_at(
+                &format!("transport.{key}"),
+                format!(
+                    "unknown key, expected `kind` or the section of a transport ({:?})",
+                    &known[1..]
+                ),
+            ));
+        }
+    }
+    for (name, m) in &cfg.config.modules {
+        if let Some(owner) = transports
+            .iter()
+            .find(|t| t.builtin_plugins().contains(&m.plugin.as_str()))
+        {
+            if owner.kind() != kind {
+                return Err(cfg.error_at(
+                    &format!("modules.{name}.plugin"),
+                    format!(
+                        "'{}' needs the {} transport (transport.kind = \"{}\")",
+                        m.plugin,
+                        owner.kind(),
+                        owner.kind()
+                    ),
+                ));
+            }
+        }
+    }
+    let chosen = transports.into_iter().find(|t| t.kind() == kind);
+    if let Some(t) = &chosen {
+        t.check(cfg)?;
+    }
+    Ok(chosen)
+}

@@ -80,13 +80,24 @@ impl RunKey {
         if let Ok(path) = std::env::var(KEY_FILE_ENV) {
             let text = std::fs::read_to_string(&path)
                 .map_err(|e| format!("{KEY_FILE_ENV}={path}: {e}"))?;
-            return super::key_from_text(&text).map_err(|e| format!("{path}: {e}"));
+            return Self::from_key_file_text(&text).map_err(|e| format!("{path}: {e}"));
         }
         Err(format!(
             "no run key: the core hands it to the workers it starts in {KEY_ENV}; \
              for a worker you start yourself set {KEY_FILE_ENV} to the run's key file \
              (the core prints its path)"
         ))
+    }
+
+    /// The run key in a key file: 64 hex digits, alone or as `CAVIAR_RUN_KEY=…` among
+    /// other `NAME=value` lines (the `run.key` the core writes for hand-started workers).
+    pub fn from_key_file_text(text: &str) -> Result<Self, String> {
+        let line = text
+            .lines()
+            .map(str::trim)
+            .find_map(|l| l.strip_prefix(&format!("{KEY_ENV}=")))
+            .unwrap_or(text.trim());
+        Self::from_hex(line)
     }
 
     pub fn hex(&self) -> &str {

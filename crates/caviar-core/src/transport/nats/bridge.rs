@@ -77,8 +77,9 @@ impl Bridge {
         let arrivals = Arc::new(Arrivals::default());
         for subject in &subjects {
             let mut sub = link
+                .conn
                 .rt
-                .block_on(link.client.subscribe(subject.clone()))
+                .block_on(link.conn.client.subscribe(subject.clone()))
                 .map_err(|e| {
                     cfg.error_at(
                         &key("subjects"),
@@ -86,7 +87,7 @@ impl Bridge {
                     )
                 })?;
             let a = arrivals.clone();
-            link.rt.spawn(async move {
+            link.conn.rt.spawn(async move {
                 while let Some(m) = sub.next().await {
                     // Our own mirror of episode messages would come straight back.
                     if m.headers
@@ -103,8 +104,9 @@ impl Bridge {
                 }
             });
         }
-        link.rt
-            .block_on(link.client.flush())
+        link.conn
+            .rt
+            .block_on(link.conn.client.flush())
             .map_err(|e| cfg.error_at(&key("subjects"), e.to_string()))?;
         Ok(Bridge {
             subjects,

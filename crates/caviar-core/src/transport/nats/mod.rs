@@ -5,16 +5,25 @@
 //! a [`crate::module::RemoteModule`], so barriers, ordering and recording are the
 //! in-process ones and a run records the same messages either way.
 //!
-//! A leaf of the crate: it uses the configuration, the engine, module assembly and
-//! the process metrics; nothing but the run (which calls [`prepare`]) and the Python
-//! bindings (which reach the wire format) uses it. Public for benchmarks and tests:
-//! [`prepare`], [`WorkerLauncher`], [`server`] and the Rust [`worker`].
+//! A leaf of the crate, reached through [`crate::transport::Transport`] ([`Nats`]).
+//! Inside, lowest first: [`wire`] (frames), [`auth`] (run key, sequence numbers),
+//! [`server`] (nats-server), [`settings`] (`[transport.nats]`), `client` (connection,
+//! sealing, security), `control` (hello / loaded / heartbeat), `supervisor` (the
+//! processes this run started), `link` (the three together), `remote` and `bridge`
+//! (modules), [`worker`] (the Rust worker), `python` (the Python worker's bindings).
+//! Public for benchmarks and tests: [`prepare`], [`server`], [`settings`], [`worker`].
 
 pub mod auth;
 pub(crate) mod bridge;
+pub(crate) mod client;
+pub(crate) mod control;
 pub(crate) mod link;
+#[cfg(feature = "python")]
+pub(crate) mod python;
 pub(crate) mod remote;
 pub mod server;
+pub mod settings;
+pub(crate) mod supervisor;
 pub(crate) mod wire;
 pub mod worker;
 
@@ -24,26 +33,82 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use auth::{RunKey, KEY_ENV, KEY_FILE_ENV};
-use link::{connect_options, Link, ModuleOffer, Timeouts};
+use client::{connect_options, Client};
+use control::{ControlPlane, ModuleOffer, WorkerInfo};
+use link::{Link, Timeouts};
 use remote::{Ready, WorkerModule};
 use server::{find_server, write_private, ServerAuth, SpawnedServer};
+use settings::NatsSettings;
+use supervisor::Supervisor;
 use wire::MIRROR_SOURCE_HEADER;
 
-use crate::assembly::{build_modules, is_builtin, PrepareError, BRIDGE_PLUGIN};
-use crate::config::{LoadedConfig, ModuleConfig};
-use crate::engine::{ModuleSpec, Tap};
+use super::interface::{Connection, Prepared, Transport, WorkerLauncher};
+use crate::assembly::{build_modules, is_builtin, PrepareError};
+use crate::config::{ConfigError, LoadedConfig, ModuleConfig};
+use crate::engine::Tap;
 use crate::message::{Payload, SharedMessage};
 use crate::module::AnyModule;
 use crate::topic::Pattern;
 
-/// How to start a worker: the interpreter and arguments before `--nats …`.
-pub struct WorkerLauncher {
-    pub command: Vec<String>,
+/// `caviar.nats-bridge`: brings plain NATS messages into the episode.
+pub const BRIDGE_PLUGIN: &str = "caviar.nats-bridge";
+
+/// `transport.kind = "nats"`.
+pub struct Nats;
+
+impl Transport for Nats {
+    fn kind(&self) -> &'static str {
+        "nats"
+    }
+
+    fn builtin_plugins(&self) -> &'static [&'static str] {
+        &[BRIDGE_PLUGIN]
+    }
+
+    /// The bridge publishes its subjects.
+    fn builtin_publishes(&self, cfg: &LoadedConfig, module: &str) -> Option<Vec<String>> {
+        serde_json::from_value(cfg.params_json(module)["subjects"].clone()).ok()
+    }
+
+    fn check(&self, cfg: &LoadedConfig) -> Result<(), ConfigError> {
+        NatsSettings::from_config(cfg).map(drop)
+    }
+
+    fn check_files(&self, cfg: &LoadedConfig) -> Result<(), ConfigError> {
+        NatsSettings::from_config(cfg)?.check_files(cfg)
+    }
+
+    fn prepare(
+        &self,
+        cfg: &LoadedConfig,
+        launcher: Option<&WorkerLauncher>,
+        run_dir: &Path,
+    ) -> Result<Prepared, PrepareError> {
+        prepare(cfg, launcher, run_dir)
+    }
+}
+
+/// The session's handle on the run's link: `security` for run.json, shutdown.
+struct RunConnection(Arc<Link>);
+
+impl Connection for RunConnection {
+    fn status(&self) -> serde_json::Map<String, serde_json::Value> {
+        let mut m = serde_json::Map::new();
+        m.insert(
+            "security".into(),
+            self.0.conn.security.lock().unwrap().to_json(),
+        );
+        m
+    }
+
+    fn shutdown(&self) {
+        self.0.shutdown();
+    }
 }
 
 /// The run id: the configured one, else the run directory's name made subject-safe.
-fn run_id(cfg: &LoadedConfig, run_dir: &Path) -> String {
-    cfg.config.transport.nats.run_id.clone().unwrap_or_else(|| {
+fn run_id(n: &NatsSettings, run_dir: &Path) -> String {
+    n.run_id.clone().unwrap_or_else(|| {
         let name = run_dir
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
@@ -60,12 +125,12 @@ fn run_id(cfg: &LoadedConfig, run_dir: &Path) -> String {
     })
 }
 
-/// The modules run by workers: all but the built-ins.
+/// The modules run by workers: all but the built-ins (the core's and the bridge).
 fn remote_modules(cfg: &LoadedConfig) -> impl Iterator<Item = (&String, &ModuleConfig)> {
     cfg.config
         .modules
         .iter()
-        .filter(|(_, m)| !is_builtin(&m.plugin))
+        .filter(|(_, m)| !is_builtin(&m.plugin) && m.plugin != BRIDGE_PLUGIN)
 }
 
 /// Arguments that give a worker the run's connection settings; secrets (the server's
@@ -73,10 +138,10 @@ fn remote_modules(cfg: &LoadedConfig) -> impl Iterator<Item = (&String, &ModuleC
 /// user of the machine can read them.
 fn connection_args(
     cfg: &LoadedConfig,
+    n: &NatsSettings,
     link: &Link,
     auth: Option<&ServerAuth>,
 ) -> (Vec<String>, Vec<(String, String)>) {
-    let n = &cfg.config.transport.nats;
     let mut args = Vec::new();
     let path = |p: &PathBuf| cfg.resolve(p).to_string_lossy().into_owned();
     for (flag, value) in [
@@ -105,21 +170,22 @@ fn connection_args(
         envs.push(("NATS_USER".into(), a.user.clone()));
         envs.push(("NATS_PASSWORD".into(), a.password.clone()));
     }
-    envs.push((KEY_ENV.into(), link.key.hex().into()));
+    envs.push((KEY_ENV.into(), link.conn.sealer.key.hex().into()));
     (args, envs)
 }
 
 /// Starts (or reaches) the server, starts the workers, waits until every module's
-/// plugin is loaded and returns the modules and the mirror tap.
+/// plugin is loaded and returns the modules, the mirror tap and the run's connection.
 pub fn prepare(
     cfg: &LoadedConfig,
-    launcher: Option<WorkerLauncher>,
+    launcher: Option<&WorkerLauncher>,
     run_dir: &Path,
-) -> Result<(Vec<ModuleSpec>, Option<Tap>), PrepareError> {
-    let server = start_server(cfg, launcher.as_ref(), run_dir)?;
+) -> Result<Prepared, PrepareError> {
+    let n = NatsSettings::from_config(cfg)?;
+    let server = start_server(cfg, &n, launcher, run_dir)?;
     let auth = server.as_ref().and_then(|s| s.auth.clone());
-    let link = connect(cfg, run_dir, server)?;
-    spawn_workers(cfg, launcher.as_ref(), &link, auth.as_ref(), run_dir)?;
+    let link = connect(cfg, &n, run_dir, server)?;
+    spawn_workers(cfg, &n, launcher, &link, auth.as_ref(), run_dir)?;
     let mut ready = wait_for_workers(cfg, &link)?;
     let specs = build_modules(cfg, |name, m| {
         Ok(Some(if m.plugin == BRIDGE_PLUGIN {
@@ -129,16 +195,20 @@ pub fn prepare(
             AnyModule::remote(WorkerModule::new(link.clone(), name, r, m.shards))
         }))
     })?;
-    Ok((specs, mirror_tap(cfg, link)))
+    Ok(Prepared {
+        modules: specs,
+        tap: mirror_tap(&n, link.clone()),
+        connection: Box::new(RunConnection(link)),
+    })
 }
 
 /// The server this run starts, if it starts one (`transport.nats.spawn`).
 fn start_server(
     cfg: &LoadedConfig,
+    n: &NatsSettings,
     launcher: Option<&WorkerLauncher>,
     run_dir: &Path,
 ) -> Result<Option<SpawnedServer>, PrepareError> {
-    let n = &cfg.config.transport.nats;
     if !n.spawns_server() {
         return Ok(None);
     }
@@ -159,10 +229,10 @@ fn start_server(
 /// Connects to the run's server and starts answering workers with their module.
 fn connect(
     cfg: &LoadedConfig,
+    n: &NatsSettings,
     run_dir: &Path,
     server: Option<SpawnedServer>,
 ) -> Result<Arc<Link>, PrepareError> {
-    let n = &cfg.config.transport.nats;
     let url = server
         .as_ref()
         .map(|s| s.url.clone())
@@ -181,7 +251,7 @@ fn connect(
                     format!("{}: {e}", path.display()),
                 )
             })?;
-            key_from_text(&text).map_err(|e| {
+            RunKey::from_key_file_text(&text).map_err(|e| {
                 cfg.error_at(
                     "transport.nats.key_file",
                     format!("{}: {e}", path.display()),
@@ -204,32 +274,30 @@ fn connect(
         "run_dir": run_dir.canonicalize().unwrap_or_else(|_| run_dir.to_path_buf()),
         "config_dir": cfg.base_dir.canonicalize().unwrap_or_else(|_| cfg.base_dir.clone()),
     });
-    let id = run_id(cfg, run_dir);
-    let timeouts = Timeouts::from_config(n, cfg.step_timeout());
-    Link::connect(
-        &url, options, &id, key, offers, base, run_dir, timeouts, server,
-    )
-    .map_err(PrepareError::Io)
+    let timeouts = Timeouts::from_config(n, n.step_timeout(cfg));
+    let conn = Client::open(&url, options, &run_id(n, run_dir), key).map_err(PrepareError::Io)?;
+    let control = ControlPlane::listen(&conn, offers, base).map_err(PrepareError::Io)?;
+    Ok(Arc::new(Link::new(
+        conn,
+        control,
+        Supervisor::new(server),
+        timeouts,
+    )))
 }
 
 /// Starts the workers this run owns; tells the user about the ones it waits for.
 fn spawn_workers(
     cfg: &LoadedConfig,
+    n: &NatsSettings,
     launcher: Option<&WorkerLauncher>,
     link: &Link,
     auth: Option<&ServerAuth>,
     run_dir: &Path,
 ) -> Result<(), PrepareError> {
-    let (url, id) = (&link.url, &link.run_id);
-    let (extra_args, envs) = connection_args(cfg, link, auth);
+    let (url, id) = (&link.conn.url, link.conn.run_id());
+    let (extra_args, envs) = connection_args(cfg, n, link, auth);
     let logs = run_dir.join("workers");
-    let mut key_file = cfg
-        .config
-        .transport
-        .nats
-        .key_file
-        .as_ref()
-        .map(|f| cfg.resolve(f));
+    let mut key_file = n.key_file.as_ref().map(|f| cfg.resolve(f));
     for (name, m) in remote_modules(cfg) {
         let count = m.workers.unwrap_or(m.shards);
         if count == 0 {
@@ -239,7 +307,7 @@ fn spawn_workers(
                     // Workers started by hand need the run key (and a server of our
                     // own's credentials): in a file only this user can read.
                     let f = run_dir.join("run.key");
-                    let mut text = format!("{KEY_ENV}={}\n", link.key.hex());
+                    let mut text = format!("{KEY_ENV}={}\n", link.conn.sealer.key.hex());
                     if let Some(a) = auth {
                         text += &format!("NATS_USER={}\nNATS_PASSWORD={}\n", a.user, a.password);
                     }
@@ -273,7 +341,8 @@ fn spawn_workers(
             cmd.extend(["--worker-id".into(), format!("{name}-{i}")]);
             cmd.extend(extra_args.iter().cloned());
             let log = logs.join(format!("{name}-{i}.log"));
-            link.spawn_worker(name, &cmd, &envs, &log)
+            link.procs
+                .spawn_worker(name, &cmd, &envs, &log)
                 .map_err(PrepareError::Io)?;
         }
     }
@@ -281,7 +350,7 @@ fn spawn_workers(
 }
 
 /// The configuration error of a worker that could not load its plugin.
-fn load_failure(cfg: &LoadedConfig, name: &str, w: &link::WorkerInfo) -> Option<PrepareError> {
+fn load_failure(cfg: &LoadedConfig, name: &str, w: &WorkerInfo) -> Option<PrepareError> {
     let Some(Err(e)) = &w.loaded else {
         return None;
     };
@@ -306,11 +375,11 @@ fn wait_for_workers(
     let timeout = link.timeouts.startup;
     let t0 = Instant::now();
     loop {
-        link.check_processes().map_err(PrepareError::Io)?;
+        link.procs.check_startup().map_err(PrepareError::Io)?;
         let mut ready = HashMap::new();
         let mut missing = Vec::new();
         for (name, m) in remote_modules(cfg) {
-            let workers = link.workers_of(name);
+            let workers = link.control.workers_of(name);
             if let Some(e) = workers.iter().find_map(|w| load_failure(cfg, name, w)) {
                 return Err(e);
             }
@@ -338,8 +407,8 @@ fn wait_for_workers(
                  on {} (run id '{}')",
                 timeout.as_secs_f64(),
                 missing.join(", "),
-                link.url,
-                link.run_id
+                link.conn.url,
+                link.conn.run_id()
             )));
         }
         std::thread::sleep(Duration::from_millis(20));
@@ -347,11 +416,8 @@ fn wait_for_workers(
 }
 
 /// Publishes the episode's data messages on their own subjects (the paper's names).
-fn mirror_tap(cfg: &LoadedConfig, link: Arc<Link>) -> Option<Tap> {
-    let patterns: Vec<Pattern> = cfg
-        .config
-        .transport
-        .nats
+fn mirror_tap(n: &NatsSettings, link: Arc<Link>) -> Option<Tap> {
+    let patterns: Vec<Pattern> = n
         .mirror
         .iter()
         .map(|p| Pattern::new(p).expect("validated"))
@@ -361,7 +427,7 @@ fn mirror_tap(cfg: &LoadedConfig, link: Arc<Link>) -> Option<Tap> {
         return None;
     }
     Some(Box::new(move |messages: &[SharedMessage]| {
-        let client = link.client.clone();
+        let client = link.conn.client.clone();
         let batch: Vec<SharedMessage> = messages
             .iter()
             .filter(|m| patterns.iter().any(|p| p.matches(&m.topic)))
@@ -370,7 +436,7 @@ fn mirror_tap(cfg: &LoadedConfig, link: Arc<Link>) -> Option<Tap> {
         if batch.is_empty() {
             return;
         }
-        link.rt.block_on(async move {
+        link.conn.rt.block_on(async move {
             for m in batch {
                 let mut h = async_nats::HeaderMap::new();
                 h.insert(MIRROR_SOURCE_HEADER, m.source.as_str());
@@ -391,15 +457,4 @@ fn mirror_tap(cfg: &LoadedConfig, link: Arc<Link>) -> Option<Tap> {
             }
         });
     }))
-}
-
-/// The run key in a key file: 64 hex digits, alone or as `CAVIAR_RUN_KEY=…` among
-/// other `NAME=value` lines (the `run.key` the core writes for hand-started workers).
-pub fn key_from_text(text: &str) -> Result<RunKey, String> {
-    let line = text
-        .lines()
-        .map(str::trim)
-        .find_map(|l| l.strip_prefix(&format!("{KEY_ENV}=")))
-        .unwrap_or(text.trim());
-    RunKey::from_hex(line)
 }

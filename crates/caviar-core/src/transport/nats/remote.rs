@@ -6,7 +6,8 @@ use std::time::Duration;
 use async_nats::client::RequestErrorKind;
 use serde::Deserialize;
 
-use super::link::{Link, LoadedPlugin};
+use super::control::LoadedPlugin;
+use super::link::Link;
 use super::wire::{self, WireError};
 use crate::message::{Outgoing, SharedMessage};
 use crate::module::{ModuleError, RemoteModule, SetupContext, StepInfo, Usage};
@@ -60,14 +61,14 @@ impl WorkerModule {
     }
 
     fn subject(&self, leaf: &str) -> String {
-        format!("{}.{}.{leaf}", self.link.prefix, self.name)
+        format!("{}.{}.{leaf}", self.link.conn.prefix, self.name)
     }
 
     /// Sends `payload` sealed with the run key (the sequence number is taken now).
     fn request(&self, subject: String, payload: Vec<u8>) -> Pending {
-        let payload = self.link.seal(&subject, payload);
-        let client = self.link.client.clone();
-        self.link.rt.spawn(async move {
+        let payload = self.link.conn.seal(&subject, payload);
+        let client = self.link.conn.client.clone();
+        self.link.conn.rt.spawn(async move {
             client
                 .send_request(
                     subject,
@@ -105,11 +106,13 @@ impl WorkerModule {
                 .map_err(|e| self.request_error(&what, e))?;
             let body = self
                 .link
+                .conn
                 .open_reply(&what, reply.subject.as_str(), &reply.payload)?;
             let ack: Ack = serde_json::from_slice(body)
                 .map_err(|e| ModuleError::new(format!("{what}: bad reply: {e}")))?;
             if let Some(n) = ack.rejected {
                 self.link
+                    .conn
                     .security
                     .lock()
                     .unwrap()
@@ -162,7 +165,7 @@ impl RemoteModule for WorkerModule {
     }
 
     fn setup(&mut self, ctx: &SetupContext) -> Result<(), ModuleError> {
-        self.link.mark_started();
+        self.link.control.mark_started();
         let body = serde_json::json!({
             "seed": ctx.seed, "ts": ctx.ts, "steps": ctx.steps, "every": ctx.every, "offset": ctx.offset,
             // The only worker of the module sees every step: it expects exactly the next one.
@@ -174,7 +177,7 @@ impl RemoteModule for WorkerModule {
     fn start_step(&mut self, at: StepInfo, inbox: &[SharedMessage]) -> Result<(), ModuleError> {
         self.at = Some(at);
         let subject = self.subject("step");
-        let max = self.link.client.server_info().max_payload;
+        let max = self.link.conn.client.server_info().max_payload;
         for shard in 0..self.shards {
             let payload = wire::encode_request(at, shard, self.shards, inbox);
             if payload.len() + super::auth::TRAILER > max {
@@ -222,6 +225,7 @@ impl RemoteModule for WorkerModule {
             let reply = reply.map_err(|e| self.request_error(&what, e))?;
             let body = self
                 .link
+                .conn
                 .open_reply(&what, reply.subject.as_str(), &reply.payload)?;
             let u = wire::decode_reply(body, out)?;
             // Shards run side by side: the step takes as long as the slowest; CPU adds up.
@@ -243,7 +247,7 @@ impl RemoteModule for WorkerModule {
         // the stuck ones are killed at once. The others get a few seconds (30 s, 2 s
         // when the run is ending badly).
         if self.stuck {
-            self.link.reap(&self.name, Duration::ZERO);
+            self.link.procs.reap(&self.name, Duration::ZERO);
             return Ok(());
         }
         let alive = self.link.check_alive(&self.name, &self.workers).is_ok();
@@ -261,7 +265,7 @@ impl RemoteModule for WorkerModule {
         } else {
             Ok(())
         };
-        self.link.reap(&self.name, Duration::from_secs(reap));
+        self.link.procs.reap(&self.name, Duration::from_secs(reap));
         result
     }
 }

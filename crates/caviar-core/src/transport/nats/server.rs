@@ -218,7 +218,7 @@ impl SpawnedServer {
             self.child.id(),
             self.url,
             self.log.display(),
-            super::link::tail(&self.log, 10)
+            tail(&self.log, 10)
         ))
     }
 }
@@ -240,4 +240,11 @@ impl Drop for SpawnedServer {
         let _ = self.child.wait();
         let _ = std::fs::remove_file(&self.conf);
     }
+}
+
+/// The last `n` lines of a log file (what a report of a dead process quotes).
+pub fn tail(path: &Path, n: usize) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(n)..].join("\n")
 }
