@@ -185,6 +185,34 @@ def test_validate_warns_about_wiring_from_declared_publishes(tmp_path, cli):
     assert "no module publishes" not in p.stderr and "no module subscribes" in p.stderr
 
 
+def test_run_prints_the_wiring_warnings_and_strict_refuses_the_run(tmp_path, cli):
+    cfg = write_config(tmp_path, WIRING)
+    p = cli("run", "-q", cfg, check=0)
+    warnings = [line for line in p.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 2 and "'missing.topic'" in warnings[0] and "'sink.summary'" in warnings[1], p.stderr
+    runs = sorted((tmp_path / "runs").iterdir())
+    assert len(runs) == 1 and json.loads((runs[0] / "run.json").read_text())["status"] == "completed"
+
+    # Strict: the same warnings are one error naming the key, and no run directory is made.
+    for args in (("--strict",), ("--set", "episode.strict_wiring=true")):
+        p = cli("run", "-q", *args, cfg, check=2)
+        first = p.stderr.splitlines()[0]
+        assert first.startswith("error: ") and "episode.strict_wiring" in first, p.stderr
+        assert "'missing.topic'" in p.stderr and "'sink.summary'" in p.stderr, p.stderr
+        assert len(list((tmp_path / "runs").iterdir())) == 1
+    p = cli("validate", "--strict", cfg, check=2)
+    assert "episode.strict_wiring" in p.stderr
+
+    # From Python: warnings, or ConfigError when strict.
+    with pytest.warns(caviar.simulation.WiringWarning) as caught:
+        sim = caviar.Simulation.from_toml(cfg, out=tmp_path / "py")
+    sim.close()
+    assert ["'missing.topic'" in str(w.message) for w in caught] == [True, False], [str(w.message) for w in caught]
+    with pytest.raises(caviar.ConfigError, match="strict_wiring"):
+        caviar.Simulation.from_toml(cfg, {"episode.strict_wiring": True}, out=tmp_path / "py-strict")
+    assert not (tmp_path / "py-strict").exists()
+
+
 def test_an_invalid_publishes_is_a_config_error(tmp_path, cli):
     cfg = WIRING.replace('sample_plugins:Declared"', 'sample_plugins:BadPublishes"')
     p = cli("validate", write_config(tmp_path, cfg), check=2)

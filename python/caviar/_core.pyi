@@ -149,6 +149,11 @@ class Episode:
     @property
     def wall_s(self) -> float:
         """Wall-clock seconds spent in steps so far."""
+    @property
+    def warnings(self) -> list[str]:
+        """Wiring warnings of the run's modules (a subscription nothing publishes, a
+        topic nobody reads), as ``caviar-core validate`` prints them; with
+        ``episode.strict_wiring`` they refuse the run instead."""
 
 def main(argv: list[str]) -> int:
     """The ``caviar-core`` command line (``run``, ``validate``, ``inspect``); returns

@@ -7,11 +7,16 @@ import os
 import pathlib
 import sys
 import time
+import warnings
 from typing import Any, Iterable, Mapping
 
 from caviar import _core
 from caviar.plugin import Message
 from caviar.runlog import RunLog, load_run
+
+
+class WiringWarning(UserWarning):
+    """A subscription no module publishes, or a published topic nobody reads."""
 
 
 def _toml_value(value: Any) -> str:
@@ -45,6 +50,8 @@ class Simulation:
 
     def __init__(self, episode: "_core.Episode"):
         self._episode = episode
+        for w in episode.warnings:
+            warnings.warn(f"wiring: {w}", WiringWarning, stacklevel=3)
 
     @classmethod
     def from_toml(cls, path: str | os.PathLike, overrides: Mapping[str, Any] | Iterable[str] | None = None,
@@ -53,7 +60,9 @@ class Simulation:
 
         ``overrides``: ``{"episode.steps": 10}`` or ``["episode.steps=10"]``, as ``--set``.
         ``out``: the run directory (default ``output.dir/NAME-NNN``).
-        Raises :class:`caviar.ConfigError` before anything runs if the config is wrong.
+        Raises :class:`caviar.ConfigError` before anything runs if the config is wrong
+        (or, with ``episode.strict_wiring``, if its modules are not wired together);
+        otherwise wiring problems are issued as :class:`WiringWarning`.
         """
         return cls(_core.Episode(pathlib.Path(path), _overrides(overrides),
                                  None if out is None else pathlib.Path(out)))

@@ -95,3 +95,64 @@ pub fn check(cfg: &LoadedConfig) -> Result<Option<Box<dyn Transport>>, ConfigErr
     }
     Ok(chosen)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const HEAD: &str = "[episode]\nts = 1.0\nstages = [\"s\"]\n[modules.a]\nstage = \"s\"\n";
+
+    fn checked(text: &str) -> Result<Option<&'static str>, ConfigError> {
+        let cfg = crate::config::parse(text, "c.toml", std::path::Path::new("."), &[])?;
+        check(&cfg).map(|t| t.map(|t| t.kind()))
+    }
+
+    #[test]
+    fn the_kind_picks_a_transport_or_none() {
+        let text = format!("{HEAD}plugin = \"x:Y\"\n");
+        assert_eq!(checked(&text).unwrap(), None);
+        let nats = format!("{text}[transport]\nkind = \"nats\"\n");
+        assert_eq!(checked(&nats).unwrap(), Some("nats"));
+    }
+
+    #[test]
+    fn unknown_kinds_and_sections_name_their_key_and_line() {
+        let text = format!("{HEAD}plugin = \"x:Y\"\n[transport]\nkind = \"zmq\"\n");
+        let err = checked(&text).unwrap_err();
+        assert_eq!(
+            (err.key.as_deref(), err.line),
+            (Some("transport.kind"), Some(8))
+        );
+        assert!(
+            err.message.contains("'zmq'") && err.message.contains("\"nats\""),
+            "{err}"
+        );
+        let text = format!("{HEAD}plugin = \"x:Y\"\n[transport.zmq]\nport = 1\n");
+        let err = checked(&text).unwrap_err();
+        assert_eq!(err.key.as_deref(), Some("transport.zmq"), "{err}");
+    }
+
+    #[test]
+    fn a_transport_built_in_needs_its_transport() {
+        let text = format!("{HEAD}plugin = \"{}\"\n", nats::BRIDGE_PLUGIN);
+        let err = checked(&text).unwrap_err();
+        assert_eq!(err.key.as_deref(), Some("modules.a.plugin"));
+        assert!(err.message.contains("needs the nats transport"), "{err}");
+        assert!(is_transport_builtin(nats::BRIDGE_PLUGIN) && !is_transport_builtin("x:Y"));
+    }
+
+    #[test]
+    fn the_transport_reads_its_own_section() {
+        let text =
+            format!("{HEAD}plugin = \"x:Y\"\n[transport]\nkind = \"nats\"\n[transport.nats]\nheartbeat_timeout = -1\n");
+        let err = checked(&text).unwrap_err();
+        assert_eq!(
+            (err.key.as_deref(), err.line),
+            (Some("transport.nats.heartbeat_timeout"), Some(10))
+        );
+        let text = format!("{HEAD}plugin = \"x:Y\"\n[transport]\nkind = \"nats\"\n[transport.nats]\nspawn = \"yes\"\n");
+        let err = checked(&text).unwrap_err();
+        assert_eq!(err.key.as_deref(), Some("transport.nats.spawn"), "{err}");
+        assert!(err.message.contains("invalid type"), "{err}");
+    }
+}
