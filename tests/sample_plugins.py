@@ -194,3 +194,22 @@ class Exits(caviar.Plugin):
                     time.sleep(3600)
             os._exit(3)
         return [("exits.alive", {"step": self.ctx.step})]
+
+
+class LineMover(caviar.Plugin):
+    """UEs moving along straight lines at constant speed: ``3D.mobility.positions``."""
+
+    publishes = ("3D.mobility.positions",)
+
+    @dataclasses.dataclass
+    class Params:
+        ues: list = dataclasses.field(default_factory=list)  # [{id, type, start, end, speed}]
+
+    def step(self, t, inbox):
+        for ue in self.ctx.params.ues:
+            a, b = np.asarray(ue["start"], float), np.asarray(ue["end"], float)
+            length = float(np.linalg.norm(b - a))
+            f = min(ue["speed"] * t / length, 1.0) if length > 0 else 1.0
+            x, y, z = (float(v) for v in a + f * (b - a))
+            yield "3D.mobility.positions", {"UE_type": ue.get("type", "car"), "UE_Id": ue["id"],
+                                            "position": {"x": x, "y": y, "z": z}}

@@ -50,6 +50,18 @@ CHANNEL = "communications.channel"
 BEAM_GAINS = "communications.beam_gains"
 """Prefix: ``communications.beam_gains.<UE_Id>`` gains of all beam pairs (float32, binary)."""
 
+# The radio network (several cells; caviar_plugins.network)
+NETWORK_UE = "network.ue"
+"""Per UE and step: ``{"UE_type", "UE_Id", "serving_cell", "sinr_db", "rsrp_dbm": {cell: dBm},
+"throughput_mbps"}`` and, with the Sionna SYS link model, ``"mcs", "tbler", "harq_ack",
+"harq_nack", "prbs"`` (over the step's slots)."""
+NETWORK_EVENTS = "network.events"
+"""``{"event": "attach" | "handover" | "rlf", "UE_Id", "time", "to_cell", "rsrp_to_dbm"}``
+(and ``"from_cell", "rsrp_from_dbm"`` for a handover or a radio-link failure)."""
+NETWORK_CELLS = "network.cells"
+"""Per step: ``{"cells": [{"cell", "ues", "active_share"}]}``, the UEs a cell serves and the
+share of the step's slots in which it scheduled someone."""
+
 # AI
 BEAM_SELECTION = "ai.beam.selection"
 """``{"UE_Id", "beam_pair"}``: the pair the communications module should use."""

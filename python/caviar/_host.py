@@ -109,12 +109,13 @@ def _mismatch(value: Any, hint: Any) -> str:
 
 def _keyed(e: Exception, fields: typing.Iterable[str]) -> ConfigError:
     """A plugin's check failing as ``ValueError("speed: must be > 0")`` (or a ConfigError
-    with ``key="speed"``) becomes a ConfigError on ``params.speed``."""
+    with ``key="speed"``) becomes a ConfigError on ``params.speed``; a key inside a
+    parameter's tables and arrays (``sites.1.array``) names its full path."""
     message = getattr(e, "message", None) or str(e)
     key = getattr(e, "key", None)
     if key is None:
         name, sep, rest = message.partition(": ")
-        if sep and name in fields:
+        if sep and " " not in name and name.split(".")[0] in fields:
             key, message = name, rest
     if key is None:
         return ConfigError(message, "params")

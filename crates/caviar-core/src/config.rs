@@ -658,14 +658,33 @@ pub fn line_of_key(text: &str, path: &[&str]) -> Option<usize> {
     let doc = toml_edit::ImDocument::parse(text).ok()?;
     let mut table: &dyn toml_edit::TableLike = doc.as_table();
     let mut line = None;
-    for (i, part) in path.iter().enumerate() {
-        let Some((k, item)) = table.get_key_value(part) else {
+    let mut i = 0;
+    while i < path.len() {
+        let Some((k, item)) = table.get_key_value(path[i]) else {
             break;
         };
         if let Some(span) = item.span().or_else(|| k.span()) {
             line = Some(line_at(text, span.start));
         }
-        if i + 1 == path.len() {
+        // `sites.1.name`: the second `[[…sites]]` table (or item of an inline array).
+        let index = path.get(i + 1).and_then(|p| p.parse::<usize>().ok());
+        if let (Some(n), Some(tables)) = (index, item.as_array_of_tables()) {
+            let Some(t) = tables.get(n) else { break };
+            if let Some(span) = t.span() {
+                line = Some(line_at(text, span.start));
+            }
+            i += 2;
+            table = t;
+            continue;
+        }
+        if let (Some(n), Some(array)) = (index, item.as_array()) {
+            if let Some(span) = array.get(n).and_then(|v| v.span()) {
+                line = Some(line_at(text, span.start));
+            }
+            break;
+        }
+        i += 1;
+        if i == path.len() {
             break;
         }
         match item.as_table_like() {
@@ -714,6 +733,25 @@ speed = 5.0
         assert_eq!(c.steps(), Some(4));
         assert_eq!(c.config.modules["first"].every, 2);
         assert_eq!(c.params_json("first")["speed"], 5.0);
+    }
+
+    #[test]
+    fn keys_inside_arrays_of_tables_have_their_line() {
+        let text = "[m.params]\nx = 1\n[[m.params.sites]]\nname = \"a\"\n[[m.params.sites]]\nname = \"b\"\narray = [1, 2]\n";
+        assert_eq!(
+            line_of_key(text, &["m", "params", "sites", "1", "name"]),
+            Some(6)
+        );
+        assert_eq!(
+            line_of_key(text, &["m", "params", "sites", "0", "name"]),
+            Some(4)
+        );
+        assert_eq!(
+            line_of_key(text, &["m", "params", "sites", "1", "array"]),
+            Some(7)
+        );
+        assert_eq!(line_of_key(text, &["m", "params", "sites", "1"]), Some(5));
+        assert_eq!(line_of_key(text, &["m", "params", "x"]), Some(2));
     }
 
     #[test]

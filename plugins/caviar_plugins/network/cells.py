@@ -1,0 +1,194 @@
+"""Sites, sectors and what a UE measures of them: received power, RSRP and SINR.
+
+A **site** is a mast at one position; each of its **sectors** is a cell: an antenna
+panel pointing at an azimuth (3GPP TR 38.901 §7.3 element pattern, 65° half-power
+beamwidths, 8 dBi, 30 dB front-to-back) with an array of ``rows × cols`` elements whose
+beamforming gain toward the UE is ``10·log10(rows·cols)``, a transmit power, a carrier
+and a bandwidth. Cells on the same carrier interfere with each other.
+
+Received power, per UE ``u`` and cell ``c``: ``P_rx = P_tx + G_ant(c→u) + G_path(c, u)``
+(dB), where the path gain comes from a channel model (free space here, the ray tracer
+through :mod:`caviar_plugins.network.plugin`). ``RSRP = P_rx − 10·log10(12·N_PRB)``
+(power per resource element). SINR of UE ``u`` served by ``s``::
+
+    SINR = P_rx(s) / (N + Σ_{c ≠ s, same carrier} load(c) · P_rx(c) / A(c))
+
+with ``N = k·T·B·NF``, ``load`` 1 for every interfering cell (``full-buffer``) or 1 only
+for cells that scheduled someone in the slot (``scheduled``), and ``A(c)`` the array gain
+of cell ``c``: its data beams point at its own UEs, and the array factor averaged over
+directions is 1, so an interferer reaches the UE with its element gain only (RSRP is
+measured on beam-swept reference signals and keeps the array gain).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+BOLTZMANN = 1.380649e-23  # J/K
+REFERENCE_TEMPERATURE_K = 290.0
+SPEED_OF_LIGHT = 299_792_458.0  # m/s
+# TR 38.901 Table 7.3-1: the sector element pattern.
+ELEMENT_GAIN_DBI = 8.0
+HALF_POWER_BEAMWIDTH_DEG = 65.0
+FRONT_TO_BACK_DB = 30.0
+SIDE_LOBE_DB = 30.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Cell:
+    """One sector of a site: a cell."""
+
+    name: str  # "SITE/k", k the sector's index at its site
+    site: str
+    index: int  # position in the list of all cells
+    position: tuple[float, float, float]
+    azimuth_deg: float  # boresight, counter-clockwise from +x (east)
+    downtilt_deg: float
+    tx_power_dbm: float
+    carrier_hz: float
+    bandwidth_hz: float
+    array: tuple[int, int]
+
+    @property
+    def array_gain_db(self) -> float:
+        return 10 * math.log10(self.array[0] * self.array[1])
+
+
+def _fail(key: str, message: str) -> ValueError:
+    """A ValueError the plugin host reports at ``modules.NAME.params.KEY``."""
+    return ValueError(f"{key}: {message}")
+
+
+def _number(table: Mapping[str, Any], key: str, where: str, default: float | None = None,
+            positive: bool = False) -> float:
+    value = table.get(key, default)
+    if value is None:
+        raise _fail(f"{where}.{key}", "this required key is missing")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise _fail(f"{where}.{key}", f"expected a number, got {value!r}")
+    if positive and not value > 0:
+        raise _fail(f"{where}.{key}", f"expected a positive number, got {value!r}")
+    return float(value)
+
+
+SITE_KEYS = {"name", "position", "azimuths_deg", "downtilt_deg", "tx_power_dbm", "carrier_hz",
+             "bandwidth_hz", "array"}
+
+
+def parse_sites(sites: Sequence[Mapping[str, Any]], defaults: Mapping[str, Any]) -> list[Cell]:
+    """The cells of ``sites`` (``[[...params.sites]]`` tables), in order, checked.
+
+    ``defaults`` holds the network-wide ``tx_power_dbm``, ``carrier_hz``,
+    ``bandwidth_hz`` and ``array`` a site may override. Errors name the key
+    (``sites.2.array``) and say what was expected.
+    """
+    if not sites:
+        raise _fail("sites", "expected at least one [[...params.sites]] table")
+    cells: list[Cell] = []
+    seen: set[str] = set()
+    for i, site in enumerate(sites):
+        where = f"sites.{i}"
+        if not isinstance(site, Mapping):
+            raise _fail(where, f"expected a table, got {site!r}")
+        unknown = sorted(set(site) - SITE_KEYS)
+        if unknown:
+            raise _fail(f"{where}.{unknown[0]}", f"unknown key, expected one of {sorted(SITE_KEYS)}")
+        name = site.get("name")
+        if not isinstance(name, str) or not name or "/" in name:
+            raise _fail(f"{where}.name", f"expected a site name without '/', got {name!r}")
+        if name in seen:
+            raise _fail(f"{where}.name", f"site '{name}' is declared twice (site names must be unique)")
+        seen.add(name)
+        pos = site.get("position")
+        if not (isinstance(pos, list) and len(pos) == 3
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pos)):
+            raise _fail(f"{where}.position", f"expected [x, y, z] in metres, got {pos!r}")
+        azimuths = site.get("azimuths_deg", [0.0, 120.0, 240.0])
+        if not (isinstance(azimuths, list) and azimuths
+                and all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in azimuths)):
+            raise _fail(f"{where}.azimuths_deg", f"expected a list of sector azimuths in degrees, got {azimuths!r}")
+        array = site.get("array", defaults.get("array"))
+        if not (isinstance(array, list) and len(array) == 2
+                and all(isinstance(n, int) and not isinstance(n, bool) and n >= 1 for n in array)):
+            raise _fail(f"{where}.array", f"every sector needs an antenna array [rows, cols] of elements >= 1, "
+                                          f"got {array!r}")
+        power = _number(site, "tx_power_dbm", where, defaults.get("tx_power_dbm"))
+        carrier = _number(site, "carrier_hz", where, defaults.get("carrier_hz"), positive=True)
+        bandwidth = _number(site, "bandwidth_hz", where, defaults.get("bandwidth_hz"), positive=True)
+        tilt = _number(site, "downtilt_deg", where, 0.0)
+        for k, az in enumerate(azimuths):
+            cells.append(Cell(name=f"{name}/{k}", site=name, index=len(cells),
+                              position=(float(pos[0]), float(pos[1]), float(pos[2])),
+                              azimuth_deg=float(az), downtilt_deg=tilt, tx_power_dbm=power,
+                              carrier_hz=carrier, bandwidth_hz=bandwidth,
+                              array=(int(array[0]), int(array[1]))))
+    return cells
+
+
+def element_gain_db(cells: Sequence[Cell], ues: np.ndarray) -> np.ndarray:
+    """TR 38.901 sector element gain (dBi) of every cell toward every UE: [n_ue, n_cell]."""
+    pos = np.array([c.position for c in cells])  # [C, 3]
+    d = ues[:, None, :] - pos[None, :, :]  # [U, C, 3]
+    phi = np.degrees(np.arctan2(d[..., 1], d[..., 0]))
+    phi = (phi - np.array([c.azimuth_deg for c in cells])[None, :] + 180.0) % 360.0 - 180.0
+    horizontal = np.hypot(d[..., 0], d[..., 1])
+    # Zenith angle: 90° at the horizon; the panel's boresight is tilted down.
+    theta = np.degrees(np.arctan2(horizontal, d[..., 2]))
+    theta_tilt = 90.0 + np.array([c.downtilt_deg for c in cells])[None, :]
+    a_h = -np.minimum(12 * (phi / HALF_POWER_BEAMWIDTH_DEG) ** 2, FRONT_TO_BACK_DB)
+    a_v = -np.minimum(12 * ((theta - theta_tilt) / HALF_POWER_BEAMWIDTH_DEG) ** 2, SIDE_LOBE_DB)
+    return ELEMENT_GAIN_DBI - np.minimum(-(a_h + a_v), FRONT_TO_BACK_DB)
+
+
+def free_space_gain_db(cells: Sequence[Cell], ues: np.ndarray) -> np.ndarray:
+    """Friis path gain 20·log10(λ / 4πd) of every cell toward every UE: [n_ue, n_cell]."""
+    pos = np.array([c.position for c in cells])
+    d = np.sqrt(((ues[:, None, :] - pos[None, :, :]) ** 2).sum(axis=-1))
+    lam = SPEED_OF_LIGHT / np.array([c.carrier_hz for c in cells])[None, :]
+    return 20 * np.log10(lam / (4 * np.pi * np.maximum(d, 1e-3)))
+
+
+def noise_dbm(bandwidth_hz: np.ndarray | float, noise_figure_db: float) -> np.ndarray:
+    """Thermal noise k·T·B·NF in dBm."""
+    return 10 * np.log10(BOLTZMANN * REFERENCE_TEMPERATURE_K * np.asarray(bandwidth_hz) * 1e3) + noise_figure_db
+
+
+def rx_power_dbm(cells: Sequence[Cell], ues: np.ndarray, path_gain_db: np.ndarray) -> np.ndarray:
+    """Received power (dBm) from every cell at every UE: [n_ue, n_cell]."""
+    tx = np.array([c.tx_power_dbm + c.array_gain_db for c in cells])[None, :]
+    return tx + element_gain_db(cells, ues) + path_gain_db
+
+
+def rsrp_dbm(cells: Sequence[Cell], rx_dbm: np.ndarray, num_prb: Sequence[int]) -> np.ndarray:
+    """Reference signal received power: the received power per resource element."""
+    return rx_dbm - 10 * np.log10(12 * np.asarray(num_prb, dtype=float))[None, :]
+
+
+def sinr_db(cells: Sequence[Cell], rx_dbm: np.ndarray, serving: np.ndarray, noise_figure_db: float,
+            load: np.ndarray | None = None) -> np.ndarray:
+    """Wideband SINR (dB) of every UE on its serving cell ``serving[u]`` (index; -1:
+    none, NaN out), the other cells on its carrier interfering with weight
+    ``load[c]`` (default 1: full buffer)."""
+    n_ue, n_cell = rx_dbm.shape
+    out = np.full(n_ue, np.nan)
+    if n_ue == 0:
+        return out
+    carrier = np.array([c.carrier_hz for c in cells])
+    bandwidth = np.array([c.bandwidth_hz for c in cells])
+    load = np.ones(n_cell) if load is None else np.asarray(load, dtype=float)
+    rx_mw = 10 ** (rx_dbm / 10)
+    # Interferers without their array gain (their beams serve their own UEs).
+    load = load / 10 ** (np.array([c.array_gain_db for c in cells]) / 10)
+    for u in range(n_ue):
+        s = int(serving[u])
+        if s < 0:
+            continue
+        co = (carrier == carrier[s]) & (np.arange(n_cell) != s)
+        interference = float((rx_mw[u, co] * load[co]).sum())
+        noise = 10 ** (noise_dbm(bandwidth[s], noise_figure_db) / 10)
+        out[u] = 10 * np.log10(rx_mw[u, s] / (noise + interference))
+    return out

@@ -1,0 +1,187 @@
+"""``radio-network``: a multi-cell radio network in the loop.
+
+Every UE that publishes a position (UAVs, SUMO cars and pedestrians) measures every
+cell; it attaches to the strongest, hands over on the A3 event, fails its radio link
+when its SINR stays too low, and gets what the link level gives it (Sionna SYS:
+proportional-fair scheduling, outer-loop link adaptation, PHY abstraction on NR BLER
+tables; or Shannon). Publishes per step:
+
+- ``communications.throughput`` (the paper's schema, Mbit/s of decoded bits) per UE;
+- ``network.ue`` per UE: serving cell, RSRP of every cell, SINR, MCS, TBLER, HARQ;
+- ``network.events``: attach, handover and radio-link-failure events;
+- ``network.cells``: per cell, its UEs and the share of PRB-slots it used.
+
+The channel is free space (Friis, with the 3GPP sector pattern) for now; the path
+gains of the ray tracer come next (issue #23).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+import caviar
+from caviar_plugins.network.cells import Cell, free_space_gain_db, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
+from caviar_plugins.network.handover import HandoverSettings, MobilityManager
+from caviar_plugins.network.sys_layer import LinkLevel, LinkSettings
+from caviar_plugins.schema import (
+    ARRIVED,
+    NETWORK_CELLS,
+    NETWORK_EVENTS,
+    NETWORK_UE,
+    POSITIONS,
+    THROUGHPUT,
+    read_position,
+    throughput_payload,
+)
+
+# TS 38.101-1 Table 5.3.2-1 (FR1) and 38.101-2 Table 5.3.2-1 (FR2): PRBs per bandwidth (MHz).
+NR_PRBS = {
+    15e3: {5: 25, 10: 52, 15: 79, 20: 106, 25: 133, 30: 160, 40: 216, 50: 270},
+    30e3: {5: 11, 10: 24, 15: 38, 20: 51, 25: 65, 30: 78, 40: 106, 50: 133, 60: 162, 70: 189, 80: 217,
+           90: 245, 100: 273},
+    60e3: {10: 11, 15: 18, 20: 24, 25: 31, 30: 38, 40: 51, 50: 65, 60: 79, 70: 93, 80: 107, 90: 121,
+           100: 135, 200: 264},
+    120e3: {50: 32, 100: 66, 200: 132, 400: 264},
+}
+# NR frequency ranges, where the BLER tables (NR LDPC, NR MCS tables) apply.
+NR_RANGES_HZ = ((410e6, 7.125e9), (24.25e9, 71e9))
+INTERFERENCE = ("full-buffer", "scheduled")
+
+
+def nr_prbs(bandwidth_hz: float, scs_hz: float) -> int | None:
+    table = NR_PRBS.get(scs_hz, {})
+    mhz = bandwidth_hz / 1e6
+    return table.get(int(mhz)) if float(mhz).is_integer() else None
+
+
+class RadioNetwork(caviar.Plugin):
+    subscribe = [POSITIONS, ARRIVED]
+    publishes = (THROUGHPUT, NETWORK_UE, NETWORK_EVENTS, NETWORK_CELLS)
+
+    @dataclasses.dataclass
+    class Params:
+        sites: list[dict] = dataclasses.field(default_factory=list)
+        carrier_hz: float = 3.5e9
+        bandwidth_hz: float = 20e6
+        subcarrier_spacing_hz: float = 30e3
+        num_prb: int | None = None
+        tx_power_dbm: float = 43.0
+        array: list[int] = dataclasses.field(default_factory=lambda: [4, 4])
+        noise_figure_db: float = 7.0
+        link_model: str = "sys"
+        scheduler: str = "proportional-fair"
+        interference: str = "full-buffer"
+        bler_target: float = 0.1
+        mcs_table: int = 1
+        handover: dict = dataclasses.field(default_factory=dict)
+
+        def __post_init__(self):
+            self.cells: list[Cell] = parse_sites(self.sites, dataclasses.asdict(self))
+            for i, c in enumerate(self.cells):
+                if not any(lo <= c.carrier_hz <= hi for lo, hi in NR_RANGES_HZ):
+                    key = "carrier_hz" if c.carrier_hz == self.carrier_hz else f"sites.{i}.carrier_hz"
+                    raise ValueError(f"{key}: {c.carrier_hz:g} Hz is outside the NR bands the BLER tables are "
+                                     f"for (FR1 0.41-7.125 GHz, FR2 24.25-71 GHz)")
+            if self.interference not in INTERFERENCE:
+                raise ValueError(f"interference: expected one of {list(INTERFERENCE)}, got {self.interference!r}")
+            if self.num_prb is None:
+                self.num_prb = nr_prbs(self.bandwidth_hz, self.subcarrier_spacing_hz)
+                if self.num_prb is None:
+                    raise ValueError(f"num_prb: {self.bandwidth_hz:g} Hz at {self.subcarrier_spacing_hz:g} Hz "
+                                     f"spacing is not an NR channel bandwidth; give num_prb")
+            if self.num_prb * 12 * self.subcarrier_spacing_hz > self.bandwidth_hz:
+                raise ValueError(f"num_prb: {self.num_prb} PRBs of {12 * self.subcarrier_spacing_hz:g} Hz do not "
+                                 f"fit in bandwidth_hz = {self.bandwidth_hz:g}")
+            self.link = LinkSettings(num_prb=self.num_prb, subcarrier_spacing_hz=self.subcarrier_spacing_hz,
+                                     bler_target=self.bler_target, mcs_table=self.mcs_table,
+                                     scheduler=self.scheduler, link_model=self.link_model)
+            unknown = set(self.handover) - {f.name for f in dataclasses.fields(HandoverSettings)}
+            if unknown:
+                raise ValueError(f"handover.{sorted(unknown)[0]}: unknown key, expected one of "
+                                 f"{[f.name for f in dataclasses.fields(HandoverSettings)]}")
+            self.handover_settings = HandoverSettings(**{k: float(v) for k, v in self.handover.items()})
+
+    def setup(self, ctx):
+        p = ctx.params
+        self.p = p
+        self.cells = p.cells
+        self.names = [c.name for c in self.cells]
+        self.slot_s = p.link.slot_s
+        self.slots = max(1, round(ctx.ts * ctx.every / self.slot_s))
+        self.mm = MobilityManager(p.handover_settings, self.names)
+        self.link = LinkLevel(p.link, len(self.cells), seed=ctx.seed)
+        self.ues: dict[str, dict[str, Any]] = {}  # UE_Id -> {type, position, column}
+        self.free: list[int] = []
+        self.last_sinr: dict[str, float] = {}
+
+    def _column(self) -> int:
+        return self.free.pop(0) if self.free else len(self.ues)
+
+    def step(self, t, inbox):
+        for m in inbox.on(ARRIVED):
+            ue = self.ues.pop(m.data["UE_Id"], None)
+            if ue is not None:
+                self.mm.forget(m.data["UE_Id"])
+                self.link.released(ue["column"])
+                self.free.append(ue["column"])
+                self.free.sort()
+        for m in inbox.on(POSITIONS):
+            ue_id = m.data["UE_Id"]
+            if ue_id not in self.ues:
+                self.ues[ue_id] = {"type": m.data["UE_type"], "column": self._column()}
+            self.ues[ue_id]["position"] = read_position(m.data)
+        if not self.ues:
+            return
+        ids = list(self.ues)
+        pos = np.array([self.ues[u]["position"] for u in ids])
+        rx = rx_power_dbm(self.cells, pos, free_space_gain_db(self.cells, pos))
+        rsrp = rsrp_dbm(self.cells, rx, [self.p.num_prb] * len(self.cells))
+        events = []
+        for i, u in enumerate(ids):
+            before = self.mm.ues.get(u)
+            old = before.serving if before else None
+            events += self.mm.update(t, u, list(rsrp[i]), self.last_sinr.get(u))
+            if old is not None and self.mm.serving(u) != old:
+                self.link.moved(self.ues[u]["column"], self.mm.serving(u))
+        serving = np.array([self.mm.serving(u) for u in ids])
+        load = None
+        if self.p.interference == "scheduled":
+            load = np.isin(np.arange(len(self.cells)), serving).astype(float)
+        sinr = sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)
+        # The link level works on UE columns (stable across steps).
+        cols = np.array([self.ues[u]["column"] for u in ids])
+        width = int(cols.max()) + 1
+        sinr_cols = np.full(width, np.nan)
+        serving_cols = np.full(width, -1)
+        sinr_cols[cols], serving_cols[cols] = sinr, serving
+        res = self.link.run(np.tile(sinr_cols, (self.slots, 1)), serving_cols)
+        mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
+        for e in events:
+            yield NETWORK_EVENTS, e
+        for i, u in enumerate(ids):
+            c = cols[i]
+            self.last_sinr[u] = float(sinr[i])
+            ue_type = self.ues[u]["type"]
+            yield THROUGHPUT, throughput_payload(ue_type, u, round(float(mbps[c]), 6))
+            report = {"UE_type": ue_type, "UE_Id": u, "serving_cell": self.names[serving[i]],
+                      "sinr_db": round(float(sinr[i]), 3),
+                      "rsrp_dbm": {n: round(float(v), 2) for n, v in zip(self.names, rsrp[i], strict=True)},
+                      "throughput_mbps": round(float(mbps[c]), 6)}
+            if self.p.link_model == "sys":
+                report.update(res.summary(c))
+            yield NETWORK_UE, report
+        used = res.cells_active.mean(axis=0) if self.slots else np.zeros(len(self.cells))
+        yield NETWORK_CELLS, {"cells": [
+            {"cell": n, "ues": int((serving == k).sum()), "active_share": round(float(used[k]), 4)}
+            for k, n in enumerate(self.names)]}
+
+
+def jain_index(x: np.ndarray) -> float:
+    """Jain's fairness index (Σx)² / (n·Σx²): 1 when all are equal, 1/n when one gets all."""
+    x = np.asarray(x, dtype=float)
+    s2 = float((x ** 2).sum())
+    return float(x.sum() ** 2 / (x.size * s2)) if s2 > 0 else math.nan

@@ -1,0 +1,266 @@
+"""The link level, abstracted: Sionna SYS on the twin's channels, slot by slot.
+
+Per slot, for every cell at once (one batched call per block):
+
+1. **Scheduling.** Sionna's proportional-fair scheduler (:class:`sionna.sys.PFSchedulerSUMIMO`)
+   gives each PRB of a cell to one of the cell's UEs, by achievable rate
+   (``log2(1 + SINR)`` per PRB) over the UE's discounted past rate in that cell.
+   ``round-robin`` and ``max-rate`` are there to compare with.
+2. **Link adaptation.** Sionna's outer-loop link adaptation
+   (:class:`sionna.sys.OuterLoopLinkAdaptation`) picks each UE's MCS: the highest whose
+   transport BLER at the reported SINR (ideal CSI: the slot's) minus an offset stays
+   below the target; the offset follows the HARQ feedback (down on ACK, up on NACK).
+3. **PHY abstraction.** :class:`sionna.sys.PHYAbstraction` maps (MCS, effective SINR,
+   allocated resource elements) to the BLER of Sionna's shipped NR tables, draws the
+   HARQ outcome and counts the decoded bits.
+
+A co-simulation step (say 10 ms) runs its slots (say 0.5 ms each) in a loop of such
+calls, on per-slot SINRs the caller provides (``[n_slots, n_ue]``: constant within a
+step for a static channel, evolving with the paths' Doppler otherwise). The Shannon
+link model (``shannon``) shares each cell's time equally among its UEs at
+``B·log2(1 + SINR)`` instead.
+
+UEs come and go and hand over: each UE has a column in the blocks' state, kept
+across steps; a UE that changes cell starts with a fresh proportional-fair history
+there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+NUMEROLOGIES = (15e3, 30e3, 60e3, 120e3)
+SCHEDULERS = ("proportional-fair", "round-robin", "max-rate")
+LINK_MODELS = ("sys", "shannon")
+DATA_SYMBOLS_PER_SLOT = 12  # of 14: two for control and reference signals
+PDSCH = 1  # Sionna's MCS category of the downlink (0: PUSCH); its BLER tables are PDSCH_table*.json
+
+
+@dataclasses.dataclass(frozen=True)
+class LinkSettings:
+    num_prb: int
+    subcarrier_spacing_hz: float = 30e3
+    bler_target: float = 0.1
+    mcs_table: int = 1
+    scheduler: str = "proportional-fair"
+    link_model: str = "sys"
+
+    def __post_init__(self):
+        if self.num_prb < 1:
+            raise ValueError(f"num_prb: expected at least 1 PRB, got {self.num_prb}")
+        if not 0.0 < self.bler_target < 1.0:
+            raise ValueError(f"bler_target: expected a BLER target in (0, 1), got {self.bler_target}")
+        if self.mcs_table not in (1, 2, 3, 4):
+            raise ValueError(f"mcs_table: expected an NR PDSCH MCS table index 1-4, got {self.mcs_table}")
+        if self.scheduler not in SCHEDULERS:
+            raise ValueError(f"scheduler: expected one of {list(SCHEDULERS)}, got {self.scheduler!r}")
+        if self.link_model not in LINK_MODELS:
+            raise ValueError(f"link_model: expected one of {list(LINK_MODELS)}, got {self.link_model!r}")
+        if self.subcarrier_spacing_hz not in NUMEROLOGIES:
+            raise ValueError(f"subcarrier_spacing_hz: expected an NR numerology {sorted(NUMEROLOGIES)}, "
+                             f"got {self.subcarrier_spacing_hz:g}")
+
+    @property
+    def slot_s(self) -> float:
+        """NR slot: 14 symbols, 1 ms at 15 kHz, halved with each doubling of the spacing."""
+        return 1e-3 * 15e3 / self.subcarrier_spacing_hz
+
+    @property
+    def prb_bandwidth_hz(self) -> float:
+        return 12 * self.subcarrier_spacing_hz
+
+
+@dataclasses.dataclass
+class SlotResults:
+    """What a UE got over the slots of one call."""
+
+    decoded_bits: np.ndarray  # [n_ue] summed over the slots
+    scheduled_slots: np.ndarray  # [n_ue] slots with at least one PRB
+    prbs: np.ndarray  # [n_ue] PRB-slots allocated
+    acks: np.ndarray  # [n_ue]
+    nacks: np.ndarray  # [n_ue]
+    mcs: np.ndarray  # [n_ue] the last MCS used (-1: never scheduled)
+    tbler: np.ndarray  # [n_ue] mean TBLER over scheduled slots (NaN: none)
+    sinr_eff_db: np.ndarray  # [n_ue] the last effective SINR (NaN: none)
+    cells_active: np.ndarray  # [n_slots, n_cell] cells that scheduled someone
+
+    def bler(self, ue: int) -> float:
+        return self.nacks[ue] / max(self.acks[ue] + self.nacks[ue], 1)
+
+    def throughput_bps(self, n_slots: int, slot_s: float) -> np.ndarray:
+        return self.decoded_bits / (n_slots * slot_s)
+
+    def summary(self, u: int) -> dict[str, Any]:
+        return {"mcs": int(self.mcs[u]),
+                "tbler": None if np.isnan(self.tbler[u]) else round(float(self.tbler[u]), 4),
+                "harq_ack": int(self.acks[u]), "harq_nack": int(self.nacks[u]),
+                "prbs": int(self.prbs[u])}
+
+
+class LinkLevel:
+    """Scheduling, link adaptation and PHY abstraction for ``n_cell`` cells."""
+
+    def __init__(self, settings: LinkSettings, n_cell: int, seed: int = 0, capacity: int = 8):
+        self.s = settings
+        self.n_cell = n_cell
+        self.capacity = 0
+        self.seed = seed
+        self._sys: Any = None
+        self.olla: Any = None
+        self.pf: Any = None
+        self.harq: Any = None
+        self.rate_last: Any = None
+        if settings.link_model == "sys":
+            import sionna.phy
+            import sionna.sys
+
+            sionna.phy.config.seed = seed
+            self._sys = sionna.sys
+            self._torch = __import__("torch")
+            self.phy = sionna.sys.PHYAbstraction()
+        self._grow(capacity)
+
+    def _grow(self, capacity: int) -> None:
+        """Room for ``capacity`` UEs, keeping the state of the first ``self.capacity``."""
+        old = self.capacity
+        self.capacity = capacity
+        if self._sys is None:
+            return
+        torch = self._torch
+        olla = self._sys.OuterLoopLinkAdaptation(self.phy, num_ut=capacity, bler_target=self.s.bler_target)
+        pf = self._sys.PFSchedulerSUMIMO(capacity, self.s.num_prb, 1, batch_size=[self.n_cell])
+        if old:
+            olla._offset[:old] = self.olla._offset
+            olla._sinr_eff_db_last[:old] = self.olla._sinr_eff_db_last
+            pf._rate_achieved_past[:, :old] = self.pf._rate_achieved_past
+            self.harq = torch.cat([self.harq, torch.full((capacity - old,), -1, dtype=torch.int32)])
+            self.rate_last = torch.cat([self.rate_last, torch.zeros(self.n_cell, capacity - old)], dim=1)
+        else:
+            self.harq = torch.full((capacity,), -1, dtype=torch.int32)
+            self.rate_last = torch.zeros(self.n_cell, capacity)
+        self.olla, self.pf = olla, pf
+
+    def table_bler(self, mcs: int, sinr_db: float, cb_size: int) -> float:
+        """The BLER this link level uses for ``mcs`` at ``sinr_db`` and code-block size
+        ``cb_size`` (Sionna's interpolated NR PDSCH table ``mcs_table``)."""
+        sinr = self._torch.tensor(10 ** (sinr_db / 10), dtype=self._torch.float32)
+        return float(self.phy.get_bler(mcs, self.s.mcs_table, PDSCH, cb_size, sinr))
+
+    def ensure(self, n_ue: int) -> None:
+        if n_ue > self.capacity:
+            self._grow(max(n_ue, 2 * self.capacity))
+
+    def moved(self, u: int, new_cell: int) -> None:
+        """UE column ``u`` now belongs to ``new_cell``: a fresh PF history there."""
+        if self._sys is not None:
+            self.pf._rate_achieved_past[new_cell, u] = 1.0
+            self.rate_last[:, u] = 0.0
+
+    def released(self, u: int) -> None:
+        """Column ``u`` is free again (its UE left): its state goes back to new."""
+        if self._sys is not None:
+            self.pf._rate_achieved_past[:, u] = 1.0
+            self.rate_last[:, u] = 0.0
+            self.olla._offset[u] = 0.0
+            self.harq[u] = -1
+
+    def run(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
+        """Runs ``sinr_db.shape[0]`` slots. ``sinr_db``: [n_slots, n_ue] wideband SINR of
+        each UE on its serving cell; ``serving``: [n_ue] cell index (-1: no service)."""
+        n_slots, n_ue = sinr_db.shape
+        self.ensure(n_ue)
+        if self._sys is None:
+            return self._shannon(sinr_db, serving)
+        return self._sys_slots(sinr_db, serving)
+
+    def _shannon(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
+        n_slots, n_ue = sinr_db.shape
+        band = self.s.num_prb * self.s.prb_bandwidth_hz
+        counts = np.bincount(serving[serving >= 0], minlength=self.n_cell)
+        share = np.where(serving >= 0, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
+        se = np.log2(1 + 10 ** (np.nan_to_num(sinr_db, nan=-np.inf) / 10))
+        bits = (band * share[None, :] * se * self.s.slot_s).sum(axis=0)
+        active = np.zeros((n_slots, self.n_cell), dtype=bool)
+        active[:, counts > 0] = True
+        zeros = np.zeros(n_ue, dtype=int)
+        return SlotResults(bits, np.where(serving >= 0, n_slots, 0), zeros, zeros, zeros,
+                           np.full(n_ue, -1), np.full(n_ue, np.nan),
+                           np.nanmean(sinr_db, axis=0) if n_slots else np.full(n_ue, np.nan), active)
+
+    def _sys_slots(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
+        torch = self._torch
+        n_slots, n_ue = sinr_db.shape
+        cap, n_cell = self.capacity, self.n_cell
+        member = np.zeros((n_cell, cap), dtype=bool)
+        for u, c in enumerate(serving):
+            if c >= 0:
+                member[c, u] = True
+        member_t = torch.from_numpy(member)
+        re_per_prb = 12 * DATA_SYMBOLS_PER_SLOT
+        acc = {k: np.zeros(n_ue) for k in ("bits", "sched", "prbs", "acks", "nacks", "tbler")}
+        mcs_last = np.full(n_ue, -1)
+        sinr_eff_last = np.full(n_ue, np.nan)
+        active = np.zeros((n_slots, n_cell), dtype=bool)
+        rr_turn = 0
+        for k in range(n_slots):
+            lin = np.zeros(cap)
+            lin[:n_ue] = np.where(serving >= 0, 10 ** (np.nan_to_num(sinr_db[k], nan=-300.0) / 10), 0.0)
+            lin_t = torch.tensor(lin, dtype=torch.float32)
+            # Achievable rate per PRB of each UE in its own cell (bit/s/Hz); 0 elsewhere.
+            rate = torch.log2(1 + lin_t)[None, :] * member_t  # [C, cap]
+            granted = self._schedule(rate, member, rr_turn)  # [C, P, cap] bool
+            rr_turn += 1
+            prbs = granted.sum(dim=(0, 1)).to(torch.int32)  # [cap]
+            n_re = prbs * re_per_prb
+            # CSI feedback: the slot's SINR as the UE reports it (ideal), corrected by the
+            # loop's offset, which follows the HARQ outcome of the last transmission.
+            mcs = self.olla(n_re, self.harq, lin_t, mcs_table_index=self.s.mcs_table, mcs_category=PDSCH)
+            bits, harq, sinr_eff, tbler, _ = self.phy(
+                mcs, sinr_eff=lin_t, num_allocated_re=n_re, mcs_table_index=self.s.mcs_table,
+                mcs_category=PDSCH)
+            self.harq = harq
+            # The rate each cell achieved for each UE, for the PF history.
+            self.rate_last = bits.to(torch.float32)[None, :] / self.s.slot_s * member_t
+            b = bits.numpy()[:n_ue]
+            sched = (n_re.numpy() > 0)[:n_ue]
+            h = harq.numpy()[:n_ue]
+            acc["bits"] += b
+            acc["sched"] += sched
+            acc["prbs"] += prbs.numpy()[:n_ue]
+            acc["acks"] += h == 1
+            acc["nacks"] += h == 0
+            acc["tbler"] += np.where(sched, tbler.numpy()[:n_ue], 0.0)
+            mcs_last = np.where(sched, mcs.numpy()[:n_ue], mcs_last)
+            sinr_eff_last = np.where(sched, 10 * np.log10(np.maximum(sinr_eff.numpy()[:n_ue], 1e-30)),
+                                     sinr_eff_last)
+            active[k] = granted.any(dim=(1, 2)).numpy()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tbler_mean = np.where(acc["sched"] > 0, acc["tbler"] / acc["sched"], np.nan)
+        return SlotResults(acc["bits"], acc["sched"].astype(int), acc["prbs"].astype(int),
+                           acc["acks"].astype(int), acc["nacks"].astype(int), mcs_last, tbler_mean,
+                           sinr_eff_last, active)
+
+    def _schedule(self, rate, member: np.ndarray, turn: int):
+        """[C, P, cap]: which UE gets each PRB of each cell this slot."""
+        torch = self._torch
+        n_cell, cap = member.shape
+        n_prb = self.s.num_prb
+        if self.s.scheduler == "proportional-fair":
+            achievable = rate[:, None, None, :].expand(n_cell, 1, n_prb, cap)
+            granted = self.pf(self.rate_last, achievable)[:, 0, :, :, 0]  # [C, P, cap]
+            # A cell without UEs: the argmax picked column 0, which is not its UE.
+            return granted & torch.from_numpy(member)[:, None, :]
+        granted = torch.zeros((n_cell, n_prb, cap), dtype=torch.bool)
+        for c in range(n_cell):
+            ues = np.flatnonzero(member[c])
+            if ues.size == 0:
+                continue
+            if self.s.scheduler == "max-rate":
+                u = int(ues[int(torch.argmax(rate[c, ues]))])
+            else:  # round-robin: one UE per slot, in turn
+                u = int(ues[turn % ues.size])
+            granted[c, :, u] = True
+        return granted
