@@ -16,7 +16,8 @@ from caviar import _core
 from caviar_plugins.network.cells import (
     BOLTZMANN,
     ELEMENT_GAIN_DBI,
-    free_space_gain_db,
+    element_gain_db,
+    line_of_sight_gain_db,
     parse_sites,
     rx_power_dbm,
     sinr_db,
@@ -38,7 +39,7 @@ def _two_cells_facing(d: float, height: float = 10.0):
 def test_two_equal_cells_give_0_db_and_one_alone_gives_friis_snr():
     cells = _two_cells_facing(100.0)
     ue = np.array([[0.0, 0.0, 10.0]])
-    rx = rx_power_dbm(cells, ue, free_space_gain_db(cells, ue))
+    rx = rx_power_dbm(cells, line_of_sight_gain_db(cells, ue))
     # Both loaded, noise negligible (NF -200 dB): S = I.
     both = sinr_db(cells, rx, np.array([0]), noise_figure_db=-200.0)
     assert both[0] == pytest.approx(0.0, abs=1e-9)
@@ -51,7 +52,7 @@ def test_two_equal_cells_give_0_db_and_one_alone_gives_friis_snr():
     assert alone[0] == pytest.approx(40.0 + ELEMENT_GAIN_DBI + friis_db - noise_dbm, abs=1e-9)
     # Half as far from the west cell: 6.02 dB more signal, and farther from the east one.
     ue = np.array([[-50.0, 0.0, 10.0]])
-    rx = rx_power_dbm(cells, ue, free_space_gain_db(cells, ue))
+    rx = rx_power_dbm(cells, line_of_sight_gain_db(cells, ue))
     sir = sinr_db(cells, rx, np.array([0]), noise_figure_db=-200.0)[0]
     assert sir == pytest.approx(20 * math.log10(150.0 / 50.0), abs=1e-9)
 
@@ -61,7 +62,7 @@ def test_the_sector_pattern_follows_tr38901():
     r = 100.0
     for phi, expected in [(0.0, 8.0), (32.5, 8.0 - 3.0), (65.0, 8.0 - 12.0), (180.0, 8.0 - 30.0)]:
         ue = np.array([[r * math.cos(math.radians(phi)), r * math.sin(math.radians(phi)), 0.0]])
-        gain = rx_power_dbm(cells, ue, np.zeros((1, 1)))[0, 0] - 40.0
+        gain = element_gain_db(cells, ue)[0, 0]
         assert gain == pytest.approx(expected, abs=1e-9), phi
 
 
@@ -265,3 +266,22 @@ def test_bad_network_input_names_the_key_before_anything_runs(tmp_path, capfd, e
         last = replacement.splitlines()[-1]
         line = text[:text.rindex(last)].count("\n") + 1
         assert f"{cfg}:{line}: " in first, (line, first)
+
+
+def test_ray_traced_gains_equal_friis_and_the_pattern_in_free_space():
+    """A ray test: in an empty scene only the direct path exists, so the traced gain of
+    every sector is Friis times its pattern along the straight line (an independent
+    computation), for sites traced together in one solve."""
+    from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
+
+    cells = parse_sites([{"name": "A", "position": [0.0, 0.0, 30.0], "azimuths_deg": [0.0, 120.0, 240.0],
+                          "downtilt_deg": 6.0},
+                         {"name": "B", "position": [300.0, 50.0, 20.0], "azimuths_deg": [200.0]}], DEFAULTS)
+    ues = np.array([[120.0, 40.0, 1.5], [-80.0, -60.0, 1.5], [250.0, 300.0, 40.0]])
+    tracer = SiteTracer(TraceSettings(scene="empty", max_depth=0, samples_per_src=1000), cells)
+    traced = tracer.gains_db(ues)
+    assert traced.shape == (3, 4)
+    np.testing.assert_allclose(traced, line_of_sight_gain_db(cells, ues), atol=1e-3)
+    # The UEs move: the same receivers, new positions, the same agreement.
+    np.testing.assert_allclose(tracer.gains_db(ues[:2] + 10.0), line_of_sight_gain_db(cells, ues[:2] + 10.0),
+                               atol=1e-3)

@@ -6,9 +6,10 @@ beamwidths, 8 dBi, 30 dB front-to-back) with an array of ``rows × cols`` elemen
 beamforming gain toward the UE is ``10·log10(rows·cols)``, a transmit power, a carrier
 and a bandwidth. Cells on the same carrier interfere with each other.
 
-Received power, per UE ``u`` and cell ``c``: ``P_rx = P_tx + G_ant(c→u) + G_path(c, u)``
-(dB), where the path gain comes from a channel model (free space here, the ray tracer
-through :mod:`caviar_plugins.network.plugin`). ``RSRP = P_rx − 10·log10(12·N_PRB)``
+Received power, per UE ``u`` and cell ``c``: ``P_rx = P_tx + A(c) + G(c, u)`` (dB), ``A``
+the array gain and ``G`` the channel gain with the sector pattern: free space
+(:func:`line_of_sight_gain_db`) or the ray tracer's paths, each weighted by the pattern at
+its departure direction (:mod:`caviar_plugins.network.raytraced`). ``RSRP = P_rx − 10·log10(12·N_PRB)``
 (power per resource element). SINR of UE ``u`` served by ``s``::
 
     SINR = P_rx(s) / (N + Σ_{c ≠ s, same carrier} load(c) · P_rx(c) / A(c))
@@ -129,19 +130,27 @@ def parse_sites(sites: Sequence[Mapping[str, Any]], defaults: Mapping[str, Any])
     return cells
 
 
-def element_gain_db(cells: Sequence[Cell], ues: np.ndarray) -> np.ndarray:
-    """TR 38.901 sector element gain (dBi) of every cell toward every UE: [n_ue, n_cell]."""
-    pos = np.array([c.position for c in cells])  # [C, 3]
-    d = ues[:, None, :] - pos[None, :, :]  # [U, C, 3]
-    phi = np.degrees(np.arctan2(d[..., 1], d[..., 0]))
-    phi = (phi - np.array([c.azimuth_deg for c in cells])[None, :] + 180.0) % 360.0 - 180.0
-    horizontal = np.hypot(d[..., 0], d[..., 1])
-    # Zenith angle: 90° at the horizon; the panel's boresight is tilted down.
-    theta = np.degrees(np.arctan2(horizontal, d[..., 2]))
-    theta_tilt = 90.0 + np.array([c.downtilt_deg for c in cells])[None, :]
+def pattern_gain_db(cell: Cell, theta_deg: np.ndarray, phi_deg: np.ndarray) -> np.ndarray:
+    """TR 38.901 sector element gain (dBi) of ``cell`` toward directions of departure given
+    as zenith ``theta_deg`` (90° at the horizon) and azimuth ``phi_deg`` (from +x, counter-
+    clockwise), in the scene frame; the panel points at the cell's azimuth, tilted down."""
+    phi = (np.asarray(phi_deg) - cell.azimuth_deg + 180.0) % 360.0 - 180.0
+    theta = np.asarray(theta_deg)
     a_h = -np.minimum(12 * (phi / HALF_POWER_BEAMWIDTH_DEG) ** 2, FRONT_TO_BACK_DB)
-    a_v = -np.minimum(12 * ((theta - theta_tilt) / HALF_POWER_BEAMWIDTH_DEG) ** 2, SIDE_LOBE_DB)
+    a_v = -np.minimum(12 * ((theta - 90.0 - cell.downtilt_deg) / HALF_POWER_BEAMWIDTH_DEG) ** 2, SIDE_LOBE_DB)
     return ELEMENT_GAIN_DBI - np.minimum(-(a_h + a_v), FRONT_TO_BACK_DB)
+
+
+def element_gain_db(cells: Sequence[Cell], ues: np.ndarray) -> np.ndarray:
+    """The sector element gain (dBi) of every cell along the straight line to every UE:
+    [n_ue, n_cell]."""
+    out = np.empty((len(ues), len(cells)))
+    for k, c in enumerate(cells):
+        d = ues - np.asarray(c.position)
+        phi = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
+        theta = np.degrees(np.arctan2(np.hypot(d[:, 0], d[:, 1]), d[:, 2]))
+        out[:, k] = pattern_gain_db(c, theta, phi)
+    return out
 
 
 def free_space_gain_db(cells: Sequence[Cell], ues: np.ndarray) -> np.ndarray:
@@ -152,15 +161,21 @@ def free_space_gain_db(cells: Sequence[Cell], ues: np.ndarray) -> np.ndarray:
     return 20 * np.log10(lam / (4 * np.pi * np.maximum(d, 1e-3)))
 
 
+def line_of_sight_gain_db(cells: Sequence[Cell], ues: np.ndarray) -> np.ndarray:
+    """The free-space channel: Friis and the sector pattern along the straight line."""
+    return free_space_gain_db(cells, ues) + element_gain_db(cells, ues)
+
+
 def noise_dbm(bandwidth_hz: np.ndarray | float, noise_figure_db: float) -> np.ndarray:
     """Thermal noise k·T·B·NF in dBm."""
     return 10 * np.log10(BOLTZMANN * REFERENCE_TEMPERATURE_K * np.asarray(bandwidth_hz) * 1e3) + noise_figure_db
 
 
-def rx_power_dbm(cells: Sequence[Cell], ues: np.ndarray, path_gain_db: np.ndarray) -> np.ndarray:
-    """Received power (dBm) from every cell at every UE: [n_ue, n_cell]."""
+def rx_power_dbm(cells: Sequence[Cell], channel_gain_db: np.ndarray) -> np.ndarray:
+    """Received power (dBm) from every cell at every UE, [n_ue, n_cell], from the channel
+    gains (path gain and sector pattern, [n_ue, n_cell]) and the cells' power and array."""
     tx = np.array([c.tx_power_dbm + c.array_gain_db for c in cells])[None, :]
-    return tx + element_gain_db(cells, ues) + path_gain_db
+    return tx + channel_gain_db
 
 
 def rsrp_dbm(cells: Sequence[Cell], rx_dbm: np.ndarray, num_prb: Sequence[int]) -> np.ndarray:

@@ -11,8 +11,9 @@ tables; or Shannon). Publishes per step:
 - ``network.events``: attach, handover and radio-link-failure events;
 - ``network.cells``: per cell, its UEs and the share of PRB-slots it used.
 
-The channel is free space (Friis, with the 3GPP sector pattern) for now; the path
-gains of the ray tracer come next (issue #23).
+The channel (``channel``): free space (Friis with the 3GPP sector pattern) or ray-traced
+(Sionna RT, every site in one solve, the sector patterns applied per path; refreshed every
+``raytracing.refresh_s`` of virtual time and held in between).
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ from typing import Any
 import numpy as np
 
 import caviar
-from caviar_plugins.network.cells import Cell, free_space_gain_db, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
+from caviar_plugins.network.cells import Cell, line_of_sight_gain_db, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
+from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
 from caviar_plugins.network.sys_layer import LinkLevel, LinkSettings
 from caviar_plugins.schema import (
     ARRIVED,
@@ -50,6 +52,7 @@ NR_PRBS = {
 # NR frequency ranges, where the BLER tables (NR LDPC, NR MCS tables) apply.
 NR_RANGES_HZ = ((410e6, 7.125e9), (24.25e9, 71e9))
 INTERFERENCE = ("full-buffer", "scheduled")
+CHANNELS = ("free-space", "ray-traced")
 
 
 def nr_prbs(bandwidth_hz: float, scs_hz: float) -> int | None:
@@ -78,6 +81,12 @@ class RadioNetwork(caviar.Plugin):
         bler_target: float = 0.1
         mcs_table: int = 1
         handover: dict = dataclasses.field(default_factory=dict)
+        channel: str = "free-space"
+        """``free-space`` (Friis along the straight line) or ``ray-traced`` (Sionna RT, every
+        site in one solve, refreshed every ``raytracing.refresh_s``)."""
+        raytracing: dict = dataclasses.field(default_factory=dict)
+        """``scene`` (default ``empty``), ``max_depth``, ``samples_per_src``, ``diffraction``,
+        ``refresh_s``: see :class:`~caviar_plugins.network.raytraced.TraceSettings`."""
 
         def __post_init__(self):
             self.cells: list[Cell] = parse_sites(self.sites, dataclasses.asdict(self))
@@ -104,6 +113,13 @@ class RadioNetwork(caviar.Plugin):
                 raise ValueError(f"handover.{sorted(unknown)[0]}: unknown key, expected one of "
                                  f"{[f.name for f in dataclasses.fields(HandoverSettings)]}")
             self.handover_settings = HandoverSettings(**{k: float(v) for k, v in self.handover.items()})
+            if self.channel not in CHANNELS:
+                raise ValueError(f"channel: expected one of {list(CHANNELS)}, got {self.channel!r}")
+            known = {f.name for f in dataclasses.fields(TraceSettings)}
+            unknown = set(self.raytracing) - known
+            if unknown:
+                raise ValueError(f"raytracing.{sorted(unknown)[0]}: unknown key, expected one of {sorted(known)}")
+            self.trace_settings = TraceSettings(**self.raytracing)
 
     def setup(self, ctx):
         p = ctx.params
@@ -117,6 +133,25 @@ class RadioNetwork(caviar.Plugin):
         self.ues: dict[str, dict[str, Any]] = {}  # UE_Id -> {type, position, column}
         self.free: list[int] = []
         self.last_sinr: dict[str, float] = {}
+        self.tracer = None
+        if p.channel == "ray-traced":
+            self.tracer = SiteTracer(p.trace_settings, self.cells, seed=ctx.seed, base_dir=ctx.config_dir)
+        self.traced: dict[str, np.ndarray] = {}  # UE_Id -> gains of the last trace
+        self.traced_at = -np.inf
+
+    def _channel_gains(self, t: float, ids: list[str], pos: np.ndarray) -> np.ndarray:
+        """Channel gains (path and sector pattern, dB) of every cell toward the UEs
+        ``ids`` at ``pos``: [n_ue, n_cell]. Ray-traced gains are refreshed every
+        ``raytracing.refresh_s`` (and when a UE appears) and held in between."""
+        if self.tracer is None:
+            return line_of_sight_gain_db(self.cells, pos)
+        due = t - self.traced_at >= self.p.trace_settings.refresh_s - 1e-9
+        if due or any(u not in self.traced for u in ids):
+            gains = self.tracer.gains_db(pos)
+            self.traced = dict(zip(ids, gains, strict=True))
+            if due:
+                self.traced_at = t
+        return np.array([self.traced[u] for u in ids])
 
     def _column(self) -> int:
         return self.free.pop(0) if self.free else len(self.ues)
@@ -138,7 +173,7 @@ class RadioNetwork(caviar.Plugin):
             return
         ids = list(self.ues)
         pos = np.array([self.ues[u]["position"] for u in ids])
-        rx = rx_power_dbm(self.cells, pos, free_space_gain_db(self.cells, pos))
+        rx = rx_power_dbm(self.cells, self._channel_gains(t, ids, pos))
         rsrp = rsrp_dbm(self.cells, rx, [self.p.num_prb] * len(self.cells))
         events = []
         for i, u in enumerate(ids):
