@@ -286,6 +286,8 @@ def test_run_with_view_serves_the_run_while_it_goes(tmp_path):
                    env={**os.environ, "PYTHONPATH": str(ROOT / "tests")})
     try:
         line = p.stderr.readline()
+        while line.startswith("warning: "):  # the wiring warnings come first
+            line = p.stderr.readline()
         assert line.startswith("view: http://127.0.0.1:"), line
         port = int(line.strip().rsplit(":", 1)[1].rstrip("/"))
         seen = []

@@ -88,6 +88,30 @@ DATASET_RECORD = "dataset.record"
 """A record written by a dataset module (artifact)."""
 
 
+def _view_contract():
+    """What the browser view draws of these topics (registered in group ``caviar.view``)."""
+    from caviar.view.contract import ViewContract
+
+    return ViewContract(
+        positions=(POSITIONS,), throughput=(THROUGHPUT,), link=(LINK,),
+        frame_prefixes=(CAMERA + ".", IMAGES + "."),
+        event_prefixes=("mission.",), event_topics=(DETECTIONS, NETWORK_EVENTS),
+        event_requires=((DETECTIONS, "count"),),
+        # The paper's rooftop base station in Central Park: free-space-link's and
+        # sionna-link's default tx_position.
+        default_transmitters=(("free-space-link", (-154.0, 64.0, 120.0)), ("sionna-link", (-154.0, 64.0, 120.0))),
+        default_scene="central_park")
+
+
+def __getattr__(name: str):
+    # ``VIEW``: the paper's topics as the browser view draws them (a
+    # caviar.view.contract.ViewContract), made when the view asks for it, so that a plugin
+    # importing its topic names does not import the view.
+    if name == "VIEW":
+        return _view_contract()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def per_ue(prefix: str, ue_id: str) -> str:
     """The per-UE topic ``PREFIX.UE_Id``."""
     return f"{prefix}.{ue_id}"

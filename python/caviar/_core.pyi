@@ -159,6 +159,21 @@ def main(argv: list[str]) -> int:
     """The ``caviar-core`` command line (``run``, ``validate``, ``inspect``); returns
     the exit code: 0 success, 1 the run failed, 2 bad input, 130 interrupted."""
 
+def table_files(run_dir: str | os.PathLike[str], table: str) -> list[pathlib.Path]:
+    """The Parquet files holding table ``table`` (``"messages"`` or ``"timings"``) of
+    RUN_DIR, in order: ``[RUN_DIR/TABLE.parquet]`` once the run was compacted, else the
+    parts ``RUN_DIR/TABLE/part-NNNNNN.parquet`` of a run in progress or killed (an empty
+    list before its first flush). ValueError when RUN_DIR has neither. The one place
+    that knows the run directory's layout (:class:`caviar.rundir.RunDir` reads through
+    it)."""
+
+def module_totals(run_dir: str | os.PathLike[str]) -> str:
+    """Per-module totals of RUN_DIR's timings as JSON text: a list of objects
+    ``{"module", "steps", "wall_s", "cpu_s", "rss_max_mib", "msgs_in", "msgs_out",
+    "gpu_util_mean_pct", "gpu_mem_max_mib"}`` (GPU fields null where none was measured),
+    in order of first appearance with the core's own row last: what ``caviar-core
+    inspect`` shows. ValueError when RUN_DIR has no timings."""
+
 def run_status(run_dir: str | os.PathLike[str]) -> str:
     """run.json as JSON text, with what a reader concludes about a run left running:
     ``status`` ``abandoned`` when its process is gone (and ``abandoned``, in words),

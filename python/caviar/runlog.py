@@ -1,14 +1,15 @@
-"""Reading a recorded run into polars (or pandas)."""
+"""Reading a recorded run into polars (or pandas), through :class:`caviar.rundir.RunDir`."""
 
 from __future__ import annotations
 
 import json
 import os
-import pathlib
+import typing
 from typing import Literal, Optional, TypedDict
 
-from caviar._core import RawMessage, run_status
+from caviar._core import RawMessage
 from caviar.plugin import Message
+from caviar.rundir import RunDir
 from caviar.topics import matches
 
 
@@ -71,30 +72,6 @@ class RunStatus(_RunStatusFields, total=False):
     """For an abandoned run: how far it got and what it was doing, in words."""
 
 
-def _read_parquet(path: pathlib.Path):
-    import polars as pl
-
-    try:
-        return pl.read_parquet(path)
-    except Exception as e:  # polars raises several kinds for a damaged file
-        raise ValueError(f"{path}: not a readable Parquet file ({e})") from None
-
-
-def _read(run_dir: pathlib.Path, table: str):
-    import polars as pl
-
-    single = run_dir / f"{table}.parquet"
-    if single.exists():
-        return _read_parquet(single)
-    if not (run_dir / table).is_dir():
-        raise FileNotFoundError(f"{run_dir}: not a run directory (no {table}.parquet)")
-    parts = sorted((run_dir / table).glob("*.parquet"))
-    if not parts:  # a run that failed before its first step
-        return pl.DataFrame()
-    # Parts are what a run that crashed or is still going leaves: each is complete.
-    return pl.concat([_read_parquet(p) for p in parts])
-
-
 class RunLog:
     """A recorded run: ``messages`` and ``timings`` as polars DataFrames.
 
@@ -102,17 +79,15 @@ class RunLog:
     """
 
     def __init__(self, path: str | os.PathLike):
-        self.path = pathlib.Path(path)
-        status = self.path / "run.json"
-        if not status.exists():
-            raise FileNotFoundError(f"{self.path}: not a run directory (no run.json)")
-        self.status: RunStatus = json.loads(run_status(self.path))
-        self.messages = _read(self.path, "messages")
-        self.timings = _read(self.path, "timings")
+        self.run = RunDir(path)
+        self.path = self.run.path
+        self.status: RunStatus = typing.cast(RunStatus, self.run.status())
+        self.messages = self.run.read("messages")
+        self.timings = self.run.read("timings")
 
     @property
     def config_text(self) -> str:
-        return (self.path / "config.toml").read_text()
+        return self.run.config_text()
 
     def _select(self, pattern: str):
         import polars as pl
@@ -149,31 +124,26 @@ class RunLog:
         return out
 
     def module_times(self):
-        """Per module: steps run, total and mean wall time, CPU time, the largest resident
-        memory of its process after its stage (MiB), mean GPU utilisation (%) and largest
-        GPU memory (MiB; null without an NVIDIA GPU), share of the run."""
+        """Per module (the core's own row last): steps run, total and mean wall time, CPU
+        time, the largest resident memory of its process after its stage (MiB), mean GPU
+        utilisation (%) and largest GPU memory (MiB; null without an NVIDIA GPU), share of
+        the run. The totals are the core's (``caviar-core inspect`` shows the same)."""
         import polars as pl
 
-        timings = self.timings
-        for c in ("gpu_util_pct", "gpu_mem_mib"):  # runs recorded before GPU accounting
-            if c not in timings.columns:
-                timings = timings.with_columns(pl.lit(None, dtype=pl.Float64).alias(c))
-        t = timings.group_by("module", maintain_order=True).agg(
-            pl.len().alias("steps"), pl.col("wall_s").sum(), pl.col("wall_s").mean().alias("mean_wall_s"),
-            pl.col("cpu_s").sum(), pl.col("rss_mib").max().alias("max_rss_mib"),
-            pl.col("gpu_util_pct").mean().alias("mean_gpu_util_pct"),
-            pl.col("gpu_mem_mib").max().alias("max_gpu_mem_mib"))
-        return t.with_columns((pl.col("wall_s") / pl.col("wall_s").sum()).alias("share"))
+        rows = self.run.module_totals()
+        schema = {"module": pl.String, "steps": pl.UInt32, "wall_s": pl.Float64, "cpu_s": pl.Float64,
+                  "rss_max_mib": pl.Float64, "gpu_util_mean_pct": pl.Float64, "gpu_mem_max_mib": pl.Float64}
+        t = pl.DataFrame([{k: r.get(k) for k in schema} for r in rows], schema=schema)
+        t = t.rename({"rss_max_mib": "max_rss_mib", "gpu_util_mean_pct": "mean_gpu_util_pct",
+                      "gpu_mem_max_mib": "max_gpu_mem_mib"})
+        return t.with_columns((pl.col("wall_s") / pl.col("steps")).alias("mean_wall_s"),
+                              (pl.col("wall_s") / pl.col("wall_s").sum()).alias("share")).select(
+            "module", "steps", "wall_s", "mean_wall_s", "cpu_s", "max_rss_mib", "mean_gpu_util_pct",
+            "max_gpu_mem_mib", "share")
 
     def to_pandas(self, table: str = "messages"):
         """``messages`` or ``timings`` as a pandas DataFrame (needs pandas and pyarrow)."""
-        import pandas as pd
-
-        single = self.path / f"{table}.parquet"
-        if single.exists():
-            return pd.read_parquet(single)
-        parts = sorted((self.path / table).glob("*.parquet"))
-        return pd.concat([pd.read_parquet(p) for p in parts], ignore_index=True)
+        return self.run.read(table).to_pandas()
 
     def __repr__(self) -> str:
         return (f"RunLog({str(self.path)!r}, status={self.status.get('status')!r}, "

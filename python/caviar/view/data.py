@@ -1,10 +1,14 @@
 """What the view shows, read from a run directory and kept up to date while it grows.
 
-A run that is still going leaves one Parquet part per recorded step under
-``messages/`` and ``timings/``; a finished run has them merged into
-``messages.parquet`` and ``timings.parquet``. :class:`RunData` reads whichever is
-there, remembers which steps it has, and :meth:`RunData.refresh` reads only parts
-it has not seen (a directory listing is the whole cost of a poll with nothing new).
+A run that is still going leaves one Parquet part per recorded step, a finished run
+one compacted file per table; :class:`caviar.rundir.RunDir` says which files hold a
+table (the core knows the layout). :class:`RunData` remembers which it has read, and
+:meth:`RunData.refresh` reads only files it has not seen (a directory listing is the
+whole cost of a poll with nothing new).
+
+Which topics are positions, link data, frames and events comes from the plugins'
+:class:`~caviar.view.contract.ViewContract` (entry-point group ``caviar.view``): this
+module names no domain topic.
 """
 
 from __future__ import annotations
@@ -20,12 +24,9 @@ from typing import Any
 
 import tomllib
 
-POSITIONS = "3D.mobility.positions"
-THROUGHPUT = "communications.throughput"
-LINK = "communications.link"
-FRAME_PREFIXES = ("3D.camera.", "ai.images.")
-EVENT_PREFIXES = ("mission.",)
-EVENT_TOPICS = ("ai.detections", "caviar.episode.end")
+from caviar.rundir import RunDir, read_parquet
+from caviar.view.contract import ViewContract, registered
+
 VIEW_PREFIX = "view."
 
 MSG_COLUMNS = ["step", "time", "source", "topic", "kind", "text", "meta"]
@@ -71,8 +72,10 @@ class RunData:
     min_poll_s = 0.1
     """Polls closer together than this share one directory listing."""
 
-    def __init__(self, run_dir: str | os.PathLike, pending: bool = False):
+    def __init__(self, run_dir: str | os.PathLike, pending: bool = False, contract: ViewContract | None = None):
         self.path = pathlib.Path(run_dir).absolute()
+        self.run = RunDir(self.path)
+        self.contract = registered() if contract is None else contract
         self.pending = pending
         self._lock = threading.RLock()
         self.status: dict = {}
@@ -106,10 +109,12 @@ class RunData:
             raise RunDirError(f"{p}: no such directory")
         if not p.is_dir():
             raise RunDirError(f"{p}: not a directory")
-        if not (p / "run.json").is_file():
+        if not self.run.exists():
             raise RunDirError(f"{p}: not a run directory (no run.json)")
-        if not ((p / "messages.parquet").is_file() or (p / "messages").is_dir()):
-            raise RunDirError(f"{p}: not a run directory (neither messages.parquet nor messages/)")
+        try:
+            self.run.table_files("messages")
+        except FileNotFoundError as e:
+            raise RunDirError(str(e)) from None
 
     def _read_status(self, strict: bool):
         f = self.path / "run.json"
@@ -154,39 +159,37 @@ class RunData:
             return self.version != before
 
     def _read_table(self, table: str, strict: bool):
-        import polars as pl
-
-        merged = self.path / f"{table}.parquet"
-        if merged.is_file():
+        try:
+            files = self.run.table_files(table)
+        except FileNotFoundError:
+            return  # nothing recorded yet
+        columns = MSG_COLUMNS if table == "messages" else None
+        if len(files) == 1 and files[0].name == f"{table}.parquet":
             if self._merged[table]:
                 return
             try:
-                df = pl.read_parquet(merged, columns=MSG_COLUMNS if table == "messages" else None)
-            except Exception as e:  # noqa: BLE001 - polars raises several kinds
+                df = read_parquet(files[0], columns)
+            except ValueError as e:
                 if strict:
-                    raise RunDirError(f"{merged}: unreadable Parquet ({str(e).splitlines()[0]})") from None
+                    raise RunDirError(str(e)) from None
                 return  # the recorder may still be writing it
             self._merged[table] = True
-            self._ingest(table, df, merged.name)
+            self._ingest(table, df, files[0].name)
             return
-        d = self.path / table
-        try:
-            names = [e.name for e in os.scandir(d) if e.name.endswith(".parquet")]
-        except OSError:
-            return
-        new = sorted(n for n in names if n not in self._parts[table])
-        for name in new:
+        for f in files:
+            if f.name in self._parts[table]:
+                continue
             try:
-                df = pl.read_parquet(d / name, columns=MSG_COLUMNS if table == "messages" else None)
-            except Exception as e:  # noqa: BLE001
-                tries = self._bad_parts[name] = self._bad_parts.get(name, 0) + 1
+                df = read_parquet(f, columns)
+            except ValueError as e:
+                tries = self._bad_parts[f.name] = self._bad_parts.get(f.name, 0) + 1
                 if strict and not self.running:
-                    raise RunDirError(f"{d / name}: unreadable Parquet ({str(e).splitlines()[0]})") from None
+                    raise RunDirError(str(e)) from None
                 if tries < 20:
                     return  # perhaps still being written: parts are read in order, retry later
                 continue
-            self._parts[table].add(name)
-            self._ingest(table, df, f"{table}/{name}")
+            self._parts[table].add(f.name)
+            self._ingest(table, df, f"{table}/{f.name}")
 
     def _ingest(self, table: str, df, where: str):
         import polars as pl
@@ -214,15 +217,17 @@ class RunData:
     def _ingest_messages(self, df, where: str):
         import polars as pl
 
+        c = self.contract
         self.topics.update(df["topic"].unique().to_list())
         frames = df.filter(pl.col("kind") == "binary")
         for step, topic in frames.select("step", "topic").iter_rows():
-            if topic.startswith(FRAME_PREFIXES):
+            if c.is_frame(topic):
                 self.frames.setdefault(topic, {})[int(step)] = where
         js = df.filter(pl.col("kind") == "json")
-        interesting = (pl.col("topic") == POSITIONS) | pl.col("topic").str.starts_with("communications.") \
-            | pl.col("topic").str.starts_with("mission.") | pl.col("topic").is_in(list(EVENT_TOPICS)) \
+        interesting = pl.col("topic").is_in(list(c.positions + c.throughput + c.link + c.event_topics)) \
             | pl.col("topic").str.starts_with(VIEW_PREFIX)
+        for prefix in c.event_prefixes:
+            interesting = interesting | pl.col("topic").str.starts_with(prefix)
         for step, t, source, topic, text in js.filter(interesting).select(
                 "step", "time", "source", "topic", "text").iter_rows():
             try:
@@ -233,17 +238,19 @@ class RunData:
 
     def _message(self, step: int, t: float, source: str, topic: str, payload: Any) -> None:
         """One decoded JSON message the view shows."""
-        if topic == POSITIONS:
+        c = self.contract
+        if topic in c.positions:
             for d in payload if isinstance(payload, list) else [payload]:
                 self._position(step, d)
-        elif topic in (THROUGHPUT, LINK):
-            self._radio(step, topic, payload)
+        elif topic in c.throughput or topic in c.link:
+            self._radio(step, topic in c.throughput, payload)
         elif topic.startswith(VIEW_PREFIX):
             if isinstance(payload, dict):
                 self.view.append({"step": step, "source": source, "topic": topic, "data": payload})
-        elif topic.startswith(EVENT_PREFIXES) or topic in EVENT_TOPICS:
-            if topic == "ai.detections" and isinstance(payload, dict) and not payload.get("count"):
-                return  # detections with nothing found are not events
+        elif c.is_event(topic):
+            for required_topic, field in c.event_requires:
+                if topic == required_topic and isinstance(payload, dict) and not payload.get(field):
+                    return  # e.g. detections with nothing found are not events
             ev = {"step": step, "time": t, "topic": topic, "source": source, "text": _summary(payload)}
             if isinstance(payload, dict) and _num(payload.get("x")) is not None and _num(payload.get("y")) is not None:
                 ev["x"], ev["y"] = _num(payload["x"]), _num(payload["y"])
@@ -267,11 +274,11 @@ class RunData:
         else:
             pts.append(row)
 
-    def _radio(self, step: int, topic: str, d):
+    def _radio(self, step: int, is_throughput: bool, d):
         if not isinstance(d, dict) or d.get("UE_Id") is None:
             return
         rec = self.radio.setdefault(str(d["UE_Id"]), {}).setdefault(step, [None, None, None, None])
-        if topic == THROUGHPUT:
+        if is_throughput:
             rec[0] = _r(_num(d.get("throughput")), 4)
         else:
             rec[1] = _r(_num(d.get("snr_db")), 3)
@@ -342,8 +349,8 @@ class RunData:
             s = max(cands)
             where = steps[s]
         f = self.path / where
-        if not f.is_file():  # the run finished meanwhile: its parts are merged
-            f = self.path / "messages.parquet"
+        if not f.is_file():  # the run finished meanwhile: its parts are compacted
+            f = self.run.table_files("messages")[0]
         df = pl.scan_parquet(f).filter((pl.col("step") == s) & (pl.col("topic") == topic)).select(
             "data", "meta").collect()
         if df.is_empty():

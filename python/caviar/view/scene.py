@@ -9,11 +9,7 @@ import math
 import pathlib
 import xml.etree.ElementTree as ET
 
-DEFAULT_SCENE = "central_park"
-DEFAULT_TX = [-154.0, 64.0, 120.0]
-"""The rooftop base station of the paper's Central Park scene, the default of the
-``free-space-link`` and ``sionna-link`` plugins."""
-RADIO_PLUGINS = ("free-space-link", "sionna-link")
+from caviar.view.contract import CORE, ViewContract
 
 
 def _modules(config: dict) -> list[tuple[str, dict]]:
@@ -36,10 +32,11 @@ def _shipped_scene_dirs() -> list[pathlib.Path]:
     return out
 
 
-def find_scene(config: dict, config_dir: pathlib.Path | None,
-               run_dir: pathlib.Path) -> tuple[str, pathlib.Path | None, str]:
-    """(name, XML path or None, where the name came from)."""
-    name, origin = DEFAULT_SCENE, "default (no module sets a 'scene' parameter)"
+def find_scene(config: dict, config_dir: pathlib.Path | None, run_dir: pathlib.Path,
+               contract: ViewContract = CORE) -> tuple[str, pathlib.Path | None, str]:
+    """(name, XML path or None, where the name came from): a module's ``scene``
+    parameter, else the plugins' default scene (their view contract)."""
+    name, origin = contract.default_scene, "default (no module sets a 'scene' parameter)"
     for mod, spec in _modules(config):
         params = spec.get("params")
         if isinstance(params, dict) and isinstance(params.get("scene"), str):
@@ -120,9 +117,9 @@ def scene_meshes(xml: pathlib.Path) -> list[dict]:
     return out
 
 
-def transmitter(config: dict) -> dict | None:
-    """The Tx position a module's parameters give (``tx_position``), else the radio
-    plugins' default, else None."""
+def transmitter(config: dict, contract: ViewContract = CORE) -> dict | None:
+    """The Tx position a module's parameters give (``tx_position``), else the default of
+    its plugin (the plugins' view contract), else None."""
     for mod, spec in _modules(config):
         params = spec.get("params")
         tx = params.get("tx_position") if isinstance(params, dict) else None
@@ -131,7 +128,9 @@ def transmitter(config: dict) -> dict | None:
                 return {"position": [float(v) for v in tx], "origin": f"modules.{mod}.params.tx_position"}
             except (TypeError, ValueError):
                 pass
+    defaults = dict(contract.default_transmitters)
     for mod, spec in _modules(config):
-        if spec.get("plugin") in RADIO_PLUGINS:
-            return {"position": list(DEFAULT_TX), "origin": f"default of plugin {spec['plugin']} (modules.{mod})"}
+        if spec.get("plugin") in defaults:
+            return {"position": list(defaults[spec["plugin"]]),
+                    "origin": f"default of plugin {spec['plugin']} (modules.{mod})"}
     return None

@@ -56,7 +56,7 @@ class ViewState:
                 cfg = self.data.config
                 cf = self.data.status.get("config_file")
                 config_dir = pathlib.Path(cf).parent if isinstance(cf, str) and cf else None
-                name, xml, origin = find_scene(cfg, config_dir, self.data.path)
+                name, xml, origin = find_scene(cfg, config_dir, self.data.path, self.data.contract)
                 meshes: list[dict[str, Any]] = []
                 if xml is not None:
                     try:
@@ -64,7 +64,8 @@ class ViewState:
                     except Exception as e:  # noqa: BLE001 - a bad scene must not stop the view
                         origin += f"; unreadable scene XML: {e}"
                 sc = self._scene = {"name": name, "xml": str(xml) if xml else None, "origin": origin,
-                                    "meshes": meshes, "tx": transmitter(cfg), "had_config": bool(cfg)}
+                                    "meshes": meshes, "tx": transmitter(cfg, self.data.contract),
+                                    "had_config": bool(cfg)}
             return sc
 
     def run_info(self) -> dict[str, Any]:

@@ -1,0 +1,78 @@
+"""A run directory, read: the one reader behind :func:`caviar.load_run`, ``caviar-core
+report`` and the browser view.
+
+Where things are is the core's knowledge, not this module's: the files holding a table
+come from :func:`caviar._core.table_files` (the compacted ``messages.parquet``, or the
+parts of a run in progress or killed), the status from :func:`caviar._core.run_status`
+(with what a reader concludes about a run left running) and the per-module totals from
+:func:`caviar._core.module_totals` (what ``caviar-core inspect`` prints).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+from typing import Any, Sequence
+
+from caviar import _core
+
+TABLES = ("messages", "timings")
+
+
+class RunDir:
+    """A run directory: its status, configuration and recorded tables."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = pathlib.Path(path)
+
+    def exists(self) -> bool:
+        """Whether it has a run.json (a run was started in it)."""
+        return (self.path / "run.json").is_file()
+
+    def status(self) -> dict[str, Any]:
+        """run.json, as :class:`caviar.RunStatus` describes it."""
+        if not self.exists():
+            raise FileNotFoundError(f"{self.path}: not a run directory (no run.json)")
+        return json.loads(_core.run_status(self.path))
+
+    def config_text(self) -> str:
+        return (self.path / "config.toml").read_text()
+
+    def table_files(self, table: str) -> list[pathlib.Path]:
+        """The Parquet files of ``table`` in order; FileNotFoundError when the run has
+        no such table (yet)."""
+        try:
+            return [pathlib.Path(p) for p in _core.table_files(self.path, table)]
+        except ValueError as e:
+            raise FileNotFoundError(str(e)) from None
+
+    def is_compacted(self, table: str) -> bool:
+        files = self.table_files(table)
+        return len(files) == 1 and files[0].name == f"{table}.parquet"
+
+    def read(self, table: str, columns: Sequence[str] | None = None,
+             files: Sequence[pathlib.Path] | None = None):
+        """``table`` (or only ``files`` of it) as one polars DataFrame; an empty one for a
+        run that failed before its first step."""
+        import polars as pl
+
+        frames = [read_parquet(f, columns) for f in (self.table_files(table) if files is None else files)]
+        return pl.concat(frames) if frames else pl.DataFrame()
+
+    def module_totals(self) -> list[dict[str, Any]]:
+        """Per module, its timings added up (the core's row last)."""
+        try:
+            return json.loads(_core.module_totals(self.path))
+        except ValueError as e:
+            raise FileNotFoundError(str(e)) from None
+
+
+def read_parquet(path: pathlib.Path, columns: Sequence[str] | None = None):
+    """One Parquet file; ValueError naming it when it cannot be read."""
+    import polars as pl
+
+    try:
+        return pl.read_parquet(path, columns=list(columns) if columns is not None else None)
+    except Exception as e:  # polars raises several kinds for a damaged file
+        raise ValueError(f"{path}: not a readable Parquet file ({str(e).splitlines()[0]})") from None

@@ -1,0 +1,116 @@
+"""One run reader (issue #22): the core knows the run directory's layout and the
+per-module totals; load_run, report and the view read through caviar.rundir; the
+generic view names no domain topic and learns them from the plugins' contract."""
+
+from __future__ import annotations
+
+import ast
+import pathlib
+import re
+
+import polars as pl
+import pytest
+
+import caviar
+from caviar import _core
+from caviar.rundir import RunDir
+from caviar.view.contract import CORE, ViewContract, registered
+from caviar.view.data import RunData
+from conftest import ROOT
+
+QUICKSTART = ROOT / "blueprints" / "quickstart" / "config.toml"
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """The quickstart, read half-way (parts) and at the end (compacted)."""
+    tmp = tmp_path_factory.mktemp("rundir")
+    sim = caviar.Simulation.from_toml(QUICKSTART, {"episode.steps": 12}, out=tmp / "run")
+    for _ in range(6):
+        sim.step()
+    live = {t: RunDir(tmp / "run").read(t) for t in ("messages", "timings")}
+    files = RunDir(tmp / "run").table_files("messages")
+    sim.run()
+    return tmp / "run", live, files
+
+
+def test_parts_of_a_live_run_and_the_compacted_file_read_the_same(runs):
+    run, live, files = runs
+    assert [f.name for f in files] == [f"part-{k:06d}.parquet" for k in range(6)]
+    assert all(f.parent == run / "messages" for f in files)
+    d = RunDir(run)
+    assert d.is_compacted("messages") and d.table_files("timings") == [run / "timings.parquet"]
+    full = d.read("messages")
+    assert full.filter(pl.col("step") < 6).equals(live["messages"])
+    assert live["messages"]["step"].max() == 5 and full["step"].max() == 11
+    assert d.read("timings").filter(pl.col("step") < 6).equals(live["timings"])
+    # The view's reader sees the same messages.
+    view = RunData(run)
+    assert view.last_step == 11 and view.topics == set(full["topic"].unique())
+
+
+def test_module_times_are_the_totals_inspect_prints(runs):
+    run, _, _ = runs
+    log = caviar.load_run(run)
+    times = log.module_times()
+    # Recomputed here from the timings table, independently of the core.
+    t = log.timings
+    expected = t.group_by("module", maintain_order=True).agg(
+        pl.len().alias("steps"), pl.col("wall_s").sum(), pl.col("cpu_s").sum(), pl.col("rss_mib").max())
+    assert times["module"].to_list()[-1] == "caviar.core"  # the core's own row, last
+    assert sorted(times["module"].to_list()) == sorted(expected["module"].to_list())
+    for row in expected.iter_rows(named=True):
+        got = times.filter(pl.col("module") == row["module"]).row(0, named=True)
+        assert got["steps"] == row["steps"]
+        assert got["wall_s"] == pytest.approx(row["wall_s"], rel=1e-12)
+        assert got["cpu_s"] == pytest.approx(row["cpu_s"], rel=1e-12)
+        assert got["max_rss_mib"] == pytest.approx(row["rss_mib"])
+        assert got["mean_wall_s"] == pytest.approx(row["wall_s"] / row["steps"])
+    assert times["share"].sum() == pytest.approx(1.0)
+    # inspect prints the same step counts.
+    text = _core.inspect(run)
+    for row in expected.iter_rows(named=True):
+        assert re.search(rf"^{re.escape(row['module'])}\s+{row['steps']}\s", text, re.M), text
+
+
+def test_a_directory_without_a_run_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not a run directory"):
+        RunDir(tmp_path).table_files("messages")
+    with pytest.raises(FileNotFoundError, match="no run.json"):
+        caviar.load_run(tmp_path)
+
+
+def test_the_view_without_a_contract_draws_no_domain_topic(runs):
+    run, _, _ = runs
+    bare = RunData(run, contract=CORE)
+    assert bare.entities == {} and bare.radio == {} and bare.frames == {}
+    assert [e["topic"] for e in bare.events] == []  # the quickstart's steps end the episode, no module does
+    full = RunData(run)
+    assert set(full.entities) == {"uav1"} and set(full.radio) == {"uav1"}
+
+
+def test_the_plugins_contract_is_discovered_and_merged():
+    c = registered()
+    assert "3D.mobility.positions" in c.positions and "communications.throughput" in c.throughput
+    assert "caviar.episode.end" in c.event_topics and ("ai.detections", "count") in c.event_requires
+    assert c.default_scene == "central_park"
+    other = ViewContract(positions=("x.pos",), default_scene="elsewhere")
+    merged = c.merged(other)
+    assert merged.positions[-1] == "x.pos" and merged.default_scene == "central_park"
+    assert c.merged(c) == c
+
+
+def test_the_core_package_names_no_domain_topic():
+    """No string in python/caviar's code (docstrings aside) is a topic of the plugins."""
+    domain = re.compile(r"^(3D\.|communications\.|mission\.|ai\.|network\.)")
+    found = []
+    for f in sorted((ROOT / "python" / "caviar").rglob("*.py")):
+        tree = ast.parse(f.read_text())
+        docs = {id(n.body[0].value) for n in ast.walk(tree)
+                if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                and n.body and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+        found += [f"{f.relative_to(ROOT)}:{n.lineno}: {n.value!r}" for n in ast.walk(tree)
+                  if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in docs
+                  and domain.match(n.value)]
+    assert not found, found
+    assert pathlib.Path(caviar.__file__).parent == ROOT / "python" / "caviar"
