@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-BOLTZMANN = 1.380649e-23  # J/K
+from caviar_plugins.radio.link_budget import BOLTZMANN
 
 PROTOCOLS = ("physical", "paper")
 

@@ -29,9 +29,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-BOLTZMANN = 1.380649e-23  # J/K
+from caviar_plugins.radio.link_budget import BOLTZMANN, SPEED_OF_LIGHT
+
 REFERENCE_TEMPERATURE_K = 290.0
-SPEED_OF_LIGHT = 299_792_458.0  # m/s
 # TR 38.901 Table 7.3-1: the sector element pattern.
 ELEMENT_GAIN_DBI = 8.0
 HALF_POWER_BEAMWIDTH_DEG = 65.0

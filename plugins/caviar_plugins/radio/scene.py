@@ -21,7 +21,7 @@ import numpy as np
 
 from caviar_plugins.assets import SCENES
 from caviar_plugins.radio.beams import beam_gains, dft_codebook, flat_dft_codebook
-from caviar_plugins.radio.link_budget import SPEED_OF_LIGHT
+from caviar_plugins.radio.link_report import line_of_sight_paths
 from caviar_plugins.radio.shoot_cache import ShootCache
 
 CODEBOOKS = ("kronecker", "flat-dft")
@@ -322,11 +322,9 @@ class RadioScene:
         cfr = paths.cfr(frequencies=np.array([c.frequency_hz]), normalize_delays=False, out_type="numpy")
         valid = np.array(paths.valid).reshape(len(self.receivers), -1)  # [rx, paths] (one tx)
         tau = np.array(paths.tau).reshape(len(self.receivers), -1)
-        # The line-of-sight path is the one as long as the straight line (1 cm tolerance;
-        # cheaper than asking the solver for the interaction types of every path).
         rx_pos = np.array([p for _, p in self._placed]) + np.asarray(c.antenna_offset, dtype=float)
         direct = np.linalg.norm(rx_pos - np.asarray(c.tx_position, dtype=float), axis=1)
-        los = np.any(valid & (np.abs(tau * SPEED_OF_LIGHT - direct[:, None]) < 0.01), axis=1)
+        los = np.any(line_of_sight_paths(tau, valid, direct[:, None]), axis=1)
         out = {}
         for i, key in enumerate(self.receivers):
             h = cfr[i, :, 0, :, 0, 0]

@@ -22,6 +22,7 @@ import numpy as np
 import caviar
 from caviar_plugins import protocol as paper
 from caviar_plugins.radio.link_budget import LinkBudget
+from caviar_plugins.radio.link_report import link_messages
 from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene
 from caviar_plugins.schema import (
     BEAM_GAINS,
@@ -33,9 +34,7 @@ from caviar_plugins.schema import (
     STATE,
     THROUGHPUT,
     every_ue,
-    per_ue,
     read_position,
-    throughput_payload,
 )
 
 
@@ -126,23 +125,8 @@ class SionnaLink(caviar.Plugin):
             links = self.radio.solve()
         n_pairs = self.radio.w_rx.shape[1] * self.radio.n_tx_beams
         for ue, link in links.items():
-            pair = self.selected.get(ue, link.best_pair)
-            if not 0 <= pair < n_pairs:
-                raise ValueError(f"beam pair {pair} for {ue} is outside 0..{n_pairs - 1}")
-            gain = float(link.gains.flat[pair])
-            ue_type = self.ue_type[ue]
-            yield THROUGHPUT, throughput_payload(ue_type, ue, self._mbps(gain))
-            yield LINK, {
-                "UE_type": ue_type, "UE_Id": ue, "los": link.los, "n_paths": link.n_paths,
-                "best_pair": link.best_pair, "pair": pair, "selected": ue in self.selected,
-                "path_gain_db": _db(link.path_gain), "snr_db": _db(self._snr(gain)),
-                "best_throughput": self._mbps(float(link.gains.max())),
-                # Only when it happened: Sionna's path buffer dropped candidates (sionna#1172).
-                **({"paths_dropped": link.paths_dropped} if link.paths_dropped else {}),
-            }
-            if self.p.publish_channels:
-                yield per_ue(CHANNEL, ue), link.h.astype(np.complex64)
-                yield per_ue(BEAM_GAINS, ue), link.gains.astype(np.float32)
+            yield from link_messages(self.ue_type[ue], ue, link, self.selected.get(ue), n_pairs, self._mbps,
+                                     self._snr, self.p.publish_channels)
         yield STATE, "Ready"
 
 
@@ -155,7 +139,3 @@ class SionnaLink(caviar.Plugin):
         if self.p.protocol == "paper":
             return float(paper.paper_rate_mbps(gain))
         return float(self.budget.throughput_mbps(gain))
-
-
-def _db(x: float) -> float:
-    return float(10 * np.log10(x)) if x > 0 else -400.0

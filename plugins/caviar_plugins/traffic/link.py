@@ -33,9 +33,10 @@ import numpy as np
 
 import caviar
 from caviar_plugins.radio.link_budget import LinkBudget
+from caviar_plugins.radio.link_report import line_of_sight_paths, link_messages
 from caviar_plugins.radio.scatterers import Body, ScattererPool
 from caviar_plugins.radio.scene import RadioScene
-from caviar_plugins.radio.sionna_link import SionnaLinkParams, _db
+from caviar_plugins.radio.sionna_link import SionnaLinkParams
 from caviar_plugins.schema import (
     BEAM_GAINS,
     BEAM_SELECTION,
@@ -45,9 +46,7 @@ from caviar_plugins.schema import (
     STATE,
     THROUGHPUT,
     every_ue,
-    per_ue,
     read_position,
-    throughput_payload,
 )
 
 PARKED_RX_Z = -500.0
@@ -215,32 +214,21 @@ class SionnaTrafficLink(caviar.Plugin):
             rx.velocity = self.rx_vel[slot].tolist()
         self.radio._solved = None  # the scatterers moved: never reuse the last solve
         links = self.radio.solve()
-        extra = self._paths_info()
+        extra_info = self._paths_info()
         blockers = self._blockers()
         n_pairs = self.radio.w_rx.shape[1] * self.radio.n_tx_beams
+
+        def mbps(gain: float) -> float:
+            return float(self.budget.throughput_mbps(gain))
+
+        def snr(gain: float) -> float:
+            return float(self.budget.sinr(gain))
+
         for ue in sorted(served):
             slot = served[ue][0]
-            link = links[slot]
-            pair = self.selected.get(ue, link.best_pair)
-            if not 0 <= pair < n_pairs:
-                raise ValueError(f"beam pair {pair} for {ue} is outside 0..{n_pairs - 1}")
-            gain = float(link.gains.flat[pair])
-            ue_type = self.ue_type[ue]
-            yield THROUGHPUT, throughput_payload(ue_type, ue, self.budget.throughput_mbps(gain))
-            info = extra[slot]
-            payload = {
-                "UE_type": ue_type, "UE_Id": ue, "los": link.los, "n_paths": link.n_paths,
-                "best_pair": link.best_pair, "pair": pair, "selected": ue in self.selected,
-                "path_gain_db": _db(link.path_gain), "snr_db": _db(float(self.budget.sinr(gain))),
-                "best_throughput": float(self.budget.throughput_mbps(link.gains.max())),
-                "speed": float(np.linalg.norm(self.rx_vel[slot])), "blocker": blockers[slot], **info,
-            }
-            if getattr(link, "paths_dropped", 0):  # Sionna's path buffer overflowed (as sionna-link)
-                payload["paths_dropped"] = link.paths_dropped
-            yield LINK, payload
-            if self.p.publish_channels:
-                yield per_ue(CHANNEL, ue), link.h.astype(np.complex64)
-                yield per_ue(BEAM_GAINS, ue), link.gains.astype(np.float32)
+            extra = {"speed": float(np.linalg.norm(self.rx_vel[slot])), "blocker": blockers[slot], **extra_info[slot]}
+            yield from link_messages(self.ue_type[ue], ue, links[slot], self.selected.get(ue), n_pairs, mbps, snr,
+                                     self.p.publish_channels, extra)
         yield STATE, "Ready"
 
     def _place_bodies(self, bodies):
@@ -280,7 +268,7 @@ class SionnaTrafficLink(caviar.Plugin):
             direct = float(np.linalg.norm(self.rx_pos[key] - tx))
             pw = np.where(valid[i], power[i], -1.0)
             best = int(np.argmax(pw)) if valid[i].any() else None
-            los = np.flatnonzero(valid[i] & (np.abs(tau[i] * 299_792_458.0 - direct) < 0.01))
+            los = np.flatnonzero(line_of_sight_paths(tau[i], valid[i], direct))
             out[key] = {"doppler_hz": float(doppler[i, best]) if best is not None else None,
                         "doppler_los_hz": float(doppler[i, los[0]]) if len(los) else None}
         return out
