@@ -109,6 +109,14 @@ def test_a_link_below_q_out_for_t310_fails_and_reattaches():
     assert events[0]["time"] == pytest.approx(1.01) and events[0]["to_cell"] == "A/0"
 
 
+def test_a_ue_below_the_selection_threshold_is_out_of_coverage():
+    mm = MobilityManager(HandoverSettings(min_rsrp_dbm=-130.0, l3_filter_k=0.0), ["A/0", "B/0"])
+    assert mm.update(0.0, "far", [-140.0, -135.0]) == [] and mm.serving("far") == -1
+    assert [e["event"] for e in mm.update(0.1, "far", [-120.0, -135.0])] == ["attach"]
+    lost = mm.update(0.2, "far", [-131.0, -135.0])
+    assert [(e["event"], e["from_cell"]) for e in lost] == [("coverage_lost", "A/0")] and mm.serving("far") == -1
+
+
 @pytest.fixture(scope="module")
 def link():
     return LinkLevel(LinkSettings(num_prb=51), n_cell=1, seed=7)

@@ -32,6 +32,9 @@ class HandoverSettings:
     q_out_db: float = -8.0
     t310_s: float = 1.0
     l3_filter_k: float = 4.0
+    min_rsrp_dbm: float = -130.0
+    """Cell selection (TS 38.304 S-criterion, Qrxlevmin): a UE whose best RSRP is below it
+    is out of coverage, attached to no cell."""
 
     def __post_init__(self):
         for key in ("hysteresis_db", "time_to_trigger_s", "t310_s", "l3_filter_k"):
@@ -58,7 +61,9 @@ class MobilityManager:
         self.ues: dict[str, _UeState] = {}
 
     def serving(self, ue: str) -> int:
-        return self.ues[ue].serving
+        """The cell index serving ``ue``; -1 when it is out of coverage."""
+        st = self.ues.get(ue)
+        return st.serving if st is not None else -1
 
     def forget(self, ue: str) -> None:
         self.ues.pop(ue, None)
@@ -66,13 +71,21 @@ class MobilityManager:
     def update(self, t: float, ue: str, rsrp_dbm: list[float], sinr_db: float | None = None) -> list[dict[str, Any]]:
         """One measurement of UE ``ue`` at time ``t``: RSRP of every cell (dBm), and
         the SINR on its serving cell when known. Returns the events it caused
-        (``attach``, ``handover``, ``rlf``), each ``{"event", "UE_Id", "time", …}``."""
+        (``attach``, ``handover``, ``rlf``, ``coverage_lost``), each ``{"event", "UE_Id",
+        "time", …}``."""
         s = self.settings
         st = self.ues.get(ue)
         if st is not None and st.filtered is not None:
             a = 0.5 ** (s.l3_filter_k / 4)
             rsrp_dbm = [(1 - a) * f + a * m for f, m in zip(st.filtered, rsrp_dbm, strict=True)]
         best = max(range(len(rsrp_dbm)), key=lambda c: rsrp_dbm[c])
+        if rsrp_dbm[best] < s.min_rsrp_dbm:
+            if st is None:
+                return []
+            del self.ues[ue]
+            ev = self._event("coverage_lost", ue, t, st.serving, best, rsrp_dbm)
+            del ev["to_cell"], ev["rsrp_to_dbm"]
+            return [ev]
         if st is None:
             self.ues[ue] = _UeState(serving=best, filtered=list(rsrp_dbm))
             return [self._event("attach", ue, t, None, best, rsrp_dbm)]

@@ -81,6 +81,8 @@ class RadioNetwork(caviar.Plugin):
         bler_target: float = 0.1
         mcs_table: int = 1
         handover: dict = dataclasses.field(default_factory=dict)
+        antenna_height_m: float = 1.5
+        """A UE's antenna above the position it reports (SUMO reports the street)."""
         channel: str = "free-space"
         """``free-space`` (Friis along the straight line) or ``ray-traced`` (Sionna RT, every
         site in one solve, refreshed every ``raytracing.refresh_s``)."""
@@ -156,7 +158,8 @@ class RadioNetwork(caviar.Plugin):
     def _column(self) -> int:
         return self.free.pop(0) if self.free else len(self.ues)
 
-    def step(self, t, inbox):
+    def _read(self, inbox) -> None:
+        """UEs that left free their column; positions update (and add) UEs."""
         for m in inbox.on(ARRIVED):
             ue = self.ues.pop(m.data["UE_Id"], None)
             if ue is not None:
@@ -169,50 +172,63 @@ class RadioNetwork(caviar.Plugin):
             if ue_id not in self.ues:
                 self.ues[ue_id] = {"type": m.data["UE_type"], "column": self._column()}
             self.ues[ue_id]["position"] = read_position(m.data)
-        if not self.ues:
-            return
-        ids = list(self.ues)
-        pos = np.array([self.ues[u]["position"] for u in ids])
+
+    def _measure(self, t: float, ids: list[str]):
+        """Received power and RSRP of every cell at every UE; mobility management on them.
+        Returns (rx dBm, RSRP dBm, serving cell per UE, events)."""
+        pos = np.array([self.ues[u]["position"] for u in ids]) + [0.0, 0.0, self.p.antenna_height_m]
         rx = rx_power_dbm(self.cells, self._channel_gains(t, ids, pos))
         rsrp = rsrp_dbm(self.cells, rx, [self.p.num_prb] * len(self.cells))
         events = []
         for i, u in enumerate(ids):
-            before = self.mm.ues.get(u)
-            old = before.serving if before else None
+            old = self.mm.serving(u)
             events += self.mm.update(t, u, list(rsrp[i]), self.last_sinr.get(u))
-            if old is not None and self.mm.serving(u) != old:
+            if old >= 0 and self.mm.serving(u) not in (old, -1):
                 self.link.moved(self.ues[u]["column"], self.mm.serving(u))
-        serving = np.array([self.mm.serving(u) for u in ids])
+        return rx, rsrp, np.array([self.mm.serving(u) for u in ids]), events
+
+    def step(self, t, inbox):
+        self._read(inbox)
+        if not self.ues:
+            return
+        ids = list(self.ues)
+        rx, rsrp, serving, events = self._measure(t, ids)
         load = None
         if self.p.interference == "scheduled":
             load = np.isin(np.arange(len(self.cells)), serving).astype(float)
         sinr = sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)
         # The link level works on UE columns (stable across steps).
         cols = np.array([self.ues[u]["column"] for u in ids])
-        width = int(cols.max()) + 1
-        sinr_cols = np.full(width, np.nan)
-        serving_cols = np.full(width, -1)
+        sinr_cols = np.full(int(cols.max()) + 1, np.nan)
+        serving_cols = np.full(int(cols.max()) + 1, -1)
         sinr_cols[cols], serving_cols[cols] = sinr, serving
         res = self.link.run(np.tile(sinr_cols, (self.slots, 1)), serving_cols)
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         for e in events:
             yield NETWORK_EVENTS, e
         for i, u in enumerate(ids):
-            c = cols[i]
-            self.last_sinr[u] = float(sinr[i])
-            ue_type = self.ues[u]["type"]
-            yield THROUGHPUT, throughput_payload(ue_type, u, round(float(mbps[c]), 6))
-            report = {"UE_type": ue_type, "UE_Id": u, "serving_cell": self.names[serving[i]],
-                      "sinr_db": round(float(sinr[i]), 3),
-                      "rsrp_dbm": {n: round(float(v), 2) for n, v in zip(self.names, rsrp[i], strict=True)},
-                      "throughput_mbps": round(float(mbps[c]), 6)}
-            if self.p.link_model == "sys":
-                report.update(res.summary(c))
-            yield NETWORK_UE, report
-        used = res.cells_active.mean(axis=0) if self.slots else np.zeros(len(self.cells))
+            covered = serving[i] >= 0
+            if covered:
+                self.last_sinr[u] = float(sinr[i])
+            else:
+                self.last_sinr.pop(u, None)
+            yield from self._report(u, serving[i], sinr[i], rsrp[i], float(mbps[cols[i]]), res.summary(cols[i]))
+        used = res.cells_active.mean(axis=0)
         yield NETWORK_CELLS, {"cells": [
             {"cell": n, "ues": int((serving == k).sum()), "active_share": round(float(used[k]), 4)}
             for k, n in enumerate(self.names)]}
+
+    def _report(self, u: str, serving: int, sinr: float, rsrp: np.ndarray, mbps: float, link: dict):
+        ue_type = self.ues[u]["type"]
+        covered = serving >= 0
+        yield THROUGHPUT, throughput_payload(ue_type, u, round(mbps, 6))
+        report = {"UE_type": ue_type, "UE_Id": u, "serving_cell": self.names[serving] if covered else None,
+                  "sinr_db": round(float(sinr), 3) if covered else None,
+                  "rsrp_dbm": {n: round(float(v), 2) for n, v in zip(self.names, rsrp, strict=True)},
+                  "throughput_mbps": round(mbps, 6)}
+        if self.p.link_model == "sys":
+            report.update(link)
+        yield NETWORK_UE, report
 
 
 def jain_index(x: np.ndarray) -> float:

@@ -24,6 +24,9 @@ import numpy as np
 from caviar_plugins.network.cells import Cell, pattern_gain_db
 from caviar_plugins.radio.scene import configure_drjit, scene_path
 
+NO_PATH_DB = -250.0
+"""The gain of a cell no traced path connects to a UE: far below any noise floor."""
+
 
 @dataclasses.dataclass(frozen=True)
 class TraceSettings:
@@ -83,7 +86,7 @@ class SiteTracer:
 
     def gains_db(self, ues: np.ndarray) -> np.ndarray:
         """Path gain (dB) of every cell toward every UE, its sector pattern included:
-        [n_ue, n_cell]; -inf where no path reaches. One solve for every site."""
+        [n_ue, n_cell]; :data:`NO_PATH_DB` where no path reaches. One solve for every site."""
         n_ue = len(ues)
         if n_ue == 0:
             return np.zeros((0, len(self.cells)))
@@ -98,11 +101,10 @@ class SiteTracer:
         theta = np.array(paths.theta_t).reshape(power.shape)  # zenith of departure
         phi = np.array(paths.phi_t).reshape(power.shape)  # azimuth of departure
         power = np.where(valid, power, 0.0)
-        out = np.full((n_ue, len(self.cells)), -np.inf)
+        out = np.empty((n_ue, len(self.cells)))
         for k, cell in enumerate(self.cells):
             site = self.site_of[k]
             g = 10 ** (pattern_gain_db(cell, np.degrees(theta[:, site]), np.degrees(phi[:, site])) / 10)
             total = (power[:, site] * g).sum(axis=-1)
-            with np.errstate(divide="ignore"):
-                out[:, k] = 10 * np.log10(total)
+            out[:, k] = 10 * np.log10(np.maximum(total, 10 ** (NO_PATH_DB / 10)))
         return out

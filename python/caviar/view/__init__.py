@@ -14,11 +14,17 @@ XML references. The page loads nothing from any other host.
 What is drawn
 =============
 
+The view itself knows only the core's topics. Which topics carry positions, link data,
+frames and events, the default scene and transmitter, are the plugins' to say: each
+package registers a :class:`~caviar.view.contract.ViewContract` in entry-point group
+``caviar.view`` and the view merges them. With ``caviar_plugins`` installed (its
+contract is ``caviar_plugins.schema.VIEW``):
+
 * Entities: every ``UE_Id`` on ``3D.mobility.positions`` (payload
   ``{"UE_type", "UE_Id", "position": {"x", "y", "z"}}`` or a list of them; scene
   frame, metres), with its trail up to the current step. Markers are not to scale.
-* The transmitter: ``tx_position`` of a module's parameters, else the radio plugins'
-  default.
+* The transmitter: ``tx_position`` of a module's parameters, else the default of its
+  plugin (``free-space-link``, ``sionna-link``).
 * Beams: for each UE with a radio message at the step, a cone from the Tx toward the
   UE. The beam's steering angle is not recorded by the shipped plugins, so the cone
   shows *which UE is served by the selected beam pair* (its index from
@@ -28,10 +34,11 @@ What is drawn
   direction instead. Colour: LOS green, NLOS red, unknown grey
   (``communications.link`` ``los``).
 * Plots: ``communications.throughput`` ``throughput`` (Mbit/s) and
-  ``communications.link`` ``snr_db`` per UE; ``mission.*`` events and
-  ``ai.detections`` with a non-zero ``count``; wall time per module per step
-  (``timings``); the image on ``3D.camera.<UE_Id>`` or ``ai.images.<UE_Id>``
-  (uint8 H×W×3 array) at the current step, where recorded.
+  ``communications.link`` ``snr_db`` per UE; ``mission.*`` events, ``network.events``
+  (attach, handover, radio-link failure) and ``ai.detections`` with a non-zero
+  ``count``; wall time per module per step (``timings``); the image on
+  ``3D.camera.<UE_Id>`` or ``ai.images.<UE_Id>`` (uint8 H×W×3 array) at the current
+  step, where recorded.
 
 ``view.*`` topics: primitives any module can draw
 =================================================
