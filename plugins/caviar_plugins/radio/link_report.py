@@ -9,7 +9,10 @@ from typing import Any, Callable, Iterator, Mapping
 import numpy as np
 
 from caviar_plugins.radio.link_budget import SPEED_OF_LIGHT
-from caviar_plugins.schema import BEAM_GAINS, CHANNEL, LINK, THROUGHPUT, per_ue, throughput_payload
+from caviar_plugins.schema import BEAM_GAINS, CHANNEL, LINK, THROUGHPUT, every_ue, per_ue, throughput_payload
+
+LINK_TOPICS = (THROUGHPUT, LINK, every_ue(CHANNEL), every_ue(BEAM_GAINS))
+"""What :func:`link_messages` publishes: a link plugin's ``publishes`` are these and its own."""
 
 LOS_TOLERANCE_M = 0.01
 """A path is the line of sight when it is as long as the straight line, to 1 cm (cheaper

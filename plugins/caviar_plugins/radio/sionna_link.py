@@ -22,20 +22,9 @@ import numpy as np
 import caviar
 from caviar_plugins import protocol as paper
 from caviar_plugins.radio.link_budget import LinkBudget
-from caviar_plugins.radio.link_report import link_messages
+from caviar_plugins.radio.link_report import LINK_TOPICS, link_messages
 from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene
-from caviar_plugins.schema import (
-    BEAM_GAINS,
-    BEAM_SELECTION,
-    CHANNEL,
-    FORECAST,
-    LINK,
-    POSITIONS,
-    STATE,
-    THROUGHPUT,
-    every_ue,
-    read_position,
-)
+from caviar_plugins.schema import BEAM_SELECTION, FORECAST, POSITIONS, STATE, read_position
 
 
 @dataclasses.dataclass
@@ -92,7 +81,7 @@ class SionnaLinkParams(RadioConfig):
 
 class SionnaLink(caviar.Plugin):
     subscribe = [POSITIONS, BEAM_SELECTION, FORECAST]
-    publishes = (THROUGHPUT, LINK, every_ue(CHANNEL), every_ue(BEAM_GAINS), STATE)
+    publishes = (*LINK_TOPICS, STATE)
     Params = SionnaLinkParams
 
     def setup(self, ctx):
@@ -128,7 +117,6 @@ class SionnaLink(caviar.Plugin):
             yield from link_messages(self.ue_type[ue], ue, link, self.selected.get(ue), n_pairs, self._mbps,
                                      self._snr, self.p.publish_channels)
         yield STATE, "Ready"
-
 
     def _snr(self, gain: float) -> float:
         if self.p.protocol == "paper":

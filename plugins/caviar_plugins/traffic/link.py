@@ -33,21 +33,11 @@ import numpy as np
 
 import caviar
 from caviar_plugins.radio.link_budget import LinkBudget
-from caviar_plugins.radio.link_report import line_of_sight_paths, link_messages
+from caviar_plugins.radio.link_report import LINK_TOPICS, line_of_sight_paths, link_messages
 from caviar_plugins.radio.scatterers import Body, ScattererPool
 from caviar_plugins.radio.scene import RadioScene
 from caviar_plugins.radio.sionna_link import SionnaLinkParams
-from caviar_plugins.schema import (
-    BEAM_GAINS,
-    BEAM_SELECTION,
-    CHANNEL,
-    LINK,
-    POSITIONS,
-    STATE,
-    THROUGHPUT,
-    every_ue,
-    read_position,
-)
+from caviar_plugins.schema import BEAM_SELECTION, POSITIONS, STATE, read_position
 
 PARKED_RX_Z = -500.0
 UAV_BODY_SIZE = (2.0, 2.0, 2.0)
@@ -105,7 +95,7 @@ class _Recorder:
 
 class SionnaTrafficLink(caviar.Plugin):
     subscribe = [POSITIONS, BEAM_SELECTION]
-    publishes = (THROUGHPUT, LINK, every_ue(CHANNEL), every_ue(BEAM_GAINS), STATE)
+    publishes = (*LINK_TOPICS, STATE)
     Params = SionnaTrafficLinkParams
 
     def setup(self, ctx):
