@@ -192,13 +192,3 @@ def test_a_step_without_movement_reuses_the_last_solve():
     assert len(calls) == 2 and moved is not first
     np.testing.assert_allclose(moved["uav2"].h, first["uav2"].h, rtol=1e-6)
 
-
-def test_the_line_of_sight_path_is_the_one_as_long_as_the_straight_line():
-    from caviar_plugins.radio.link_report import db, line_of_sight_paths
-
-    c = 299_792_458.0
-    direct = np.array([[100.0], [250.0]])  # two receivers
-    tau = np.array([[100.0, 100.004, 131.0], [250.02, 250.0, 250.0]]) / c
-    valid = np.array([[True, True, True], [True, True, False]])
-    assert line_of_sight_paths(tau, valid, direct).tolist() == [[True, True, False], [False, True, False]]
-    assert db(1e-3) == pytest.approx(-30.0) and db(0.0) == -400.0
