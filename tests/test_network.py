@@ -244,6 +244,17 @@ def test_a_car_crossing_between_two_sites_hands_over_once_in_the_loop(tmp_path):
     # own UEs: the SINR is the 4×4 array gain, 10·log10(16) dB, less the other sectors and noise.
     border = min(car, key=lambda u: abs(u["rsrp_dbm"]["west/0"] - u["rsrp_dbm"]["east/0"]))
     assert 10 * math.log10(16) - 1.0 < border["sinr_db"] <= 10 * math.log10(16), border
+
+    # caviar-core report draws the CDFs and the handover map; its numbers are the log's.
+    from caviar.report import main as report
+
+    assert report([str(tmp_path / "run"), "--out", str(tmp_path / "rep")]) == 0
+    for name in ("network-cdf.png", "network-handovers.png", "modules.png"):
+        assert (tmp_path / "rep" / name).stat().st_size > 10_000, name
+    numbers = json.loads((tmp_path / "rep" / "network.json").read_text())
+    car_sinr = np.array([u["sinr_db"] for u in car])
+    assert numbers["ue_types"]["car"]["sinr_db"]["p50"] == pytest.approx(np.percentile(car_sinr, 50), abs=1e-3)
+    assert numbers["ue_types"]["car"]["handovers"] == 1 and numbers["ue_types"]["pedestrian"]["handovers"] == 0
     assert max(u["sinr_db"] for u in car) > 15.0
 
 

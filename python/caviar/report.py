@@ -6,6 +6,11 @@ resource bars for each run, and total wall clock across runs.
 Writes ``modules.png`` (per module and run: mean wall time per step, CPU time per
 step, largest resident memory) and ``wall_clock.png`` (total wall clock per run),
 plus ``report.json`` with the numbers.
+
+Plugin packages add the figures of their own topics: a function ``figures(log, out)
+-> list[path]`` registered in entry-point group ``caviar.report`` is called with each
+run (:class:`caviar.RunLog`) and the directory to draw in (``OUT``, or ``OUT/LABEL``
+for several runs); it draws nothing for a run without its topics.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ import argparse
 import json
 import pathlib
 import re
+from importlib.metadata import entry_points
 
 from caviar.runlog import load_run
 
@@ -109,5 +115,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}")
         return 2
     draw(summaries, labels, args.out, args.xlabel)
-    print(f"{args.out}/modules.png, {args.out}/wall_clock.png, {args.out}/report.json")
+    written = [args.out / n for n in ("modules.png", "wall_clock.png", "report.json")]
+    for run, label in zip(args.runs, labels, strict=True):
+        written += plugin_figures(run, args.out / label if len(args.runs) > 1 else args.out)
+    print(", ".join(map(str, written)))
     return 0
+
+
+def plugin_figures(run: pathlib.Path, out: pathlib.Path) -> list[pathlib.Path]:
+    """The figures every ``caviar.report`` entry point draws of ``run``."""
+    log = load_run(run)
+    written: list[pathlib.Path] = []
+    for ep in sorted(entry_points(group="caviar.report"), key=lambda e: e.name):
+        written += ep.load()(log, out)
+    return written

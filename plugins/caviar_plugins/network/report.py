@@ -1,0 +1,120 @@
+"""Figures of a run with the radio network, for ``caviar-core report`` (entry-point group
+``caviar.report``): SINR and throughput CDFs per UE type and the handovers on a map, with
+``network.json`` holding the numbers the figures show.
+
+    caviar-core report runs/network-city-001 --out report/
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+from typing import Any
+
+import numpy as np
+import tomllib
+
+from caviar_plugins.schema import NETWORK_EVENTS, NETWORK_UE, POSITIONS
+
+
+def _cdf(ax, values: dict[str, np.ndarray], xlabel: str) -> None:
+    for kind, v in sorted(values.items()):
+        v = np.sort(v)
+        ax.step(v, np.arange(1, v.size + 1) / v.size, where="post", label=f"{kind} ({v.size})")
+    ax.set(xlabel=xlabel, ylabel="CDF", ylim=(0, 1))
+    ax.grid(True)
+    ax.legend()
+
+
+def _sites(log) -> list[dict[str, Any]]:
+    """The sites of the run's radio-network module(s), from its config."""
+    cfg = tomllib.loads(log.config_text)
+    return [s for m in cfg.get("modules", {}).values() if m.get("plugin") == "radio-network"
+            for s in m.get("params", {}).get("sites", [])]
+
+
+def summarize(log) -> dict[str, Any] | None:
+    """Per UE type: samples, SINR and throughput percentiles; handover and failure counts.
+    None for a run without the radio network."""
+    ues = [m.data for m in log.decoded(NETWORK_UE)]
+    if not ues:
+        return None
+    events = [m.data for m in log.decoded(NETWORK_EVENTS)]
+    kinds: dict[str, Any] = {}
+    for kind in sorted({u["UE_type"] for u in ues}):
+        mine = [u for u in ues if u["UE_type"] == kind]
+        sinr = np.array([u["sinr_db"] for u in mine if u["sinr_db"] is not None])
+        thr = np.array([u["throughput_mbps"] for u in mine])
+        ids = {u["UE_Id"] for u in mine}
+        kinds[kind] = {
+            "ues": len(ids), "samples": len(mine),
+            "sinr_db": {p: round(float(np.percentile(sinr, q)), 3) for p, q in (("p5", 5), ("p50", 50), ("p95", 95))}
+            if sinr.size else None,
+            "throughput_mbps": {p: round(float(np.percentile(thr, q)), 3)
+                                for p, q in (("p5", 5), ("p50", 50), ("p95", 95))},
+            "handovers": sum(1 for e in events if e["event"] == "handover" and e["UE_Id"] in ids),
+            "rlf": sum(1 for e in events if e["event"] == "rlf" and e["UE_Id"] in ids),
+        }
+    return {"ue_types": kinds, "events": len(events)}
+
+
+def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
+    """Draws the network figures of ``log`` (a :class:`caviar.RunLog`) into ``out``."""
+    summary = summarize(log)
+    if summary is None:
+        return []
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    ues = [m.data for m in log.decoded(NETWORK_UE)]
+    kinds = sorted({u["UE_type"] for u in ues})
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    _cdf(axes[0], {k: np.array([u["sinr_db"] for u in ues if u["UE_type"] == k and u["sinr_db"] is not None])
+                   for k in kinds}, "SINR on the serving cell (dB)")
+    _cdf(axes[1], {k: np.array([u["throughput_mbps"] for u in ues if u["UE_type"] == k]) for k in kinds},
+         "throughput (Mbit/s)")
+    axes[0].set_title("SINR per UE type")
+    axes[1].set_title("throughput per UE type")
+    fig.tight_layout()
+    cdfs = out / "network-cdf.png"
+    fig.savefig(cdfs, dpi=100)
+    plt.close(fig)
+
+    # The map: UE trails, sites and sector boresights, handovers where they happened.
+    track: dict[str, dict[int, tuple[float, float]]] = {}
+    for m in log.decoded(POSITIONS):
+        p = m.data["position"]
+        track.setdefault(m.data["UE_Id"], {})[m.step] = (p["x"], p["y"])
+    fig, ax = plt.subplots(figsize=(7, 7))
+    for pts in track.values():
+        xy = np.array([pts[s] for s in sorted(pts)])
+        ax.plot(xy[:, 0], xy[:, 1], color="0.75", lw=0.8)
+    for s in _sites(log):
+        x, y = s["position"][:2]
+        ax.plot(x, y, "k^", ms=9)
+        ax.annotate(s["name"], (x, y), textcoords="offset points", xytext=(5, 5))
+        for az in s.get("azimuths_deg", [0.0, 120.0, 240.0]):
+            ax.plot([x, x + 40 * np.cos(np.radians(az))], [y, y + 40 * np.sin(np.radians(az))], "k-", lw=1)
+    step_of = {round(t, 9): s for s, t in zip(log.messages["step"].to_list(), log.messages["time"].to_list(),
+                                                strict=True)}
+    marks = {"handover": ("o", "tab:blue"), "rlf": ("x", "tab:red"), "coverage_lost": ("s", "tab:orange")}
+    for kind, (marker, color) in marks.items():
+        where = [track[e["UE_Id"]][step_of[round(e["time"], 9)]] for m in log.decoded(NETWORK_EVENTS)
+              if (e := m.data)["event"] == kind and e["UE_Id"] in track
+              and step_of.get(round(e["time"], 9)) in track[e["UE_Id"]]]
+        if where:
+            a = np.array(where)
+            ax.scatter(a[:, 0], a[:, 1], marker=marker, color=color, label=f"{kind} ({len(where)})", zorder=3)
+    ax.set(xlabel="x (m)", ylabel="y (m)", title="handovers", aspect="equal")
+    ax.grid(True)
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    hmap = out / "network-handovers.png"
+    fig.savefig(hmap, dpi=100)
+    plt.close(fig)
+    numbers = out / "network.json"
+    numbers.write_text(json.dumps(summary, indent=2) + "\n")
+    return [cdfs, hmap, numbers]
