@@ -80,6 +80,9 @@ class RadioNetwork(caviar.Plugin):
         interference: str = "full-buffer"
         bler_target: float = 0.1
         mcs_table: int = 1
+        harq_processes: int = 1
+        """Slots computed together, one per HARQ process (see
+        :class:`~caviar_plugins.network.sys_layer.LinkSettings`): 8 is about 5x faster."""
         handover: dict = dataclasses.field(default_factory=dict)
         antenna_height_m: float = 1.5
         """A UE's antenna above the position it reports (SUMO reports the street)."""
@@ -109,7 +112,8 @@ class RadioNetwork(caviar.Plugin):
                                  f"fit in bandwidth_hz = {self.bandwidth_hz:g}")
             self.link = LinkSettings(num_prb=self.num_prb, subcarrier_spacing_hz=self.subcarrier_spacing_hz,
                                      bler_target=self.bler_target, mcs_table=self.mcs_table,
-                                     scheduler=self.scheduler, link_model=self.link_model)
+                                     scheduler=self.scheduler, link_model=self.link_model,
+                                     harq_processes=self.harq_processes)
             unknown = set(self.handover) - {f.name for f in dataclasses.fields(HandoverSettings)}
             if unknown:
                 raise ValueError(f"handover.{sorted(unknown)[0]}: unknown key, expected one of "
@@ -130,6 +134,10 @@ class RadioNetwork(caviar.Plugin):
         self.names = [c.name for c in self.cells]
         self.slot_s = p.link.slot_s
         self.slots = max(1, round(ctx.ts * ctx.every / self.slot_s))
+        if self.slots % p.harq_processes:
+            raise caviar.ConfigError(f"a step of {ctx.ts * ctx.every:g} s is {self.slots} slots of {self.slot_s:g} s, "
+                                     f"not whole groups of harq_processes = {p.harq_processes}",
+                                     "params.harq_processes")
         self.mm = MobilityManager(p.handover_settings, self.names)
         self.link = LinkLevel(p.link, len(self.cells), seed=ctx.seed)
         self.ues: dict[str, dict[str, Any]] = {}  # UE_Id -> {type, position, column}

@@ -47,6 +47,11 @@ class LinkSettings:
     mcs_table: int = 1
     scheduler: str = "proportional-fair"
     link_model: str = "sys"
+    harq_processes: int = 1
+    """Slots computed together: slot k belongs to HARQ process k mod D, which keeps its own
+    link-adaptation loop and proportional-fair history and learns its last transmission's
+    outcome before its next one, D slots later (NR's interleaved HARQ processes). 1 (the
+    default): every slot sees the previous one's outcome. Larger D: D times fewer calls."""
 
     def __post_init__(self):
         if self.num_prb < 1:
@@ -59,6 +64,8 @@ class LinkSettings:
             raise ValueError(f"scheduler: expected one of {list(SCHEDULERS)}, got {self.scheduler!r}")
         if self.link_model not in LINK_MODELS:
             raise ValueError(f"link_model: expected one of {list(LINK_MODELS)}, got {self.link_model!r}")
+        if not 1 <= self.harq_processes <= 16:
+            raise ValueError(f"harq_processes: expected 1 to 16 (NR's HARQ processes), got {self.harq_processes}")
         if self.subcarrier_spacing_hz not in NUMEROLOGIES:
             raise ValueError(f"subcarrier_spacing_hz: expected an NR numerology {sorted(NUMEROLOGIES)}, "
                              f"got {self.subcarrier_spacing_hz:g}")
@@ -124,24 +131,28 @@ class LinkLevel:
         self._grow(capacity)
 
     def _grow(self, capacity: int) -> None:
-        """Room for ``capacity`` UEs, keeping the state of the first ``self.capacity``."""
+        """Room for ``capacity`` UEs, keeping the state of the first ``self.capacity``.
+        State, per HARQ process d: OLLA offset and last SINR [D, cap], PF history
+        [D, cell, cap], last HARQ outcome [D, cap] and achieved rate [D, cell, cap]."""
         old = self.capacity
         self.capacity = capacity
         if self._sys is None:
             return
         torch = self._torch
-        olla = self._sys.OuterLoopLinkAdaptation(self.phy, num_ut=capacity, bler_target=self.s.bler_target)
-        pf = self._sys.PFSchedulerSUMIMO(capacity, self.s.num_prb, 1, batch_size=[self.n_cell])
+        d, c = self.s.harq_processes, self.n_cell
+        olla = self._sys.OuterLoopLinkAdaptation(self.phy, num_ut=capacity, bler_target=self.s.bler_target,
+                                                 batch_size=[d])
+        # The channels are wideband (one SINR per UE and slot): the PF metric is the same on
+        # every PRB, so Sionna's scheduler decides on one resource standing for all of them.
+        pf = self._sys.PFSchedulerSUMIMO(capacity, 1, 1, batch_size=[d, c])
+        harq = torch.full((d, capacity), -1, dtype=torch.int32)
+        rate_last = torch.zeros(d, c, capacity)
         if old:
-            olla._offset[:old] = self.olla._offset
-            olla._sinr_eff_db_last[:old] = self.olla._sinr_eff_db_last
-            pf._rate_achieved_past[:, :old] = self.pf._rate_achieved_past
-            self.harq = torch.cat([self.harq, torch.full((capacity - old,), -1, dtype=torch.int32)])
-            self.rate_last = torch.cat([self.rate_last, torch.zeros(self.n_cell, capacity - old)], dim=1)
-        else:
-            self.harq = torch.full((capacity,), -1, dtype=torch.int32)
-            self.rate_last = torch.zeros(self.n_cell, capacity)
-        self.olla, self.pf = olla, pf
+            olla._offset[:, :old] = self.olla._offset
+            olla._sinr_eff_db_last[:, :old] = self.olla._sinr_eff_db_last
+            pf._rate_achieved_past[:, :, :old] = self.pf._rate_achieved_past
+            harq[:, :old], rate_last[:, :, :old] = self.harq, self.rate_last
+        self.olla, self.pf, self.harq, self.rate_last = olla, pf, harq, rate_last
 
     def table_bler(self, mcs: int, sinr_db: float, cb_size: int) -> float:
         """The BLER this link level uses for ``mcs`` at ``sinr_db`` and code-block size
@@ -156,16 +167,16 @@ class LinkLevel:
     def moved(self, u: int, new_cell: int) -> None:
         """UE column ``u`` now belongs to ``new_cell``: a fresh PF history there."""
         if self._sys is not None:
-            self.pf._rate_achieved_past[new_cell, u] = 1.0
-            self.rate_last[:, u] = 0.0
+            self.pf._rate_achieved_past[:, new_cell, u] = 1.0
+            self.rate_last[:, :, u] = 0.0
 
     def released(self, u: int) -> None:
         """Column ``u`` is free again (its UE left): its state goes back to new."""
         if self._sys is not None:
-            self.pf._rate_achieved_past[:, u] = 1.0
-            self.rate_last[:, u] = 0.0
-            self.olla._offset[u] = 0.0
-            self.harq[u] = -1
+            self.pf._rate_achieved_past[:, :, u] = 1.0
+            self.rate_last[:, :, u] = 0.0
+            self.olla._offset[:, u] = 0.0
+            self.harq[:, u] = -1
 
     def run(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
         """Runs ``sinr_db.shape[0]`` slots. ``sinr_db``: [n_slots, n_ue] wideband SINR of
@@ -193,7 +204,9 @@ class LinkLevel:
     def _sys_slots(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
         torch = self._torch
         n_slots, n_ue = sinr_db.shape
-        cap, n_cell = self.capacity, self.n_cell
+        d, cap, n_cell = self.s.harq_processes, self.capacity, self.n_cell
+        if n_slots % d:
+            raise ValueError(f"{n_slots} slots are not whole groups of harq_processes = {d}")
         member = np.zeros((n_cell, cap), dtype=bool)
         for u, c in enumerate(serving):
             if c >= 0:
@@ -204,63 +217,62 @@ class LinkLevel:
         mcs_last = np.full(n_ue, -1)
         sinr_eff_last = np.full(n_ue, np.nan)
         active = np.zeros((n_slots, n_cell), dtype=bool)
-        rr_turn = 0
-        for k in range(n_slots):
-            lin = np.zeros(cap)
-            lin[:n_ue] = np.where(serving >= 0, 10 ** (np.nan_to_num(sinr_db[k], nan=-300.0) / 10), 0.0)
-            lin_t = torch.tensor(lin, dtype=torch.float32)
+        lin = np.zeros((d, cap))
+        for k in range(0, n_slots, d):
+            lin[:, :n_ue] = np.where(serving >= 0, 10 ** (np.nan_to_num(sinr_db[k:k + d], nan=-300.0) / 10), 0.0)
+            lin_t = torch.tensor(lin, dtype=torch.float32)  # [D, cap]
             # Achievable rate per PRB of each UE in its own cell (bit/s/Hz); 0 elsewhere.
-            rate = torch.log2(1 + lin_t)[None, :] * member_t  # [C, cap]
-            granted = self._schedule(rate, member, rr_turn)  # [C, P, cap] bool
-            rr_turn += 1
-            prbs = granted.sum(dim=(0, 1)).to(torch.int32)  # [cap]
+            rate = torch.log2(1 + lin_t)[:, None, :] * member_t  # [D, C, cap]
+            granted = self._schedule(rate, member, k)  # [D, C, P, cap] bool
+            prbs = granted.sum(dim=(1, 2)).to(torch.int32)  # [D, cap]
             n_re = prbs * re_per_prb
             # CSI feedback: the slot's SINR as the UE reports it (ideal), corrected by the
-            # loop's offset, which follows the HARQ outcome of the last transmission.
+            # loop's offset, which follows the HARQ outcome of the process's last transmission.
             mcs = self.olla(n_re, self.harq, lin_t, mcs_table_index=self.s.mcs_table, mcs_category=PDSCH)
             bits, harq, sinr_eff, tbler, _ = self.phy(
                 mcs, sinr_eff=lin_t, num_allocated_re=n_re, mcs_table_index=self.s.mcs_table,
                 mcs_category=PDSCH)
             self.harq = harq
             # The rate each cell achieved for each UE, for the PF history.
-            self.rate_last = bits.to(torch.float32)[None, :] / self.s.slot_s * member_t
-            b = bits.numpy()[:n_ue]
-            sched = (n_re.numpy() > 0)[:n_ue]
-            h = harq.numpy()[:n_ue]
-            acc["bits"] += b
-            acc["sched"] += sched
-            acc["prbs"] += prbs.numpy()[:n_ue]
-            acc["acks"] += h == 1
-            acc["nacks"] += h == 0
-            acc["tbler"] += np.where(sched, tbler.numpy()[:n_ue], 0.0)
-            mcs_last = np.where(sched, mcs.numpy()[:n_ue], mcs_last)
-            sinr_eff_last = np.where(sched, 10 * np.log10(np.maximum(sinr_eff.numpy()[:n_ue], 1e-30)),
-                                     sinr_eff_last)
-            active[k] = granted.any(dim=(1, 2)).numpy()
+            self.rate_last = bits.to(torch.float32)[:, None, :] / self.s.slot_s * member_t
+            sched = (n_re.numpy() > 0)[:, :n_ue]
+            h = harq.numpy()[:, :n_ue]
+            acc["bits"] += bits.numpy()[:, :n_ue].sum(axis=0)
+            acc["sched"] += sched.sum(axis=0)
+            acc["prbs"] += prbs.numpy()[:, :n_ue].sum(axis=0)
+            acc["acks"] += (h == 1).sum(axis=0)
+            acc["nacks"] += (h == 0).sum(axis=0)
+            acc["tbler"] += np.where(sched, tbler.numpy()[:, :n_ue], 0.0).sum(axis=0)
+            for j in range(d):  # the last scheduled slot's MCS and effective SINR
+                mcs_last = np.where(sched[j], mcs.numpy()[j, :n_ue], mcs_last)
+                sinr_eff_last = np.where(
+                    sched[j], 10 * np.log10(np.maximum(sinr_eff.numpy()[j, :n_ue], 1e-30)), sinr_eff_last)
+            active[k:k + d] = granted.any(dim=3).any(dim=2).numpy()
         with np.errstate(invalid="ignore", divide="ignore"):
             tbler_mean = np.where(acc["sched"] > 0, acc["tbler"] / acc["sched"], np.nan)
         return SlotResults(acc["bits"], acc["sched"].astype(int), acc["prbs"].astype(int),
                            acc["acks"].astype(int), acc["nacks"].astype(int), mcs_last, tbler_mean,
                            sinr_eff_last, active)
 
-    def _schedule(self, rate, member: np.ndarray, turn: int):
-        """[C, P, cap]: which UE gets each PRB of each cell this slot."""
+    def _schedule(self, rate, member: np.ndarray, first_slot: int):
+        """[D, C, P, cap]: which UE gets each PRB of each cell in each slot of the group."""
         torch = self._torch
         n_cell, cap = member.shape
-        n_prb = self.s.num_prb
+        d, n_prb = self.s.harq_processes, self.s.num_prb
         if self.s.scheduler == "proportional-fair":
-            achievable = rate[:, None, None, :].expand(n_cell, 1, n_prb, cap)
-            granted = self.pf(self.rate_last, achievable)[:, 0, :, :, 0]  # [C, P, cap]
+            granted = self.pf(self.rate_last, rate[:, :, None, None, :])[:, :, 0, :, :, 0]  # [D, C, 1, cap]
             # A cell without UEs: the argmax picked column 0, which is not its UE.
-            return granted & torch.from_numpy(member)[:, None, :]
-        granted = torch.zeros((n_cell, n_prb, cap), dtype=torch.bool)
-        for c in range(n_cell):
-            ues = np.flatnonzero(member[c])
-            if ues.size == 0:
-                continue
-            if self.s.scheduler == "max-rate":
-                u = int(ues[int(torch.argmax(rate[c, ues]))])
-            else:  # round-robin: one UE per slot, in turn
-                u = int(ues[turn % ues.size])
-            granted[c, :, u] = True
+            granted = granted & torch.from_numpy(member)[None, :, None, :]
+            return granted.expand(d, n_cell, n_prb, cap)
+        granted = torch.zeros((d, n_cell, n_prb, cap), dtype=torch.bool)
+        for j in range(d):
+            for c in range(n_cell):
+                ues = np.flatnonzero(member[c])
+                if ues.size == 0:
+                    continue
+                if self.s.scheduler == "max-rate":
+                    u = int(ues[int(torch.argmax(rate[j, c, ues]))])
+                else:  # round-robin: one UE per slot, in turn
+                    u = int(ues[(first_slot + j) % ues.size])
+                granted[j, c, :, u] = True
         return granted
