@@ -58,6 +58,8 @@ NETWORK_UE = "network.ue"
 NETWORK_EVENTS = "network.events"
 """``{"event": "attach" | "handover" | "rlf", "UE_Id", "time", "to_cell", "rsrp_to_dbm"}``
 (and ``"from_cell", "rsrp_from_dbm"`` for a handover or a radio-link failure)."""
+NETWORK_RADIO_MAP = "network.radio_map"
+"""The best-server SINR map (``radio-map.npz``, ``radio-map.png``), artifacts at the first step."""
 NETWORK_CELLS = "network.cells"
 """Per step: ``{"cells": [{"cell", "ues", "active_share"}]}``, the UEs a cell serves and the
 share of the step's slots in which it scheduled someone."""

@@ -27,12 +27,14 @@ import numpy as np
 import caviar
 from caviar_plugins.network.cells import Cell, line_of_sight_gain_db, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
+from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, save
 from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
 from caviar_plugins.network.sys_layer import LinkLevel, LinkSettings
 from caviar_plugins.schema import (
     ARRIVED,
     NETWORK_CELLS,
     NETWORK_EVENTS,
+    NETWORK_RADIO_MAP,
     NETWORK_UE,
     POSITIONS,
     THROUGHPUT,
@@ -63,7 +65,7 @@ def nr_prbs(bandwidth_hz: float, scs_hz: float) -> int | None:
 
 class RadioNetwork(caviar.Plugin):
     subscribe = [POSITIONS, ARRIVED]
-    publishes = (THROUGHPUT, NETWORK_UE, NETWORK_EVENTS, NETWORK_CELLS)
+    publishes = (THROUGHPUT, NETWORK_UE, NETWORK_EVENTS, NETWORK_CELLS, NETWORK_RADIO_MAP)
 
     @dataclasses.dataclass
     class Params:
@@ -92,6 +94,11 @@ class RadioNetwork(caviar.Plugin):
         raytracing: dict = dataclasses.field(default_factory=dict)
         """``scene`` (default ``empty``), ``max_depth``, ``samples_per_src``, ``diffraction``,
         ``refresh_s``: see :class:`~caviar_plugins.network.raytraced.TraceSettings`."""
+        radio_map: dict = dataclasses.field(default_factory=dict)
+        """A best-server SINR map of ``raytracing.scene`` at setup (any key turns it on):
+        ``cell_size_m``, ``height_m``, ``margin_m``, ``samples_per_tx``, ``max_depth`` (see
+        :class:`~caviar_plugins.network.radio_map.RadioMapSettings`); written to
+        ``radio-map.npz`` and ``radio-map.png`` and announced on ``network.radio_map``."""
 
         def __post_init__(self):
             self.cells: list[Cell] = parse_sites(self.sites, dataclasses.asdict(self))
@@ -126,6 +133,11 @@ class RadioNetwork(caviar.Plugin):
             if unknown:
                 raise ValueError(f"raytracing.{sorted(unknown)[0]}: unknown key, expected one of {sorted(known)}")
             self.trace_settings = TraceSettings(**self.raytracing)
+            known = {f.name for f in dataclasses.fields(RadioMapSettings)}
+            unknown = set(self.radio_map) - known
+            if unknown:
+                raise ValueError(f"radio_map.{sorted(unknown)[0]}: unknown key, expected one of {sorted(known)}")
+            self.map_settings = RadioMapSettings(**self.radio_map) if self.radio_map else None
 
     def setup(self, ctx):
         p = ctx.params
@@ -146,6 +158,11 @@ class RadioNetwork(caviar.Plugin):
         self.tracer = None
         if p.channel == "ray-traced":
             self.tracer = SiteTracer(p.trace_settings, self.cells, seed=ctx.seed, base_dir=ctx.config_dir)
+        self.map_files: list = []
+        if p.map_settings is not None:
+            result = best_server_map(self.cells, p.map_settings, p.trace_settings.scene, p.num_prb,
+                                     p.noise_figure_db, base_dir=ctx.config_dir, seed=ctx.seed)
+            self.map_files = save(result, self.cells, ctx.run_dir)
         self.traced: dict[str, np.ndarray] = {}  # UE_Id -> gains of the last trace
         self.traced_at = -np.inf
 
@@ -196,6 +213,8 @@ class RadioNetwork(caviar.Plugin):
         return rx, rsrp, np.array([self.mm.serving(u) for u in ids]), events
 
     def step(self, t, inbox):
+        while self.map_files:
+            yield NETWORK_RADIO_MAP, caviar.Artifact(self.map_files.pop(0))
         self._read(inbox)
         if not self.ues:
             return

@@ -1,0 +1,109 @@
+"""Best-server SINR map of the area from Sionna RT's radio-map solver, per cell and combined.
+
+Every cell is one transmitter with Sionna's ``tr38901`` element (the TR 38.901 sector
+pattern, 8 dBi, 65°, 30 dB, the model :mod:`~caviar_plugins.network.cells` computes),
+pointed at its azimuth and tilted down; one :class:`sionna.rt.RadioMapSolver` call
+gives every cell's path gain on a horizontal grid at UE height. From it, per grid cell:
+the RSRP of every cell, the best server, and the SINR on it with the other co-channel
+cells interfering (the same :func:`~caviar_plugins.network.cells.sinr_db` the UEs get).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+from typing import Any, Sequence
+
+import numpy as np
+
+from caviar_plugins.network.cells import Cell, rsrp_dbm, rx_power_dbm, sinr_db
+from caviar_plugins.radio.scene import configure_drjit, scene_path
+
+NO_SIGNAL_DB = -250.0
+
+
+@dataclasses.dataclass(frozen=True)
+class RadioMapSettings:
+    cell_size_m: float = 10.0
+    height_m: float = 1.5
+    margin_m: float = 200.0
+    """The map covers the sites' bounding box grown by this much."""
+    samples_per_tx: int = 200_000
+    max_depth: int = 2
+
+    def __post_init__(self):
+        for key in ("cell_size_m", "height_m", "samples_per_tx"):
+            if not getattr(self, key) > 0:
+                raise ValueError(f"radio_map.{key}: expected a positive number, got {getattr(self, key)}")
+        if self.max_depth < 0 or self.margin_m < 0:
+            raise ValueError("radio_map: max_depth and margin_m must be >= 0")
+
+
+def best_server_map(cells: Sequence[Cell], settings: RadioMapSettings, scene: str, num_prb: int,
+                    noise_figure_db: float, base_dir: pathlib.Path | None = None, seed: int = 0) -> dict[str, Any]:
+    """The map: grid centres ``x`` [nx] and ``y`` [ny], ``gain_db`` [cell, ny, nx] (path
+    gain and pattern), ``rsrp_dbm`` [cell, ny, nx], ``best`` [ny, nx] (cell index, -1
+    where no cell reaches) and ``sinr_db`` [ny, nx] on the best server (NaN where none)."""
+    configure_drjit()
+    import mitsuba as mi
+    import sionna.rt as rt
+
+    path = scene_path(scene, base_dir)
+    s = rt.load_scene(str(path)) if path else rt.load_scene()
+    s.frequency = cells[0].carrier_hz
+    s.tx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="tr38901", polarization="V")
+    s.rx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
+    for c in cells:
+        s.add(rt.Transmitter(f"map-{c.index}", position=list(c.position),
+                             orientation=[float(np.radians(c.azimuth_deg)), float(np.radians(c.downtilt_deg)), 0.0]))
+    pos = np.array([c.position for c in cells])
+    lo, hi = pos[:, :2].min(axis=0) - settings.margin_m, pos[:, :2].max(axis=0) + settings.margin_m
+    centre, size = (lo + hi) / 2, hi - lo
+    rm = rt.RadioMapSolver()(s, center=mi.Point3f(float(centre[0]), float(centre[1]), settings.height_m),
+                             orientation=mi.Point3f(0.0, 0.0, 0.0), size=mi.Point2f(float(size[0]), float(size[1])),
+                             cell_size=mi.Point2f(settings.cell_size_m, settings.cell_size_m),
+                             samples_per_tx=settings.samples_per_tx, max_depth=settings.max_depth,
+                             seed=int(seed) % (2**31))
+    gain = np.array(rm.path_gain)  # [cell, ny, nx]
+    grid = np.array(rm.cell_centers)  # [ny, nx, 3]
+    n_cell, ny, nx = gain.shape
+    gain_db = 10 * np.log10(np.maximum(gain, 10 ** (NO_SIGNAL_DB / 10)))
+    rx = rx_power_dbm(cells, gain_db.reshape(n_cell, -1).T)  # [points, cell]
+    best = np.where(gain.reshape(n_cell, -1).max(axis=0) > 0, rx.argmax(axis=1), -1)
+    sinr = sinr_db(cells, rx, best, noise_figure_db)
+    return {"x": grid[0, :, 0], "y": grid[:, 0, 1], "gain_db": gain_db,
+            "rsrp_dbm": rsrp_dbm(cells, rx, [num_prb] * n_cell).T.reshape(n_cell, ny, nx),
+            "best": best.reshape(ny, nx), "sinr_db": sinr.reshape(ny, nx)}
+
+
+def save(result: dict[str, Any], cells: Sequence[Cell], out: pathlib.Path) -> list[pathlib.Path]:
+    """``radio-map.npz`` (every array, and the cell names) and ``radio-map.png`` (best server,
+    and SINR on it) in ``out``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    npz = out / "radio-map.npz"
+    np.savez_compressed(npz, cells=np.array([c.name for c in cells]), **result)
+    x, y = result["x"], result["y"]
+    extent = (x[0], x[-1], y[0], y[-1])
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.5))
+    best = np.ma.masked_less(result["best"], 0)
+    im = axes[0].imshow(best, origin="lower", extent=extent, cmap=plt.get_cmap("tab20", len(cells)),
+                        vmin=-0.5, vmax=len(cells) - 0.5, interpolation="nearest")
+    axes[0].set_title("best server")
+    fig.colorbar(im, ax=axes[0], ticks=range(len(cells))).ax.set_yticklabels([c.name for c in cells])
+    im = axes[1].imshow(result["sinr_db"], origin="lower", extent=extent, cmap="viridis", vmin=-10, vmax=40)
+    axes[1].set_title("SINR on the best server (dB)")
+    fig.colorbar(im, ax=axes[1])
+    for ax in axes:
+        for c in cells:
+            ax.plot(*c.position[:2], "k^", ms=6)
+        ax.set(xlabel="x (m)", ylabel="y (m)")
+    fig.tight_layout()
+    png = out / "radio-map.png"
+    fig.savefig(png, dpi=90)
+    plt.close(fig)
+    return [npz, png]
