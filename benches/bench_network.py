@@ -28,7 +28,7 @@ from bench_perf_steps import machine
 from caviar_plugins.network.cells import parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
-from caviar_plugins.network.sys_layer import LinkLevel, LinkSettings
+from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "results" / "network.json"

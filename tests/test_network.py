@@ -24,7 +24,7 @@ from caviar_plugins.network.cells import (
 )
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.plugin import jain_index
-from caviar_plugins.network.sys_layer import DATA_SYMBOLS_PER_SLOT, LinkLevel, LinkSettings
+from caviar_plugins.radio.link_level import DATA_SYMBOLS_PER_SLOT, LinkLevel, LinkSettings
 
 C = 299_792_458.0
 DEFAULTS = {"tx_power_dbm": 40.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "array": [1, 1]}
@@ -347,3 +347,52 @@ def test_the_radio_map_matches_friis_and_the_pattern_and_picks_the_facing_sector
     assert np.nanmax(res["sinr_db"]) > 10.0 and np.all(np.isfinite(res["sinr_db"][away]))
     npz, png = save(res, cells, tmp_path)
     assert list(np.load(npz)["cells"]) == ["A/0", "A/1", "A/2"] and png.stat().st_size > 10_000
+
+
+def test_sionna_link_with_the_sys_link_model(tmp_path):
+    """The SAR's communications module with ``link_model = "sys"``: two UAVs share the
+    cell; each decodes at most log2(1 + SNR) bits per data resource element it was given,
+    with the SNR of its used beam pair, and the paper's throughput schema stays."""
+    from conftest import write_config
+
+    from caviar_plugins import DATA
+
+    route = (DATA / "central_park_path0_scene.csv").as_posix()
+    cfg = write_config(tmp_path, f"""
+[episode]
+ts = 0.1
+steps = 3
+seed = 5
+stages = ["mobility", "communications"]
+
+[modules.uav]
+stage = "mobility"
+plugin = "waypoint-flight"
+params = {{ waypoints = "{route}", frame = "scene", ue_id = "uav1" }}
+
+[modules.uav2]
+stage = "mobility"
+plugin = "waypoint-flight"
+params = {{ waypoints = "{route}", frame = "scene", ue_id = "uav2", speed = 10.0 }}
+
+[modules.comm]
+stage = "communications"
+plugin = "sionna-link"
+params = {{ samples_per_src = 10000, link_model = "sys", publish_channels = false }}
+""")
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    links = [m.data for m in log.decoded("communications.link")]
+    thr = [m.data for m in log.decoded("communications.throughput")]
+    assert [t["UE_Id"] for t in thr] == ["uav1", "uav2"] * 3
+    slots = round(0.1 / 0.000125)  # 120 kHz: 0.125 ms slots
+    for link, t in zip(links, thr, strict=True):
+        assert link["link_model"] == "sys" and 0 <= link["mcs"] <= 28 and link["harq_ack"] + link["harq_nack"] >= 0
+        bits = t["throughput"] * 1e6 * 0.1
+        bound = link["prbs"] * 12 * DATA_SYMBOLS_PER_SLOT * math.log2(1 + 10 ** (link["snr_db"] / 10))
+        assert bits <= bound + 1e-6, (link, t)
+    # The two share the cell's PRB-slots: 27 PRBs (40 MHz at 120 kHz) x 800 slots per step.
+    for step in range(3):
+        assert sum(link["prbs"] for link in links[2 * step:2 * step + 2]) == 27 * slots
+    bad = tmp_path / "bad.toml"
+    bad.write_text(cfg.read_text().replace('link_model = "sys"', 'link_model = "sys", protocol = "paper"'))
+    assert _core.main(["caviar-core", "validate", str(bad)]) == 2

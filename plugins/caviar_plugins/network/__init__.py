@@ -4,5 +4,5 @@ scheduling, outer-loop link adaptation, PHY abstraction on NR BLER tables).
 
 The plugin is ``radio-network`` (:mod:`caviar_plugins.network.plugin`); its pieces are
 plain modules usable alone: :mod:`~caviar_plugins.network.cells`,
-:mod:`~caviar_plugins.network.handover`, :mod:`~caviar_plugins.network.sys_layer`.
+:mod:`~caviar_plugins.network.handover`, :mod:`~caviar_plugins.radio.link_level`.
 """

@@ -29,7 +29,7 @@ from caviar_plugins.network.cells import Cell, line_of_sight_gain_db, parse_site
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, save
 from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
-from caviar_plugins.network.sys_layer import LinkLevel, LinkSettings
+from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.schema import (
     ARRIVED,
     NETWORK_CELLS,
@@ -51,8 +51,6 @@ NR_PRBS = {
            100: 135, 200: 264},
     120e3: {50: 32, 100: 66, 200: 132, 400: 264},
 }
-# NR frequency ranges, where the BLER tables (NR LDPC, NR MCS tables) apply.
-NR_RANGES_HZ = ((410e6, 7.125e9), (24.25e9, 71e9))
 INTERFERENCE = ("full-buffer", "scheduled")
 CHANNELS = ("free-space", "ray-traced")
 
@@ -84,7 +82,7 @@ class RadioNetwork(caviar.Plugin):
         mcs_table: int = 1
         harq_processes: int = 1
         """Slots computed together, one per HARQ process (see
-        :class:`~caviar_plugins.network.sys_layer.LinkSettings`): 8 is about 5x faster."""
+        :class:`~caviar_plugins.radio.link_level.LinkSettings`): 8 is about 5x faster."""
         handover: dict = dataclasses.field(default_factory=dict)
         antenna_height_m: float = 1.5
         """A UE's antenna above the position it reports (SUMO reports the street)."""
@@ -103,10 +101,8 @@ class RadioNetwork(caviar.Plugin):
         def __post_init__(self):
             self.cells: list[Cell] = parse_sites(self.sites, dataclasses.asdict(self))
             for i, c in enumerate(self.cells):
-                if not any(lo <= c.carrier_hz <= hi for lo, hi in NR_RANGES_HZ):
-                    key = "carrier_hz" if c.carrier_hz == self.carrier_hz else f"sites.{i}.carrier_hz"
-                    raise ValueError(f"{key}: {c.carrier_hz:g} Hz is outside the NR bands the BLER tables are "
-                                     f"for (FR1 0.41-7.125 GHz, FR2 24.25-71 GHz)")
+                check_nr_carrier(c.carrier_hz, "carrier_hz" if c.carrier_hz == self.carrier_hz
+                                 else f"sites.{i}.carrier_hz")
             if self.interference not in INTERFERENCE:
                 raise ValueError(f"interference: expected one of {list(INTERFERENCE)}, got {self.interference!r}")
             if self.num_prb is None:

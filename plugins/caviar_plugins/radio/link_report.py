@@ -32,19 +32,21 @@ def line_of_sight_paths(tau_s: np.ndarray, valid: np.ndarray, direct_m: np.ndarr
 
 def link_messages(ue_type: str, ue: str, link: Any, pair: int | None, n_pairs: int,
                   mbps: Callable[[float], float], snr: Callable[[float], float], publish_channels: bool,
-                  extra: Mapping[str, Any] | None = None) -> Iterator[tuple[str, Any]]:
+                  extra: Mapping[str, Any] | None = None,
+                  throughput_mbps: float | None = None) -> Iterator[tuple[str, Any]]:
     """The messages of one UE's link (a :class:`~caviar_plugins.radio.scene.Link`): its
     throughput (the paper's schema), ``communications.link`` (its fields, then ``extra``)
     and, with ``publish_channels``, H and the beam-pair gains. ``pair``: the beam pair the
     AI module selected, None for the link's best; ``mbps`` and ``snr`` turn a beam-pair
-    gain into Mbit/s and a linear SNR."""
+    gain into Mbit/s and a linear SNR. ``throughput_mbps``: the UE's throughput when a
+    link level computed it (instead of ``mbps`` of the used pair)."""
     selected = pair is not None
     if pair is None:
         pair = link.best_pair
     if not 0 <= pair < n_pairs:
         raise ValueError(f"beam pair {pair} for {ue} is outside 0..{n_pairs - 1}")
     gain = float(link.gains.flat[pair])
-    yield THROUGHPUT, throughput_payload(ue_type, ue, mbps(gain))
+    yield THROUGHPUT, throughput_payload(ue_type, ue, mbps(gain) if throughput_mbps is None else throughput_mbps)
     payload = {
         "UE_type": ue_type, "UE_Id": ue, "los": link.los, "n_paths": link.n_paths,
         "best_pair": link.best_pair, "pair": pair, "selected": selected,

@@ -22,6 +22,7 @@ import numpy as np
 import caviar
 from caviar_plugins import protocol as paper
 from caviar_plugins.radio.link_budget import LinkBudget
+from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.radio.link_report import LINK_TOPICS, link_messages
 from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene
 from caviar_plugins.schema import BEAM_SELECTION, FORECAST, POSITIONS, STATE, read_position
@@ -51,9 +52,30 @@ class SionnaLinkParams(RadioConfig):
     """Forecast positions traced per UE and solve (receivers per solve: UEs × (1 + this))."""
     cache_tolerance_m: float = 0.01
     """A position within this distance of a traced one reuses its channel."""
+    link_model: str = "shannon"
+    """``shannon``: each UE gets B·log2(1 + SNR) of its used beam pair (the paper's).
+    ``sys``: Sionna SYS on that SNR (:mod:`caviar_plugins.radio.link_level`): the UEs
+    share the cell's PRBs (proportional fair), outer-loop link adaptation picks the MCS
+    for ``bler_target``, PHY abstraction decodes on the NR PDSCH tables, and the
+    throughput is the decoded bits; ``communications.link`` adds MCS, TBLER and HARQ."""
+    subcarrier_spacing_hz: float = 120e3
+    """``sys``: NR numerology (120 kHz: 0.125 ms slots); ``bandwidth_hz // (12·SCS)`` PRBs."""
+    harq_processes: int = 8
+    """``sys``: slots per Sionna SYS call (see :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
+    bler_target: float = 0.1
 
     def __post_init__(self):
         paper.check_protocol(self.protocol)
+        if self.link_model not in ("shannon", "sys"):
+            raise ValueError(f"link_model: expected 'shannon' or 'sys', got {self.link_model!r}")
+        if self.link_model == "sys":
+            if self.protocol == "paper":
+                raise ValueError("link_model: 'sys' needs protocol = 'physical' (the paper's rate is its own model)")
+            check_nr_carrier(self.frequency_hz, "frequency_hz")
+            self.link_settings = LinkSettings(
+                num_prb=int(self.bandwidth_hz // (12 * self.subcarrier_spacing_hz)),
+                subcarrier_spacing_hz=self.subcarrier_spacing_hz, bler_target=self.bler_target,
+                harq_processes=self.harq_processes)
         if self.protocol == "paper":
             self.spacing = paper.PAPER_SPACING
             self.los = False
@@ -95,6 +117,14 @@ class SionnaLink(caviar.Plugin):
         self.selected: dict[str, int] = {}
         self.forecast: dict[str, list[np.ndarray]] = {}
         self.lookahead = LookaheadTracer(self.radio, p.lookahead_steps, p.cache_tolerance_m) if p.lookahead else None
+        self.link_level = None
+        if p.link_model == "sys":
+            self.link_level = LinkLevel(p.link_settings, n_cell=1, seed=ctx.seed)
+            self.slots = max(1, round(ctx.ts * ctx.every / p.link_settings.slot_s))
+            if self.slots % p.harq_processes:
+                raise caviar.ConfigError(f"a step is {self.slots} slots, not whole groups of harq_processes = "
+                                         f"{p.harq_processes}", "params.harq_processes")
+            self.columns: dict[str, int] = {}
 
     def step(self, t, inbox):
         for m in inbox:
@@ -113,10 +143,30 @@ class SionnaLink(caviar.Plugin):
             self.radio.place(self.positions)
             links = self.radio.solve()
         n_pairs = self.radio.w_rx.shape[1] * self.radio.n_tx_beams
+        decoded = self._decode(links, n_pairs) if self.link_level is not None else {}
         for ue, link in links.items():
+            mbps, extra = decoded.get(ue, (None, None))
             yield from link_messages(self.ue_type[ue], ue, link, self.selected.get(ue), n_pairs, self._mbps,
-                                     self._snr, self.p.publish_channels)
+                                     self._snr, self.p.publish_channels, extra, throughput_mbps=mbps)
         yield STATE, "Ready"
+
+    def _decode(self, links, n_pairs: int) -> dict[str, tuple[float, dict]]:
+        """``sys``: the step's slots through Sionna SYS for every UE on the SNR of its used
+        pair; per UE its throughput (Mbit/s of decoded bits) and link-level details."""
+        for ue in links:
+            self.columns.setdefault(ue, len(self.columns))
+        snr_db = np.full(len(self.columns), np.nan)
+        serving = np.full(len(self.columns), -1)
+        for ue, link in links.items():
+            pair = self.selected.get(ue, link.best_pair)
+            pair = pair if 0 <= pair < n_pairs else link.best_pair  # link_messages reports a bad pair
+            snr_db[self.columns[ue]] = 10 * np.log10(max(self._snr(float(link.gains.flat[pair])), 1e-30))
+            serving[self.columns[ue]] = 0
+        assert self.link_level is not None
+        res = self.link_level.run(np.tile(snr_db, (self.slots, 1)), serving)
+        bps = res.throughput_bps(self.slots, self.p.link_settings.slot_s)
+        return {ue: (round(float(bps[c]) / 1e6, 6), {"link_model": "sys", **res.summary(c)})
+                for ue, c in self.columns.items() if ue in links}
 
     def _snr(self, gain: float) -> float:
         if self.p.protocol == "paper":

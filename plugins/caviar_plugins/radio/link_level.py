@@ -1,4 +1,5 @@
-"""The link level, abstracted: Sionna SYS on the twin's channels, slot by slot.
+"""The link level, abstracted: Sionna SYS on the twin's channels, slot by slot (the
+radio network's cells and sionna-link's `link_model = "sys"` both use it).
 
 Per slot, for every cell at once (one batched call per block):
 
@@ -33,6 +34,15 @@ from typing import Any
 import numpy as np
 
 NUMEROLOGIES = (15e3, 30e3, 60e3, 120e3)
+NR_RANGES_HZ = ((410e6, 7.125e9), (24.25e9, 71e9))
+"""NR frequency ranges (FR1, FR2), where the BLER tables (NR LDPC, NR MCS tables) apply."""
+
+
+def check_nr_carrier(carrier_hz: float, key: str) -> None:
+    """ValueError naming ``key`` for a carrier outside the NR bands."""
+    if not any(lo <= carrier_hz <= hi for lo, hi in NR_RANGES_HZ):
+        raise ValueError(f"{key}: {carrier_hz:g} Hz is outside the NR bands the BLER tables are for "
+                         f"(FR1 0.41-7.125 GHz, FR2 24.25-71 GHz)")
 SCHEDULERS = ("proportional-fair", "round-robin", "max-rate")
 LINK_MODELS = ("sys", "shannon")
 DATA_SYMBOLS_PER_SLOT = 12  # of 14: two for control and reference signals
