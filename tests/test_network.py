@@ -13,6 +13,7 @@ import sionna.sys as sionna_sys  # the network extra, installed by scripts/setup
 
 import caviar
 from caviar import _core
+from caviar_plugins import DATA
 from caviar_plugins.network.cells import (
     BOLTZMANN,
     ELEMENT_GAIN_DBI,
@@ -25,6 +26,7 @@ from caviar_plugins.network.cells import (
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.plugin import jain_index
 from caviar_plugins.radio.link_level import DATA_SYMBOLS_PER_SLOT, LinkLevel, LinkSettings
+from conftest import write_config
 
 C = 299_792_458.0
 DEFAULTS = {"tx_power_dbm": 40.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "array": [1, 1]}
@@ -353,10 +355,6 @@ def test_sionna_link_with_the_sys_link_model(tmp_path):
     """The SAR's communications module with ``link_model = "sys"``: two UAVs share the
     cell; each decodes at most log2(1 + SNR) bits per data resource element it was given,
     with the SNR of its used beam pair, and the paper's throughput schema stays."""
-    from conftest import write_config
-
-    from caviar_plugins import DATA
-
     route = (DATA / "central_park_path0_scene.csv").as_posix()
     cfg = write_config(tmp_path, f"""
 [episode]
