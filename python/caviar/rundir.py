@@ -47,8 +47,11 @@ class RunDir:
         except ValueError as e:
             raise FileNotFoundError(str(e)) from None
 
-    def is_compacted(self, table: str) -> bool:
-        files = self.table_files(table)
+    def is_compacted(self, table: str, files: Sequence[pathlib.Path] | None = None) -> bool:
+        """Whether ``table`` is one compacted file (a run that finished), not parts (a run
+        in progress or killed, read part by part as they come). ``files``: the table's
+        files as :meth:`table_files` just listed them (default: listed now)."""
+        files = self.table_files(table) if files is None else files
         return len(files) == 1 and files[0].name == f"{table}.parquet"
 
     def read(self, table: str, columns: Sequence[str] | None = None,

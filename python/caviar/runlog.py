@@ -124,22 +124,29 @@ class RunLog:
         return out
 
     def module_times(self):
-        """Per module (the core's own row last): steps run, total and mean wall time, CPU
-        time, the largest resident memory of its process after its stage (MiB), mean GPU
-        utilisation (%) and largest GPU memory (MiB; null without an NVIDIA GPU), share of
-        the run. The totals are the core's (``caviar-core inspect`` shows the same)."""
+        """Per module, one row each in order of first appearance, the core's own
+        (``caviar.core``) last: the core's totals, what ``caviar-core inspect`` prints.
+
+        Columns: ``module``; ``steps`` run; ``wall_s`` (total) and ``mean_wall_s`` (per
+        step) wall time; ``cpu_s`` CPU time; ``max_rss_mib`` the largest resident memory
+        of its process after its stage (MiB); ``mean_gpu_util_pct`` mean GPU utilisation
+        (%) and ``max_gpu_mem_mib`` largest GPU memory (MiB), both null without an NVIDIA
+        GPU; ``msgs_in`` and ``msgs_out`` messages delivered to it and published by it;
+        ``share`` of the run's wall time. (The core names some of them differently:
+        ``rss_max_mib``, ``gpu_util_mean_pct``, ``gpu_mem_max_mib``.)"""
         import polars as pl
 
         rows = self.run.module_totals()
         schema = {"module": pl.String, "steps": pl.UInt32, "wall_s": pl.Float64, "cpu_s": pl.Float64,
-                  "rss_max_mib": pl.Float64, "gpu_util_mean_pct": pl.Float64, "gpu_mem_max_mib": pl.Float64}
+                  "rss_max_mib": pl.Float64, "gpu_util_mean_pct": pl.Float64, "gpu_mem_max_mib": pl.Float64,
+                  "msgs_in": pl.UInt64, "msgs_out": pl.UInt64}
         t = pl.DataFrame([{k: r.get(k) for k in schema} for r in rows], schema=schema)
         t = t.rename({"rss_max_mib": "max_rss_mib", "gpu_util_mean_pct": "mean_gpu_util_pct",
                       "gpu_mem_max_mib": "max_gpu_mem_mib"})
         return t.with_columns((pl.col("wall_s") / pl.col("steps")).alias("mean_wall_s"),
                               (pl.col("wall_s") / pl.col("wall_s").sum()).alias("share")).select(
             "module", "steps", "wall_s", "mean_wall_s", "cpu_s", "max_rss_mib", "mean_gpu_util_pct",
-            "max_gpu_mem_mib", "share")
+            "max_gpu_mem_mib", "msgs_in", "msgs_out", "share")
 
     def to_pandas(self, table: str = "messages"):
         """``messages`` or ``timings`` as a pandas DataFrame (needs pandas and pyarrow)."""

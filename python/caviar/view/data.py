@@ -93,7 +93,7 @@ class RunData:
         self.events: list[dict] = []
         self.view: list[dict] = []
         self.timings: dict[str, list] = {}  # module -> [[step, wall_ms], ...]
-        self.frames: dict[str, dict[int, str]] = {}  # topic -> step -> file holding it
+        self.frames: dict[str, dict[int, pathlib.Path]] = {}  # topic -> step -> file holding it
         self.topics: set[str] = set()
         self.version = 0
         self._last_poll = 0.0
@@ -164,7 +164,7 @@ class RunData:
         except FileNotFoundError:
             return  # nothing recorded yet
         columns = MSG_COLUMNS if table == "messages" else None
-        if len(files) == 1 and files[0].name == f"{table}.parquet":
+        if self.run.is_compacted(table, files):
             if self._merged[table]:
                 return
             try:
@@ -174,7 +174,7 @@ class RunData:
                     raise RunDirError(str(e)) from None
                 return  # the recorder may still be writing it
             self._merged[table] = True
-            self._ingest(table, df, files[0].name)
+            self._ingest(table, df, files[0])
             return
         for f in files:
             if f.name in self._parts[table]:
@@ -189,9 +189,9 @@ class RunData:
                     return  # perhaps still being written: parts are read in order, retry later
                 continue
             self._parts[table].add(f.name)
-            self._ingest(table, df, f"{table}/{f.name}")
+            self._ingest(table, df, f)
 
-    def _ingest(self, table: str, df, where: str):
+    def _ingest(self, table: str, df, where: pathlib.Path):
         import polars as pl
 
         if df.is_empty():
@@ -214,7 +214,7 @@ class RunData:
         self._sorted_steps = sorted(self.step_time)
         self.version += 1
 
-    def _ingest_messages(self, df, where: str):
+    def _ingest_messages(self, df, where: pathlib.Path):
         import polars as pl
 
         c = self.contract
@@ -347,8 +347,7 @@ class RunData:
             if not cands:
                 return None
             s = max(cands)
-            where = steps[s]
-        f = self.path / where
+            f = steps[s]
         if not f.is_file():  # the run finished meanwhile: its parts are compacted
             f = self.run.table_files("messages")[0]
         df = pl.scan_parquet(f).filter((pl.col("step") == s) & (pl.col("topic") == topic)).select(
