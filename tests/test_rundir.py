@@ -122,6 +122,62 @@ def test_the_plugins_contract_is_discovered_and_merged():
     assert c.merged(c) == c
 
 
+def test_with_no_contract_registered_the_view_shows_core_topics_only(runs, monkeypatch):
+    """No package registers a contract in group caviar.view: the view still serves the
+    run (steps, timings, the recorded topics' names) but draws nothing of a domain."""
+    import caviar.view.contract as contract_module
+    from caviar.view.server import ViewState
+
+    asked = []
+    monkeypatch.setattr(contract_module, "entry_points", lambda group: asked.append(group) or [])
+    assert registered() == CORE and asked == ["caviar.view"]
+    run, _, _ = runs
+    state = ViewState(run)
+    assert state.data.contract == CORE
+    data = state.data.since(0)
+    assert len(data["steps"]) == 12 and set(data["timings"]) == {"uav", "comm", "monitor", "caviar.core"}
+    assert data["entities"] == {} and data["radio"] == {} and data["frames"] == {} and data["events"] == []
+    info = state.run_info()
+    assert info["contract"] == CORE.for_page() == {
+        "positions": [], "throughput": [], "link": [], "frame_prefixes": [], "event_prefixes": [],
+        "event_topics": ["caviar.episode.end"]}
+    assert info["scene"]["name"] == "" and info["scene"]["xml"] is None  # no default scene, no scene folder
+    assert "3D.mobility.positions" in info["topics"]  # recorded, listed, not drawn
+
+
+def test_the_page_is_sent_the_plugins_contract(runs):
+    from caviar.view.server import ViewState
+
+    run, _, _ = runs
+    c = registered()
+    info = ViewState(run).run_info()
+    assert info["contract"] == c.for_page()
+    assert info["contract"]["positions"] == ["3D.mobility.positions"]
+    assert info["contract"]["frame_prefixes"][0] == "3D.camera."  # camera frames shown first
+    # The scene: the plugins' default, found in the scene folder their contract names.
+    assert info["scene"]["name"] == "central_park" and info["scene"]["origin"].startswith("default")
+    assert pathlib.Path(info["scene"]["xml"]).parent.parent in {pathlib.Path(d) for d in c.scene_dirs}
+    assert info["scene"]["meshes"]
+
+
+def test_the_page_names_no_domain_topic():
+    """The browser page (its sources and the committed bundle) learns every domain topic
+    from the contract in /api/run."""
+    import caviar_plugins.schema as schema
+
+    c = registered()
+    names = {v for k, v in vars(schema).items() if k.isupper() and isinstance(v, str)}
+    names |= set(c.frame_prefixes + c.event_prefixes + c.event_topics + c.positions + c.throughput + c.link)
+    names -= set(CORE.event_topics)
+    assert "3D.camera" in names and "mission." in names
+    pattern = re.compile("|".join(rf"(?<![\w.]){re.escape(n)}(?![\w])" if not n.endswith(".") else
+                                  rf"(?<![\w.]){re.escape(n)}" for n in sorted(names)))
+    files = [*sorted((ROOT / "web" / "src").iterdir()), *sorted((ROOT / "python/caviar/view/static").glob("*.*"))]
+    assert any(f.name == "view.js" for f in files) and any(f.name == "main.js" for f in files)
+    found = [f"{f.relative_to(ROOT)}: {m.group(0)!r}" for f in files for m in pattern.finditer(f.read_text())]
+    assert not found, found
+
+
 def test_the_core_package_names_no_domain_topic():
     """No string in python/caviar's code (docstrings aside) is a topic of the plugins."""
     domain = re.compile(r"^(3D\.|communications\.|mission\.|ai\.|network\.)")

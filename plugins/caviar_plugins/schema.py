@@ -93,6 +93,7 @@ DATASET_RECORD = "dataset.record"
 def _view_contract():
     """What the browser view draws of these topics (registered in group ``caviar.view``)."""
     from caviar.view.contract import ViewContract
+    from caviar_plugins.assets import SCENES
 
     return ViewContract(
         positions=(POSITIONS,), throughput=(THROUGHPUT,), link=(LINK,),
@@ -102,7 +103,7 @@ def _view_contract():
         # The paper's rooftop base station in Central Park: free-space-link's and
         # sionna-link's default tx_position.
         default_transmitters=(("free-space-link", (-154.0, 64.0, 120.0)), ("sionna-link", (-154.0, 64.0, 120.0))),
-        default_scene="central_park")
+        scene_dirs=(str(SCENES),), default_scene="central_park")
 
 
 def __getattr__(name: str):

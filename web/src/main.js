@@ -28,6 +28,7 @@ const S = {
   timings: new Map(),             // module -> {steps, ms}
   frames: new Map(),              // topic -> steps[]
   frameTopic: null,
+  framePrefixes: [],              // frame topic prefixes, most wanted first (contract)
   frameShown: null,
   dirty: true, plotsDirty: true,
   renders: 0, meshesLoaded: 0, meshesTotal: 0,
@@ -440,15 +441,35 @@ function updateFrame(step) {
 // ---------------------------------------------------------------- plots
 const plotBox = $('plots');
 const thrPlot = new LinePlot(plotBox, 'throughput per UE', 'Mbit/s');
-thrPlot.empty = 'no communications.throughput';
 const snrPlot = new LinePlot(plotBox, 'SNR per UE', 'dB');
-snrPlot.empty = 'no SNR recorded (communications.link)';
-const evPlot = new EventPlot(plotBox, 'mission events', '');
-evPlot.empty = 'no mission.* event';
+const evPlot = new EventPlot(plotBox, 'events', '');
 const timePlot = new LinePlot(plotBox, 'wall time per module per step', 'ms');
 timePlot.empty = 'no timings';
 timePlot.robust = true;
 const plots = [thrPlot, snrPlot, evPlot, timePlot];
+
+// Which topics hold what is the plugins' to say (their view contract, in /api/run): the
+// page names no domain topic of its own.
+function applyContract(c) {
+  c = c || {};
+  const list = (xs) => (xs || []).join(', ');
+  const none = (what) => `no ${what} topic declared (no plugin's view contract)`;
+  thrPlot.empty = (c.throughput || []).length ? `no ${list(c.throughput)}` : none('throughput');
+  snrPlot.empty = (c.link || []).length ? `no SNR recorded (${list(c.link)})` : none('link');
+  const ev = [...(c.event_prefixes || []).map((p) => p + '*'), ...(c.event_topics || [])];
+  evPlot.empty = ev.length ? `no event (${ev.join(', ')})` : 'no event';
+  S.framePrefixes = c.frame_prefixes || [];
+  if (!S.frameTopic) {
+    $('framenote').textContent = S.framePrefixes.length
+      ? `no frames recorded (${S.framePrefixes.map((p) => p + '*').join(' / ')})` : none('frame');
+  }
+  for (const p of plots) p.dirty = true;
+}
+
+function frameRank(topic) {
+  const i = S.framePrefixes.findIndex((p) => topic.startsWith(p));
+  return i < 0 ? S.framePrefixes.length : i;
+}
 
 function stepTime(s) {
   const i = lastIndexAtOrBefore(S.steps, s);
@@ -467,7 +488,7 @@ function rebuildSeries() {
   const x0 = S.times.length ? S.times[0] : 0, x1 = S.times.length ? S.times[S.times.length - 1] : 1;
   for (const p of plots) p.setRange(x0, Math.max(x1, x0 + 1e-6));
   if (!S.frameTopic && S.frames.size) {
-    const topics = [...S.frames.keys()].sort((a, b) => (b.startsWith('3D.camera.') - a.startsWith('3D.camera.')) || a.localeCompare(b));
+    const topics = [...S.frames.keys()].sort((a, b) => (frameRank(a) - frameRank(b)) || a.localeCompare(b));
     S.frameTopic = topics[0];
     $('framenote').textContent = S.frameTopic;
   }
@@ -565,6 +586,7 @@ async function start() {
     document.title = `CAVIAR view · ${info.name}`;
     $('runname').textContent = info.name;
     $('runpath').textContent = info.run_dir;
+    applyContract(info.contract);
     setupTx(info.tx);
     if (!info.tx) note('no transmitter position in the config: no Tx, no beams');
     else note(`Tx from ${info.tx.origin}`);

@@ -2,7 +2,7 @@
 
 ``caviar-core view RUN_DIR`` (:func:`caviar.view.cli.main`) serves a page with the
 run's 3D scene (three.js), a timeline to scrub and play the recorded steps, and plots
-(throughput and SNR per UE, mission events, time per module, the camera frame). While
+(throughput and SNR per UE, events, time per module, the camera frame). While
 the run is still going the page follows its newest step (server-sent events, from the
 per-step Parquet parts the recorder writes). ``caviar-core run CONFIG --view`` uses
 :func:`start_server`, which serves from a background thread.
@@ -15,10 +15,12 @@ What is drawn
 =============
 
 The view itself knows only the core's topics. Which topics carry positions, link data,
-frames and events, the default scene and transmitter, are the plugins' to say: each
-package registers a :class:`~caviar.view.contract.ViewContract` in entry-point group
-``caviar.view`` and the view merges them. With ``caviar_plugins`` installed (its
-contract is ``caviar_plugins.schema.VIEW``):
+frames and events, where scenes are, the default scene and transmitter, are the
+plugins' to say: each package registers a :class:`~caviar.view.contract.ViewContract`
+in entry-point group ``caviar.view`` and the view merges them (the page gets the
+topics in ``/api/run``, ``contract``, and labels its plots with them). Without any,
+the view shows the steps, the timings and the ``view.*`` drawings. With
+``caviar_plugins`` installed (its contract is ``caviar_plugins.schema.VIEW``):
 
 * Entities: every ``UE_Id`` on ``3D.mobility.positions`` (payload
   ``{"UE_type", "UE_Id", "position": {"x", "y", "z"}}`` or a list of them; scene

@@ -2,10 +2,11 @@
 
 The generic view knows the core's topics only (``caviar.*``, and ``view.*`` for drawing
 primitives any module may publish). Which topics carry positions, per-UE link data,
-camera frames and events is the plugins' knowledge: a package declares it as a
-:class:`ViewContract` and registers it in the entry-point group ``caviar.view``
-(``caviar_plugins``: ``paper = "caviar_plugins.schema:VIEW"``). The view merges every
-registered contract when it starts.
+camera frames and events, and where the scenes are, is the plugins' knowledge: a
+package declares it as a :class:`ViewContract` and registers it in the entry-point
+group ``caviar.view`` (``caviar_plugins``: ``paper = "caviar_plugins.schema:VIEW"``).
+The view merges every registered contract when it starts and sends the page the
+topics (:meth:`ViewContract.for_page`).
 """
 
 from __future__ import annotations
@@ -38,11 +39,14 @@ class ViewContract:
     default_transmitters: tuple[tuple[str, tuple[float, float, float]], ...] = ()
     """``(plugin, position)``: where a plugin's transmitter is when its module's
     parameters give no ``tx_position``."""
+    scene_dirs: tuple[str, ...] = ()
+    """Folders holding scenes as ``NAME/NAME.xml``: where a scene named by a ``scene``
+    parameter (or :attr:`default_scene`) is looked for."""
     default_scene: str = ""
     """The scene a run shows when no module names one (``scene`` parameter)."""
 
     def merged(self, other: ViewContract) -> ViewContract:
-        """Both contracts' topics (each once, in order); the first default scene."""
+        """Both contracts' entries (each once, in order); the first default scene."""
         fields = {f.name: tuple(dict.fromkeys(getattr(self, f.name) + getattr(other, f.name)))
                   for f in dataclasses.fields(self) if f.name != "default_scene"}
         return ViewContract(**fields, default_scene=self.default_scene or other.default_scene)
@@ -52,6 +56,15 @@ class ViewContract:
 
     def is_frame(self, topic: str) -> bool:
         return topic.startswith(self.frame_prefixes)
+
+    def for_page(self) -> dict[str, list[str]]:
+        """The topics, as the page gets them (``contract`` in ``/api/run``): it labels its
+        plots with them and shows frames of the first prefix first."""
+        return {name: list(getattr(self, name)) for name in PAGE_FIELDS}
+
+
+PAGE_FIELDS = ("positions", "throughput", "link", "frame_prefixes", "event_prefixes", "event_topics")
+"""The fields of a :class:`ViewContract` the page is sent."""
 
 
 CORE = ViewContract(event_topics=("caviar.episode.end",))

@@ -4,7 +4,6 @@ and the transmitter's position."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import pathlib
 import xml.etree.ElementTree as ET
@@ -17,25 +16,11 @@ def _modules(config: dict) -> list[tuple[str, dict]]:
     return [(k, v) for k, v in mods.items() if isinstance(v, dict)] if isinstance(mods, dict) else []
 
 
-def _shipped_scene_dirs() -> list[pathlib.Path]:
-    """``scenes`` folders of the installed ``caviar_plugins`` (found without importing it)."""
-    try:
-        spec = importlib.util.find_spec("caviar_plugins")
-    except (ImportError, ValueError):
-        return []
-    if spec is None or not spec.submodule_search_locations:
-        return []
-    out = []
-    for loc in spec.submodule_search_locations:
-        base = pathlib.Path(loc)
-        out += [p for p in [base / "scenes", *sorted(base.glob("*/scenes"))] if p.is_dir()]
-    return out
-
-
 def find_scene(config: dict, config_dir: pathlib.Path | None, run_dir: pathlib.Path,
                contract: ViewContract = CORE) -> tuple[str, pathlib.Path | None, str]:
     """(name, XML path or None, where the name came from): a module's ``scene``
-    parameter, else the plugins' default scene (their view contract)."""
+    parameter, else the plugins' default scene; a bare name is looked up in the
+    plugins' scene folders (both from their view contract)."""
     name, origin = contract.default_scene, "default (no module sets a 'scene' parameter)"
     for mod, spec in _modules(config):
         params = spec.get("params")
@@ -48,8 +33,8 @@ def find_scene(config: dict, config_dir: pathlib.Path | None, run_dir: pathlib.P
             if p.is_file():
                 return name, p.resolve(), origin
         return name, None, origin
-    for d in _shipped_scene_dirs():
-        p = d / name / f"{name}.xml"
+    for d in contract.scene_dirs:
+        p = pathlib.Path(d) / name / f"{name}.xml"
         if p.is_file():
             return name, p.resolve(), origin
     return name, None, origin

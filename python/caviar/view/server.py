@@ -84,6 +84,7 @@ class ViewState:
                       "meshes": [{"url": f"/mesh/{i}", "id": m["id"], "material": m["material"], "matrix": m["matrix"]}
                                  for i, m in enumerate(sc["meshes"])]},
             "tx": sc["tx"],
+            "contract": self.data.contract.for_page(),
         }
 
 
