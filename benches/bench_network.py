@@ -4,15 +4,20 @@
 Runs of the same virtual time, in one process:
 
 - ``sys only``: the channels are traced once and held; every step runs the
-  measurements, mobility management and the Sionna SYS slots (once slot by slot, the
-  baseline, and once ``--harq-processes`` slots per call);
-- ``with rt``: the same, and every UE's channels are ray traced again every
-  ``--refresh`` seconds of virtual time (all sites in one solve).
+  measurements, mobility management and the Sionna SYS slots: slot by slot on a
+  wideband channel (the baseline), ``--harq-processes`` slots per call on a wideband
+  channel, and the same on ``--subbands`` subbands (frequency-selective: PF per subband,
+  EESM);
+  and the last through ``torch.compile`` (``LinkSettings.compile``);
+- ``with rt``: the last, and every UE's paths are ray traced again every ``--refresh``
+  seconds of virtual time (all sites in one solve), the channel evolving in between as
+  the UEs move (each path's phase at its Doppler shift), evaluated every step.
 
-Writes ``docs/results/network.json`` with T_p/T_v of both, the share of a step the SYS
-layer takes, and the machine. Not a test: it takes minutes.
+Writes ``docs/results/network.json`` with T_p/T_v of each, the split of a step between
+ray tracing, the channel's evolution and the SYS layer, and the machine. Not a test: it
+takes minutes.
 
-    .venv/bin/python benches/bench_network.py [--seconds 2.0] [--refresh 1.0]
+    .venv/bin/python benches/bench_network.py [--seconds 4.0] [--refresh 1.0]
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ import numpy as np
 from bench_perf_steps import machine
 from caviar_plugins.network.cells import parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
-from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
+from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -59,71 +64,99 @@ def ues(rng: np.random.Generator):
     return kinds, pos, vel
 
 
-def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, vel, initial,
-        processes: int) -> dict:
-    link = LinkLevel(LinkSettings(num_prb=NUM_PRB, subcarrier_spacing_hz=SCS, harq_processes=processes),
-                     len(cells), seed=1)
+def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, vel, initial: TracedChannels,
+        processes: int, subbands: int, compiled: bool = False) -> dict:
+    """``refresh`` None: the initial trace's channels held (wideband: the power sum; per
+    subband: at the trace's instant); else traced every ``refresh`` s and evolved."""
+    settings = LinkSettings(num_prb=NUM_PRB, subcarrier_spacing_hz=SCS, harq_processes=processes,
+                            subbands=subbands, compile=compiled)
+    link = LinkLevel(settings, len(cells), seed=1)
+    compile_s = 0.0
+    if compiled:  # compile outside the timed loop (once per process), on a link level of its own
+        a = time.perf_counter()
+        warm = LinkLevel(settings, len(cells), seed=2)
+        for _ in range(2):
+            warm.run(np.zeros((processes, len(pos0), subbands)), np.zeros(len(pos0), dtype=int))
+        compile_s = time.perf_counter() - a
     mm = MobilityManager(HandoverSettings(), [c.name for c in cells])
     slots = round(TS / link.s.slot_s)
-    gains, t_rt, t_sys, last_sinr = initial, 0.0, 0.0, {}
+    freqs, weights = settings.subband_frequencies_hz, settings.subband_prbs
+    channels = initial
+    held = initial.power_sum_db[..., None] if subbands == 1 else initial.gain_db(pos0, freqs)
+    t_rt, t_evolve, t_sys, last_sinr = 0.0, 0.0, 0.0, {}
     steps = round(seconds / TS)
     t0 = time.perf_counter()
     for k in range(steps):
         t = k * TS
         pos = pos0 + vel * t
-        if refresh is not None and k and k % round(refresh / TS) == 0:
-            a = time.perf_counter()
-            gains = tracer.gains_db(pos)
-            t_rt += time.perf_counter() - a
         a = time.perf_counter()
+        if refresh is not None and k and k % round(refresh / TS) == 0:
+            channels = tracer.trace(pos)
+        b = time.perf_counter()
+        gains = held if refresh is None else channels.gain_db(pos, freqs)
+        c = time.perf_counter()
+        t_rt, t_evolve = t_rt + b - a, t_evolve + c - b
         rx = rx_power_dbm(cells, gains)
-        rsrp = rsrp_dbm(cells, rx, [NUM_PRB] * len(cells))
+        wideband = 10 * np.log10(np.average(10 ** (rx / 10), axis=-1, weights=weights))
+        rsrp = rsrp_dbm(cells, wideband, [NUM_PRB] * len(cells))
         for u in range(len(pos)):
             mm.update(t, str(u), list(rsrp[u]), last_sinr.get(u))
         serving = np.array([mm.serving(str(u)) for u in range(len(pos))])
-        sinr = sinr_db(cells, rx, serving, 7.0)
-        link.run(np.tile(sinr, (slots, 1)), serving)
+        sinr = sinr_db(cells, wideband, serving, 7.0)
+        per_subband = sinr_db(cells, rx, serving, 7.0)
+        link.run(np.broadcast_to(per_subband, (slots, *per_subband.shape)), serving)
         last_sinr = {u: float(s) for u, s in enumerate(sinr) if serving[u] >= 0}
-        t_sys += time.perf_counter() - a
+        t_sys += time.perf_counter() - c
     wall = time.perf_counter() - t0
-    return {"harq_processes": processes, "virtual_s": seconds, "wall_s": round(wall, 3),
-            "tp_tv": round(wall / seconds, 3),
-            "rt_s": round(t_rt, 3), "sys_s": round(t_sys, 3), "slots": steps * slots,
+    return {"harq_processes": processes, "subbands": subbands, "compiled": compiled,
+            "compile_s": round(compile_s, 1), "virtual_s": seconds, "wall_s": round(wall, 3),
+            "tp_tv": round(wall / seconds, 3), "rt_s": round(t_rt, 3), "evolve_s": round(t_evolve, 3),
+            "sys_s": round(t_sys, 3), "slots": steps * slots,
             "ms_per_slot": round(1e3 * t_sys / (steps * slots), 3), "covered_ues": int((serving >= 0).sum())}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seconds", type=float, default=2.0, help="virtual seconds per run")
+    ap.add_argument("--seconds", type=float, default=4.0, help="virtual seconds per run")
     ap.add_argument("--refresh", type=float, default=1.0, help="ray-tracing refresh, virtual seconds")
     ap.add_argument("--samples", type=int, default=20000, help="rays per site")
     ap.add_argument("--harq-processes", type=int, default=8, help="slots per call (1: the slot-by-slot baseline)")
+    ap.add_argument("--subbands", type=int, default=8, help="frequencies of the channel (PF per subband, EESM)")
     args = ap.parse_args()
     cells = parse_sites(sites(), {"tx_power_dbm": 43.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6,
                                   "array": [4, 4]})
     kinds, pos0, vel = ues(np.random.default_rng(7))
     tracer = SiteTracer(TraceSettings(scene=str(SCENE), max_depth=2, samples_per_src=args.samples), cells, seed=1)
     a = time.perf_counter()
-    initial = tracer.gains_db(pos0)
+    initial = tracer.trace(pos0)
     first_trace = time.perf_counter() - a
     print(f"first trace (kernel compilation included): {first_trace:.2f} s", flush=True)
-    d = args.harq_processes
-    baseline = run(args.seconds, None, tracer, cells, pos0, vel, initial, 1)
-    print("sys only, slot by slot", baseline, flush=True)
-    sys_only = run(args.seconds, None, tracer, cells, pos0, vel, initial, d)
-    print(f"sys only, {d} HARQ processes per call", sys_only, flush=True)
-    with_rt = run(args.seconds, args.refresh, tracer, cells, pos0, vel, initial, d)
+    d, sub = args.harq_processes, args.subbands
+    baseline = run(args.seconds, None, tracer, cells, pos0, vel, initial, 1, 1)
+    print("sys only, slot by slot, wideband", baseline, flush=True)
+    wideband = run(args.seconds, None, tracer, cells, pos0, vel, initial, d, 1)
+    print(f"sys only, {d} HARQ processes per call, wideband", wideband, flush=True)
+    eager = run(args.seconds, None, tracer, cells, pos0, vel, initial, d, sub)
+    print(f"sys only, {d} HARQ processes per call, {sub} subbands", eager, flush=True)
+    sys_only = run(args.seconds, None, tracer, cells, pos0, vel, initial, d, sub, compiled=True)
+    print(f"sys only, {d} HARQ processes per call, {sub} subbands, compiled", sys_only, flush=True)
+    with_rt = run(args.seconds, args.refresh, tracer, cells, pos0, vel, initial, d, sub, compiled=True)
     print("with rt", with_rt, flush=True)
     result = {
         "cells": len(cells), "ues": len(pos0), "ue_types": {k: kinds.count(k) for k in sorted(set(kinds))},
         "slot_s": 1e-3 * 15e3 / SCS, "step_s": TS, "rt_refresh_s": args.refresh, "samples_per_src": args.samples,
-        "harq_processes": d, "tp_tv_sys_only": sys_only["tp_tv"], "tp_tv_with_rt": with_rt["tp_tv"],
-        "tp_tv_sys_only_slot_by_slot": baseline["tp_tv"],
-        "speedup_of_harq_batching": round(baseline["wall_s"] / sys_only["wall_s"], 2),
+        "harq_processes": d, "subbands": sub, "tp_tv_sys_only": sys_only["tp_tv"], "tp_tv_with_rt": with_rt["tp_tv"],
+        "tp_tv_sys_only_slot_by_slot": baseline["tp_tv"], "tp_tv_sys_only_wideband": wideband["tp_tv"],
+        "speedup_of_harq_batching": round(baseline["wall_s"] / wideband["wall_s"], 2),
+        "cost_of_subbands": round(eager["wall_s"] / wideband["wall_s"], 2),
+        "speedup_of_torch_compile": round(eager["wall_s"] / sys_only["wall_s"], 2),
         "sys_share_of_step": round(with_rt["sys_s"] / with_rt["wall_s"], 3),
         "rt_share_of_step": round(with_rt["rt_s"] / with_rt["wall_s"], 3),
+        "evolve_share_of_step": round(with_rt["evolve_s"] / with_rt["wall_s"], 3),
         "targets": {"tp_tv_sys_only": 1.0, "tp_tv_with_rt": 3.0},
-        "runs": {"sys_only_slot_by_slot": baseline, "sys_only": sys_only, "with_rt": with_rt},
+        "runs": {"sys_only_slot_by_slot": baseline, "sys_only_wideband": wideband, "sys_only_eager": eager,
+                 "sys_only": sys_only,
+                 "with_rt": with_rt},
         "first_trace_s": round(first_trace, 2),
         "machine": machine(),
     }

@@ -3,6 +3,7 @@ Sionna SYS link level, each checked against an independent computation."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import pathlib
@@ -151,6 +152,29 @@ def test_outer_loop_link_adaptation_reaches_its_bler_target(processes):
         res = ll.run(sinr, np.array([0]))
         assert res.acks[0] + res.nacks[0] == slots
         assert res.bler(0) == pytest.approx(target, abs=0.02), (target, processes, res.bler(0))
+
+
+def test_the_compiled_link_level_decides_as_eager_and_reaches_the_bler_target():
+    """``compile = true`` (torch.compile): on the same frequency-selective SINRs the first
+    call's MCS, effective SINR, TBLER and PRBs are eager's exactly; the HARQ outcomes come
+    from another random stream, and the outer loop still brings the BLER to its target."""
+    rng = np.random.default_rng(6)
+    d, sub = 8, 4
+    sinr = 14.0 + rng.normal(0.0, 3.0, size=(d, 3, sub))
+    serving = np.zeros(3, dtype=int)
+    settings = LinkSettings(num_prb=51, harq_processes=d, subbands=sub)
+    eager = LinkLevel(settings, n_cell=1, seed=11).run(sinr, serving)
+    compiled_ll = LinkLevel(dataclasses.replace(settings, compile=True), n_cell=1, seed=11)
+    compiled = compiled_ll.run(sinr, serving)
+    np.testing.assert_array_equal(compiled.mcs, eager.mcs)
+    np.testing.assert_array_equal(compiled.prbs, eager.prbs)
+    np.testing.assert_allclose(compiled.sinr_eff_db, eager.sinr_eff_db, atol=1e-4)
+    np.testing.assert_allclose(compiled.tbler, eager.tbler, atol=1e-5)
+    slots = 8000  # each of the 8 processes' loops sees 1000
+    res = compiled_ll.run(12.0 + rng.normal(0.0, 1.0, size=(slots, 3, sub)), serving)
+    assert (res.acks + res.nacks).sum() >= slots  # someone is served in every slot
+    bler = res.nacks.sum() / (res.acks + res.nacks).sum()
+    assert bler == pytest.approx(0.1, abs=0.02), bler
 
 
 def test_harq_processes_give_the_same_throughput_faster_in_calls():
@@ -325,6 +349,155 @@ def test_ray_traced_gains_equal_friis_and_the_pattern_in_free_space():
                                atol=1e-3)
 
 
+def _canyon_tracer(max_depth: int = 2):
+    """One sector at the west end of Sionna's simple street canyon, looking down the street."""
+    import sionna.rt as rt
+
+    from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
+
+    cells = parse_sites([{"name": "W", "position": [-80.0, 0.0, 10.0], "azimuths_deg": [0.0]}], DEFAULTS)
+    return cells, SiteTracer(TraceSettings(scene=rt.scene.simple_street_canyon, max_depth=max_depth,
+                                           samples_per_src=20_000), cells, seed=2)
+
+
+def test_traced_doppler_is_v_cos_theta_over_lambda_for_the_direct_and_the_floor_path():
+    """The traced paths' Doppler shifts (from their directions of arrival) against
+    f_D = v·û/λ along the direct path and along the floor reflection (û toward the
+    transmitter's image below the floor): an independent computation with the speed of
+    light, as is each path's delay."""
+    cells, tracer = _canyon_tracer(max_depth=1)
+    ue, v = np.array([0.0, 2.0, 1.5]), np.array([10.0, 3.0, 0.0])
+    ch = tracer.trace(ue[None])
+    doppler = ch.doppler_hz(v[None])
+    lam = C / 3.5e9
+    tx = np.array(cells[0].position)
+    floor_z = float(tracer.scene.objects["floor"].mi_mesh.bbox().min[2])
+    for source in (tx, np.array([tx[0], tx[1], 2 * floor_z - tx[2]])):
+        d = source - ue
+        k = int(np.argmin(np.abs(ch.delay_s[0, 0] - np.linalg.norm(d) / C)))
+        assert ch.delay_s[0, 0, k] == pytest.approx(np.linalg.norm(d) / C, rel=1e-5)
+        assert doppler[0, 0, k] == pytest.approx(v @ d / np.linalg.norm(d) / lam, rel=1e-4)
+    assert np.abs(ch.doppler_hz(np.zeros((1, 3)))).max() == 0.0  # at rest: no shift
+
+
+def test_the_channel_between_traces_evolves_as_a_new_trace_sees_it():
+    """Between two traces every path's phase turns with its Doppler shift. A UE moving at
+    10 m/s down a street canyon (many paths, a fading channel): the channel evolved for
+    t seconds agrees, subband by subband, with a fresh trace at the moved position (within
+    5 % of the band's mean power while it moves up to 1.2 wavelengths), where a frozen channel is
+    off by more than half of it."""
+    _, tracer = _canyon_tracer()
+    ue, v = np.array([[0.0, 2.0, 1.5]]), np.array([[10.0, 0.0, 0.0]])
+    ch = tracer.trace(ue)
+    assert (np.abs(ch.amplitude[0, 0]) > 0).sum() >= 8
+    f = LinkSettings(num_prb=106, subcarrier_spacing_hz=15e3, subbands=8).subband_frequencies_hz
+    held = 10 ** (ch.gain_db(ue, f)[0, 0] / 10)
+    assert 10 * np.log10(held.max() / held.min()) > 3.0  # frequency-selective: the paths' delays differ
+    frozen_error = 0.0
+    for t in (0.002, 0.005, 0.01):
+        evolved = 10 ** (ch.gain_db(ue + v * t, f)[0, 0] / 10)
+        fresh = 10 ** (tracer.trace(ue + v * t).gain_db(ue + v * t, f)[0, 0] / 10)
+        # Errors relative to the band's mean power (a deep fade's dB are not a fair yardstick).
+        assert np.abs(evolved - fresh).max() / fresh.mean() < 0.05, (t, evolved, fresh)
+        frozen_error = max(frozen_error, float(np.abs(held - fresh).max() / fresh.mean()))
+    assert frozen_error > 0.5, frozen_error
+
+
+def test_subbands_with_equal_sinr_give_what_one_wideband_resource_gives():
+    """A flat channel in 4 subbands is the wideband channel: the scheduler gives every
+    subband to the same UE, the EESM of equal SINRs is that SINR, and the decoded bits,
+    PRBs and HARQ outcomes are the same (same seed)."""
+    sinr = np.tile([6.0, 12.0, 20.0], (200, 1))
+    serving = np.zeros(3, dtype=int)
+    wide = LinkLevel(LinkSettings(num_prb=51), n_cell=1, seed=5).run(sinr, serving)
+    sub = LinkLevel(LinkSettings(num_prb=51, subbands=4), n_cell=1, seed=5).run(
+        np.repeat(sinr[..., None], 4, axis=2), serving)
+    np.testing.assert_array_equal(sub.prbs, wide.prbs)
+    np.testing.assert_array_equal(sub.acks + sub.nacks, wide.acks + wide.nacks)
+    np.testing.assert_allclose(sub.decoded_bits, wide.decoded_bits, rtol=0.05)
+
+
+def test_proportional_fair_per_subband_serves_each_ue_where_its_channel_is_strong():
+    """Two UEs with opposite frequency-selective channels: UE 0 strong in the lower half
+    of the band, UE 1 in the upper half. PF per subband gives each mostly its strong half,
+    beats giving each the whole band in turn (round robin), and no UE decodes more than the
+    Shannon bound of the PRBs it was given."""
+    low, high = 22.0, 2.0
+    sinr = np.array([[low] * 4 + [high] * 4, [high] * 4 + [low] * 4])  # [ue, subband]
+    slots = 400
+    block = np.tile(sinr, (slots, 1, 1))
+    settings = LinkSettings(num_prb=48, subbands=8, harq_processes=4)
+    ll = LinkLevel(settings, n_cell=1, seed=8)
+    torch = ll._torch
+    granted: list = []
+    schedule = ll._schedule
+    ll._schedule = lambda *a: granted.append(schedule(*a)) or granted[-1]  # record the decisions
+    res = ll.run(block, np.zeros(2, dtype=int))
+    g = torch.cat(granted).numpy()[:, 0, :, :2]  # [slot, subband, ue]
+    assert g[:, :4, 0].mean() > 0.8 and g[:, 4:, 1].mean() > 0.8, g.mean(axis=0)
+    # Each UE on the whole band in turn (round robin) on the same channels: the EESM of a
+    # band half in a fade is far below the strong half's SINR.
+    turns = LinkLevel(dataclasses.replace(settings, scheduler="round-robin"), n_cell=1, seed=8).run(
+        block, np.zeros(2, dtype=int))
+    assert res.decoded_bits.sum() > 1.3 * turns.decoded_bits.sum(), (res.decoded_bits, turns.decoded_bits)
+    bound = slots * 12 * DATA_SYMBOLS_PER_SLOT * (settings.subband_prbs * np.log2(1 + 10 ** (sinr / 10))).sum(axis=1)
+    assert (res.decoded_bits <= bound).all()
+
+
+CANYON = """
+[episode]
+ts = 0.02
+duration = 1.0
+seed = 3
+stages = ["mobility", "communications"]
+
+[modules.ues]
+stage = "mobility"
+plugin = "sample_plugins:LineMover"
+[[modules.ues.params.ues]]
+id = "car1"
+start = [-20.0, 2.0, 0.0]
+end = [60.0, 2.0, 0.0]
+speed = 15.0
+
+[modules.net]
+stage = "communications"
+plugin = "radio-network"
+[modules.net.params]
+channel = "ray-traced"
+subcarrier_spacing_hz = 30e3
+harq_processes = 8
+subbands = 8
+raytracing = { scene = "SCENE", max_depth = 2, samples_per_src = 20000, refresh_s = 0.5 }
+[[modules.net.params.sites]]
+name = "west"
+position = [-80.0, 0.0, 10.0]
+azimuths_deg = [0.0]
+"""
+
+
+@pytest.mark.filterwarnings("ignore::caviar.simulation.WiringWarning")  # outputs recorded only
+def test_in_the_loop_the_ray_traced_sinr_fades_between_refreshes(tmp_path):
+    """In a run: the car's SINR changes from step to step between two traces (refresh
+    every 0.5 s, steps of 20 ms, 30 cm) as its paths' phases turn; with evolve = "hold"
+    it is constant between traces."""
+    import sionna.rt as rt
+
+    def sinrs(evolve: str) -> np.ndarray:
+        cfg = tmp_path / f"{evolve}.toml"
+        text = CANYON.replace("SCENE", pathlib.Path(rt.scene.simple_street_canyon).as_posix())
+        cfg.write_text(text.replace("refresh_s = 0.5", f'refresh_s = 0.5, evolve = "{evolve}"'))
+        log = caviar.Simulation.from_toml(cfg, out=tmp_path / evolve).run()
+        ue = [m.data for m in log.decoded("network.ue")]
+        assert len(ue) == 50 and all(u["serving_cell"] == "west/0" for u in ue)
+        return np.array([u["sinr_db"] for u in ue])
+
+    held, evolved = sinrs("hold"), sinrs("doppler")
+    # Steps 0-24 share the trace of step 0.
+    assert np.ptp(held[:25]) == 0.0
+    assert np.ptp(evolved[:25]) > 1.0 and len(np.unique(evolved[:25])) > 20
+
+
 def test_the_radio_map_matches_friis_and_the_pattern_and_picks_the_facing_sector(tmp_path):
     """Sionna's radio-map solver with its tr38901 element, in free space: the path gain
     of each of a site's three sectors equals Friis times the sector pattern computed here
@@ -347,7 +520,8 @@ def test_the_radio_map_matches_friis_and_the_pattern_and_picks_the_facing_sector
     assert (res["best"] == facing)[away & off_border].mean() > 0.99
     # One site's sectors interfere with each other: the SINR is highest on boresight.
     assert np.nanmax(res["sinr_db"]) > 10.0 and np.all(np.isfinite(res["sinr_db"][away]))
-    npz, png = save(res, cells, tmp_path)
+    npz, png, layer = save(res, cells, tmp_path)
+    assert layer.name == "radio-map-layer.png"
     assert list(np.load(npz)["cells"]) == ["A/0", "A/1", "A/2"] and png.stat().st_size > 10_000
 
 

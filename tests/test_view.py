@@ -9,6 +9,7 @@ README's screenshot, docs/view-quickstart.png.
 from __future__ import annotations
 
 import http.client
+import io
 import json
 import os
 import pathlib
@@ -17,6 +18,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import urllib.parse
 
 import polars as pl
 import pytest
@@ -304,6 +306,130 @@ def test_run_with_view_serves_the_run_while_it_goes(tmp_path):
         assert any(0 < n < 40 for n in seen), seen  # followed the run while it went
     finally:
         p.kill()
+
+
+# ---------------------------------------------------------------------- image layers
+
+LAYER_EXTENT = [-300.0, 0.0, -50.0, 150.0]  # ImageLayer's: 3 rows of 200/3 m, 2 columns of 150 m
+LAYER_Z = 200.0
+
+
+@pytest.fixture(scope="module")
+def layer_run(tmp_path_factory):
+    """A run whose module writes PNGs into the run directory and draws one of them as a
+    view.* image layer at step 0; at step 1 it names files the server must refuse."""
+    base = tmp_path_factory.mktemp("layers")
+    outside = base / "outside.png"
+    outside.write_bytes(b"\x89PNG\r\n\x1a\n outside the run directory")
+    out = base / "run"
+    others = ["../outside.png", str(outside), "escape.png", "inside-link.png", "fake.png", "notes.txt",
+              "./layer.png", "sub/../layer.png", "missing.png"]
+    cfg = base / "layers.toml"
+    cfg.write_text(textwrap.dedent(f"""
+        [episode]
+        ts = 0.5
+        steps = 3
+        seed = 1
+        stages = ["mobility"]
+        [modules.layer]
+        stage = "mobility"
+        plugin = "sample_plugins:ImageLayer"
+        params = {{ extent = {LAYER_EXTENT}, z = {LAYER_Z}, others = {json.dumps(others)} }}
+    """))
+    p = run_caviar("run", cfg, "--out", out, "-q", stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                   env={**os.environ, "PYTHONPATH": str(ROOT / "tests")})
+    log, _ = p.communicate(timeout=120)
+    assert p.returncode == 0, log
+    (out / "escape.png").symlink_to(outside)  # named, but a link out of the run directory
+    (out / "inside-link.png").symlink_to(out / "layer.png")  # named, a link that stays inside
+    (out / "fake.png").write_text("not a PNG")
+    (out / "notes.txt").write_text("text")
+    return out
+
+
+@pytest.fixture(scope="module")
+def layer_server(layer_run):
+    srv = start_server(layer_run, pending=False)
+    yield srv
+    srv.stop()
+
+
+def layer_url(name):
+    return "/api/layer?file=" + urllib.parse.quote(name, safe="")
+
+
+def test_the_layer_route_serves_the_pngs_view_messages_name(layer_server, layer_run):
+    for name in ("layer.png", "inside-link.png"):
+        c = http.client.HTTPConnection("127.0.0.1", layer_server.port, timeout=5)
+        c.request("GET", layer_url(name))
+        r = c.getresponse()
+        assert (r.status, r.getheader("Content-Type")) == (200, "image/png"), name
+        assert r.read() == (layer_run / "layer.png").read_bytes()
+        c.close()
+    assert request(layer_server, "HEAD", layer_url("layer.png")) == (200, b"")
+
+
+@pytest.mark.parametrize("name", [
+    "unnamed.png",  # a PNG in the run directory that no view.* message names
+    "../outside.png", "escape.png",  # named: out of the run directory, by name and by link
+    "fake.png", "notes.txt",  # named: not a PNG
+    "./layer.png", "sub/../layer.png",  # named, but not as a plain relative path
+    "missing.png", "config.toml", "run.json", "", "layer.PNG", "/layer.png", "layer.png\x00",
+    "messages.parquet", "%2e%2e/outside.png",
+])
+def test_the_layer_route_refuses_everything_else(layer_server, layer_run, name):
+    status, body = request(layer_server, "GET", layer_url(name))
+    assert status == 404 and not body.startswith(b"\x89PNG"), (name, status)
+
+
+def test_the_layer_route_refuses_absolute_paths_even_when_named(layer_server, layer_run):
+    outside = layer_run.parent / "outside.png"
+    assert str(outside) in RunData(layer_run).view_images  # the module named it
+    for name in (str(outside), "/etc/passwd", str(layer_run / "layer.png")):
+        assert request(layer_server, "GET", layer_url(name))[0] == 404, name
+    assert request(layer_server, "GET", "/api/layer?file=../outside.png")[0] == 404
+    assert request(layer_server, "GET", "/api/layer")[0] == 404
+
+
+def test_the_page_draws_image_layers_and_the_box_hides_them(browser, layer_server):
+    """The layer is a plane at its height over its extent, its first row north, its
+    transparent pixels see-through; unchecking "layers" hides it."""
+    image = pytest.importorskip("PIL.Image", reason="pillow (matplotlib's) reads the screenshots")
+    page, errors = open_page(browser, layer_server.url)
+    page.wait_for_function("caviarView.imageLayersLoaded === 1 && caviarView.meshesLoaded === caviarView.meshesTotal",
+                           timeout=20_000)
+    assert page.evaluate("[caviarView.step, caviarView.imageLayers, caviarView.imageLayersShown]") == [0, 1, 1]
+    x0, x1, y0, y1 = LAYER_EXTENT
+    row = (y1 - y0) / 3
+    spots = {name: page.evaluate(f"caviarView.project({(x0 + x1) / 2}, {y1 - (i + 0.5) * row}, {LAYER_Z})")
+             for i, name in enumerate(["red", "blue", "clear"])}
+
+    def pixels():
+        img = image.open(io.BytesIO(page.screenshot())).convert("RGB")
+        return {k: img.getpixel((round(x), round(y))) for k, (x, y) in spots.items()}
+
+    def toggle():
+        r = page.evaluate("caviarView.renders")
+        page.click("#layers")
+        page.wait_for_function(f"caviarView.renders > {r}")  # drawn since
+
+    page.wait_for_timeout(300)  # the frame after the texture came
+    shown = pixels()
+    r, g, b = shown["red"]
+    assert r > 200 and g < 60 and b < 60, shown
+    r, g, b = shown["blue"]
+    assert b > 200 and r < 60 and g < 60, shown
+    toggle()
+    assert page.evaluate("caviarView.imageLayersShown") == 0
+    assert page.evaluate("caviarView.imageLayers") == 1
+    hidden = pixels()
+    assert hidden["red"] != shown["red"] and hidden["blue"] != shown["blue"]
+    assert hidden["clear"] == pytest.approx(shown["clear"], abs=8)  # alpha 0: what is under it shows
+    toggle()
+    assert page.evaluate("caviarView.imageLayersShown") == 1
+    assert pixels()["red"] == shown["red"]
+    assert not errors
+    page.close()
 
 
 # ---------------------------------------------------------------------- safety

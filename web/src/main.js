@@ -1,5 +1,5 @@
 // CAVIAR view: the run's scene in 3D, a timeline, and plots. Talks only to the server
-// that served it (same origin): /api/run, /api/data, /api/events (SSE), /api/frame, /mesh/N.
+// that served it (same origin): /api/run, /api/data, /api/events (SSE), /api/frame, /api/layer, /mesh/N.
 import * as THREE from 'three';
 import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
 import { PLYLoader } from 'three/examples/jsm/loaders/PLYLoader.js';
@@ -34,6 +34,7 @@ const S = {
   renders: 0, meshesLoaded: 0, meshesTotal: 0,
   loadedAt: null, ready: false, error: null,
   drawnBeams: [], drawnView: 0,
+  drawnLayers: 0, layersLoaded: 0, layerBox: null, // image layers of view.* messages (ground overlays)
   ms: { step: null, plots: null, render: null }, // moving averages of the frame's parts
 };
 
@@ -70,6 +71,7 @@ const world = new THREE.Group(); scene.add(world);
 const trails = new THREE.Group(); scene.add(trails);
 const beams = new THREE.Group(); scene.add(beams);
 const viewGroup = new THREE.Group(); scene.add(viewGroup);
+const layerGroup = new THREE.Group(); scene.add(layerGroup); // view.* images: shown or hidden together
 
 function resize() {
   const w = container.clientWidth, h = container.clientHeight;
@@ -231,10 +233,10 @@ function loadScene(info) {
 }
 
 function reframe() {
-  // the entities' paths and the Tx where there are entities, else the whole scene
+  // the entities' paths and the Tx where there are entities, else the whole scene, else the image layers
   if (S.entities.size) frame(new THREE.Box3());
   else if (S.sceneBox && !S.sceneBox.isEmpty()) frame(S.sceneBox.clone());
-  else frame(new THREE.Box3());
+  else frame(S.layerBox ? S.layerBox.clone() : new THREE.Box3());
 }
 
 function frame(box) {
@@ -365,9 +367,11 @@ function drawView(step) {
   if (key === viewKey) return;
   viewKey = key;
   viewGroup.clear();
+  clearLayers();
   let n = 0;
   for (const i of latest.values()) {
     const d = S.view[i].data || {};
+    for (const im of Array.isArray(d.images) ? d.images : []) if (addLayer(im)) n++;
     for (const p of Array.isArray(d.points) ? d.points : []) {
       if (typeof p.x !== 'number' || typeof p.y !== 'number') continue;
       const g = new THREE.BufferGeometry().setAttribute('position', new THREE.Float32BufferAttribute([p.x, p.y, p.z || 0], 3));
@@ -388,6 +392,54 @@ function drawView(step) {
     }
   }
   S.drawnView = n;
+  S.drawnLayers = layerGroup.children.filter((o) => o.isMesh).length;
+}
+
+// Image layers: a PNG of the run directory (served by /api/layer only if a view.* message
+// names it) on a horizontal plane at height z over extent [x0, x1, y0, y1]; its first row
+// is the north edge (y1). One pixel per texel, no smoothing: a map's cells stay cells.
+const layerTextures = new Map(); // file -> texture (loaded once)
+function layerTexture(file) {
+  let tex = layerTextures.get(file);
+  if (!tex) {
+    tex = new THREE.TextureLoader().load(`/api/layer?file=${encodeURIComponent(file)}`,
+      () => { S.layersLoaded++; S.dirty = true; },
+      undefined, () => note(`image layer ${file} could not be loaded`));
+    tex.colorSpace = THREE.SRGBColorSpace;
+    tex.magFilter = THREE.NearestFilter;
+    tex.minFilter = THREE.LinearFilter;
+    tex.generateMipmaps = false;
+    layerTextures.set(file, tex);
+  }
+  return tex;
+}
+
+function addLayer(im) {
+  const ex = im && im.extent;
+  if (typeof im?.file !== 'string' || !/\.png$/i.test(im.file) || !Array.isArray(ex) || ex.length !== 4
+      || !ex.every(Number.isFinite)) return false;
+  const [x0, x1, y0, y1] = ex;
+  if (!(x1 > x0 && y1 > y0)) return false;
+  const z = Number.isFinite(im.z) ? im.z : 0;
+  const opacity = Number.isFinite(im.opacity) ? Math.min(1, Math.max(0, im.opacity)) : 0.6;
+  const mat = new THREE.MeshBasicMaterial({ map: layerTexture(im.file), transparent: true, opacity, side: THREE.DoubleSide, depthWrite: false });
+  const plane = new THREE.Mesh(new THREE.PlaneGeometry(x1 - x0, y1 - y0), mat); // in xy: horizontal, +y is the image's top
+  plane.position.set((x0 + x1) / 2, (y0 + y1) / 2, z);
+  plane.renderOrder = 1;
+  layerGroup.add(plane);
+  S.layerBox = (S.layerBox || new THREE.Box3()).union(new THREE.Box3(new THREE.Vector3(x0, y0, z), new THREE.Vector3(x1, y1, z)));
+  if (im.label) { const l = labelSprite(String(im.label)); l.position.set(x0, y1, z); layerGroup.add(l); }
+  return true;
+}
+
+function clearLayers() {
+  for (const o of layerGroup.children) {
+    o.geometry?.dispose();
+    if (o.isSprite) o.material.map?.dispose();
+    o.material?.dispose(); // layer textures stay cached
+  }
+  layerGroup.clear();
+  S.layerBox = null;
 }
 
 function safeCss(c) { return typeof c === 'string' && /^#[0-9a-fA-F]{3,8}$/.test(c) ? c : '#ffeb3b'; }
@@ -515,6 +567,7 @@ $('play').addEventListener('click', () => {
   syncPlay();
 });
 $('speed').addEventListener('change', (ev) => { S.speed = +ev.target.value; });
+$('layers').addEventListener('change', (ev) => { layerGroup.visible = ev.target.checked; S.dirty = true; });
 $('follow').addEventListener('change', (ev) => { S.follow = ev.target.checked; if (S.follow) { S.playing = false; syncPlay(); setIndex(S.steps.length - 1); } });
 function syncPlay() { $('play').textContent = S.playing ? '❚❚ pause' : '▶ play'; }
 window.addEventListener('keydown', (ev) => {
@@ -643,6 +696,16 @@ window.caviarView = Object.freeze({
   },
   get beams() { return S.drawnBeams.map((b) => ({ ...b })); },
   get viewPrimitives() { return S.drawnView; },
+  get imageLayers() { return S.drawnLayers; },
+  get imageLayersShown() { return layerGroup.visible ? S.drawnLayers : 0; },
+  get imageLayersLoaded() { return S.layersLoaded; },
+  // where the scene point (x, y, z) is on the page (CSS pixels), as last rendered
+  project(x, y, z) {
+    camera.updateMatrixWorld();
+    const v = new THREE.Vector3(x, y, z).project(camera);
+    const r = renderer.domElement.getBoundingClientRect();
+    return [r.left + (v.x + 1) / 2 * r.width, r.top + (1 - v.y) / 2 * r.height];
+  },
   get meshesLoaded() { return S.meshesLoaded; },
   get meshesTotal() { return S.meshesTotal; },
   get renders() { return S.renders; },

@@ -172,10 +172,12 @@ def noise_dbm(bandwidth_hz: np.ndarray | float, noise_figure_db: float) -> np.nd
 
 
 def rx_power_dbm(cells: Sequence[Cell], channel_gain_db: np.ndarray) -> np.ndarray:
-    """Received power (dBm) from every cell at every UE, [n_ue, n_cell], from the channel
-    gains (path gain and sector pattern, [n_ue, n_cell]) and the cells' power and array."""
-    tx = np.array([c.tx_power_dbm + c.array_gain_db for c in cells])[None, :]
-    return tx + channel_gain_db
+    """Received power (dBm) from every cell at every UE, [n_ue, n_cell, ...], from the
+    channel gains (path gain and sector pattern, [n_ue, n_cell, ...]: wideband or per
+    subband) and the cells' power and array."""
+    gain = np.asarray(channel_gain_db, dtype=float)
+    tx = np.array([c.tx_power_dbm + c.array_gain_db for c in cells])
+    return tx.reshape(1, -1, *(1,) * (gain.ndim - 2)) + gain
 
 
 def rsrp_dbm(cells: Sequence[Cell], rx_dbm: np.ndarray, num_prb: Sequence[int]) -> np.ndarray:
@@ -185,11 +187,14 @@ def rsrp_dbm(cells: Sequence[Cell], rx_dbm: np.ndarray, num_prb: Sequence[int]) 
 
 def sinr_db(cells: Sequence[Cell], rx_dbm: np.ndarray, serving: np.ndarray, noise_figure_db: float,
             load: np.ndarray | None = None) -> np.ndarray:
-    """Wideband SINR (dB) of every UE on its serving cell ``serving[u]`` (index; -1:
-    none, NaN out), the other cells on its carrier interfering with weight
-    ``load[c]`` (default 1: full buffer)."""
-    n_ue, n_cell = rx_dbm.shape
-    out = np.full(n_ue, np.nan)
+    """SINR (dB) of every UE on its serving cell ``serving[u]`` (index; -1: none, NaN
+    out), the other cells on its carrier interfering with weight ``load[c]`` (default 1:
+    full buffer). ``rx_dbm``: [n_ue, n_cell] wideband, or [n_ue, n_cell, ...] per
+    frequency (subband), each entry the power the whole band would get at that gain:
+    the result is [n_ue] or [n_ue, ...]."""
+    rx_dbm = np.asarray(rx_dbm, dtype=float)
+    n_ue, n_cell = rx_dbm.shape[:2]
+    out = np.full((n_ue, *rx_dbm.shape[2:]), np.nan)
     if n_ue == 0:
         return out
     carrier = np.array([c.carrier_hz for c in cells])
@@ -198,12 +203,13 @@ def sinr_db(cells: Sequence[Cell], rx_dbm: np.ndarray, serving: np.ndarray, nois
     rx_mw = 10 ** (rx_dbm / 10)
     # Interferers without their array gain (their beams serve their own UEs).
     load = load / 10 ** (np.array([c.array_gain_db for c in cells]) / 10)
+    extra = (1,) * (rx_dbm.ndim - 2)
     for u in range(n_ue):
         s = int(serving[u])
         if s < 0:
             continue
         co = (carrier == carrier[s]) & (np.arange(n_cell) != s)
-        interference = float((rx_mw[u, co] * load[co]).sum())
+        interference = (rx_mw[u, co] * load[co].reshape(-1, *extra)).sum(axis=0)
         noise = 10 ** (noise_dbm(bandwidth[s], noise_figure_db) / 10)
         out[u] = 10 * np.log10(rx_mw[u, s] / (noise + interference))
     return out

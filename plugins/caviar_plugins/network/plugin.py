@@ -13,7 +13,12 @@ tables; or Shannon). Publishes per step:
 
 The channel (``channel``): free space (Friis with the 3GPP sector pattern) or ray-traced
 (Sionna RT, every site in one solve, the sector patterns applied per path; refreshed every
-``raytracing.refresh_s`` of virtual time and held in between).
+``raytracing.refresh_s`` of virtual time). Between refreshes the ray-traced channel
+evolves: as a UE moves, every path's phase turns by its displacement along the path's
+direction of arrival (at the path's Doppler shift), evaluated at each step on
+``subbands`` frequencies across the band, so the SINR fades in time and frequency and
+the scheduler allocates per subband (``raytracing.evolve = "hold"`` freezes the paths'
+power sum instead).
 """
 
 from __future__ import annotations
@@ -27,8 +32,8 @@ import numpy as np
 import caviar
 from caviar_plugins.network.cells import Cell, line_of_sight_gain_db, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
-from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, save
-from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
+from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, layer_message, save
+from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.schema import (
     ARRIVED,
@@ -38,6 +43,7 @@ from caviar_plugins.schema import (
     NETWORK_UE,
     POSITIONS,
     THROUGHPUT,
+    VIEW_RADIO_MAP,
     read_position,
     throughput_payload,
 )
@@ -63,7 +69,7 @@ def nr_prbs(bandwidth_hz: float, scs_hz: float) -> int | None:
 
 class RadioNetwork(caviar.Plugin):
     subscribe = [POSITIONS, ARRIVED]
-    publishes = (THROUGHPUT, NETWORK_UE, NETWORK_EVENTS, NETWORK_CELLS, NETWORK_RADIO_MAP)
+    publishes = (THROUGHPUT, NETWORK_UE, NETWORK_EVENTS, NETWORK_CELLS, NETWORK_RADIO_MAP, VIEW_RADIO_MAP)
 
     @dataclasses.dataclass
     class Params:
@@ -83,6 +89,14 @@ class RadioNetwork(caviar.Plugin):
         harq_processes: int = 1
         """Slots computed together, one per HARQ process (see
         :class:`~caviar_plugins.radio.link_level.LinkSettings`): 8 is about 5x faster."""
+        compile: bool = False
+        """``torch.compile`` the link level (Sionna SYS): about 3x faster a step, after
+        about 30 s of compilation at the first step (see
+        :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
+        subbands: int = 8
+        """Frequencies at which the ray-traced channel is evaluated, one per group of
+        adjacent PRBs: the scheduler's unit and the EESM's inputs. The free-space channel
+        is flat (one)."""
         handover: dict = dataclasses.field(default_factory=dict)
         antenna_height_m: float = 1.5
         """A UE's antenna above the position it reports (SUMO reports the street)."""
@@ -113,17 +127,19 @@ class RadioNetwork(caviar.Plugin):
             if self.num_prb * 12 * self.subcarrier_spacing_hz > self.bandwidth_hz:
                 raise ValueError(f"num_prb: {self.num_prb} PRBs of {12 * self.subcarrier_spacing_hz:g} Hz do not "
                                  f"fit in bandwidth_hz = {self.bandwidth_hz:g}")
+            if self.channel not in CHANNELS:
+                raise ValueError(f"channel: expected one of {list(CHANNELS)}, got {self.channel!r}")
+            flat = self.channel == "free-space" or self.raytracing.get("evolve") == "hold"
             self.link = LinkSettings(num_prb=self.num_prb, subcarrier_spacing_hz=self.subcarrier_spacing_hz,
                                      bler_target=self.bler_target, mcs_table=self.mcs_table,
                                      scheduler=self.scheduler, link_model=self.link_model,
-                                     harq_processes=self.harq_processes)
+                                     harq_processes=self.harq_processes, subbands=1 if flat else self.subbands,
+                                     compile=self.compile)
             unknown = set(self.handover) - {f.name for f in dataclasses.fields(HandoverSettings)}
             if unknown:
                 raise ValueError(f"handover.{sorted(unknown)[0]}: unknown key, expected one of "
                                  f"{[f.name for f in dataclasses.fields(HandoverSettings)]}")
             self.handover_settings = HandoverSettings(**{k: float(v) for k, v in self.handover.items()})
-            if self.channel not in CHANNELS:
-                raise ValueError(f"channel: expected one of {list(CHANNELS)}, got {self.channel!r}")
             known = {f.name for f in dataclasses.fields(TraceSettings)}
             unknown = set(self.raytracing) - known
             if unknown:
@@ -155,26 +171,42 @@ class RadioNetwork(caviar.Plugin):
         if p.channel == "ray-traced":
             self.tracer = SiteTracer(p.trace_settings, self.cells, seed=ctx.seed, base_dir=ctx.config_dir)
         self.map_files: list = []
+        self.layer: dict | None = None
         if p.map_settings is not None:
             result = best_server_map(self.cells, p.map_settings, p.trace_settings.scene, p.num_prb,
                                      p.noise_figure_db, base_dir=ctx.config_dir, seed=ctx.seed)
             self.map_files = save(result, self.cells, ctx.run_dir)
-        self.traced: dict[str, np.ndarray] = {}  # UE_Id -> gains of the last trace
-        self.traced_at = -np.inf
+            self.layer = layer_message(result, self.map_files[-1].relative_to(ctx.run_dir).as_posix(),
+                                       height_m=p.map_settings.height_m)
+        self.frequencies = p.link.subband_frequencies_hz
+        # One subband: the band's power averaged over 8 frequencies, not one point's fade.
+        self.band_average = len(self.frequencies) == 1
+        if self.band_average:
+            self.frequencies = dataclasses.replace(p.link, subbands=min(8, p.num_prb)).subband_frequencies_hz
+        self.channels: TracedChannels | None = None  # the last trace, rows in self.traced order
+        self.traced: dict[str, int] = {}  # UE_Id -> row of self.channels
+        self.refreshed_at = -np.inf  # the last refresh on the refresh_s schedule
 
     def _channel_gains(self, t: float, ids: list[str], pos: np.ndarray) -> np.ndarray:
         """Channel gains (path and sector pattern, dB) of every cell toward the UEs
-        ``ids`` at ``pos``: [n_ue, n_cell]. Ray-traced gains are refreshed every
-        ``raytracing.refresh_s`` (and when a UE appears) and held in between."""
+        ``ids`` at ``pos``: [n_ue, n_cell, subbands]. Ray-traced paths are refreshed every
+        ``raytracing.refresh_s`` (and when a UE appears) and evolve in between."""
         if self.tracer is None:
-            return line_of_sight_gain_db(self.cells, pos)
-        due = t - self.traced_at >= self.p.trace_settings.refresh_s - 1e-9
-        if due or any(u not in self.traced for u in ids):
-            gains = self.tracer.gains_db(pos)
-            self.traced = dict(zip(ids, gains, strict=True))
+            return line_of_sight_gain_db(self.cells, pos)[..., None]
+        due = t - self.refreshed_at >= self.p.trace_settings.refresh_s - 1e-9
+        if due or any(u not in self.traced for u in ids):  # a new UE is traced (with all) at once
+            self.channels = self.tracer.trace(pos)
+            self.traced = {u: i for i, u in enumerate(ids)}
             if due:
-                self.traced_at = t
-        return np.array([self.traced[u] for u in ids])
+                self.refreshed_at = t
+        assert self.channels is not None
+        ch = self.channels.rows(np.array([self.traced[u] for u in ids]))
+        if self.p.trace_settings.evolve == "hold":
+            return ch.power_sum_db[..., None]
+        gains = ch.gain_db(pos, self.frequencies)
+        if self.band_average:
+            return 10 * np.log10(np.mean(10 ** (gains / 10), axis=-1, keepdims=True))
+        return gains
 
     def _column(self) -> int:
         return self.free.pop(0) if self.free else len(self.ues)
@@ -195,37 +227,45 @@ class RadioNetwork(caviar.Plugin):
             self.ues[ue_id]["position"] = read_position(m.data)
 
     def _measure(self, t: float, ids: list[str]):
-        """Received power and RSRP of every cell at every UE; mobility management on them.
-        Returns (rx dBm, RSRP dBm, serving cell per UE, events)."""
+        """Received power of every cell at every UE (per subband, and wideband) and RSRP;
+        mobility management on them. Returns (rx dBm [ue, cell, subband], wideband rx dBm
+        [ue, cell], RSRP dBm, serving cell per UE, events)."""
         pos = np.array([self.ues[u]["position"] for u in ids]) + [0.0, 0.0, self.p.antenna_height_m]
-        rx = rx_power_dbm(self.cells, self._channel_gains(t, ids, pos))
-        rsrp = rsrp_dbm(self.cells, rx, [self.p.num_prb] * len(self.cells))
+        gains = self._channel_gains(t, ids, pos)
+        rx = rx_power_dbm(self.cells, gains)
+        weights = self.p.link.subband_prbs if gains.shape[-1] > 1 else np.ones(1)
+        wideband = 10 * np.log10(np.average(10 ** (rx / 10), axis=-1, weights=weights))
+        rsrp = rsrp_dbm(self.cells, wideband, [self.p.num_prb] * len(self.cells))
         events = []
         for i, u in enumerate(ids):
             old = self.mm.serving(u)
             events += self.mm.update(t, u, list(rsrp[i]), self.last_sinr.get(u))
             if old >= 0 and self.mm.serving(u) not in (old, -1):
                 self.link.moved(self.ues[u]["column"], self.mm.serving(u))
-        return rx, rsrp, np.array([self.mm.serving(u) for u in ids]), events
+        return rx, wideband, rsrp, np.array([self.mm.serving(u) for u in ids]), events
 
     def step(self, t, inbox):
         while self.map_files:
             yield NETWORK_RADIO_MAP, caviar.Artifact(self.map_files.pop(0))
+        if self.layer is not None:
+            yield VIEW_RADIO_MAP, self.layer
+            self.layer = None
         self._read(inbox)
         if not self.ues:
             return
         ids = list(self.ues)
-        rx, rsrp, serving, events = self._measure(t, ids)
+        rx, wideband, rsrp, serving, events = self._measure(t, ids)
         load = None
         if self.p.interference == "scheduled":
             load = np.isin(np.arange(len(self.cells)), serving).astype(float)
-        sinr = sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)
+        sinr = sinr_db(self.cells, wideband, serving, self.p.noise_figure_db, load)
+        per_subband = sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)  # [ue, subband]
         # The link level works on UE columns (stable across steps).
         cols = np.array([self.ues[u]["column"] for u in ids])
-        sinr_cols = np.full(int(cols.max()) + 1, np.nan)
+        sinr_cols = np.full((int(cols.max()) + 1, per_subband.shape[1]), np.nan)
         serving_cols = np.full(int(cols.max()) + 1, -1)
-        sinr_cols[cols], serving_cols[cols] = sinr, serving
-        res = self.link.run(np.tile(sinr_cols, (self.slots, 1)), serving_cols)
+        sinr_cols[cols], serving_cols[cols] = per_subband, serving
+        res = self.link.run(np.broadcast_to(sinr_cols, (self.slots, *sinr_cols.shape)), serving_cols)
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         for e in events:
             yield NETWORK_EVENTS, e

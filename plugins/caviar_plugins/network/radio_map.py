@@ -6,6 +6,9 @@ pointed at its azimuth and tilted down; one :class:`sionna.rt.RadioMapSolver` ca
 gives every cell's path gain on a horizontal grid at UE height. From it, per grid cell:
 the RSRP of every cell, the best server, and the SINR on it with the other co-channel
 cells interfering (the same :func:`~caviar_plugins.network.cells.sinr_db` the UEs get).
+
+:func:`save` writes it (arrays, a figure, and the SINR as an image layer for the browser
+view); :func:`layer_message` is the ``view.*`` payload that draws that layer.
 """
 
 from __future__ import annotations
@@ -20,6 +23,9 @@ from caviar_plugins.network.cells import Cell, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.radio.scene import configure_drjit, scene_path
 
 NO_SIGNAL_DB = -250.0
+SINR_RANGE_DB = (-10.0, 40.0)
+"""The colour scale of the SINR figure and layer (viridis)."""
+LAYER_FILE = "radio-map-layer.png"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,9 +82,48 @@ def best_server_map(cells: Sequence[Cell], settings: RadioMapSettings, scene: st
             "best": best.reshape(ny, nx), "sinr_db": sinr.reshape(ny, nx)}
 
 
+def sinr_layer(result: dict[str, Any]) -> np.ndarray:
+    """The SINR on the best server as an RGBA image, uint8 [ny, nx, 4]: one pixel per map
+    cell, viridis over :data:`SINR_RANGE_DB`, transparent where no cell serves (NaN); row 0
+    is the northmost ``y`` (an image's top), column 0 the westmost ``x``."""
+    import matplotlib
+    from matplotlib.colors import Normalize
+
+    sinr = np.asarray(result["sinr_db"], dtype=float)
+    rgba = matplotlib.colormaps["viridis"](Normalize(*SINR_RANGE_DB)(sinr), bytes=True)
+    rgba[..., 3] = np.where(np.isfinite(sinr), 255, 0)
+    x, y = result["x"], result["y"]
+    if y[-1] > y[0]:
+        rgba = rgba[::-1]
+    if x[-1] < x[0]:
+        rgba = rgba[:, ::-1]
+    return np.ascontiguousarray(rgba)
+
+
+def map_extent(result: dict[str, Any]) -> tuple[float, float, float, float]:
+    """The area the map's cells cover, ``(x0, x1, y0, y1)``: their centres ± half a cell."""
+    x, y = np.asarray(result["x"], dtype=float), np.asarray(result["y"], dtype=float)
+    steps = [abs(a[-1] - a[0]) / (len(a) - 1) for a in (x, y) if len(a) > 1]
+    if not steps:
+        raise ValueError("radio map: a map of one cell has no cell size")
+    dx = steps[0] if len(x) > 1 else steps[-1]
+    dy = steps[-1] if len(y) > 1 else steps[0]
+    return (float(x.min() - dx / 2), float(x.max() + dx / 2), float(y.min() - dy / 2), float(y.max() + dy / 2))
+
+
+def layer_message(result: dict[str, Any], file: str = LAYER_FILE, *, height_m: float,
+                  opacity: float = 0.6) -> dict[str, Any]:
+    """The ``view.*`` payload that shows :func:`sinr_layer` in the browser view: ``file`` is
+    the layer's path relative to the run directory (where :func:`save` wrote it), drawn at
+    ``height_m`` (the map's, :attr:`RadioMapSettings.height_m`) over :func:`map_extent`."""
+    return {"images": [{"file": file, "extent": [round(v, 3) for v in map_extent(result)], "z": float(height_m),
+                        "opacity": float(opacity), "label": "best-server SINR (dB)"}]}
+
+
 def save(result: dict[str, Any], cells: Sequence[Cell], out: pathlib.Path) -> list[pathlib.Path]:
-    """``radio-map.npz`` (every array, and the cell names) and ``radio-map.png`` (best server,
-    and SINR on it) in ``out``."""
+    """``radio-map.npz`` (every array, and the cell names), ``radio-map.png`` (best server,
+    and SINR on it) and ``radio-map-layer.png`` (:func:`sinr_layer`, for :func:`layer_message`)
+    in ``out``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -87,15 +132,15 @@ def save(result: dict[str, Any], cells: Sequence[Cell], out: pathlib.Path) -> li
     out.mkdir(parents=True, exist_ok=True)
     npz = out / "radio-map.npz"
     np.savez_compressed(npz, cells=np.array([c.name for c in cells]), **result)
-    x, y = result["x"], result["y"]
-    extent = (x[0], x[-1], y[0], y[-1])
+    extent = map_extent(result)  # the cells' edges: imshow puts pixel edges there
     fig, axes = plt.subplots(1, 2, figsize=(13, 5.5))
     best = np.ma.masked_less(result["best"], 0)
     im = axes[0].imshow(best, origin="lower", extent=extent, cmap=plt.get_cmap("tab20", len(cells)),
                         vmin=-0.5, vmax=len(cells) - 0.5, interpolation="nearest")
     axes[0].set_title("best server")
     fig.colorbar(im, ax=axes[0], ticks=range(len(cells))).ax.set_yticklabels([c.name for c in cells])
-    im = axes[1].imshow(result["sinr_db"], origin="lower", extent=extent, cmap="viridis", vmin=-10, vmax=40)
+    im = axes[1].imshow(result["sinr_db"], origin="lower", extent=extent, cmap="viridis", vmin=SINR_RANGE_DB[0],
+                        vmax=SINR_RANGE_DB[1])
     axes[1].set_title("SINR on the best server (dB)")
     fig.colorbar(im, ax=axes[1])
     for ax in axes:
@@ -106,4 +151,6 @@ def save(result: dict[str, Any], cells: Sequence[Cell], out: pathlib.Path) -> li
     png = out / "radio-map.png"
     fig.savefig(png, dpi=90)
     plt.close(fig)
-    return [npz, png]
+    layer = out / LAYER_FILE
+    plt.imsave(layer, sinr_layer(result))
+    return [npz, png, layer]

@@ -11,6 +11,18 @@ pattern at the path's departure direction::
 bandwidth). The pattern is :func:`caviar_plugins.network.cells.element_gain_db`'s, on
 the departure angles instead of the straight line, so the free-space model and this one
 agree where only the direct path exists (tested).
+
+Between two traces the channel is not frozen: :meth:`SiteTracer.trace` keeps every
+path's complex baseband amplitude b_p (the sector's field pattern applied), delay τ_p
+and direction of arrival k̂_p, and :class:`TracedChannels` evolves them as the UE moves
+by d from where it was traced (the scene static, each path a plane wave at the UE)::
+
+    H(cell, ue; f) = Σ_paths b_p · exp(−j2π f τ_p) · exp(j2π (f_c + f) k̂_p·d / c)
+
+at baseband frequencies ``f`` (the subbands' centres): fast fading in space, hence in
+time (at velocity v the phase turns at the Doppler shift f_D = v·k̂_p/λ, Sionna RT's
+``Paths.doppler``), and in frequency (the delay spread), as Sionna RT's ``Paths.cfr``
+computes over time steps, but for any trajectory between two traces.
 """
 
 from __future__ import annotations
@@ -22,10 +34,12 @@ from typing import Sequence
 import numpy as np
 
 from caviar_plugins.network.cells import Cell, pattern_gain_db
+from caviar_plugins.radio.link_budget import SPEED_OF_LIGHT
 from caviar_plugins.radio.scene import configure_drjit, scene_path
 
 NO_PATH_DB = -250.0
 """The gain of a cell no traced path connects to a UE: far below any noise floor."""
+EVOLUTIONS = ("doppler", "hold")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,7 +49,13 @@ class TraceSettings:
     samples_per_src: int = 100_000
     diffraction: bool = True
     refresh_s: float = 1.0
-    """Virtual seconds between two traces; in between the gains are held."""
+    """Virtual seconds between two traces."""
+    evolve: str = "doppler"
+    """Between traces: ``doppler`` (each path's phase turns as the UE moves, at its
+    Doppler shift, see :class:`TracedChannels`) or ``hold`` (the paths' power sum, frozen)."""
+    paths_per_link: int = 16
+    """The strongest paths kept per cell and UE for the evolution (the rest are weaker
+    than the noise of the sum)."""
 
     def __post_init__(self):
         if self.max_depth < 0:
@@ -44,6 +64,46 @@ class TraceSettings:
             raise ValueError(f"raytracing.samples_per_src: expected >= 1, got {self.samples_per_src}")
         if not self.refresh_s > 0:
             raise ValueError(f"raytracing.refresh_s: expected a positive number of seconds, got {self.refresh_s}")
+        if self.evolve not in EVOLUTIONS:
+            raise ValueError(f"raytracing.evolve: expected one of {list(EVOLUTIONS)}, got {self.evolve!r}")
+        if self.paths_per_link < 1:
+            raise ValueError(f"raytracing.paths_per_link: expected >= 1, got {self.paths_per_link}")
+
+
+@dataclasses.dataclass
+class TracedChannels:
+    """The paths of every cell toward every UE of one trace, kept to evolve the channel.
+
+    ``amplitude`` [ue, cell, path] complex baseband coefficients (the sector's field
+    pattern applied; 0: no path), ``delay_s`` [ue, cell, path], ``arrival`` [ue, cell,
+    path, 3] unit vectors from the UE toward where each path arrives from, ``position``
+    [ue, 3] where the UEs were traced, ``carrier_hz``."""
+
+    amplitude: np.ndarray
+    delay_s: np.ndarray
+    arrival: np.ndarray
+    position: np.ndarray
+    carrier_hz: float
+    power_sum_db: np.ndarray
+    """[ue, cell]: every traced path's power summed (dB), the wideband gain with no fading."""
+
+    def doppler_hz(self, velocity: np.ndarray) -> np.ndarray:
+        """[ue, cell, path]: each path's Doppler shift v·k̂/λ for UE velocities [ue, 3] (m/s)."""
+        return np.einsum("ucpk,uk->ucp", self.arrival, velocity) * self.carrier_hz / SPEED_OF_LIGHT
+
+    def gain_db(self, position: np.ndarray, frequencies_hz: np.ndarray) -> np.ndarray:
+        """[ue, cell, freq]: |H|² (dB) with the UEs at ``position`` [ue, 3], at baseband
+        ``frequencies_hz`` (offsets from the carrier)."""
+        f = np.asarray(frequencies_hz, dtype=float)
+        shorter = np.einsum("ucpk,uk->ucp", self.arrival, np.asarray(position) - self.position)  # m
+        phase = 2 * np.pi * ((self.carrier_hz + f) * (shorter / SPEED_OF_LIGHT)[..., None]
+                             - self.delay_s[..., None] * f)
+        h = (self.amplitude[..., None] * np.exp(1j * phase)).sum(axis=-2)
+        return 10 * np.log10(np.maximum(np.abs(h) ** 2, 10 ** (NO_PATH_DB / 10)))
+
+    def rows(self, index: np.ndarray) -> TracedChannels:
+        return TracedChannels(self.amplitude[index], self.delay_s[index], self.arrival[index],
+                              self.position[index], self.carrier_hz, self.power_sum_db[index])
 
 
 class SiteTracer:
@@ -82,29 +142,51 @@ class SiteTracer:
         while len(self.receivers) > n:
             self.scene.remove(self.receivers.pop())
         for name, p in zip(self.receivers, ues, strict=True):
-            self.scene.receivers[name].position = [float(v) for v in p]
+            self.scene.receivers[name].position = [float(x) for x in p]
 
     def gains_db(self, ues: np.ndarray) -> np.ndarray:
         """Path gain (dB) of every cell toward every UE, its sector pattern included:
-        [n_ue, n_cell]; :data:`NO_PATH_DB` where no path reaches. One solve for every site."""
-        n_ue = len(ues)
+        [n_ue, n_cell], the paths' power sum; :data:`NO_PATH_DB` where no path reaches.
+        One solve for every site."""
+        return self.trace(ues).power_sum_db
+
+    def trace(self, ues: np.ndarray) -> TracedChannels:
+        """Every cell's paths toward the UEs at ``ues`` [n_ue, 3], the strongest
+        ``paths_per_link`` per cell and UE. One solve for every site."""
+        n_ue, n_cell, k = len(ues), len(self.cells), self.s.paths_per_link
+        carrier = float(self.scene.frequency[0])
         if n_ue == 0:
-            return np.zeros((0, len(self.cells)))
+            z = np.zeros((0, n_cell, k))
+            return TracedChannels(z.astype(complex), z, np.zeros((0, n_cell, k, 3)), np.zeros((0, 3)), carrier,
+                                  np.zeros((0, n_cell)))
         self._place(ues)
         s = self.s
         paths = self.solver(self.scene, max_depth=s.max_depth, samples_per_src=s.samples_per_src,
                             synthetic_array=True, los=True, specular_reflection=True, diffuse_reflection=False,
                             refraction=False, diffraction=s.diffraction, seed=self.seed)
         a_re, a_im = (np.array(x) for x in paths.a)  # [rx, rx_ant, tx, tx_ant, paths]
-        power = (a_re ** 2 + a_im ** 2)[:, 0, :, 0, :]  # [rx, tx, paths]
-        valid = np.array(paths.valid).reshape(power.shape)
-        theta = np.array(paths.theta_t).reshape(power.shape)  # zenith of departure
-        phi = np.array(paths.phi_t).reshape(power.shape)  # azimuth of departure
-        power = np.where(valid, power, 0.0)
-        out = np.empty((n_ue, len(self.cells)))
-        for k, cell in enumerate(self.cells):
-            site = self.site_of[k]
-            g = 10 ** (pattern_gain_db(cell, np.degrees(theta[:, site]), np.degrees(phi[:, site])) / 10)
-            total = (power[:, site] * g).sum(axis=-1)
-            out[:, k] = 10 * np.log10(np.maximum(total, 10 ** (NO_PATH_DB / 10)))
-        return out
+        a = (a_re + 1j * a_im)[:, 0, :, 0, :]  # [rx, tx, paths]
+        shape = a.shape
+        valid = np.array(paths.valid).reshape(shape)
+        theta = np.degrees(np.array(paths.theta_t).reshape(shape))  # zenith of departure
+        phi = np.degrees(np.array(paths.phi_t).reshape(shape))  # azimuth of departure
+        theta_r, phi_r = (np.array(x).reshape(shape) for x in (paths.theta_r, paths.phi_r))
+        arrival = np.stack([np.sin(theta_r) * np.cos(phi_r), np.sin(theta_r) * np.sin(phi_r), np.cos(theta_r)], -1)
+        tau = np.array(paths.tau).reshape(shape).astype(float)
+        # Sionna's a excludes the carrier's phase: the baseband coefficient is a·exp(-j2π f_c τ).
+        a = np.where(valid, a * np.exp(-2j * np.pi * carrier * tau), 0.0)
+        amp = np.zeros((n_ue, n_cell, k), dtype=complex)
+        delay = np.zeros((n_ue, n_cell, k))
+        toward = np.zeros((n_ue, n_cell, k, 3))
+        total = np.zeros((n_ue, n_cell))
+        kept = min(k, shape[-1])
+        for c, cell in enumerate(self.cells):
+            site = self.site_of[c]
+            b = a[:, site] * 10 ** (pattern_gain_db(cell, theta[:, site], phi[:, site]) / 20)
+            total[:, c] = (np.abs(b) ** 2).sum(axis=-1)
+            keep = np.argsort(-np.abs(b), axis=-1)[:, :kept]
+            amp[:, c, :kept] = np.take_along_axis(b, keep, axis=-1)
+            delay[:, c, :kept] = np.take_along_axis(tau[:, site], keep, axis=-1)
+            toward[:, c, :kept] = np.take_along_axis(arrival[:, site], keep[..., None], axis=1)
+        return TracedChannels(amp, delay, toward, np.array(ues, dtype=float), carrier,
+                              10 * np.log10(np.maximum(total, 10 ** (NO_PATH_DB / 10))))

@@ -16,10 +16,13 @@ Per slot, for every cell at once (one batched call per block):
    HARQ outcome and counts the decoded bits.
 
 A co-simulation step (say 10 ms) runs its slots (say 0.5 ms each) in a loop of such
-calls, on per-slot SINRs the caller provides (``[n_slots, n_ue]``: constant within a
-step for a static channel, evolving with the paths' Doppler otherwise). The Shannon
-link model (``shannon``) shares each cell's time equally among its UEs at
-``B·log2(1 + SINR)`` instead.
+calls, on per-slot SINRs the caller provides: ``[n_slots, n_ue]`` for a wideband
+channel, or ``[n_slots, n_ue, subbands]`` for a frequency-selective one. With subbands
+the scheduler gives each subband (a group of adjacent PRBs) to one UE, the UE reports
+its allocation's SINR averaged in dB (the CQI; the outer loop corrects its bias) and
+the PHY abstraction maps the SINRs of its allocated PRBs to one effective SINR with
+Sionna's EESM (:class:`sionna.sys.EESM`). The Shannon link model (``shannon``) shares
+each cell's time equally among its UEs at ``Σ_subbands B_k·log2(1 + SINR_k)`` instead.
 
 UEs come and go and hand over: each UE has a column in the blocks' state, kept
 across steps; a UE that changes cell starts with a fresh proportional-fair history
@@ -29,6 +32,7 @@ there.
 from __future__ import annotations
 
 import dataclasses
+import sys
 from typing import Any
 
 import numpy as np
@@ -47,6 +51,8 @@ SCHEDULERS = ("proportional-fair", "round-robin", "max-rate")
 LINK_MODELS = ("sys", "shannon")
 DATA_SYMBOLS_PER_SLOT = 12  # of 14: two for control and reference signals
 PDSCH = 1  # Sionna's MCS category of the downlink (0: PUSCH); its BLER tables are PDSCH_table*.json
+COMPILED_CAPACITY = 128
+"""UE columns a compiled link level starts with (growing past them compiles again)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +68,14 @@ class LinkSettings:
     link-adaptation loop and proportional-fair history and learns its last transmission's
     outcome before its next one, D slots later (NR's interleaved HARQ processes). 1 (the
     default): every slot sees the previous one's outcome. Larger D: D times fewer calls."""
+    subbands: int = 1
+    """Groups of adjacent PRBs (as equal as ``num_prb`` allows) with one SINR each, the
+    unit the scheduler allocates: 1 is a wideband (flat) channel."""
+    compile: bool = False
+    """Run link adaptation, EESM and PHY abstraction through ``torch.compile``: about 10x
+    faster per call once compiled (about 30 s, once per process and UE capacity). The
+    same MCS, effective SINR and BLER as eager; the HARQ outcomes are drawn from the
+    compiled kernels' own random stream (deterministic for a seed, not eager's draws)."""
 
     def __post_init__(self):
         if self.num_prb < 1:
@@ -76,6 +90,8 @@ class LinkSettings:
             raise ValueError(f"link_model: expected one of {list(LINK_MODELS)}, got {self.link_model!r}")
         if not 1 <= self.harq_processes <= 16:
             raise ValueError(f"harq_processes: expected 1 to 16 (NR's HARQ processes), got {self.harq_processes}")
+        if not 1 <= self.subbands <= self.num_prb:
+            raise ValueError(f"subbands: expected 1 to num_prb = {self.num_prb}, got {self.subbands}")
         if self.subcarrier_spacing_hz not in NUMEROLOGIES:
             raise ValueError(f"subcarrier_spacing_hz: expected an NR numerology {sorted(NUMEROLOGIES)}, "
                              f"got {self.subcarrier_spacing_hz:g}")
@@ -88,6 +104,17 @@ class LinkSettings:
     @property
     def prb_bandwidth_hz(self) -> float:
         return 12 * self.subcarrier_spacing_hz
+
+    @property
+    def subband_prbs(self) -> np.ndarray:
+        """[subbands]: PRBs in each subband (they differ by at most one)."""
+        return np.array([len(a) for a in np.array_split(np.arange(self.num_prb), self.subbands)])
+
+    @property
+    def subband_frequencies_hz(self) -> np.ndarray:
+        """[subbands]: each subband's centre, as an offset from the carrier (Hz)."""
+        prb_centres = (np.arange(self.num_prb) + 0.5 - self.num_prb / 2) * self.prb_bandwidth_hz
+        return np.array([a.mean() for a in np.array_split(prb_centres, self.subbands)])
 
 
 @dataclasses.dataclass
@@ -138,6 +165,14 @@ class LinkLevel:
             self._sys = sionna.sys
             self._torch = __import__("torch")
             self.phy = sionna.sys.PHYAbstraction()
+            self.eesm = sionna.sys.EESM()
+            self._prb_weights = self._torch.tensor(settings.subband_prbs, dtype=self._torch.float32)
+        self._link = self._adapt_and_decode
+        if settings.compile and settings.link_model == "sys":
+            self._link = self._torch.compile(self._adapt_and_decode, dynamic=False)
+            capacity = max(capacity, COMPILED_CAPACITY)  # each growth compiles again
+            print(f"link level: torch.compile for {capacity} UEs at the first slots (about 30 s, once)",
+                  file=sys.stderr, flush=True)
         self._grow(capacity)
 
     def _grow(self, capacity: int) -> None:
@@ -152,9 +187,9 @@ class LinkLevel:
         d, c = self.s.harq_processes, self.n_cell
         olla = self._sys.OuterLoopLinkAdaptation(self.phy, num_ut=capacity, bler_target=self.s.bler_target,
                                                  batch_size=[d])
-        # The channels are wideband (one SINR per UE and slot): the PF metric is the same on
-        # every PRB, so Sionna's scheduler decides on one resource standing for all of them.
-        pf = self._sys.PFSchedulerSUMIMO(capacity, 1, 1, batch_size=[d, c])
+        # The PF metric is the same on every PRB of a subband, so Sionna's scheduler decides
+        # on one resource per subband, standing for its PRBs.
+        pf = self._sys.PFSchedulerSUMIMO(capacity, self.s.subbands, 1, batch_size=[d, c])
         harq = torch.full((d, capacity), -1, dtype=torch.int32)
         rate_last = torch.zeros(d, c, capacity)
         if old:
@@ -189,31 +224,38 @@ class LinkLevel:
             self.harq[:, u] = -1
 
     def run(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
-        """Runs ``sinr_db.shape[0]`` slots. ``sinr_db``: [n_slots, n_ue] wideband SINR of
-        each UE on its serving cell; ``serving``: [n_ue] cell index (-1: no service)."""
-        n_slots, n_ue = sinr_db.shape
+        """Runs ``sinr_db.shape[0]`` slots. ``sinr_db``: SINR of each UE on its serving
+        cell, [n_slots, n_ue] (wideband) or [n_slots, n_ue, subbands]; ``serving``: [n_ue]
+        cell index (-1: no service)."""
+        sinr_db = np.asarray(sinr_db, dtype=float)
+        if sinr_db.ndim == 2:
+            sinr_db = np.broadcast_to(sinr_db[..., None], (*sinr_db.shape, self.s.subbands))
+        if sinr_db.ndim != 3 or sinr_db.shape[2] != self.s.subbands:
+            raise ValueError(f"sinr_db: expected [n_slots, n_ue] or [n_slots, n_ue, {self.s.subbands}], "
+                             f"got shape {sinr_db.shape}")
+        n_slots, n_ue, _ = sinr_db.shape
         self.ensure(n_ue)
         if self._sys is None:
             return self._shannon(sinr_db, serving)
         return self._sys_slots(sinr_db, serving)
 
     def _shannon(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
-        n_slots, n_ue = sinr_db.shape
-        band = self.s.num_prb * self.s.prb_bandwidth_hz
+        n_slots, n_ue, _ = sinr_db.shape
+        band = self.s.subband_prbs * self.s.prb_bandwidth_hz  # [subbands]
         counts = np.bincount(serving[serving >= 0], minlength=self.n_cell)
         share = np.where(serving >= 0, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
         se = np.log2(1 + 10 ** (np.nan_to_num(sinr_db, nan=-np.inf) / 10))
-        bits = (band * share[None, :] * se * self.s.slot_s).sum(axis=0)
+        bits = ((se * band).sum(axis=2) * share[None, :] * self.s.slot_s).sum(axis=0)
         active = np.zeros((n_slots, self.n_cell), dtype=bool)
         active[:, counts > 0] = True
         zeros = np.zeros(n_ue, dtype=int)
         return SlotResults(bits, np.where(serving >= 0, n_slots, 0), zeros, zeros, zeros,
                            np.full(n_ue, -1), np.full(n_ue, np.nan),
-                           np.nanmean(sinr_db, axis=0) if n_slots else np.full(n_ue, np.nan), active)
+                           np.nanmean(sinr_db, axis=(0, 2)) if n_slots else np.full(n_ue, np.nan), active)
 
     def _sys_slots(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
         torch = self._torch
-        n_slots, n_ue = sinr_db.shape
+        n_slots, n_ue, n_sub = sinr_db.shape
         d, cap, n_cell = self.s.harq_processes, self.capacity, self.n_cell
         if n_slots % d:
             raise ValueError(f"{n_slots} slots are not whole groups of harq_processes = {d}")
@@ -227,21 +269,23 @@ class LinkLevel:
         mcs_last = np.full(n_ue, -1)
         sinr_eff_last = np.full(n_ue, np.nan)
         active = np.zeros((n_slots, n_cell), dtype=bool)
-        lin = np.zeros((d, cap))
+        lin = np.zeros((d, n_sub, cap))
+        served = (serving >= 0)[None, None, :]
         for k in range(0, n_slots, d):
-            lin[:, :n_ue] = np.where(serving >= 0, 10 ** (np.nan_to_num(sinr_db[k:k + d], nan=-300.0) / 10), 0.0)
-            lin_t = torch.tensor(lin, dtype=torch.float32)  # [D, cap]
+            block = np.nan_to_num(sinr_db[k:k + d], nan=-300.0).transpose(0, 2, 1)  # [D, S, n_ue]
+            lin[:, :, :n_ue] = np.where(served, 10 ** (block / 10), 0.0)
+            lin_t = torch.tensor(lin, dtype=torch.float32)  # [D, S, cap]
             # Achievable rate per PRB of each UE in its own cell (bit/s/Hz); 0 elsewhere.
-            rate = torch.log2(1 + lin_t)[:, None, :] * member_t  # [D, C, cap]
-            granted = self._schedule(rate, member, k)  # [D, C, P, cap] bool
-            prbs = granted.sum(dim=(1, 2)).to(torch.int32)  # [D, cap]
+            rate = torch.log2(1 + lin_t)[:, None, :, :] * member_t[None, :, None, :]  # [D, C, S, cap]
+            granted = self._schedule(rate, member, k)  # [D, C, S, cap] bool
+            alloc = granted.any(dim=1)  # [D, S, cap]: a UE is in one cell
+            prbs = (alloc * self._prb_weights[None, :, None]).sum(dim=1).to(torch.int32)  # [D, cap]
             n_re = prbs * re_per_prb
-            # CSI feedback: the slot's SINR as the UE reports it (ideal), corrected by the
-            # loop's offset, which follows the HARQ outcome of the process's last transmission.
-            mcs = self.olla(n_re, self.harq, lin_t, mcs_table_index=self.s.mcs_table, mcs_category=PDSCH)
-            bits, harq, sinr_eff, tbler, _ = self.phy(
-                mcs, sinr_eff=lin_t, num_allocated_re=n_re, mcs_table_index=self.s.mcs_table,
-                mcs_category=PDSCH)
+            if n_sub == 1:
+                csi, sinr_in = lin_t[:, 0], lin_t[:, 0]
+            else:
+                csi, sinr_in = self._subband_sinr(lin_t, alloc)
+            mcs, bits, harq, sinr_eff, tbler = self._link(n_re, self.harq, csi, sinr_in)
             self.harq = harq
             # The rate each cell achieved for each UE, for the PF history.
             self.rate_last = bits.to(torch.float32)[:, None, :] / self.s.slot_s * member_t
@@ -264,25 +308,49 @@ class LinkLevel:
                            acc["acks"].astype(int), acc["nacks"].astype(int), mcs_last, tbler_mean,
                            sinr_eff_last, active)
 
+    def _adapt_and_decode(self, n_re, harq_last, csi, sinr_in):
+        """One call's link adaptation and PHY abstraction: (MCS, decoded bits, HARQ,
+        effective SINR, TBLER), each [D, cap]. ``sinr_in``: the wideband SINR [D, cap], or
+        the allocated PRBs' [D, 1, P, cap, 1] for the EESM."""
+        # CSI feedback: the slot's SINR as the UE reports it (ideal), corrected by the
+        # loop's offset, which follows the HARQ outcome of the process's last transmission.
+        mcs = self.olla(n_re, harq_last, csi, mcs_table_index=self.s.mcs_table, mcs_category=PDSCH)
+        if sinr_in.dim() > 2:  # EESM over the allocated PRBs, with the MCS's own beta
+            sinr_in = self.eesm(sinr_in, mcs_index=mcs, mcs_table_index=self.s.mcs_table,
+                                mcs_category=PDSCH, per_stream=False)
+        bits, harq, sinr_eff, tbler, _ = self.phy(
+            mcs, sinr_eff=sinr_in, num_allocated_re=n_re, mcs_table_index=self.s.mcs_table, mcs_category=PDSCH)
+        return mcs, bits, harq, sinr_eff, tbler
+
+    def _subband_sinr(self, lin_t, alloc):
+        """The CSI a UE reports, its allocated subbands' SINR averaged in dB weighted by
+        their PRBs (all subbands when it has none), [D, cap]; and the SINR of every PRB it
+        was allocated (0 elsewhere), the EESM's input [D, 1, P, cap, 1]."""
+        torch = self._torch
+        w = self._prb_weights[None, :, None] * torch.where(alloc.any(dim=1, keepdim=True), alloc, True)
+        db = 10 * torch.log10(torch.clamp(lin_t, min=1e-30))
+        csi = 10 ** ((w * db).sum(dim=1) / w.sum(dim=1) / 10)
+        per_prb = torch.repeat_interleave(lin_t * alloc, self._prb_weights.to(torch.int64), dim=1)
+        return csi, per_prb[:, None, :, :, None]
+
     def _schedule(self, rate, member: np.ndarray, first_slot: int):
-        """[D, C, P, cap]: which UE gets each PRB of each cell in each slot of the group."""
+        """[D, C, S, cap]: which UE gets each subband of each cell in each slot of the group."""
         torch = self._torch
         n_cell, cap = member.shape
-        d, n_prb = self.s.harq_processes, self.s.num_prb
+        d, n_sub = self.s.harq_processes, self.s.subbands
         if self.s.scheduler == "proportional-fair":
-            granted = self.pf(self.rate_last, rate[:, :, None, None, :])[:, :, 0, :, :, 0]  # [D, C, 1, cap]
+            granted = self.pf(self.rate_last, rate[:, :, None, :, :])[:, :, 0, :, :, 0]  # [D, C, S, cap]
             # A cell without UEs: the argmax picked column 0, which is not its UE.
-            granted = granted & torch.from_numpy(member)[None, :, None, :]
-            return granted.expand(d, n_cell, n_prb, cap)
-        granted = torch.zeros((d, n_cell, n_prb, cap), dtype=torch.bool)
+            return granted & torch.from_numpy(member)[None, :, None, :]
+        granted = torch.zeros((d, n_cell, n_sub, cap), dtype=torch.bool)
         for j in range(d):
             for c in range(n_cell):
                 ues = np.flatnonzero(member[c])
                 if ues.size == 0:
                     continue
-                if self.s.scheduler == "max-rate":
-                    u = int(ues[int(torch.argmax(rate[j, c, ues]))])
+                if self.s.scheduler == "max-rate":  # per subband, the UE with the best rate
+                    best = torch.argmax(rate[j, c][:, ues], dim=1)
+                    granted[j, c, torch.arange(n_sub), torch.from_numpy(ues)[best]] = True
                 else:  # round-robin: one UE per slot, in turn
-                    u = int(ues[(first_slot + j) % ues.size])
-                granted[j, c, :, u] = True
+                    granted[j, c, :, int(ues[(first_slot + j) % ues.size])] = True
         return granted

@@ -53,12 +53,25 @@ and publishes ``{}`` to clear it::
     {
       "points": [{"x": 1.0, "y": 2.0, "z": 0.0, "color": "#ff0000", "size": 6, "label": "p1"}],
       "lines":  [{"points": [[0, 0, 0], [10, 0, 5]], "color": "#00ffff"}],
-      "labels": [{"x": 0, "y": 0, "z": 30, "text": "hello", "color": "#ffffff"}]
+      "labels": [{"x": 0, "y": 0, "z": 30, "text": "hello", "color": "#ffffff"}],
+      "images": [{"file": "artifacts/map.png", "extent": [-200, 200, -150, 150], "z": 1.5,
+                  "opacity": 0.6, "label": "a map"}]
     }
 
 Coordinates are the scene frame (x east, y north, z up, metres). Every key is
 optional; ``color`` is a CSS hex colour (default yellow), ``size`` is in pixels
 (default 6), ``label`` puts a text label next to a point.
+
+``images`` are ground overlays (a map of the area, say): the PNG ``file`` (its path
+relative to the run directory; the module writes it there, e.g. under
+``ctx.run_dir``) drawn on a horizontal plane at height ``z`` (metres, default 0) that
+covers ``extent`` = ``[x0, x1, y0, y1]`` (metres), with ``opacity`` (0 to 1, default
+0.6) on top of the PNG's own alpha and an optional ``label`` at its north-west corner.
+The image is read as a normal picture: its first row is the north edge (``y1``), its
+first column the west edge (``x0``); pixels are not smoothed, so a map with one pixel
+per cell shows its cells. The page's *layers* box shows or hides them all. The server
+hands out only files an ``images`` entry of a recorded message names, and only PNGs
+inside the run directory (``/api/layer?file=NAME``).
 """
 
 from caviar.view.data import RunData, RunDirError

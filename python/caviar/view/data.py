@@ -92,6 +92,7 @@ class RunData:
         self.radio: dict[str, dict[int, list]] = {}  # ue -> step -> [thr, snr, los, pair]
         self.events: list[dict] = []
         self.view: list[dict] = []
+        self.view_images: set[str] = set()  # every ``file`` an ``images`` entry of a view.* message names
         self.timings: dict[str, list] = {}  # module -> [[step, wall_ms], ...]
         self.frames: dict[str, dict[int, pathlib.Path]] = {}  # topic -> step -> file holding it
         self.topics: set[str] = set()
@@ -247,6 +248,10 @@ class RunData:
         elif topic.startswith(VIEW_PREFIX):
             if isinstance(payload, dict):
                 self.view.append({"step": step, "source": source, "topic": topic, "data": payload})
+                images = payload.get("images")
+                for im in images if isinstance(images, list) else []:
+                    if isinstance(im, dict) and isinstance(im.get("file"), str):
+                        self.view_images.add(im["file"])
         elif c.is_event(topic):
             for required_topic, field in c.event_requires:
                 if topic == required_topic and isinstance(payload, dict) and not payload.get(field):
@@ -332,6 +337,12 @@ class RunData:
                 "timings": {m: rows[bisect.bisect_left(rows, [tstep]):] for m, rows in self.timings.items()},
                 "frames": {t: sorted(s for s in steps if s >= step) for t, steps in self.frames.items()},
             }
+
+    def names_image(self, name: str) -> bool:
+        """Whether an ``images`` entry of a recorded ``view.*`` message names the file ``name``
+        (exactly as written there): the only run files the view serves as image layers."""
+        with self._lock:
+            return name in self.view_images
 
     def frame(self, topic: str, step: int):
         """The image on ``topic`` at the latest step <= ``step`` as (step, uint8 H×W×{1,3,4}),

@@ -2,8 +2,11 @@
 
 It serves its own static files (by exact name), the run's data as JSON, live updates
 as server-sent events, camera frames as PNG, files under the run directory (resolved,
-symbolic links included, and refused if they land outside it), and the scene meshes
-the run's scene XML references (by index into that allow-list, never by path).
+symbolic links included, and refused if they land outside it), the scene meshes
+the run's scene XML references (by index into that allow-list, never by path), and the
+PNG image layers that ``view.*`` messages name (``/api/layer?file=NAME``: only a name an
+``images`` entry of a recorded message gives, a relative path ending in ``.png`` that
+resolves, links included, to a PNG file inside the run directory; anything else is 404).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=u
 CSP = ("default-src 'none'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; "
        "connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
 LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1", "[::1]"}
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 class ViewState:
@@ -230,6 +234,8 @@ class Handler(BaseHTTPRequestHandler):
             self._events(_int(q, "since", 0), _int(q, "tsince", 0), head)
         elif path == "/api/frame":
             self._frame(q.get("topic", [""])[0], _int(q, "step", 0), head)
+        elif path == "/api/layer":
+            self._layer(q.get("file", [""])[0], head)
         else:
             return False
         return True
@@ -262,6 +268,40 @@ class Handler(BaseHTTPRequestHandler):
             self._error(HTTPStatus.FORBIDDEN, "outside the run directory", head)
             return
         self._file(target, head)
+
+    def _layer(self, name: str, head: bool) -> None:
+        """An image layer of a ``view.*`` message: the PNG ``name`` in the run directory, if
+        a recorded message names it; 404 for anything else (which says nothing of what exists)."""
+        target = self._layer_file(name)
+        if target is None:
+            self._error(HTTPStatus.NOT_FOUND, "no such layer", head)
+            return
+        try:
+            body = target.read_bytes()
+        except OSError:
+            body = b""
+        if not body.startswith(PNG_SIGNATURE):
+            self._error(HTTPStatus.NOT_FOUND, "no such layer", head)
+            return
+        self._send(HTTPStatus.OK, body, "image/png", head)
+
+    def _layer_file(self, name: str) -> pathlib.Path | None:
+        parts = name.split("/")
+        if (not name or "\x00" in name or "\\" in name or name.startswith("~") or posixpath.isabs(name)
+                or any(p in ("", ".", "..") for p in parts) or not name.lower().endswith(".png")):
+            return None
+        st = self.state
+        st.data.refresh()
+        if not st.data.names_image(name):
+            return None
+        root = st.run_dir
+        try:
+            target = (root / name).resolve(strict=True)
+        except (OSError, RuntimeError):
+            return None
+        if not target.is_relative_to(root) or not target.is_file() or target.suffix.lower() != ".png":
+            return None
+        return target
 
     def _frame(self, topic: str, step: int, head: bool) -> None:
         try:
