@@ -35,7 +35,7 @@ log "Python packages"
 .venv/bin/pip install --quiet --upgrade pip maturin
 # Builds the Rust extension caviar._core (release) and installs caviar in editable mode.
 .venv/bin/pip install --quiet -e ".[test]"
-.venv/bin/pip install --quiet -e "plugins[radio,onnx,osm,traffic,network]"
+.venv/bin/pip install --quiet -e "plugins[radio,onnx,osm,traffic,network,live]"
 
 # The browser view: its bundle ships built; chromium (apt) and playwright for its tests.
 bash scripts/setup-view.sh

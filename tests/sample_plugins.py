@@ -177,12 +177,14 @@ class Checked(caviar.Plugin):
 
 
 class Exits(caviar.Plugin):
-    """Ends the whole process (no cleanup) at step `at_step`, or hangs there for good."""
+    """Ends the whole process (no cleanup) at step `at_step`, or hangs there for good, or
+    (`segfault`) crashes it in native code."""
 
     @dataclasses.dataclass
     class Params:
         at_step: int = 5
         hang: bool = False
+        segfault: bool = False
 
     def step(self, t, inbox):
         import os
@@ -192,6 +194,12 @@ class Exits(caviar.Plugin):
             if self.ctx.params.hang:
                 while True:
                     time.sleep(3600)
+            if self.ctx.params.segfault:
+                import ctypes
+                import faulthandler
+
+                faulthandler.disable()  # the crash itself, not Python's report of it
+                ctypes.string_at(0)
             os._exit(3)
         return [("exits.alive", {"step": self.ctx.step})]
 
@@ -213,3 +221,86 @@ class LineMover(caviar.Plugin):
             x, y, z = (float(v) for v in a + f * (b - a))
             yield "3D.mobility.positions", {"UE_type": ue.get("type", "car"), "UE_Id": ue["id"],
                                             "position": {"x": x, "y": y, "z": z}}
+
+
+class ImageLayer(caviar.Plugin):
+    """Writes ``layer.png`` (3 rows x 2 columns: red, blue, transparent from the top) and
+    ``unnamed.png`` into the run directory and draws the first as a ``view.*`` image layer
+    over ``extent`` at height ``z``; at step 1 another view.* topic names ``others``
+    (files the view must refuse, for the server's tests)."""
+
+    @dataclasses.dataclass
+    class Params:
+        extent: list = dataclasses.field(default_factory=lambda: [-300.0, 0.0, -50.0, 150.0])
+        z: float = 200.0
+        opacity: float = 1.0
+        others: list = dataclasses.field(default_factory=list)
+
+    def setup(self, ctx):
+        from caviar.view.data import png_bytes
+
+        self.ctx = ctx
+        img = np.zeros((3, 2, 4), np.uint8)
+        img[0] = [255, 0, 0, 255]
+        img[1] = [0, 0, 255, 255]
+        ctx.run_dir.mkdir(parents=True, exist_ok=True)
+        (ctx.run_dir / "layer.png").write_bytes(png_bytes(img))
+        (ctx.run_dir / "unnamed.png").write_bytes(png_bytes(img))
+
+    def step(self, t, inbox):
+        p = self.ctx.params
+        if self.ctx.step == 0:
+            yield "view.layer", {"images": [{"file": "layer.png", "extent": p.extent, "z": p.z,
+                                             "opacity": p.opacity, "label": "test layer"}]}
+        elif self.ctx.step == 1 and p.others:
+            yield "view.others", {"images": [{"file": f, "extent": p.extent} for f in p.others]}
+
+
+def synthetic_radio_map():
+    """A radio map as ``best_server_map`` returns it (4 x 3 cells of 10 m, north at the
+    last row), with one cell that no cell serves; and one site's 3 cells."""
+    from caviar_plugins.network.cells import parse_sites
+
+    cells = parse_sites([{"name": "A", "position": [15.0, 110.0, 30.0]}],
+                        {"tx_power_dbm": 40.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "array": [1, 1]})
+    x, y = np.array([0.0, 10.0, 20.0, 30.0]), np.array([100.0, 110.0, 120.0])
+    sinr = np.array([[-20.0, -10.0, 0.0, 5.0], [10.0, 15.0, np.nan, 25.0], [30.0, 35.0, 40.0, 55.0]])
+    best = np.where(np.isnan(sinr), -1, np.arange(12).reshape(3, 4) % 3)
+    gain = np.full((3, 3, 4), -90.0)
+    return {"x": x, "y": y, "gain_db": gain, "rsrp_dbm": gain + 40.0, "best": best, "sinr_db": sinr}, cells
+
+
+class RadioMapLayer(caviar.Plugin):
+    """What the radio network does with its map: ``radio_map.save`` into the run directory
+    at setup, ``radio_map.layer_message`` on ``view.radio_map`` at the first step."""
+
+    def setup(self, ctx):
+        from caviar_plugins.network import radio_map
+
+        self.ctx = ctx
+        self.result, cells = synthetic_radio_map()
+        self.files = radio_map.save(self.result, cells, ctx.run_dir)
+
+    def step(self, t, inbox):
+        from caviar_plugins.network import radio_map
+
+        if self.ctx.step == 0:
+            layer = self.files[-1].relative_to(self.ctx.run_dir).as_posix()
+            yield "view.radio_map", radio_map.layer_message(self.result, layer, height_m=1.5)
+
+
+class WallClock(caviar.Plugin):
+    """Publishes the wall clock (``time.monotonic()``) at the start of each step on
+    ``clock.wall``, then takes ``seconds`` of wall clock (for the pacing tests)."""
+
+    @dataclasses.dataclass
+    class Params:
+        seconds: float = 0.0
+
+    def step(self, t, inbox):
+        import time
+
+        start = time.monotonic()
+        if self.ctx.params.seconds:
+            time.sleep(self.ctx.params.seconds)
+        return [("clock.wall", {"step": self.ctx.step, "t": t, "wall": start})]

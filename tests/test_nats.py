@@ -168,6 +168,10 @@ def test_workers_report_plugin_configuration_errors_with_file_line_and_key(tmp_p
     p = cli("run", "exp.toml", "-q", "--out", "run", check=2)
     assert "exp.toml:14: modules.slow.params.seconds: worker slow-0 on " in p.stderr, p.stderr
     assert p.stderr.strip().endswith("expected float, got str 'slow'"), p.stderr
+    assert not (tmp_path / "run").exists()
+    # Without --out: neither the run directory nor the runs/ folder made for it stays behind.
+    cli("run", "exp.toml", "-q", check=2)
+    assert not (tmp_path / "runs").exists()
 
 
 SHARDED = """
@@ -287,3 +291,76 @@ def test_a_worker_on_a_second_host_takes_part(tmp_path, cli, nats_server, second
     assert b.messages.equals(a.messages)
     status = json.loads((tmp_path / "run" / "run.json").read_text())
     assert status["status"] == "completed"
+
+
+SUBSCRIBER = """
+import asyncio, json, sys
+import nats
+
+async def main(url, subject, n):
+    nc = await nats.connect(url)
+    got = []
+    done = asyncio.Event()
+    async def on(msg):
+        got.append(json.loads(msg.data))
+        if len(got) >= n:
+            done.set()
+    await nc.subscribe(subject, cb=on)
+    await nc.flush()
+    print("subscribed", flush=True)
+    try:
+        await asyncio.wait_for(done.wait(), 120)
+    finally:
+        print(json.dumps(got), flush=True)
+        await nc.close()
+
+asyncio.run(main(sys.argv[1], sys.argv[2], int(sys.argv[3])))
+"""
+
+
+def test_the_physical_side_follows_the_predictions_with_a_plain_nats_client(tmp_path, cli, nats_server):
+    """A live twin over NATS: a plain NATS client (nats-py, no caviar) subscribed to
+    communications.prediction gets every step's prediction as the run records it."""
+    from caviar_plugins import DATA
+
+    url = nats_server()
+    sub = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, url, "communications.prediction", "4"],
+                           stdout=subprocess.PIPE, text=True)
+    try:
+        assert sub.stdout.readline().strip() == "subscribed"
+        write_config(tmp_path, f"""
+[episode]
+ts = 0.5
+steps = 4
+stages = ["mobility", "communications"]
+
+[transport]
+kind = "nats"
+[transport.nats]
+url = "{url}"
+
+[modules.uav1]
+stage = "mobility"
+plugin = "waypoint-flight"
+[modules.uav1.params]
+waypoints = "{(DATA / "central_park_path0_scene.csv").as_posix()}"
+frame = "scene"
+forecast_steps = 4
+
+[modules.comm]
+stage = "communications"
+plugin = "sionna-link"
+[modules.comm.params]
+samples_per_src = 10000
+uav_mesh = false
+threads = 1
+publish_channels = false
+predict_horizons_s = [0.5, 1.0]
+""")
+        cli("run", "exp.toml", "-q", "--out", "run", check=0)
+        out, _ = sub.communicate(timeout=60)
+    finally:
+        sub.kill()
+    received = json.loads(out.strip().splitlines()[-1])
+    recorded = [m.data for m in caviar.load_run(tmp_path / "run").decoded("communications.prediction")]
+    assert len(recorded) == 4 and received == recorded

@@ -38,6 +38,13 @@ CAMERA = "3D.camera"
 """Prefix: ``3D.camera.<UE_Id>`` a nadir camera image (uint8, H × W × 3, binary);
 ``3D.camera.<UE_Id>.file`` the same image as a PNG artifact."""
 
+# A live twin: telemetry from real vehicles (caviar_plugins.live)
+LIVE_TELEMETRY = "live.telemetry"
+"""Per step, from a telemetry plugin (``mavlink-telemetry``): where it listens, its counts
+(received, late, out of order, missing, garbage, ...; see
+:data:`caviar_plugins.live.telemetry.COUNTS`), per UE ``{"UE_Id", "sysid", "age_s",
+"stale", "positions"}`` and the warnings of the step."""
+
 # Communications
 THROUGHPUT = "communications.throughput"
 """``{"UE_type", "UE_Id", "throughput"}``, Mbit/s (see :func:`throughput_payload`)."""
@@ -47,6 +54,11 @@ LINK = "communications.link"
 """Ray-traced link details per UE: LOS flag, best and used beam pair, path gain, SNR."""
 CHANNEL = "communications.channel"
 """Prefix: ``communications.channel.<UE_Id>`` the MIMO channel H (complex64, binary)."""
+PREDICTION = "communications.prediction"
+"""Per UE and step, the link predicted at horizons ahead (``sionna-link``'s
+``predict_horizons_s``): ``{"UE_type", "UE_Id", "time", "predictions": [{"horizon_s",
+"at_s", "source", "position", "path_gain_db", "los", "best_pair", "best_throughput"}]}``
+(:mod:`caviar_plugins.radio.prediction`)."""
 BEAM_GAINS = "communications.beam_gains"
 """Prefix: ``communications.beam_gains.<UE_Id>`` gains of all beam pairs (float32, binary)."""
 
@@ -59,7 +71,10 @@ NETWORK_EVENTS = "network.events"
 """``{"event": "attach" | "handover" | "rlf", "UE_Id", "time", "to_cell", "rsrp_to_dbm"}``
 (and ``"from_cell", "rsrp_from_dbm"`` for a handover or a radio-link failure)."""
 NETWORK_RADIO_MAP = "network.radio_map"
-"""The best-server SINR map (``radio-map.npz``, ``radio-map.png``), artifacts at the first step."""
+"""The best-server SINR map (``radio-map.npz``, ``radio-map.png``, ``radio-map-layer.png``),
+artifacts at the first step."""
+VIEW_RADIO_MAP = "view.radio_map"
+"""The map's SINR layer for the browser view (a ``view.*`` ``images`` entry), at the first step."""
 NETWORK_CELLS = "network.cells"
 """Per step: ``{"cells": [{"cell", "ues", "active_share"}]}``, the UEs a cell serves and the
 share of the step's slots in which it scheduled someone."""

@@ -7,6 +7,8 @@
 //! seed = 7
 //! stages = ["mobility", "communications", "ai"]
 //! step_timeout = 600.0     # s one module step may take, any transport (default 600)
+//! pace = 1.0               # wall-clock pacing (1: real time); absent: as fast as possible
+//! behind = "catch-up"      # or "drop": what a paced run does when it falls behind
 //!
 //! [modules.uav]
 //! stage = "mobility"
@@ -26,6 +28,7 @@ use std::path::{Path, PathBuf};
 use indexmap::IndexMap;
 use serde::Deserialize;
 
+use crate::pacing::{Behind, Pacer};
 use crate::topic::Pattern;
 
 /// A configuration error: file, line (when known), key (when known) and what was expected.
@@ -85,6 +88,12 @@ pub struct Episode {
     /// the run before it starts instead of being printed (`caviar-core run --strict`).
     #[serde(default)]
     pub strict_wiring: bool,
+    /// Wall-clock pacing: step k starts no earlier than t0 + k·ts/pace (1: real time,
+    /// 2: twice as fast; absent: as fast as possible). See [`crate::pacing`].
+    pub pace: Option<f64>,
+    /// Falling behind a paced schedule: `catch-up` (default: the late steps run back
+    /// to back) or `drop` (the steps whose slot passed are skipped and counted).
+    pub behind: Option<String>,
 }
 
 /// `episode.step_timeout` when not given.
@@ -157,6 +166,17 @@ impl LoadedConfig {
         let e = &self.config.episode;
         e.steps
             .or_else(|| e.duration.map(|d| steps_of(d, e.ts) as u64))
+    }
+
+    /// The wall-clock pacer of `episode.pace` (validated), if the run is paced.
+    pub fn pacer(&self) -> Option<Pacer> {
+        let ep = &self.config.episode;
+        let behind = ep
+            .behind
+            .as_deref()
+            .and_then(Behind::parse)
+            .unwrap_or(Behind::CatchUp);
+        ep.pace.map(|p| Pacer::new(p, ep.ts, behind))
     }
 
     /// Seconds one module step may take: `episode.step_timeout`, or 600.
@@ -364,6 +384,37 @@ fn check_timing(c: &LoadedConfig) -> Result<(), ConfigError> {
             return Err(c.error_at(
                 "episode.step_timeout",
                 format!("expected a positive number of seconds, got {}", num(t)),
+            ));
+        }
+    }
+    check_pacing(c)
+}
+
+/// `episode.pace`: a positive, finite factor; `episode.behind`: a policy, with a pace.
+fn check_pacing(c: &LoadedConfig) -> Result<(), ConfigError> {
+    let ep = &c.config.episode;
+    if let Some(p) = ep.pace {
+        if !(p.is_finite() && p > 0.0) {
+            return Err(c.error_at(
+                "episode.pace",
+                format!(
+                    "expected a positive factor of real time (1.0: real time), got {}",
+                    num(p)
+                ),
+            ));
+        }
+    }
+    if let Some(b) = &ep.behind {
+        if Behind::parse(b).is_none() {
+            return Err(c.error_at(
+                "episode.behind",
+                format!("expected one of {:?}, got {b:?}", Behind::NAMES),
+            ));
+        }
+        if ep.pace.is_none() {
+            return Err(c.error_at(
+                "episode.behind",
+                "only a paced run (`episode.pace`) can fall behind: give a pace or remove it",
             ));
         }
     }

@@ -34,6 +34,7 @@ use crate::module::{
     module_seed, AnyModule, Module, ModuleError, RemoteModule, ResourceProbe, SetupContext,
     StepInfo, Usage,
 };
+use crate::pacing::{Pacer, PacingReport};
 use crate::recorder::{RecordError, Recorder, TimingRow, CORE};
 use crate::topic::{validate_topic, Pattern};
 
@@ -156,6 +157,7 @@ pub struct Engine {
     tap: Option<Tap>,
     probe: Option<Box<dyn ResourceProbe>>,
     on_start: Option<StartHook>,
+    pacer: Option<Pacer>,
 }
 
 /// Why an episode ended (`end_reason` in run.json).
@@ -307,7 +309,18 @@ impl Engine {
             tap: None,
             probe: None,
             on_start: None,
+            pacer: None,
         })
+    }
+
+    /// Paces the steps on the wall clock (`episode.pace`, see [`crate::pacing`]).
+    pub fn set_pacer(&mut self, pacer: Pacer) {
+        self.pacer = Some(pacer);
+    }
+
+    /// How the steps kept to the wall clock; `None` when the run is not paced.
+    pub fn pacing(&self) -> Option<PacingReport> {
+        self.pacer.as_ref().map(Pacer::report)
     }
 
     /// Samples GPU use after each stage for the in-process modules.
@@ -430,7 +443,16 @@ impl Engine {
         if self.is_done() {
             return Ok(None);
         }
-        let result = self.setup().and_then(|()| self.run_step());
+        let result = self.setup().and_then(|()| {
+            self.pace();
+            if self.pacer.is_some() && crate::interrupt::requested() {
+                // Ctrl-C while waiting for the step's slot: the step does not run.
+                return Err(EngineError::Interrupted {
+                    step: self.next_step,
+                });
+            }
+            self.run_step()
+        });
         if result.is_err() {
             let reason = if crate::interrupt::requested() {
                 EndReason::Interrupted
@@ -440,6 +462,19 @@ impl Engine {
             self.end.get_or_insert(reason);
         }
         result.map(Some)
+    }
+
+    /// Waits for the next step's slot on the wall clock, or (`behind = "drop"`) skips
+    /// the steps whose slot has passed, always leaving the episode's last step to run.
+    fn pace(&mut self) {
+        let Some(pacer) = self.pacer.as_mut() else {
+            return;
+        };
+        let left = self
+            .opts
+            .steps
+            .map_or(u64::MAX, |n| n.saturating_sub(self.next_step + 1));
+        self.next_step += pacer.before_step(self.next_step, left, &crate::interrupt::requested);
     }
 
     /// The stages of the next step in order, each: run → account → deliver; then the

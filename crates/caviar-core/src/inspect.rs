@@ -9,6 +9,7 @@ use serde::Serialize;
 
 use crate::engine::EndReason;
 use crate::message::Message;
+use crate::pacing::{Behind, PacingReport};
 use crate::recorder::{read_messages, read_timings, TimingRow, CORE};
 use crate::status::{rtf_text, RunErrorInfo, RunStatus};
 
@@ -76,6 +77,9 @@ fn write_summary(s: &mut String, run_dir: &Path, status: &RunStatus, messages: &
          (T_p/T_v: wall-clock s per virtual s; < 1 is faster than real time)"
     )
     .unwrap();
+    if let Some(p) = &status.pacing {
+        writeln!(s, "pacing    {}", pacing_text(p)).unwrap();
+    }
     let total_bytes: u64 = messages.iter().map(|m| m.payload.len() as u64).sum();
     writeln!(
         s,
@@ -103,6 +107,24 @@ fn write_summary(s: &mut String, run_dir: &Path, status: &RunStatus, messages: &
             writeln!(s, "          in module '{module}', {phase} at step {step}").unwrap();
         }
     }
+}
+
+/// `pace 1.0 (real time), 3 of 100 steps late (worst 120.0 ms, p99 80.0 ms), 0 dropped (catch-up)`.
+pub fn pacing_text(p: &PacingReport) -> String {
+    let pace = serde_json::json!(p.pace);
+    let what = if p.pace == 1.0 {
+        " (real time)".to_string()
+    } else {
+        format!(" ({pace}x real time)")
+    };
+    let behind = match p.behind {
+        Behind::CatchUp => "catch-up",
+        Behind::Drop => "drop",
+    };
+    format!(
+        "pace {pace}{what}, {} of {} steps late (worst {:.1} ms, p99 {:.1} ms), {} dropped ({behind})",
+        p.late_steps, p.steps, p.worst_late_ms, p.p99_late_ms, p.dropped_steps
+    )
 }
 
 /// One row per topic: kind, count, steps, bytes, sources.

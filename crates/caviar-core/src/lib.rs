@@ -43,6 +43,7 @@ pub mod interrupt;
 pub mod message;
 pub mod metrics;
 pub mod module;
+pub mod pacing;
 pub mod recorder;
 pub mod replay;
 pub mod run;

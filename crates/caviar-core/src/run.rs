@@ -201,6 +201,9 @@ impl RunSession {
             warnings = wiring_warnings(&cfg, specs, &|_| None);
             strict_wiring(&cfg, &warnings)?;
         }
+        // The folders this run creates on the way to its run directory: a configuration
+        // error reported by a worker takes them away again, with the run directory.
+        let made = missing_ancestors(&out.map_or_else(|| output_parent(&cfg), |d| d.to_path_buf()));
         let run_dir = match out {
             Some(dir) => create_exact(dir)?,
             None => create_numbered(&cfg)?,
@@ -221,6 +224,9 @@ impl RunSession {
                         // A configuration error (reported by a worker) starts no run.
                         if matches!(e, PrepareError::Config(_)) {
                             let _ = fs::remove_dir_all(&run_dir);
+                            for dir in &made {
+                                let _ = fs::remove_dir(dir); // only if empty
+                            }
                         }
                     })?;
                 (prepared.modules, prepared.tap, Some(prepared.connection))
@@ -363,7 +369,19 @@ fn new_engine(
         run_dir: run_dir.to_path_buf(),
         config_dir: cfg.base_dir.clone(),
     };
-    Engine::new(opts, specs, Some(recorder)).map_err(PrepareError::Io)
+    let mut engine = Engine::new(opts, specs, Some(recorder)).map_err(PrepareError::Io)?;
+    if let Some(pacer) = cfg.pacer() {
+        engine.set_pacer(pacer);
+    }
+    Ok(engine)
+}
+
+/// `dir` and those of its ancestors that do not exist yet, deepest first.
+fn missing_ancestors(dir: &Path) -> Vec<PathBuf> {
+    dir.ancestors()
+        .take_while(|d| !d.as_os_str().is_empty() && !d.exists())
+        .map(Path::to_path_buf)
+        .collect()
 }
 
 fn create_exact(dir: &Path) -> Result<PathBuf, PrepareError> {

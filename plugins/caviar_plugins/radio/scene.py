@@ -196,6 +196,7 @@ class RadioScene:
         # The scene is static and the solver seeded: the same positions give the same
         # paths, so a step in which no UAV moved (hovering) reuses the last solve.
         self._placed: tuple = ()
+        self._where: dict[str, np.ndarray] = {}  # receiver key -> its position (antenna offset added)
         self._solved: tuple[tuple, dict] | None = None
         self._body_template = s.objects.get("Cube")
         self._bodies_on = cfg.uav_mesh
@@ -277,9 +278,19 @@ class RadioScene:
                 self.receivers[key] = rx
             else:
                 self.receivers[key].position = (pos + self.cfg.antenna_offset).tolist()
+            self._where[key] = pos + np.asarray(self.cfg.antenna_offset, dtype=float)
             if key in self.bodies:
                 self.bodies[key].position = pos.tolist()
         self._placed = tuple((k, tuple(np.asarray(p, dtype=float))) for k, p in positions.items())
+
+    def remove(self, keys) -> None:
+        """Takes the receivers of ``keys`` (never UAV bodies) out of the scene."""
+        for key in keys:
+            if key in self.receivers:
+                self.scene.remove(f"rx-{key}")
+                del self.receivers[key], self._where[key]
+        self._placed = tuple((k, p) for k, p in self._placed if k in self.receivers)
+        self._solved = None
 
     def _add_bodies(self, keys: list[str]) -> None:
         # The scene's own UAV cube serves the first UAV; more UAVs (and scenes without
@@ -304,7 +315,8 @@ class RadioScene:
         return self._metal_material
 
     def solve(self) -> dict[str, Link]:
-        """Ray traces every receiver in one call (or reuses the last result if nothing moved)."""
+        """Ray traces every receiver in one call (or reuses the last result if nothing
+        moved); returns the links of the receivers the last :meth:`place` placed."""
         if self._solved is not None and self._solved[0] == self._placed:
             return self._solved[1]
         c = self.cfg
@@ -322,7 +334,9 @@ class RadioScene:
         cfr = paths.cfr(frequencies=np.array([c.frequency_hz]), normalize_delays=False, out_type="numpy")
         valid = np.array(paths.valid).reshape(len(self.receivers), -1)  # [rx, paths] (one tx)
         tau = np.array(paths.tau).reshape(len(self.receivers), -1)
-        rx_pos = np.array([p for _, p in self._placed]) + np.asarray(c.antenna_offset, dtype=float)
+        # Every receiver of the scene was traced, in the scene's order (which is not the
+        # order of the last place(): UEs that joined later come last).
+        rx_pos = np.array([self._where[key] for key in self.receivers])
         direct = np.linalg.norm(rx_pos - np.asarray(c.tx_position, dtype=float), axis=1)
         los = np.any(line_of_sight_paths(tau, valid, direct[:, None]), axis=1)
         out = {}
@@ -332,6 +346,8 @@ class RadioScene:
                 h = normalize_channel(h)
             out[key] = Link(h=h, gains=beam_gains(h, self.w_tx, self.w_rx), los=bool(los[i]),
                             n_paths=int(valid[i].sum()), paths_dropped=dropped)
+        placed = {k for k, _ in self._placed}
+        out = {k: link for k, link in out.items() if k in placed}
         self._solved = (self._placed, out)
         return out
 

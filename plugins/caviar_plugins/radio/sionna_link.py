@@ -24,8 +24,9 @@ from caviar_plugins import protocol as paper
 from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.radio.link_report import LINK_TOPICS, link_messages
+from caviar_plugins.radio.prediction import Forecaster, prediction_payload
 from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene
-from caviar_plugins.schema import BEAM_SELECTION, FORECAST, POSITIONS, STATE, read_position
+from caviar_plugins.schema import BEAM_SELECTION, FORECAST, POSITIONS, PREDICTION, STATE, read_position
 
 
 @dataclasses.dataclass
@@ -63,6 +64,18 @@ class SionnaLinkParams(RadioConfig):
     harq_processes: int = 8
     """``sys``: slots per Sionna SYS call (see :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
     bler_target: float = 0.1
+    predict_horizons_s: list[float] = dataclasses.field(default_factory=list)
+    """Seconds ahead at which to predict every UE's link each step (for example
+    ``[0.5, 1.0, 2.0]``), on ``communications.prediction``: the forecast positions (the
+    UE's ``3D.mobility.forecast``, else constant velocity) traced in the step's solve
+    (:mod:`caviar_plugins.radio.prediction`). Needs ``uav_mesh = false``."""
+
+    warm_up_ues: int = 0
+    """Trace this many receivers at setup (below the transmitter, 1.5 m up; twice, as the
+    shoot cache records on a first solve and compiles on the second), so that the first
+    steps do not compile Dr.Jit's kernels: a paced run (``pace`` in
+    ``[episode]``) then starts on time. Use the receivers of a step: UEs × (1 + the
+    number of ``predict_horizons_s``). 0 (default): no warm-up."""
 
     def __post_init__(self):
         paper.check_protocol(self.protocol)
@@ -95,6 +108,17 @@ class SionnaLinkParams(RadioConfig):
                              "position; forecast positions would see the bodies where the UAVs are now)")
         if self.lookahead_steps < 0 or self.cache_tolerance_m < 0:
             raise ValueError("lookahead_steps and cache_tolerance_m must be >= 0")
+        if self.warm_up_ues < 0:
+            raise ValueError(f"warm_up_ues: expected >= 0, got {self.warm_up_ues}")
+        if self.warm_up_ues and self.uav_mesh:
+            raise ValueError("warm_up_ues needs uav_mesh = false (a warm-up receiver would take a UAV body "
+                             "along, and adding bodies later recompiles the kernels anyway)")
+        for i, h in enumerate(self.predict_horizons_s):
+            if not (isinstance(h, (int, float)) and np.isfinite(h) and h > 0):
+                raise ValueError(f"predict_horizons_s.{i}: expected a positive number of seconds, got {h!r}")
+        if self.predict_horizons_s and self.uav_mesh:
+            raise ValueError("predict_horizons_s needs uav_mesh = false (a solve places each UAV body at one "
+                             "position; predicted positions would see the bodies where the UAVs are now)")
 
     def radio(self) -> RadioConfig:
         names = {f.name for f in dataclasses.fields(RadioConfig)}
@@ -103,7 +127,7 @@ class SionnaLinkParams(RadioConfig):
 
 class SionnaLink(caviar.Plugin):
     subscribe = [POSITIONS, BEAM_SELECTION, FORECAST]
-    publishes = (*LINK_TOPICS, STATE)
+    publishes = (*LINK_TOPICS, STATE, PREDICTION)
     Params = SionnaLinkParams
 
     def setup(self, ctx):
@@ -116,6 +140,14 @@ class SionnaLink(caviar.Plugin):
         self.positions: dict[str, np.ndarray] = {}
         self.selected: dict[str, int] = {}
         self.forecast: dict[str, list[np.ndarray]] = {}
+        self.forecaster = Forecaster(p.predict_horizons_s) if p.predict_horizons_s else None
+        if p.warm_up_ues:  # the kernels compile now, before the run's clock starts
+            foot = np.array([p.tx_position[0], p.tx_position[1], 1.5])
+            warm = {f"warm-up-{i}": foot + [i, 0.0, 0.0] for i in range(p.warm_up_ues)}
+            for moved in (0.0, 1.0):  # the shoot cache records on the first solve, compiles on the second
+                self.radio.place({k: q + moved for k, q in warm.items()})
+                self.radio.solve()
+            self.radio.remove(warm)
         self.lookahead = LookaheadTracer(self.radio, p.lookahead_steps, p.cache_tolerance_m) if p.lookahead else None
         self.link_level = None
         if p.link_model == "sys":
@@ -127,21 +159,14 @@ class SionnaLink(caviar.Plugin):
             self.columns: dict[str, int] = {}
 
     def step(self, t, inbox):
-        for m in inbox:
-            if m.topic == POSITIONS:
-                self.ue_type[m.data["UE_Id"]] = m.data["UE_type"]
-                self.positions[m.data["UE_Id"]] = read_position(m.data)
-            elif m.topic == BEAM_SELECTION:
-                self.selected[m.data["UE_Id"]] = int(m.data["beam_pair"])
-            elif m.topic == FORECAST:
-                self.forecast[m.data["UE_Id"]] = [read_position({"position": q}) for q in m.data["positions"]]
+        self._read(t, inbox)
         if not self.positions:
             return
-        if self.lookahead is not None:
-            links = self.lookahead.links(self.positions, self.forecast)
-        else:
-            self.radio.place(self.positions)
-            links = self.radio.solve()
+        ahead = {ue: self.forecaster.ahead(ue, t) for ue in self.positions} if self.forecaster else {}
+        links = self._solve(ahead)
+        for ue, rows in ahead.items():
+            yield PREDICTION, prediction_payload(self.ue_type[ue], ue, t, rows,
+                                                 [links.pop(_predicted(ue, i)) for i in range(len(rows))], self._mbps)
         n_pairs = self.radio.w_rx.shape[1] * self.radio.n_tx_beams
         decoded = self._decode(links, n_pairs) if self.link_level is not None else {}
         for ue, link in links.items():
@@ -149,6 +174,38 @@ class SionnaLink(caviar.Plugin):
             yield from link_messages(self.ue_type[ue], ue, link, self.selected.get(ue), n_pairs, self._mbps,
                                      self._snr, self.p.publish_channels, extra, throughput_mbps=mbps)
         yield STATE, "Ready"
+
+    def _read(self, t: float, inbox) -> None:
+        for m in inbox:
+            if m.topic == POSITIONS:
+                self.ue_type[m.data["UE_Id"]] = m.data["UE_type"]
+                self.positions[m.data["UE_Id"]] = read_position(m.data)
+                if self.forecaster is not None:  # when the position was measured: now, less its age
+                    v = m.data.get("velocity")
+                    self.forecaster.observe(m.data["UE_Id"], _time(m, t) - float(m.data.get("age_s", 0.0)),
+                                            self.positions[m.data["UE_Id"]],
+                                            None if v is None else read_position({"position": v}))
+            elif m.topic == BEAM_SELECTION:
+                self.selected[m.data["UE_Id"]] = int(m.data["beam_pair"])
+            elif m.topic == FORECAST:
+                self.forecast[m.data["UE_Id"]] = [read_position({"position": q}) for q in m.data["positions"]]
+                if self.forecaster is not None:
+                    self.forecaster.plan(m.data["UE_Id"], _time(m, t), self.forecast[m.data["UE_Id"]],
+                                         float(m.data["ts"]))
+
+    def _solve(self, ahead: dict[str, list]) -> dict:
+        """Every UE's link now, and at its predicted positions (keys ``UE#hI``, the I-th
+        horizon; look-ahead's are ``UE@K``) in the same solve, or in one of their own next
+        to look-ahead's."""
+        predicted = {_predicted(ue, i): p for ue, rows in ahead.items() for i, (_, _, p) in enumerate(rows)}
+        if self.lookahead is None:
+            self.radio.place({**self.positions, **predicted})
+            return self.radio.solve()
+        links = self.lookahead.links(self.positions, self.forecast)
+        if predicted:
+            self.radio.place(predicted)
+            links = {**links, **self.radio.solve()}
+        return links
 
     def _decode(self, links, n_pairs: int) -> dict[str, tuple[float, dict]]:
         """``sys``: the step's slots through Sionna SYS for every UE on the SNR of its used
@@ -177,3 +234,13 @@ class SionnaLink(caviar.Plugin):
         if self.p.protocol == "paper":
             return float(paper.paper_rate_mbps(gain))
         return float(self.budget.throughput_mbps(gain))
+
+
+def _time(message, t: float) -> float:
+    """When ``message`` was published (its step's time), or now."""
+    return t if message.time is None else float(message.time)
+
+
+def _predicted(ue: str, i: int) -> str:
+    """The receiver of ``ue``'s position at its i-th prediction horizon."""
+    return f"{ue}#h{i}"
