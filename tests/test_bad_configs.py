@@ -404,3 +404,43 @@ def test_plugins_check_their_params_at_validate_time(tmp_path, capfd):
             'plugin = "sample_plugins:Checked"\n[modules.c.params]\nlimit = -3\n')
     first = _validate(tmp_path, text, capfd)
     assert first.endswith("cfg.toml:9: modules.c.params.limit: expected a limit >= 0, got -3"), first
+
+
+# --- bad --set overrides (issue #28): the same promise for what the command line adds ------------
+SET_CASES = [
+    ("nokey", "--set 'nokey': expected KEY=VALUE"),
+    ("=5", "--set '=5': '' is not a dotted key path"),
+    ("a..b=1", "--set 'a..b=1': 'a..b' is not a dotted key path"),
+    ("episode.ts.x=1", "--set 'episode.ts.x=1': 'ts' is a value, not a table"),
+    ("episode=5", "episode: invalid type: integer `5`, expected struct Episode (after --set overrides)"),
+    ("episode.ts=", "episode.ts: invalid type: string \"\", expected f64 (after --set overrides)"),
+    ('episode.ts="fast"', "episode.ts: invalid type: string \"fast\""),
+    ("episode.steps=0", "cfg.toml:3: episode.steps: expected at least 1 step"),
+    ("episode.seed=-1", "episode.seed: invalid value: integer `-1`, expected u64"),
+    ("episode.stages=[unterminated", "episode.stages: invalid type: string \"[unterminated\", expected a sequence"),
+    ("episode.pace=0", "episode.pace: expected a positive factor of real time"),
+    ('episode.behind="later"', "episode.behind: expected one of"),
+    ("modules.nope.params.x=1", "modules.nope.stage: this required key is missing (after --set overrides)"),
+    ("modules.uav.every=0", "cfg.toml:14: modules.uav.every: expected a period of at least 1 step"),
+    ("modules.uav.params.speed=nan", "cfg.toml:15: modules.uav.params.speed: expected a finite float, got nan"),
+    ("modules.uav.params.speed=-1.0", "modules.uav.params.speed: expected a positive number of m/s"),
+    ('modules.uav.plugin="no.such:X"', "modules.uav.plugin: cannot import 'no.such' for plugin 'no.such:X'"),
+    ('modules.comm.params.tx_position=["a"]', "modules.comm.params.tx_position: expected list[float]"),
+    ('output.name="../x"', "output.name: expected a plain name"),
+    ('transport.kind="pigeon"', "transport.kind"),
+]
+
+
+@pytest.mark.parametrize("override, expected", SET_CASES, ids=[o for o, _ in SET_CASES])
+def test_a_bad_set_override_is_refused_without_a_run(override, expected, tmp_path, capfd, monkeypatch):
+    path = tmp_path / "cfg.toml"
+    path.write_text(BASE)
+    monkeypatch.chdir(tmp_path)
+    for cmd in ("validate", "run"):
+        code = _core.main(["caviar-core", cmd, str(path), "--set", override])
+        out, err = capfd.readouterr()
+        assert code == 2, f"{cmd}: exit {code}\n{out}{err}"
+        assert "Traceback" not in err + out and err.startswith("error: "), err
+        first = err.splitlines()[0]
+        assert str(path) in first and expected in first, first
+    assert _listing(tmp_path) == {"cfg.toml"}, "run created files"

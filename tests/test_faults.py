@@ -36,21 +36,57 @@ def _exe():
     return str(pathlib.Path(sys.executable).parent / "caviar-core")
 
 
-def test_a_plugin_that_ends_the_process_leaves_an_abandoned_run(tmp_path, cli):
+def test_a_plugin_that_ends_the_process_is_reported_at_once(tmp_path, cli):
+    """os._exit in a plugin: the supervising command says at once what ended the run,
+    where, and closes run.json as failed with it; the finished steps stay readable."""
     write_config(tmp_path, DYING)
     p = cli("run", "exp.toml", "-q", "--out", "run")
+    assert p.returncode == 1, p.stderr
+    assert "the run ended abnormally: the process exited with status 3 without closing the run" in p.stderr
+    assert "in module 'exiter' at step 5" in p.stderr and "Traceback" not in p.stderr, p.stderr
+    log = caviar.load_run(tmp_path / "run")
+    s = log.status
+    assert s["status"] == "failed" and s["end_reason"] == "error" and s["steps_done"] == 5, s
+    assert s["error"]["module"] == "exiter" and s["error"]["step"] == 5 and "status 3" in s["error"]["message"], s
+    assert "pid" not in json.loads((tmp_path / "run" / "run.json").read_text())
+    assert log.topic("count")["step"].to_list() == [0, 1, 2, 3, 4]  # step 5's parts were never written
+    text = cli("inspect", "run", check=0).stdout
+    assert "(failed)" in text and "in module 'exiter', step at step 5" in text, text
+
+
+def test_a_segfault_in_native_code_is_reported_at_once(tmp_path, cli):
+    write_config(tmp_path, DYING.replace("params = { at_step = 5 }", "params = { at_step = 3, segfault = true }"))
+    p = cli("run", "exp.toml", "-q", "--out", "run")
+    assert p.returncode == 1, p.stderr
+    assert "crashed with a segmentation fault (SIGSEGV), in module 'exiter' at step 3" in p.stderr, p.stderr
+    assert caviar.load_run(tmp_path / "run").status["status"] == "failed"
+
+
+def test_out_of_memory_is_named_when_the_kernel_counted_an_oom_kill():
+    """The kernel's OOM killer cannot be provoked safely in a test: the words for it are
+    checked against the cgroup counter the parent reads before and after."""
+    from caviar.supervise import cause
+
+    assert "out of memory" in cause(-signal.SIGKILL, 4, 5)
+    assert cause(-signal.SIGKILL, 4, 4) == "was killed (SIGKILL)"
+    assert cause(-signal.SIGKILL, None, None) == "was killed (SIGKILL)"
+    assert "status 7" in cause(7, None, None)
+
+
+def test_unsupervised_a_plugin_that_ends_the_process_leaves_an_abandoned_run(tmp_path, monkeypatch):
+    """The engine's own record, without the supervising parent (CAVIAR_SUPERVISED=1): the
+    dead process leaves run.json running, and readers call the run abandoned."""
+    write_config(tmp_path, DYING)
+    p = subprocess.run([_exe(), "run", "exp.toml", "-q", "--out", "run"], cwd=tmp_path,
+                       env=dict(_env(), CAVIAR_SUPERVISED="1"), capture_output=True, text=True, timeout=120)
     assert p.returncode == 3, p.stderr
     raw = json.loads((tmp_path / "run" / "run.json").read_text())
     assert raw["status"] == "running" and raw["pid"] > 0  # what the dead process left
-    log = caviar.load_run(tmp_path / "run")
-    s = log.status
+    s = caviar.load_run(tmp_path / "run").status
     assert s["status"] == "abandoned", s
     assert s["steps_done"] == 5 and s["last_step"] == 5 and s["last_modules"] == ["exiter"], s
     assert s["last_stage"] == "b"
     assert "after step 4 (5 steps done)" in s["abandoned"] and "'exiter', at step 5" in s["abandoned"]
-    assert log.topic("count")["step"].to_list() == [0, 1, 2, 3, 4]  # step 5's parts were never written
-    text = cli("inspect", "run", check=0).stdout
-    assert "(abandoned)" in text and "'exiter', at step 5" in text, text
 
 
 def test_kill_9_of_the_core_leaves_an_abandoned_run(tmp_path, cli):
@@ -62,9 +98,11 @@ def test_kill_9_of_the_core_leaves_an_abandoned_run(tmp_path, cli):
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and len(list(parts.glob("*.parquet"))) < 20:
         time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
+    proc.send_signal(signal.SIGKILL)  # the command; the engine's process dies with it
     proc.wait(timeout=10)
-    s = caviar.load_run(tmp_path / "run").status
+    deadline = time.monotonic() + 10
+    while (s := caviar.load_run(tmp_path / "run").status)["status"] == "running" and time.monotonic() < deadline:
+        time.sleep(0.05)
     assert s["status"] == "abandoned", s
     done = len(list(parts.glob("part-*.parquet")))
     # A step's part is written before its progress: a kill between the two leaves the
@@ -263,9 +301,10 @@ def test_a_dead_nats_server_is_named_at_once_and_leaves_no_files(tmp_path):
         parts = tmp_path / "run" / "messages"
         _wait_for(proc, lambda: parts.exists() and len(list(parts.glob("*.parquet"))) >= 3, "steps")
         assert not stale.exists(), "a stale configuration of a dead run is removed"
-        own = list(pathlib.Path(tempfile.gettempdir()).glob(f"caviar-nats-{proc.pid}-*.conf"))
+        engine = json.loads((tmp_path / "run" / "run.json").read_text())["pid"]  # under the supervising command
+        own = list(pathlib.Path(tempfile.gettempdir()).glob(f"caviar-nats-{engine}-*.conf"))
         assert own == [], "the server has read its configuration: nothing is left for a kill -9"
-        (server,) = _children(proc.pid, "nats-server")
+        (server,) = _children(engine, "nats-server")
         os.kill(server, signal.SIGKILL)
         t0 = time.monotonic()
         _, err = proc.communicate(timeout=60)

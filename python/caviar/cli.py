@@ -18,6 +18,8 @@ import sys
 from importlib import metadata
 from typing import Callable
 
+from caviar import supervise
+
 COMMANDS_GROUP = "caviar.commands"
 
 # The core's own subcommands (and its help): never looked up among entry points.
@@ -58,6 +60,8 @@ def dispatch(argv: list[str]) -> int:
         if command is not None:
             code = command(argv[2:])
             return 0 if code is None else int(code)
+    if len(argv) > 1 and argv[1] == "run" and not supervise.supervised() and not {"-h", "--help"} & set(argv):
+        return supervise.run(argv)  # the engine in a child: however it ends, this process says so
     from caviar import _core
 
     return _core.main(argv)

@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 use crate::config::LoadedConfig;
 use crate::engine::{EndReason, Engine, EngineError, StartHook};
 use crate::module::StepInfo;
+use crate::pacing::PacingReport;
 
 /// `rtf_definition` of run.json.
 pub const RTF_DEFINITION: &str = "T_p/T_v: wall-clock seconds per virtual second (the paper's RTF)";
@@ -144,6 +145,10 @@ pub struct RunStatus {
     /// reader if the run was abandoned).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub pid: Option<u32>,
+    /// When that process started (clock ticks after boot, Linux's /proc/PID/stat): a pid
+    /// is reused by a later process, the pair is not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pid_start: Option<u64>,
     /// Where the run was last seen (from `progress.json`, updated as modules start):
     /// the step in progress, its stage and the modules that had started it.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -158,6 +163,10 @@ pub struct RunStatus {
     /// docs/nats-protocol.md).
     #[serde(flatten)]
     pub transport: serde_json::Map<String, serde_json::Value>,
+    /// How a paced run (`episode.pace`) kept to the wall clock: late and dropped steps,
+    /// the worst and the 99th-percentile lateness.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pacing: Option<PacingReport>,
 }
 
 impl RunStatus {
@@ -194,10 +203,14 @@ impl RunStatus {
                 .filter(|r| *r == EndReason::Module)
                 .and_then(|_| engine.ended_by().map(String::from)),
             pid: (status == RunState::Running).then(std::process::id),
+            pid_start: (status == RunState::Running)
+                .then(|| process_start(std::process::id()))
+                .flatten(),
             last_step: None,
             last_stage: None,
             last_modules: Vec::new(),
             transport: serde_json::Map::new(),
+            pacing: engine.pacing(),
         }
     }
 
@@ -216,7 +229,9 @@ impl RunStatus {
             s.last_stage = Some(p.stage);
             s.last_modules = p.modules;
         }
-        if s.pid.is_some_and(|pid| !process_alive(pid)) {
+        if s.pid
+            .is_some_and(|pid| !same_process_alive(pid, s.pid_start))
+        {
             s.status = RunState::Abandoned;
         }
         Ok(s)
@@ -261,6 +276,32 @@ impl RunStatus {
             .and_then(|()| std::fs::rename(&tmp, &path))
             .map_err(|e| format!("{}: {e}", path.display()))
     }
+}
+
+/// Whether the process `pid` that started at `start` (when known) still runs: a live
+/// process under that pid that started at another time is a later one (the pid reused).
+/// A zombie (ended, not yet reaped by its parent) is not alive.
+fn same_process_alive(pid: u32, start: Option<u64>) -> bool {
+    process_alive(pid)
+        && proc_stat_field(pid, 3).as_deref() != Some("Z")
+        && match (start, process_start(pid)) {
+            (Some(then), Some(now)) => then == now,
+            _ => true,
+        }
+}
+
+/// When process `pid` started, in clock ticks after boot (field 22 of /proc/PID/stat;
+/// `None` where there is no /proc).
+fn process_start(pid: u32) -> Option<u64> {
+    proc_stat_field(pid, 22)?.parse().ok()
+}
+
+/// Field `n` (1-based, as proc(5) numbers them, from 3 on) of /proc/PID/stat.
+fn proc_stat_field(pid: u32, n: usize) -> Option<String> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // Field 2, the command, is in parentheses and may hold spaces: fields 3.. follow the last ')'.
+    let rest = &stat[stat.rfind(')')? + 1..];
+    rest.split_whitespace().nth(n - 3).map(String::from)
 }
 
 /// Whether process `pid` exists (signal 0: permission denied still means it does).
@@ -461,6 +502,7 @@ fn end_now(c: &Current, run_dir: &Path, state: RunState, error: RunErrorInfo) ->
     let mut status = c.status.clone().unwrap_or_default();
     status.status = state;
     status.pid = None;
+    status.pid_start = None;
     status.steps_done = status.steps_done.max(c.step);
     status.virtual_time_s = status.steps_done as f64 * status.ts;
     status.end_reason = Some(match state {
@@ -503,6 +545,40 @@ mod tests {
         let other: RunStatus =
             serde_json::from_str(r#"{"error": {"message": "disk full"}}"#).unwrap();
         assert_eq!(other.error.unwrap().message(), "disk full");
+    }
+
+    #[test]
+    fn a_reused_pid_does_not_keep_an_abandoned_run_alive() {
+        let dir = std::env::temp_dir().join(format!("caviar-pid-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let me = std::process::id();
+        let start = process_start(me).expect("/proc on Linux");
+        let mut s = RunStatus {
+            status: RunState::Running,
+            pid: Some(me),
+            pid_start: Some(start),
+            ..RunStatus::default()
+        };
+        s.write(&dir).unwrap();
+        assert_eq!(
+            RunStatus::read_live(&dir).unwrap().status,
+            RunState::Running
+        );
+        // The same pid, another start: the process that ran it is gone, this is a later one.
+        s.pid_start = Some(start + 1);
+        s.write(&dir).unwrap();
+        assert_eq!(
+            RunStatus::read_live(&dir).unwrap().status,
+            RunState::Abandoned
+        );
+        // Runs recorded before pid_start existed: the pid alone decides.
+        s.pid_start = None;
+        s.write(&dir).unwrap();
+        assert_eq!(
+            RunStatus::read_live(&dir).unwrap().status,
+            RunState::Running
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
