@@ -178,13 +178,28 @@ class Checked(caviar.Plugin):
 
 class Exits(caviar.Plugin):
     """Ends the whole process (no cleanup) at step `at_step`, or hangs there for good, or
-    (`segfault`) crashes it in native code."""
+    (`segfault`) crashes it in native code; `hang_in = "setup"` or `"teardown"` hangs
+    there instead."""
 
     @dataclasses.dataclass
     class Params:
         at_step: int = 5
         hang: bool = False
         segfault: bool = False
+        hang_in: str = ""
+
+    def setup(self, ctx):
+        import time
+
+        super().setup(ctx)
+        while ctx.params.hang_in == "setup":
+            time.sleep(3600)
+
+    def teardown(self):
+        import time
+
+        while self.ctx.params.hang_in == "teardown":
+            time.sleep(3600)
 
     def step(self, t, inbox):
         import os

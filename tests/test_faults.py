@@ -8,6 +8,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 import caviar
 from conftest import TESTS, write_config
 
@@ -141,6 +143,28 @@ def test_a_step_that_never_ends_is_stopped_by_the_watchdog(tmp_path, cli):
     print(f"watchdog: run stopped {took:.2f} s after start (step_timeout 1 s)")
 
 
+
+@pytest.mark.parametrize("phase", ["setup", "teardown"])
+def test_a_setup_or_teardown_that_never_ends_is_stopped_by_the_watchdog(tmp_path, cli, phase):
+    """The watchdog covers a module's setup and teardown too (episode.setup_timeout)."""
+    write_config(tmp_path, DYING.replace("at_step = 5", f'at_step = 99999, hang_in = "{phase}"')
+                 .replace("steps = 1000", "steps = 3\nsetup_timeout = 1.0"))
+    t0 = time.monotonic()
+    p = cli("run", "exp.toml", "-q", "--out", "run")
+    took = time.monotonic() - t0
+    assert p.returncode == 1, p.stderr
+    assert f"module 'exiter' did not finish {phase} within 1 s (episode.setup_timeout)" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+    log = caviar.load_run(tmp_path / "run")
+    s = log.status
+    assert s["status"] == "failed" and s["end_reason"] == "error", s
+    assert s["error"]["module"] == "exiter" and s["error"]["phase"] == phase and s["error"]["step"] is None, s
+    # Teardown comes after every step: those steps are recorded and readable.
+    assert s["steps_done"] == (3 if phase == "teardown" else 0), s
+    assert log.topic("count")["step"].to_list() == ([0, 1, 2] if phase == "teardown" else [])
+    assert took < 20, took
+
+
 # --- Ctrl-C and deadlines (D1-D4) ------------------------------------------------------------
 SLOW_IN_PROCESS = """
 [episode]
@@ -261,8 +285,6 @@ def test_ctrl_c_twice_stops_an_in_process_step_that_takes_long(tmp_path):
 
 # --- Python API (D12) ----------------------------------------------------------------------------
 def test_python_api_mistakes_are_named(tmp_path):
-    import pytest
-
     cfg = write_config(tmp_path, DYING.replace("at_step = 5", "at_step = 100000"))
     with pytest.raises(TypeError, match="got the string 'episode.steps=5' \\(put it in a list\\)"):
         caviar.Simulation.from_toml(cfg, overrides="episode.steps=5")

@@ -16,7 +16,7 @@ from caviar import _core
 from caviar.rundir import RunDir
 from caviar.view.contract import CORE, ViewContract, registered
 from caviar.view.data import RunData
-from conftest import ROOT
+from conftest import ROOT, write_config
 
 QUICKSTART = ROOT / "blueprints" / "quickstart" / "config.toml"
 
@@ -192,3 +192,29 @@ def test_the_core_package_names_no_domain_topic():
                   and domain.match(n.value)]
     assert not found, found
     assert pathlib.Path(caviar.__file__).parent == ROOT / "python" / "caviar"
+
+
+def test_a_run_that_recorded_nothing_reads_as_empty_tables_with_the_recorded_columns(tmp_path, cli):
+    """A run that failed in setup has no part file: its tables are empty, with the columns
+    (and types) of a table that was recorded, so that selecting a topic just finds none."""
+    write_config(tmp_path, """
+[episode]
+ts = 0.1
+steps = 3
+stages = ["s"]
+[modules.counter]
+stage = "s"
+plugin = "sample_plugins:Counter"
+""")
+    cli("run", "exp.toml", "-q", "--out", "full")
+    full = caviar.load_run(tmp_path / "full")
+    empty_dir = tmp_path / "empty"
+    empty_dir.mkdir()
+    (empty_dir / "messages").mkdir()
+    (empty_dir / "timings").mkdir()
+    (empty_dir / "run.json").write_text((tmp_path / "full" / "run.json").read_text())
+    empty = caviar.load_run(empty_dir)
+    assert empty.messages.is_empty() and empty.timings.is_empty()
+    assert empty.messages.schema == full.messages.schema
+    assert empty.timings.schema == full.timings.schema
+    assert empty.topic("count").height == 0 and empty.decoded("count") == []

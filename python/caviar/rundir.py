@@ -61,7 +61,10 @@ class RunDir:
         import polars as pl
 
         frames = [read_parquet(f, columns) for f in (self.table_files(table) if files is None else files)]
-        return pl.concat(frames) if frames else pl.DataFrame()
+        if frames:
+            return pl.concat(frames)
+        schema = _schema(table)
+        return pl.DataFrame(schema={c: t for c, t in schema.items() if columns is None or c in columns})
 
     def module_totals(self) -> list[dict[str, Any]]:
         """Per module, its timings added up (the core's row last)."""
@@ -69,6 +72,20 @@ class RunDir:
             return json.loads(_core.module_totals(self.path))
         except ValueError as e:
             raise FileNotFoundError(str(e)) from None
+
+
+def _schema(table: str) -> dict[str, Any]:
+    """The columns of a recorded table (as the core's recorder writes them), for the
+    empty frame of a run that recorded nothing."""
+    import polars as pl
+
+    if table == "messages":
+        return {"step": pl.UInt64, "time": pl.Float64, "seq": pl.UInt32, "source": pl.String,
+                "topic": pl.String, "kind": pl.String, "text": pl.String, "meta": pl.String,
+                "data": pl.Binary}
+    return {"step": pl.UInt64, "time": pl.Float64, "module": pl.String, "wall_s": pl.Float64,
+            "cpu_s": pl.Float64, "rss_mib": pl.Float64, "msgs_in": pl.UInt32, "msgs_out": pl.UInt32,
+            "gpu_util_pct": pl.Float64, "gpu_mem_mib": pl.Float64}
 
 
 def read_parquet(path: pathlib.Path, columns: Sequence[str] | None = None):

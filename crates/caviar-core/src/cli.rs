@@ -239,7 +239,10 @@ fn run(
     // A supervising parent (caviar.cli) learns where the run is, to tell the truth about
     // a process that ends without closing it.
     if let Some(note) = std::env::var_os("CAVIAR_RUN_DIR_FILE") {
-        let _ = std::fs::write(note, session.engine().run_dir().as_os_str().as_encoded_bytes());
+        let _ = std::fs::write(
+            note,
+            session.engine().run_dir().as_os_str().as_encoded_bytes(),
+        );
     }
     for w in session.warnings() {
         eprintln!("warning: {w}");

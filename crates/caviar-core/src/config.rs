@@ -7,6 +7,7 @@
 //! seed = 7
 //! stages = ["mobility", "communications", "ai"]
 //! step_timeout = 600.0     # s one module step may take, any transport (default 600)
+//! setup_timeout = 600.0    # s one module's setup or teardown may take, in process (default 600)
 //! pace = 1.0               # wall-clock pacing (1: real time); absent: as fast as possible
 //! behind = "catch-up"      # or "drop": what a paced run does when it falls behind
 //!
@@ -84,6 +85,10 @@ pub struct Episode {
     /// whatever the transport. In-process, a step past it cannot be interrupted: the
     /// process writes run.json as `failed`, naming the module and step, and exits (1).
     pub step_timeout: Option<f64>,
+    /// Seconds one module's `setup`, or its `teardown`, may take in this process before
+    /// the run stops the same way (default 600: a large scene's first ray-tracing
+    /// compile can take minutes).
+    pub setup_timeout: Option<f64>,
     /// Wiring warnings (a subscription nothing publishes, a topic nobody reads) stop
     /// the run before it starts instead of being printed (`caviar-core run --strict`).
     #[serde(default)]
@@ -98,6 +103,9 @@ pub struct Episode {
 
 /// `episode.step_timeout` when not given.
 pub const DEFAULT_STEP_TIMEOUT: f64 = 600.0;
+
+/// `episode.setup_timeout` when not given.
+pub const DEFAULT_SETUP_TIMEOUT: f64 = 600.0;
 
 /// `transport.kind` when not given: every module in this process.
 pub const IN_PROCESS: &str = "inprocess";
@@ -185,6 +193,14 @@ impl LoadedConfig {
             .episode
             .step_timeout
             .unwrap_or(DEFAULT_STEP_TIMEOUT)
+    }
+
+    /// Seconds one module's setup or teardown may take: `episode.setup_timeout`, or 600.
+    pub fn setup_timeout(&self) -> f64 {
+        self.config
+            .episode
+            .setup_timeout
+            .unwrap_or(DEFAULT_SETUP_TIMEOUT)
     }
 
     /// `transport.kind`: [`IN_PROCESS`] (the default) or the name of a transport.
@@ -308,6 +324,19 @@ pub fn parse(
         let mut line = inner.span().map(|s| line_at(&text, s.start));
         let mut key = (path != "." && !path.is_empty()).then_some(path);
         let mut message = inner.message().to_string();
+        if message.is_empty() {
+            // The TOML parser says nothing of some characters (a control character in
+            // a comment): say what is at the place it points to.
+            let at = inner.span().map_or(text.len(), |s| s.start);
+            message = match text.get(at..).and_then(|rest| rest.chars().next()) {
+                Some(c) if c.is_control() => format!(
+                    "a control character (U+{:04X}) is not allowed here in TOML",
+                    c as u32
+                ),
+                Some(c) => format!("invalid TOML at '{c}'"),
+                None => "the file ends where TOML expects more".into(),
+            };
+        }
         // "missing field `ts`" at `episode`: name the missing key, at its table's line.
         if let Some(field) = message
             .strip_prefix("missing field `")
@@ -356,7 +385,7 @@ fn validate(c: &LoadedConfig) -> Result<(), ConfigError> {
     check_placement(c)
 }
 
-/// `episode.ts`, `duration` and `step_timeout`: positive, finite seconds.
+/// `episode.ts`, `duration`, `step_timeout` and `setup_timeout`: positive, finite seconds.
 fn check_timing(c: &LoadedConfig) -> Result<(), ConfigError> {
     let ep = &c.config.episode;
     if !(ep.ts.is_finite() && ep.ts > 0.0) {
@@ -379,10 +408,13 @@ fn check_timing(c: &LoadedConfig) -> Result<(), ConfigError> {
             ));
         }
     }
-    if let Some(t) = ep.step_timeout {
-        if !(t.is_finite() && t > 0.0) {
+    for (key, value) in [
+        ("episode.step_timeout", ep.step_timeout),
+        ("episode.setup_timeout", ep.setup_timeout),
+    ] {
+        if let Some(t) = value.filter(|t| !(t.is_finite() && *t > 0.0)) {
             return Err(c.error_at(
-                "episode.step_timeout",
+                key,
                 format!("expected a positive number of seconds, got {}", num(t)),
             ));
         }

@@ -83,10 +83,29 @@ fn trace(e: &ModuleError) -> String {
 /// mirror them onto a message bus, where a later stage's outside helper may answer).
 pub type Tap = Box<dyn FnMut(&[SharedMessage]) + Send>;
 
+/// What a module is doing when the [`StartHook`] is told it started.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    Setup,
+    Step,
+    Teardown,
+}
+
+impl Phase {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Phase::Setup => "setup",
+            Phase::Step => "step",
+            Phase::Teardown => "teardown",
+        }
+    }
+}
+
 /// Told, before a stage's modules start their step, which ones (in start order), and
-/// with an empty list when the stage is over: what a run record and a watchdog need to
-/// name the module a dead or stuck run was in.
-pub type StartHook = Box<dyn FnMut(StepInfo, &str, &[&str]) + Send>;
+/// with an empty list when the stage is over; likewise before each module's setup and
+/// teardown (stage `""`): what a run record and a watchdog need to name the module a
+/// dead or stuck run was in.
+pub type StartHook = Box<dyn FnMut(Phase, StepInfo, &str, &[&str]) + Send>;
 
 /// How a module takes part in an episode.
 pub struct ModuleSpec {
@@ -397,7 +416,12 @@ impl Engine {
             return Ok(());
         }
         self.started = Some(Instant::now());
+        let at = StepInfo { step: 0, time: 0.0 };
+        let mut hook = self.on_start.as_mut();
         for slot in &mut self.slots {
+            if let Some(h) = hook.as_mut() {
+                h(Phase::Setup, at, "", &[slot.name.as_str()]);
+            }
             let ctx = SetupContext {
                 name: slot.name.clone(),
                 seed: slot.seed,
@@ -419,6 +443,9 @@ impl Engine {
                     error: Box::new(error),
                 })?;
             slot.set_up = true;
+        }
+        if let Some(h) = hook {
+            h(Phase::Setup, at, "", &[]);
         }
         Ok(())
     }
@@ -709,7 +736,7 @@ impl Engine {
         let mut running: Vec<&str> = remote.iter().map(|s| s.name).collect();
         // Remote modules first: they work while this process runs the local ones.
         if let Some(h) = hook.as_mut().filter(|_| !running.is_empty()) {
-            h(at, stage_name, &running);
+            h(Phase::Step, at, stage_name, &running);
         }
         let started: Vec<_> = remote.iter_mut().map(|s| start_remote(s, at)).collect();
         let mut ran = if parallel.len() <= 1 {
@@ -719,7 +746,7 @@ impl Engine {
             for s in serial.iter_mut() {
                 if let Some(h) = hook.as_mut() {
                     running.push(s.name);
-                    h(at, stage_name, &running);
+                    h(Phase::Step, at, stage_name, &running);
                     running.pop();
                 }
                 ran.push(run_local(s, at));
@@ -728,7 +755,7 @@ impl Engine {
         } else {
             if let Some(h) = hook.as_mut() {
                 running.extend(parallel.iter().chain(serial.iter()).map(|s| s.name));
-                h(at, stage_name, &running);
+                h(Phase::Step, at, stage_name, &running);
             }
             let (mut a, b) = rayon::join(
                 || {
@@ -754,7 +781,7 @@ impl Engine {
                 .map(|(s, r)| finish_remote(s, r)),
         );
         if let Some(h) = hook {
-            h(at, stage_name, &[]);
+            h(Phase::Step, at, stage_name, &[]);
         }
         ran
     }
@@ -782,8 +809,16 @@ impl Engine {
             self.end = Some(EndReason::Closed);
         }
         let mut first = None;
+        let at = StepInfo {
+            step: self.next_step,
+            time: self.next_step as f64 * self.opts.ts,
+        };
+        let mut hook = self.on_start.as_mut();
         for slot in self.slots.iter_mut().filter(|s| s.set_up) {
             slot.set_up = false;
+            if let Some(h) = hook.as_mut() {
+                h(Phase::Teardown, at, "", &[slot.name.as_str()]);
+            }
             if let Err(error) = slot.module.teardown() {
                 first.get_or_insert(EngineError::Module {
                     module: slot.name.clone(),
@@ -793,6 +828,9 @@ impl Engine {
                     error: Box::new(error),
                 });
             }
+        }
+        if let Some(h) = hook {
+            h(Phase::Teardown, at, "", &[]);
         }
         if let Some(rec) = self.recorder.take() {
             rec.finish()?;

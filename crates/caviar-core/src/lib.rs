@@ -58,7 +58,7 @@ mod python;
 
 pub use config::{ConfigError, LoadedConfig};
 pub use engine::{
-    EndReason, Engine, EngineError, EngineOptions, ModuleSpec, StepReport, END_TOPIC,
+    EndReason, Engine, EngineError, EngineOptions, ModuleSpec, Phase, StepReport, END_TOPIC,
 };
 pub use message::{Message, Outgoing, Payload, SharedMessage};
 pub use module::{

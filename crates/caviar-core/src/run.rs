@@ -15,7 +15,7 @@ use crate::config::{ConfigError, LoadedConfig};
 use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec, StepReport};
 use crate::module::{AnyModule, Module, ResourceProbe};
 use crate::recorder::Recorder;
-use crate::status::{Monitor, RunState, RunStatus};
+use crate::status::{Deadlines, Monitor, RunState, RunStatus};
 use crate::topic::Pattern;
 use crate::transport::{self, Connection, WorkerLauncher};
 
@@ -240,10 +240,11 @@ impl RunSession {
         if let Some(probe) = loader.resource_probe() {
             engine.set_probe(probe);
         }
-        // A transport has its own step deadline; in-process, the monitor's watchdog.
-        let watchdog = connection
-            .is_none()
-            .then(|| Duration::from_secs_f64(cfg.step_timeout()));
+        // A transport has its own deadlines; in-process, the monitor's watchdog.
+        let watchdog = connection.is_none().then(|| Deadlines {
+            step: Duration::from_secs_f64(cfg.step_timeout()),
+            setup: Duration::from_secs_f64(cfg.setup_timeout()),
+        });
         let mut monitor = Monitor::install(&mut engine, watchdog);
         RunStatus::of(&cfg, &engine, RunState::Running, None)
             .write(&run_dir)

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 
 use crate::config::LoadedConfig;
-use crate::engine::{EndReason, Engine, EngineError, StartHook};
+use crate::engine::{EndReason, Engine, EngineError, Phase, StartHook};
 use crate::module::StepInfo;
 use crate::pacing::PacingReport;
 
@@ -331,8 +331,10 @@ fn read_progress(run_dir: &Path) -> Option<ProgressRecord> {
     serde_json::from_str(text.trim()).ok()
 }
 
-/// What the watchdog sees: the module step in progress and since when.
+/// What the watchdog sees: the module step (or setup, or teardown) in progress and
+/// since when.
 struct Current {
+    phase: Phase,
     step: u64,
     modules: Vec<String>,
     since: Instant,
@@ -340,8 +342,26 @@ struct Current {
     status: Option<RunStatus>,
 }
 
+/// How long an in-process module may take before the watchdog stops the run.
+#[derive(Debug, Clone, Copy)]
+pub struct Deadlines {
+    /// One step (`episode.step_timeout`).
+    pub step: Duration,
+    /// One module's setup, or its teardown (`episode.setup_timeout`).
+    pub setup: Duration,
+}
+
+impl Deadlines {
+    fn of(&self, phase: Phase) -> (Duration, &'static str) {
+        match phase {
+            Phase::Step => (self.step, "episode.step_timeout"),
+            Phase::Setup | Phase::Teardown => (self.setup, "episode.setup_timeout"),
+        }
+    }
+}
+
 /// Keeps run.json and progress.json true while a run goes on, and stops a run whose
-/// module step outlasts `episode.step_timeout` (in-process modules cannot be
+/// module step, setup or teardown outlasts its deadline (in-process modules cannot be
 /// interrupted: the process writes run.json as `failed` and exits with status 1).
 pub struct Monitor {
     run_dir: PathBuf,
@@ -355,10 +375,11 @@ const STATUS_EVERY: Duration = Duration::from_secs(1);
 
 impl Monitor {
     /// The monitor of `engine`'s run: installs the engine's start hook, and a watchdog
-    /// thread when `step_timeout` is given.
-    pub fn install(engine: &mut Engine, step_timeout: Option<Duration>) -> Monitor {
+    /// thread when `deadlines` are given.
+    pub fn install(engine: &mut Engine, deadlines: Option<Deadlines>) -> Monitor {
         let run_dir = engine.run_dir().to_path_buf();
         let current = Arc::new(Mutex::new(Current {
+            phase: Phase::Setup,
             step: 0,
             modules: Vec::new(),
             since: Instant::now(),
@@ -366,23 +387,25 @@ impl Monitor {
         }));
         let file = File::create(run_dir.join(PROGRESS_FILE)).ok();
         let shared = current.clone();
-        let hook: StartHook = Box::new(move |at: StepInfo, stage: &str, modules: &[&str]| {
-            if let Ok(mut c) = shared.lock() {
-                c.step = at.step;
-                c.modules = modules.iter().map(|m| m.to_string()).collect();
-                c.since = Instant::now();
-            }
-            if let (Some(f), false) = (&file, modules.is_empty()) {
-                write_progress(f, at.step, stage, modules);
-            }
-        });
+        let hook: StartHook =
+            Box::new(move |phase, at: StepInfo, stage: &str, modules: &[&str]| {
+                if let Ok(mut c) = shared.lock() {
+                    c.phase = phase;
+                    c.step = at.step;
+                    c.modules = modules.iter().map(|m| m.to_string()).collect();
+                    c.since = Instant::now();
+                }
+                if let (Some(f), false, Phase::Step) = (&file, modules.is_empty(), phase) {
+                    write_progress(f, at.step, stage, modules);
+                }
+            });
         engine.set_start_hook(hook);
         let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
-        if let Some(limit) = step_timeout {
+        if let Some(limits) = deadlines {
             let (current, stop, run_dir) = (current.clone(), stop.clone(), run_dir.clone());
             std::thread::Builder::new()
                 .name("caviar-watchdog".into())
-                .spawn(move || watchdog(current, stop, run_dir, limit))
+                .spawn(move || watchdog(current, stop, run_dir, limits))
                 .expect("watchdog thread");
         }
         Monitor {
@@ -445,20 +468,24 @@ fn watchdog(
     current: Arc<Mutex<Current>>,
     stop: Arc<std::sync::atomic::AtomicBool>,
     run_dir: PathBuf,
-    limit: Duration,
+    limits: Deadlines,
 ) {
-    let tick = (limit / 10).clamp(Duration::from_millis(10), Duration::from_millis(100));
+    let shortest = limits.step.min(limits.setup);
+    let tick = (shortest / 10).clamp(Duration::from_millis(10), Duration::from_millis(100));
     let mut announced = false;
     while !stop.load(std::sync::atomic::Ordering::Relaxed) {
         std::thread::sleep(tick);
         let Ok(c) = current.lock() else { return };
         let presses = crate::interrupt::count();
+        let what = match c.phase {
+            Phase::Step => format!("step {}", c.step),
+            phase => phase.as_str().to_string(),
+        };
         if presses == 1 && !announced && !c.modules.is_empty() {
             announced = true;
             eprintln!(
-                "interrupting after module '{}' finishes step {} (Ctrl-C again to stop at once)",
+                "interrupting after module '{}' finishes {what} (Ctrl-C again to stop at once)",
                 c.modules.join("', '"),
-                c.step
             );
         }
         if c.modules.is_empty() {
@@ -466,28 +493,27 @@ fn watchdog(
         }
         let modules = c.modules.join("', '");
         if presses >= 2 {
-            let message = format!(
-                "interrupted in step {} (Ctrl-C twice, module '{modules}' still running)",
-                c.step
-            );
+            let message =
+                format!("interrupted in {what} (Ctrl-C twice, module '{modules}' still running)");
             let error = RunErrorInfo::Other { message };
             end_now(&c, &run_dir, RunState::Interrupted, error);
         }
+        let (limit, key) = limits.of(c.phase);
         if c.since.elapsed() < limit {
             continue;
         }
         let message = format!(
-            "module '{modules}' did not finish step {} within {} s (episode.step_timeout); \
+            "module '{modules}' did not finish {what} within {} s ({key}); \
              the run was stopped (a module running in this process cannot be interrupted)",
-            c.step,
             limit.as_secs_f64()
         );
         eprintln!("error: {message}");
+        let stepping = c.phase == Phase::Step;
         let error = RunErrorInfo::Module {
             module: c.modules[0].clone(),
-            phase: "step".into(),
-            step: Some(c.step),
-            time: Some(c.step as f64 * c.status.as_ref().map_or(0.0, |s| s.ts)),
+            phase: c.phase.as_str().into(),
+            step: stepping.then_some(c.step),
+            time: stepping.then(|| c.step as f64 * c.status.as_ref().map_or(0.0, |s| s.ts)),
             message,
             trace: None,
         };
@@ -509,11 +535,14 @@ fn end_now(c: &Current, run_dir: &Path, state: RunState, error: RunErrorInfo) ->
         RunState::Interrupted => EndReason::Interrupted,
         _ => EndReason::Error,
     });
-    status.last_step = Some(c.step);
+    status.last_step = (c.phase == Phase::Step).then_some(c.step);
     status.last_modules = c.modules.clone();
     status.error = Some(error);
     let _ = status.write(run_dir);
     let (what, code) = match state {
+        RunState::Interrupted if c.phase != Phase::Step => {
+            (format!("interrupted in {}", c.phase.as_str()), 130)
+        }
         RunState::Interrupted => (format!("interrupted in step {}", c.step), 130),
         _ => (format!("failed after {} steps", status.steps_done), 1),
     };

@@ -359,9 +359,10 @@ class RunData:
                 return None
             s = max(cands)
             f = steps[s]
-        if not f.is_file():  # the run finished meanwhile: its parts are compacted
-            f = self.run.table_files("messages")[0]
-        df = pl.scan_parquet(f).filter((pl.col("step") == s) & (pl.col("topic") == topic)).select(
+        # The part is gone when the recorder merged it into a chunk, or the run finished
+        # and compacted its parts: look in the table's files as they are now.
+        where = [f] if f.is_file() else self.run.table_files("messages")
+        df = pl.scan_parquet(where).filter((pl.col("step") == s) & (pl.col("topic") == topic)).select(
             "data", "meta").collect()
         if df.is_empty():
             return None

@@ -11,7 +11,8 @@
 //! sealing, security), `control` (hello / loaded / heartbeat), `supervisor` (the
 //! processes this run started), `link` (the three together), `remote` and `bridge`
 //! (modules), [`worker`] (the Rust worker), `python` (the Python worker's bindings).
-//! Public for benchmarks and tests: [`prepare`], [`server`], [`settings`], [`worker`].
+//! Public for benchmarks and tests: [`prepare`], [`server`], [`settings`], [`worker`],
+//! [`wire`] (the frame codec, fuzzed by tests/fuzz.rs).
 
 pub mod auth;
 pub(crate) mod bridge;
@@ -24,7 +25,7 @@ pub(crate) mod remote;
 pub mod server;
 pub mod settings;
 pub(crate) mod supervisor;
-pub(crate) mod wire;
+pub mod wire;
 pub mod worker;
 
 use std::collections::HashMap;
