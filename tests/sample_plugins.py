@@ -10,6 +10,8 @@ import caviar
 class Counter(caviar.Plugin):
     """Publishes its step count and remembers what it received."""
 
+    stateless = True  # what it publishes comes from the step alone
+
     @dataclasses.dataclass
     class Params:
         topic: str = "count"
@@ -29,10 +31,33 @@ class Counter(caviar.Plugin):
 class Noise(caviar.Plugin):
     """Random numbers from the module's seeded generator, as JSON and as an array."""
 
+    stateless = True  # but for its random stream, which the host saves
+
     def step(self, t, inbox):
         x = self.ctx.rng.normal(size=4)
         yield "noise.json", {"x": x.tolist()}
         yield "noise.array", x.astype(np.complex64) * 1j
+
+
+class Tally(caviar.Plugin):
+    """A running sum of the counts it receives and a random draw each step: state, an
+    inbox and a random stream, all three needed to resume it exactly."""
+
+    def setup(self, ctx):
+        super().setup(ctx)
+        self.total, self.seen = 0.0, 0
+
+    def step(self, t, inbox):
+        for m in inbox.on("count"):
+            self.total += m.data["value"]
+            self.seen += 1
+        yield "tally", {"total": self.total, "seen": self.seen, "draw": float(self.ctx.rng.normal())}
+
+    def state(self):
+        return self.total, self.seen
+
+    def restore(self, state):
+        self.total, self.seen = state
 
 
 class Crash(caviar.Plugin):
@@ -111,6 +136,8 @@ class ScriptedDetections(caviar.Plugin):
 
 class Slow(caviar.Plugin):
     """Takes `seconds` of wall clock per step (to be killed mid-run)."""
+
+    stateless = True
 
     @dataclasses.dataclass
     class Params:

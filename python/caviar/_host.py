@@ -204,6 +204,35 @@ class Hosted:
     def teardown(self) -> None:
         self.plugin.teardown()
 
+    def state(self) -> tuple[str, Any]:
+        """For a checkpoint: ``("stateless", None)``, ``("saved", bytes)`` (the plugin's
+        :meth:`~caviar.Plugin.state` and its ``ctx.rng``'s position, pickled: a stateless
+        plugin that draws random numbers has its stream saved too) or
+        ``("unsupported", why)``."""
+        import pickle
+
+        cls = type(self.plugin)
+        hooks = cls.state is not Plugin.state and cls.restore is not Plugin.restore
+        rng = self.ctx.__dict__.get("_rng") if self.ctx is not None else None
+        if not hooks and not cls.stateless:
+            return "unsupported", (f"plugin {cls.__module__}.{cls.__qualname__} has no state()/restore() "
+                                   f"hooks and does not declare stateless = True")
+        if not hooks and rng is None:
+            return "stateless", None
+        saved = {"hooks": hooks, "plugin": self.plugin.state() if hooks else None,
+                 "rng": rng.bit_generator.state if rng is not None else None}
+        return "saved", pickle.dumps(saved, protocol=pickle.HIGHEST_PROTOCOL)
+
+    def restore(self, data: bytes) -> None:
+        import pickle
+
+        saved = pickle.loads(data)
+        if saved["rng"] is not None:
+            assert self.ctx is not None, "the core calls setup before restore"
+            self.ctx.rng.bit_generator.state = saved["rng"]
+        if saved["hooks"]:
+            self.plugin.restore(saved["plugin"])
+
 
 def declared_publishes(cls: type[Plugin]) -> list[str]:
     """The plugin's ``publishes`` as a list of valid patterns (empty: not declared)."""

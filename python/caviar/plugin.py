@@ -206,6 +206,12 @@ class Plugin:
     Params: ClassVar[type | None] = None
     """A dataclass describing ``[modules.NAME.params]``: unknown keys, missing
     values and wrong types become configuration errors naming the key."""
+    stateless: ClassVar[bool] = False
+    """True when the plugin keeps nothing across steps that changes what it publishes
+    (all it needs comes from ``setup`` and the step's inbox): a resumed run
+    (``caviar-core run --resume``) sets it up again and goes on. A plugin with state
+    implements :meth:`state` and :meth:`restore` instead; one with neither cannot be
+    resumed (``--resume`` says so, naming it)."""
     shardable: ClassVar[bool] = False
     """True when ``step`` can compute one piece of the work (``ctx.shard`` of
     ``ctx.shards``) from the inbox alone, so that several workers can share a step.
@@ -230,6 +236,17 @@ class Plugin:
 
     def teardown(self) -> None:
         pass
+
+    def state(self) -> Any:
+        """What the plugin must keep to go on after a crash, taken between two steps at
+        each checkpoint (``output.checkpoint_every``): anything ``pickle`` can write.
+        ``ctx.rng`` is saved with it by the host. Implement with :meth:`restore`."""
+        raise NotImplementedError
+
+    def restore(self, state: Any) -> None:
+        """Puts back what :meth:`state` returned, after ``setup``, before the next step
+        of a resumed run."""
+        raise NotImplementedError
 
 
 # ---------------------------------------------------------------------------

@@ -70,6 +70,10 @@ class RunStatus(_RunStatusFields, total=False):
     last_modules: list[str]
     abandoned: str
     """For an abandoned run: how far it got and what it was doing, in words."""
+    checkpoint_step: int
+    """The step the last checkpoint resumes at (``caviar-core run --resume``)."""
+    resumed_at: list[int]
+    """The steps the run was resumed at, in order (absent: never resumed)."""
 
 
 class RunLog:

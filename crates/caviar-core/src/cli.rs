@@ -29,9 +29,14 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Run an episode described by a TOML file.
+    /// Run an episode described by a TOML file, or resume one (--resume RUN_DIR).
     Run {
-        config: PathBuf,
+        #[arg(required_unless_present = "resume")]
+        config: Option<PathBuf>,
+        /// Go on with the run in RUN_DIR from its last checkpoint (a run that crashed,
+        /// was killed or failed; in-process runs whose modules can be resumed).
+        #[arg(long, value_name = "RUN_DIR", conflicts_with_all = ["config", "set", "out", "strict"])]
+        resume: Option<PathBuf>,
         /// Override a value: --set episode.steps=10 --set modules.uav.params.speed=3
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
@@ -79,6 +84,7 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
     match cli.command {
         Command::Run {
             config,
+            resume,
             set,
             out,
             quiet,
@@ -87,16 +93,16 @@ pub fn main(args: Vec<String>, loader: &dyn PluginLoader, interrupted: &dyn Fn()
             strict,
         } => {
             let view = view.then_some(view_port.unwrap_or(0));
-            let set = with_strict(set, strict);
-            run(
-                &config,
-                &set,
-                out.as_deref(),
-                quiet,
-                view,
-                loader,
-                interrupted,
-            )
+            let start = match (resume, config) {
+                (Some(run_dir), _) => Start::Resume(run_dir),
+                (None, Some(config)) => Start::New {
+                    config,
+                    set: with_strict(set, strict),
+                    out,
+                },
+                (None, None) => unreachable!("clap requires one"),
+            };
+            run(start, quiet, view, loader, interrupted)
         }
         Command::Validate {
             config,
@@ -217,18 +223,29 @@ fn show_progress(bar: &ProgressBar, engine: &Engine, report: &StepReport) {
     bar.set_message(format!("t = {virtual_s:.2} s  RTF {rtf}"));
 }
 
+/// A new run of a configuration, or a run resumed from its checkpoint.
+enum Start {
+    New {
+        config: PathBuf,
+        set: Vec<String>,
+        out: Option<PathBuf>,
+    },
+    Resume(PathBuf),
+}
+
 fn run(
-    path: &Path,
-    set: &[String],
-    out: Option<&Path>,
+    start: Start,
     quiet: bool,
     view_port: Option<u16>,
     loader: &dyn PluginLoader,
     interrupted: &dyn Fn() -> bool,
 ) -> i32 {
-    let session = config::load(path, set)
-        .map_err(PrepareError::from)
-        .and_then(|cfg| RunSession::start(cfg, loader, out));
+    let session = match &start {
+        Start::New { config, set, out } => config::load(config, set)
+            .map_err(PrepareError::from)
+            .and_then(|cfg| RunSession::start(cfg, loader, out.as_deref())),
+        Start::Resume(run_dir) => RunSession::resume(run_dir, loader),
+    };
     let mut session = match session {
         Ok(s) => s,
         Err(e) => {
@@ -246,6 +263,13 @@ fn run(
     }
     for w in session.warnings() {
         eprintln!("warning: {w}");
+    }
+    if let Start::Resume(_) = start {
+        eprintln!(
+            "{}: resumed at step {}",
+            session.engine().run_dir().display(),
+            session.engine().steps_done()
+        );
     }
     let viewing =
         view_port.is_some_and(|port| start_viewer(loader, session.engine().run_dir(), port));

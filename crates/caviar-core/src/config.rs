@@ -8,6 +8,9 @@
 //! stages = ["mobility", "communications", "ai"]
 //! step_timeout = 600.0     # s one module step may take, any transport (default 600)
 //! setup_timeout = 600.0    # s one module's setup or teardown may take, in process (default 600)
+//!
+//! [output]
+//! checkpoint_every = 100   # steps between checkpoints for `run --resume` (default 100; 0: none)
 //! pace = 1.0               # wall-clock pacing (1: real time); absent: as fast as possible
 //! behind = "catch-up"      # or "drop": what a paced run does when it falls behind
 //!
@@ -124,6 +127,8 @@ pub struct Output {
     /// step, so a killed process loses at most the step in progress.
     #[serde(default)]
     pub flush_interval: f64,
+    /// Steps between checkpoints (`caviar-core run --resume`; default 100, 0: none).
+    pub checkpoint_every: Option<u64>,
 }
 
 fn one() -> u64 {
@@ -193,6 +198,14 @@ impl LoadedConfig {
             .episode
             .step_timeout
             .unwrap_or(DEFAULT_STEP_TIMEOUT)
+    }
+
+    /// Steps between checkpoints: `output.checkpoint_every`, or 100; 0: none.
+    pub fn checkpoint_every(&self) -> u64 {
+        self.config
+            .output
+            .checkpoint_every
+            .unwrap_or(crate::checkpoint::DEFAULT_EVERY)
     }
 
     /// Seconds one module's setup or teardown may take: `episode.setup_timeout`, or 600.

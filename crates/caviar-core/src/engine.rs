@@ -26,13 +26,14 @@ use rayon::prelude::*;
 
 use serde::{Deserialize, Serialize};
 
+use crate::checkpoint::{Checkpoint, ModuleCheckpoint, SavedMessage, SavedState};
 use crate::message::{Message, Outgoing, SharedMessage};
 use crate::metrics::{
     charge_helper_threads, process_cpu_seconds, resident_mib, thread_cpu_seconds,
 };
 use crate::module::{
-    module_seed, AnyModule, Module, ModuleError, RemoteModule, ResourceProbe, SetupContext,
-    StepInfo, Usage,
+    module_seed, AnyModule, Module, ModuleError, ModuleState, RemoteModule, ResourceProbe,
+    SetupContext, StepInfo, Usage,
 };
 use crate::pacing::{Pacer, PacingReport};
 use crate::recorder::{RecordError, Recorder, TimingRow, CORE};
@@ -177,6 +178,9 @@ pub struct Engine {
     probe: Option<Box<dyn ResourceProbe>>,
     on_start: Option<StartHook>,
     pacer: Option<Pacer>,
+    /// The step the last checkpoint resumes at, and the steps this run was resumed at.
+    checkpoint_step: Option<u64>,
+    resumed_at: Vec<u64>,
 }
 
 /// Why an episode ended (`end_reason` in run.json).
@@ -329,6 +333,8 @@ impl Engine {
             probe: None,
             on_start: None,
             pacer: None,
+            checkpoint_step: None,
+            resumed_at: Vec::new(),
         })
     }
 
@@ -343,6 +349,16 @@ impl Engine {
     }
 
     /// Samples GPU use after each stage for the in-process modules.
+    /// The step the last checkpoint taken resumes at.
+    pub fn checkpoint_step(&self) -> Option<u64> {
+        self.checkpoint_step
+    }
+
+    /// The steps this run was resumed at (earlier resumes first).
+    pub fn resumed_at(&self) -> &[u64] {
+        &self.resumed_at
+    }
+
     pub fn set_probe(&mut self, probe: Box<dyn ResourceProbe>) {
         self.probe = Some(probe);
     }
@@ -795,10 +811,130 @@ impl Engine {
         while let Some(report) = self.step()? {
             let go_on = after_step(self, &report) && !crate::interrupt::requested();
             if !go_on && !report.ended {
-                self.end = Some(EndReason::Interrupted);
-                return Err(EngineError::Interrupted { step: report.step });
+                return Err(self.interrupt_after(report.step));
             }
         }
+        Ok(())
+    }
+
+    /// Ends the episode as interrupted after `step` (the host's stop between steps).
+    pub fn interrupt_after(&mut self, step: u64) -> EngineError {
+        self.end = Some(EndReason::Interrupted);
+        EngineError::Interrupted { step }
+    }
+
+    /// Time spent on the run's records outside the recorder (a checkpoint).
+    pub fn add_record_s(&mut self, seconds: f64) {
+        self.record_s += seconds;
+        self.wall_s += seconds;
+    }
+
+    /// A checkpoint of the run between two steps (see [`crate::checkpoint`]): flushes
+    /// the recording so that every step before it is on disk, then asks every module
+    /// for its state. A module whose `state` fails fails the run, named.
+    pub fn checkpoint(&mut self) -> Result<Checkpoint, EngineError> {
+        if let Some(rec) = self.recorder.as_mut() {
+            rec.flush()?;
+        }
+        let mut cp = Checkpoint::new(
+            self.next_step,
+            self.wall_s,
+            self.record_s,
+            &self.opts.config_dir,
+        );
+        let at = StepInfo {
+            step: self.next_step,
+            time: self.next_step as f64 * self.opts.ts,
+        };
+        for slot in &mut self.slots {
+            let state = if slot.set_up {
+                slot.module.state().map_err(|error| EngineError::Module {
+                    module: slot.name.clone(),
+                    phase: "state",
+                    step: Some(at.step),
+                    time: Some(at.time),
+                    error: Box::new(error),
+                })?
+            } else {
+                ModuleState::Stateless
+            };
+            cp.modules.push(ModuleCheckpoint {
+                name: slot.name.clone(),
+                state: state.into(),
+                inbox: slot.inbox.iter().map(|m| SavedMessage::of(m)).collect(),
+            });
+        }
+        self.checkpoint_step = Some(self.next_step);
+        Ok(cp)
+    }
+
+    /// Goes on from `cp` (a fresh engine on the same configuration): sets every module
+    /// up, restores its state and inbox, and makes `cp.next_step` the next step.
+    /// `resumed_before`: the steps the run was resumed at earlier.
+    pub fn resume_from(
+        &mut self,
+        cp: &Checkpoint,
+        resumed_before: &[u64],
+    ) -> Result<(), EngineError> {
+        let module_error = |module: &str, message: String| EngineError::Module {
+            module: module.to_string(),
+            phase: "restore",
+            step: Some(cp.next_step),
+            time: Some(cp.next_step as f64 * self.opts.ts),
+            error: Box::new(ModuleError::new(message)),
+        };
+        // Refuse before anything is set up: every module must be resumable.
+        for slot in &self.slots {
+            let Some(m) = cp.modules.iter().find(|m| m.name == slot.name) else {
+                return Err(module_error(
+                    &slot.name,
+                    "the checkpoint has no such module (was the configuration changed?)".into(),
+                ));
+            };
+            if let SavedState::Unsupported { why } = &m.state {
+                return Err(module_error(&slot.name, format!("cannot resume: {why}")));
+            }
+        }
+        self.setup()?;
+        let ts = self.opts.ts;
+        for slot in &mut self.slots {
+            let m = cp
+                .modules
+                .iter()
+                .find(|m| m.name == slot.name)
+                .expect("checked above");
+            let fail = |message: String| EngineError::Module {
+                module: slot.name.clone(),
+                phase: "restore",
+                step: Some(cp.next_step),
+                time: Some(cp.next_step as f64 * ts),
+                error: Box::new(ModuleError::new(message)),
+            };
+            if let SavedState::Saved { hex } = &m.state {
+                let bytes = crate::checkpoint::unhex(hex).map_err(&fail)?;
+                slot.module
+                    .restore(&bytes)
+                    .map_err(|error| EngineError::Module {
+                        module: slot.name.clone(),
+                        phase: "restore",
+                        step: Some(cp.next_step),
+                        time: Some(cp.next_step as f64 * ts),
+                        error: Box::new(error),
+                    })?;
+            }
+            slot.inbox = m
+                .inbox
+                .iter()
+                .map(|s| s.to_message().map(Arc::new))
+                .collect::<Result<_, _>>()
+                .map_err(&fail)?;
+        }
+        self.next_step = cp.next_step;
+        self.wall_s = cp.wall_s;
+        self.record_s = cp.record_s;
+        self.checkpoint_step = Some(cp.next_step);
+        self.resumed_at = resumed_before.to_vec();
+        self.resumed_at.push(cp.next_step);
         Ok(())
     }
 

@@ -35,6 +35,7 @@
 //!     everything above, the transports through their registry)
 
 pub mod assembly;
+pub mod checkpoint;
 pub mod cli;
 pub mod config;
 pub mod engine;
@@ -62,6 +63,7 @@ pub use engine::{
 };
 pub use message::{Message, Outgoing, Payload, SharedMessage};
 pub use module::{
-    AnyModule, Module, ModuleError, RemoteModule, ResourceProbe, SetupContext, StepInfo, Usage,
+    AnyModule, Module, ModuleError, ModuleState, RemoteModule, ResourceProbe, SetupContext,
+    StepInfo, Usage,
 };
 pub use status::{RunState, RunStatus};

@@ -72,6 +72,19 @@ pub struct SetupContext {
     pub params: serde_json::Value,
 }
 
+/// A module's state in a checkpoint (`output.checkpoint_every`, `caviar-core run --resume`).
+#[derive(Debug, Clone, PartialEq)]
+pub enum ModuleState {
+    /// The module keeps nothing across steps that changes what it publishes: a resumed
+    /// run sets it up again and goes on.
+    Stateless,
+    /// Its state, as bytes only the module reads back (`restore`).
+    Saved(Vec<u8>),
+    /// It has no state hooks and does not declare itself stateless: a run with it
+    /// cannot be resumed (the reason says so).
+    Unsupported(String),
+}
+
 /// Where a step happens.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepInfo {
@@ -129,6 +142,18 @@ pub trait Module: Send {
         Ok(())
     }
 
+    /// The module's state between two steps, for a checkpoint. Default: unsupported.
+    fn state(&mut self) -> Result<ModuleState, ModuleError> {
+        Ok(ModuleState::Unsupported(
+            "it has no state()/restore() hooks and does not declare itself stateless".into(),
+        ))
+    }
+
+    /// Puts back a state from [`Module::state`], after `setup`, before the next step.
+    fn restore(&mut self, _state: &[u8]) -> Result<(), ModuleError> {
+        Err(ModuleError::new("it has no restore() hook"))
+    }
+
     /// Whether `step` may run on a worker thread beside the other modules of its
     /// stage. Python plugins say no: they share one interpreter lock anyway and
     /// running them on the calling thread keeps tracebacks and signals simple.
@@ -173,6 +198,21 @@ pub trait RemoteModule: Send {
     fn teardown(&mut self) -> Result<(), ModuleError> {
         Ok(())
     }
+
+    /// As [`Module::state`]; default: unsupported (the NATS transport does not carry
+    /// states yet).
+    fn state(&mut self) -> Result<ModuleState, ModuleError> {
+        Ok(ModuleState::Unsupported(
+            "its transport does not carry module states (resume runs in process only)".into(),
+        ))
+    }
+
+    /// As [`Module::restore`].
+    fn restore(&mut self, _state: &[u8]) -> Result<(), ModuleError> {
+        Err(ModuleError::new(
+            "its transport does not carry module states",
+        ))
+    }
 }
 
 /// A module as the engine holds it: run here, or elsewhere.
@@ -215,6 +255,20 @@ impl AnyModule {
         match self {
             AnyModule::Local(m) => m.teardown(),
             AnyModule::Remote(m) => m.teardown(),
+        }
+    }
+
+    pub fn state(&mut self) -> Result<ModuleState, ModuleError> {
+        match self {
+            AnyModule::Local(m) => m.state(),
+            AnyModule::Remote(m) => m.state(),
+        }
+    }
+
+    pub fn restore(&mut self, state: &[u8]) -> Result<(), ModuleError> {
+        match self {
+            AnyModule::Local(m) => m.restore(state),
+            AnyModule::Remote(m) => m.restore(state),
         }
     }
 }

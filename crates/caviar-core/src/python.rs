@@ -14,7 +14,7 @@ use crate::assembly::PrepareError;
 use crate::config::{self, ConfigError, LoadedConfig};
 use crate::engine::EngineError;
 use crate::message::{Outgoing, SharedMessage};
-use crate::module::{Module, ModuleError, ResourceProbe, SetupContext, StepInfo};
+use crate::module::{Module, ModuleError, ModuleState, ResourceProbe, SetupContext, StepInfo};
 use crate::py_messages::{outgoing_from_python, raw_messages, RawMessage};
 use crate::run::{PluginLoader, RunSession};
 use crate::status::RunStatus;
@@ -119,6 +119,32 @@ impl Module for PyPlugin {
         Python::with_gil(|py| {
             self.hosted
                 .call_method0(py, "teardown")
+                .map(drop)
+                .map_err(|e| module_error(py, e))
+        })
+    }
+
+    fn state(&mut self) -> Result<ModuleState, ModuleError> {
+        Python::with_gil(|py| {
+            let r = self
+                .hosted
+                .call_method0(py, "state")
+                .map_err(|e| module_error(py, e))?;
+            let (kind, value): (String, Bound<'_, PyAny>) =
+                r.bind(py).extract().map_err(|e| module_error(py, e))?;
+            Ok(match kind.as_str() {
+                "stateless" => ModuleState::Stateless,
+                "saved" => ModuleState::Saved(value.extract().map_err(|e| module_error(py, e))?),
+                _ => ModuleState::Unsupported(value.extract().map_err(|e| module_error(py, e))?),
+            })
+        })
+    }
+
+    fn restore(&mut self, state: &[u8]) -> Result<(), ModuleError> {
+        Python::with_gil(|py| {
+            let data = pyo3::types::PyBytes::new(py, state);
+            self.hosted
+                .call_method1(py, "restore", (data,))
                 .map(drop)
                 .map_err(|e| module_error(py, e))
         })

@@ -289,6 +289,56 @@ impl Recorder {
         })
     }
 
+    /// Goes on recording a run resumed at step `next_step`: what is recorded (parts,
+    /// chunks, or the compacted tables of a run that failed) is cut to the steps before
+    /// it and rewritten as one chunk per table; new parts follow it.
+    pub fn resume(
+        run_dir: &Path,
+        exclude: Vec<Pattern>,
+        flush_interval: Duration,
+        next_step: u64,
+    ) -> Result<Self, RecordError> {
+        let mut last_part = 0;
+        let mut kept = Vec::new();
+        for table in [MESSAGES, TIMINGS] {
+            let batches = match table_files(run_dir, table) {
+                Ok(_) => read_table(run_dir, table)?,
+                Err(_) => Vec::new(),
+            };
+            let dir = run_dir.join(table);
+            if dir.is_dir() {
+                for f in part_files(&dir)? {
+                    last_part = last_part.max(parts_of(&f).map_or(0, |(_, b)| b));
+                }
+            }
+            kept.push(before_step(batches, next_step));
+        }
+        let name = format!("chunk-000000-{last_part:06}.parquet");
+        for ((table, schema), batches) in
+            [(MESSAGES, messages_schema()), (TIMINGS, timings_schema())]
+                .into_iter()
+                .zip(kept)
+        {
+            let dir = run_dir.join(table);
+            fs::create_dir_all(&dir).map_err(io_err(&dir))?;
+            // The chunk supersedes every file of the folder; the compacted table goes
+            // after it (a reader prefers it while it is there).
+            write_parquet(&dir.join(&name), schema, &batches)?;
+            for f in fs::read_dir(&dir).map_err(io_err(&dir))?.flatten() {
+                if f.file_name().to_str() != Some(name.as_str()) {
+                    fs::remove_file(f.path()).map_err(io_err(&f.path()))?;
+                }
+            }
+            let single = run_dir.join(format!("{table}.parquet"));
+            if single.exists() {
+                fs::remove_file(&single).map_err(io_err(&single))?;
+            }
+        }
+        let mut r = Recorder::create(run_dir, exclude, flush_interval)?;
+        r.next_part = last_part + 1;
+        Ok(r)
+    }
+
     pub fn is_recorded(&self, topic: &str) -> bool {
         !self.exclude.iter().any(|p| p.matches(topic))
     }
@@ -378,6 +428,25 @@ impl Recorder {
         }
         Ok(())
     }
+}
+
+/// The rows of `batches` (in recording order: steps never decrease) before `step`.
+fn before_step(batches: Vec<RecordBatch>, step: u64) -> Vec<RecordBatch> {
+    let mut out = Vec::with_capacity(batches.len());
+    for b in batches {
+        let steps = b
+            .column_by_name("step")
+            .and_then(|c| c.as_any().downcast_ref::<UInt64Array>().cloned());
+        let Some(steps) = steps else { continue };
+        let keep = steps.values().iter().take_while(|&&s| s < step).count();
+        if keep > 0 {
+            out.push(b.slice(0, keep));
+        }
+        if keep < b.num_rows() {
+            break;
+        }
+    }
+    out
 }
 
 /// The parts a file of a table's folder holds: `part-N` holds N, `chunk-A-B` A to B.

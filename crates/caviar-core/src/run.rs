@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use crate::assembly::{build_modules, wiring_warnings, PrepareError, REPLAY_PLUGIN};
+use crate::checkpoint::{Checkpoint, SavedState};
 use crate::config::{ConfigError, LoadedConfig};
 use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec, StepReport};
 use crate::module::{AnyModule, Module, ResourceProbe};
@@ -260,6 +261,104 @@ impl RunSession {
         })
     }
 
+    /// Goes on with the run in `run_dir` from its last checkpoint (`caviar-core run
+    /// --resume`): the configuration it saved, every module set up again and given back
+    /// its state and inbox, the recording cut to the steps before the checkpoint.
+    /// Refused, saying why, for a run that completed or still runs, one without a
+    /// checkpoint, over a transport, or with a module that cannot be resumed.
+    pub fn resume(run_dir: &Path, loader: &dyn PluginLoader) -> Result<Self, PrepareError> {
+        let io = |e: String| PrepareError::Io(e);
+        let before = RunStatus::read_live(run_dir).map_err(io)?;
+        match before.status {
+            RunState::Completed => {
+                return Err(io(format!(
+                    "{}: the run completed; there is nothing to resume",
+                    run_dir.display()
+                )))
+            }
+            RunState::Running => {
+                return Err(io(format!(
+                    "{}: the run is still running (pid {}); stop it first",
+                    run_dir.display(),
+                    before.pid.map_or("?".into(), |p| p.to_string())
+                )))
+            }
+            _ => {}
+        }
+        let cp = Checkpoint::read(run_dir).map_err(io)?;
+        if let Some((name, why)) = cp.modules.iter().find_map(|m| match &m.state {
+            SavedState::Unsupported { why } => Some((&m.name, why)),
+            _ => None,
+        }) {
+            return Err(io(format!(
+                "{}: cannot resume: module '{name}': {why}",
+                run_dir.display()
+            )));
+        }
+        let file = run_dir.join("config.toml");
+        let text = fs::read_to_string(&file).map_err(|e| io(format!("{}: {e}", file.display())))?;
+        let mut cfg =
+            crate::config::parse(&text, &file.display().to_string(), &cp.config_dir, &[])?;
+        // The run as first started: its file and overrides (already in the saved text).
+        cfg.file = before.config_file.clone();
+        cfg.overrides = before.overrides.clone();
+        if !cfg.in_process() {
+            return Err(io(format!(
+                "{}: cannot resume a run over the '{}' transport: resume runs in process only                  (set transport.kind = \"inprocess\" to run it here)",
+                run_dir.display(),
+                cfg.transport_kind()
+            )));
+        }
+        let specs = load_modules(&cfg, loader)?;
+        let warnings = wiring_warnings(&cfg, &specs, &|_| None);
+        let exclude = cfg
+            .config
+            .output
+            .exclude
+            .iter()
+            .map(|p| Pattern::new(p).expect("validated"))
+            .collect();
+        let recorder = Recorder::resume(
+            run_dir,
+            exclude,
+            Duration::from_secs_f64(cfg.config.output.flush_interval),
+            cp.next_step,
+        )
+        .map_err(|e| io(e.to_string()))?;
+        let mut engine = engine_with(&cfg, run_dir, specs, recorder)?;
+        if let Some(probe) = loader.resource_probe() {
+            engine.set_probe(probe);
+        }
+        let mut monitor = Monitor::install(
+            &mut engine,
+            Some(Deadlines {
+                step: Duration::from_secs_f64(cfg.step_timeout()),
+                setup: Duration::from_secs_f64(cfg.setup_timeout()),
+            }),
+        );
+        RunStatus::of(&cfg, &engine, RunState::Running, None)
+            .write(run_dir)
+            .map_err(io)?;
+        monitor.started(&cfg, &engine);
+        let mut session = RunSession {
+            cfg,
+            engine,
+            monitor: Some(monitor),
+            connection: None,
+            warnings,
+            ended: None,
+        };
+        if let Err(e) = session.engine.resume_from(&cp, &before.resumed_at) {
+            // Nothing ran: the run stays as it was, failed, with why it did not resume.
+            let _ = session.finish(Err(e));
+            return Err(io(format!(
+                "{}: the run could not be resumed (run.json says why)",
+                run_dir.display()
+            )));
+        }
+        Ok(session)
+    }
+
     pub fn engine(&self) -> &Engine {
         &self.engine
     }
@@ -281,6 +380,9 @@ impl RunSession {
     /// Runs one step; `None` when the episode is over.
     pub fn step(&mut self) -> Result<Option<StepReport>, EngineError> {
         let report = self.engine.step()?;
+        if let Some(r) = &report {
+            checkpoint_due(&self.cfg, &mut self.engine, r)?;
+        }
         if let (Some(m), Some(_)) = (&mut self.monitor, &report) {
             m.after_step(&self.cfg, &self.engine);
         }
@@ -294,12 +396,19 @@ impl RunSession {
         mut on_step: impl FnMut(&Engine, &StepReport) -> bool,
     ) -> Result<(), EngineError> {
         let (monitor, cfg) = (&mut self.monitor, &self.cfg);
-        self.engine.run(|engine, report| {
+        loop {
+            let Some(report) = self.engine.step()? else {
+                return Ok(());
+            };
+            checkpoint_due(cfg, &mut self.engine, &report)?;
             if let Some(m) = monitor.as_mut() {
-                m.after_step(cfg, engine);
+                m.after_step(cfg, &self.engine);
             }
-            on_step(engine, report)
-        })
+            let go_on = on_step(&self.engine, &report) && !crate::interrupt::requested();
+            if !go_on && !report.ended {
+                return Err(self.engine.interrupt_after(report.step));
+            }
+        }
     }
 
     /// Ends the run with `result` (how running went): tears the modules down,
@@ -342,6 +451,29 @@ impl Drop for RunSession {
     }
 }
 
+/// Writes a checkpoint after `report`'s step when one is due (`output.checkpoint_every`
+/// steps; none after the last step). The time it takes counts as recording time.
+fn checkpoint_due(
+    cfg: &LoadedConfig,
+    engine: &mut Engine,
+    report: &StepReport,
+) -> Result<(), EngineError> {
+    let every = cfg.checkpoint_every();
+    if every == 0 || report.ended || !engine.steps_done().is_multiple_of(every) {
+        return Ok(());
+    }
+    let t = std::time::Instant::now();
+    let cp = engine.checkpoint()?;
+    cp.write(engine.run_dir()).map_err(|message| {
+        EngineError::Record(crate::recorder::RecordError::Format {
+            path: engine.run_dir().join(crate::checkpoint::FILE),
+            message,
+        })
+    })?;
+    engine.add_record_s(t.elapsed().as_secs_f64());
+    Ok(())
+}
+
 /// The engine of a run: its recorder in `run_dir`, the episode's timing and stages.
 fn new_engine(
     cfg: &LoadedConfig,
@@ -361,6 +493,15 @@ fn new_engine(
         Duration::from_secs_f64(cfg.config.output.flush_interval),
     )
     .map_err(|e| PrepareError::Io(e.to_string()))?;
+    engine_with(cfg, run_dir, specs, recorder)
+}
+
+fn engine_with(
+    cfg: &LoadedConfig,
+    run_dir: &Path,
+    specs: Vec<ModuleSpec>,
+    recorder: Recorder,
+) -> Result<Engine, PrepareError> {
     let ep = &cfg.config.episode;
     let opts = EngineOptions {
         ts: ep.ts,

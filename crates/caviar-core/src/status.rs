@@ -167,6 +167,12 @@ pub struct RunStatus {
     /// the worst and the 99th-percentile lateness.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pacing: Option<PacingReport>,
+    /// The step the last checkpoint resumes at (`checkpoint.json`; `run --resume`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub checkpoint_step: Option<u64>,
+    /// The steps this run was resumed at, in order (empty: never resumed).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub resumed_at: Vec<u64>,
 }
 
 impl RunStatus {
@@ -211,6 +217,8 @@ impl RunStatus {
             last_modules: Vec::new(),
             transport: serde_json::Map::new(),
             pacing: engine.pacing(),
+            checkpoint_step: engine.checkpoint_step(),
+            resumed_at: engine.resumed_at().to_vec(),
         }
     }
 

@@ -125,6 +125,13 @@ class WaypointFlight(caviar.Plugin):
         if t + 1e-9 >= self.hover_until:
             self.s += self.p.speed * self.ts
 
+    def state(self):
+        # The route and parameters come from setup; what moves is here.
+        return {"s": self.s, "hover_until": self.hover_until, "paper": copy.deepcopy(self.paper)}
+
+    def restore(self, state):
+        self.s, self.hover_until, self.paper = state["s"], state["hover_until"], state["paper"]
+
     def _paper_step(self, f: PaperFlight, t, inbox):
         for m in inbox.on(HOVER):
             if m.data.get("UE_Id") == self.p.ue_id:

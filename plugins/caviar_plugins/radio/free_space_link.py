@@ -21,6 +21,8 @@ class FreeSpaceLink(caviar.Plugin):
     subscribe = [POSITIONS]
     publishes = (THROUGHPUT, STATE)
 
+    stateless = True  # each step from its inbox alone: a resumed run needs only setup
+
     @dataclasses.dataclass
     class Params:
         tx_position: list[float] = dataclasses.field(default_factory=lambda: [-154.0, 64.0, 120.0])

@@ -38,6 +38,12 @@ class LinkMonitor(caviar.Plugin):
             if self.ctx.params.plot:
                 yield LINK_REPORT, caviar.Artifact(self.write_plot())
 
+    def state(self):
+        return {"rows": self.rows, "pos": self.pos}
+
+    def restore(self, state):
+        self.rows, self.pos = state["rows"], state["pos"]
+
     def write_report(self):
         path = self.ctx.artifact_dir / "throughput.csv"
         with path.open("w", newline="") as f:

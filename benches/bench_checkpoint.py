@@ -1,0 +1,68 @@
+"""What checkpoints cost (issue #28): the quickstart in process, its UAV slowed to make
+a long episode, with `output.checkpoint_every` 0 (none), 100 (the default) and 10,
+runs interleaved and repeated; the wall time of the steps (run.json's `wall_s`, which
+counts the checkpoints) per configuration, its median, and the ratio to no checkpoints.
+Written to docs/results/reliability.json ("checkpoint").
+
+    .venv/bin/python benches/bench_checkpoint.py [--steps 3000] [--repeat 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+QUICKSTART = ROOT / "blueprints" / "quickstart" / "config.toml"
+RESULTS = ROOT / "docs" / "results" / "reliability.json"
+
+
+def run_once(out: pathlib.Path, steps: int, every: int) -> float:
+    exe = pathlib.Path(sys.executable).parent / "caviar-core"
+    subprocess.run([str(exe), "run", str(QUICKSTART), "-q", "--out", str(out),
+                    "--set", f"episode.steps={steps}", "--set", "modules.uav.params.speed=0.01",
+                    "--set", f"output.checkpoint_every={every}"], check=True, capture_output=True)
+    status = json.loads((out / "run.json").read_text())
+    assert status["status"] == "completed" and status["steps_done"] == steps, status
+    return float(status["wall_s"])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=3000)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--write", action=argparse.BooleanOptionalAction, default=True)
+    args = ap.parse_args()
+    intervals = [0, 100, 10]
+    walls: dict[int, list[float]] = {k: [] for k in intervals}
+    with tempfile.TemporaryDirectory(prefix="caviar-cp-") as tmp:
+        for r in range(args.repeat):
+            for every in intervals:
+                walls[every].append(run_once(pathlib.Path(tmp) / f"r{r}-{every}", args.steps, every))
+            print(f"round {r + 1}/{args.repeat}: " + ", ".join(
+                f"every {k}: {walls[k][-1]:.3f} s" for k in intervals), flush=True)
+    base = statistics.median(walls[0])
+    rows = {str(k): {"wall_s_median": statistics.median(v), "ms_per_step": 1e3 * statistics.median(v) / args.steps,
+                     "ratio_to_none": statistics.median(v) / base, "wall_s": v} for k, v in walls.items()}
+    summary = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+               "blueprint": "quickstart in process (modules.uav.params.speed = 0.01)",
+               "steps": args.steps, "repeat": args.repeat, "checkpoint_every": rows,
+               "default_overhead_pct": 100 * (rows["100"]["ratio_to_none"] - 1)}
+    print(json.dumps({k: v for k, v in summary.items() if k != "checkpoint_every"}, indent=1))
+    for k, v in rows.items():
+        print(f"checkpoint_every {k:>3}: {v['ms_per_step']:.3f} ms/step, x{v['ratio_to_none']:.3f}")
+    if args.write:
+        data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+        data["checkpoint"] = summary
+        RESULTS.write_text(json.dumps(data, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
