@@ -37,7 +37,11 @@ class RunDir:
         return json.loads(_core.run_status(self.path))
 
     def config_text(self) -> str:
-        return (self.path / "config.toml").read_text()
+        path = self.path / "config.toml"
+        try:
+            return path.read_text()
+        except UnicodeDecodeError as e:
+            raise ValueError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
 
     def table_files(self, table: str) -> list[pathlib.Path]:
         """The Parquet files of ``table`` in order; FileNotFoundError when the run has
