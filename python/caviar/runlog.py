@@ -74,6 +74,8 @@ class RunStatus(_RunStatusFields, total=False):
     """The step the last checkpoint resumes at (``caviar-core run --resume``)."""
     resumed_at: list[int]
     """The steps the run was resumed at, in order (absent: never resumed)."""
+    checkpoint_s: float
+    """Seconds of ``wall_s`` spent writing checkpoints (since the last resume)."""
 
 
 class RunLog:

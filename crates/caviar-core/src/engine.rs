@@ -181,6 +181,7 @@ pub struct Engine {
     /// The step the last checkpoint resumes at, and the steps this run was resumed at.
     checkpoint_step: Option<u64>,
     resumed_at: Vec<u64>,
+    checkpoint_s: f64,
 }
 
 /// Why an episode ended (`end_reason` in run.json).
@@ -335,6 +336,7 @@ impl Engine {
             pacer: None,
             checkpoint_step: None,
             resumed_at: Vec::new(),
+            checkpoint_s: 0.0,
         })
     }
 
@@ -823,10 +825,15 @@ impl Engine {
         EngineError::Interrupted { step }
     }
 
-    /// Time spent on the run's records outside the recorder (a checkpoint).
-    pub fn add_record_s(&mut self, seconds: f64) {
-        self.record_s += seconds;
+    /// Time spent writing a checkpoint (part of the run's wall time).
+    pub fn add_checkpoint_s(&mut self, seconds: f64) {
+        self.checkpoint_s += seconds;
         self.wall_s += seconds;
+    }
+
+    /// Seconds spent writing checkpoints.
+    pub fn checkpoint_s(&self) -> f64 {
+        self.checkpoint_s
     }
 
     /// A checkpoint of the run between two steps (see [`crate::checkpoint`]): flushes

@@ -173,6 +173,9 @@ pub struct RunStatus {
     /// The steps this run was resumed at, in order (empty: never resumed).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub resumed_at: Vec<u64>,
+    /// Seconds of `wall_s` spent writing checkpoints (this process's part of the run).
+    #[serde(default)]
+    pub checkpoint_s: f64,
 }
 
 impl RunStatus {
@@ -219,6 +222,7 @@ impl RunStatus {
             pacing: engine.pacing(),
             checkpoint_step: engine.checkpoint_step(),
             resumed_at: engine.resumed_at().to_vec(),
+            checkpoint_s: engine.checkpoint_s(),
         }
     }
 
