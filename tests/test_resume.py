@@ -90,12 +90,16 @@ def test_a_run_killed_at_a_random_step_resumes_to_the_same_messages(tmp_path, cl
     kill = random.Random(seed).randrange(25, 150)
     _kill_at(["exp.toml"], tmp_path / "run", kill, tmp_path)
     assert caviar.load_run(tmp_path / "run").status["status"] in ("abandoned", "failed")
+    before = cli("inspect", "run", check=0).stdout
+    assert "resume    from step " in before and "caviar-core run --resume run" in before, before
     p = cli("run", "--resume", "run", "-q", check=0)
     cp = (kill // 20) * 20  # the last checkpoint before the kill (or the kill step's own)
     assert "resumed at step" in p.stderr, p.stderr
     s = caviar.load_run(tmp_path / "run").status
     assert s["status"] == "completed" and s["steps_done"] == 160, s
     assert len(s["resumed_at"]) == 1 and cp <= s["resumed_at"][0] <= kill + 1, (s["resumed_at"], kill)
+    after = cli("inspect", "run", check=0).stdout
+    assert f"resumed   at step {s['resumed_at'][0]}" in after and "resume    from" not in after, after
     ref, got = _messages(tmp_path / "reference"), _messages(tmp_path / "run")
     assert got.height == ref.height == 160 * 5
     assert got.equals(ref)  # every message, bit for bit, in the same order

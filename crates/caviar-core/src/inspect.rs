@@ -94,6 +94,22 @@ fn write_summary(s: &mut String, run_dir: &Path, status: &RunStatus, messages: &
     if let Some(text) = status.abandoned_text() {
         writeln!(s, "ended     {text}").unwrap();
     }
+    if !status.resumed_at.is_empty() {
+        let at: Vec<String> = status.resumed_at.iter().map(u64::to_string).collect();
+        writeln!(s, "resumed   at step {}", at.join(", ")).unwrap();
+    }
+    // The checkpoint itself, not run.json's note of it (written at most once a second).
+    let checkpoint = (status.status != crate::status::RunState::Completed)
+        .then(|| crate::checkpoint::Checkpoint::read(run_dir).ok())
+        .flatten();
+    if let Some(k) = checkpoint.map(|c| c.next_step) {
+        writeln!(
+            s,
+            "resume    from step {k}: caviar-core run --resume {}",
+            run_dir.display()
+        )
+        .unwrap();
+    }
     if let Some(err) = &status.error {
         writeln!(s, "error     {}", err.message()).unwrap();
         if let RunErrorInfo::Module {

@@ -17,18 +17,19 @@
 //! 2. [`module`] (message)
 //! 3. [`recorder`] (message, topic): the run directory's tables, written and read
 //! 4. [`config`] (topic): the experiment file; `[transport]` kept as written
-//! 5. [`replay`] (config, message, module, recorder, topic)
-//! 6. [`engine`] (message, metrics, module, recorder, topic)
+//! 5. [`replay`] (config, message, module, recorder, topic); [`checkpoint`] (message,
+//!    module): checkpoint.json, module states and inboxes
+//! 6. [`engine`] (checkpoint, message, metrics, module, recorder, topic)
 //! 7. [`assembly`] (config, engine, module, replay, topic): the core's built-in
 //!    plugins, `build_modules`, `PrepareError`, wiring warnings
 //! 8. [`status`] (config, engine, module): run.json, progress.json and the
-//!    in-process step watchdog ([`status::Monitor`])
-//! 9. [`inspect`] (engine, message, recorder, status): `caviar-core inspect`'s report
+//!    in-process watchdog of setup, steps and teardown ([`status::Monitor`])
+//! 9. [`inspect`] (checkpoint, engine, message, recorder, status): `caviar-core inspect`'s report
 //!    and the per-module totals
 //! 10. [`transport::interface`] (assembly, config, engine); the transports
 //!     ([`transport::nats`]: assembly, config, engine, message, metrics, module,
 //!     topic, interface) and the registry [`transport`] (config, interface, nats)
-//! 11. [`run`] (assembly, config, engine, module, recorder, status, topic,
+//! 11. [`run`] (assembly, checkpoint, config, engine, module, recorder, status, topic,
 //!     transport): [`run::RunSession`], one run from start to run.json
 //! 12. [`cli`] (assembly, config, engine, inspect, run, status)
 //! 13. `py_messages`, `python` (feature `python`: the `caviar._core` extension;
