@@ -146,21 +146,17 @@ def test_what_cannot_be_resumed_is_refused_saying_why(tmp_path, cli):
     assert "cannot be used with" in p.stderr
 
 
-def test_a_run_over_nats_is_refused_naming_the_transport(tmp_path, cli):
-    write_config(tmp_path, """
-[episode]
-ts = 0.1
-steps = 50
-stages = ["a"]
-[output]
-checkpoint_every = 2
-[transport]
-kind = "nats"
-[modules.crash]
-stage = "a"
-plugin = "sample_plugins:Crash"
-params = { at_step = 5 }
-""")
-    cli("run", "exp.toml", "-q", "--out", "run", check=1)
-    p = cli("run", "--resume", "run", check=2)
-    assert "cannot resume" in p.stderr and "resume runs in process only" in p.stderr, p.stderr
+def test_a_run_over_nats_killed_at_a_random_step_resumes_to_the_same_messages(tmp_path, cli):
+    """Over NATS the workers give their plugins' states at each checkpoint; a resumed run
+    starts a server and workers again, restores them, and records what an uninterrupted
+    run records (here: the in-process one, which records the same)."""
+    write_config(tmp_path, RESUMABLE)
+    write_config(tmp_path, RESUMABLE.replace("[output]", '[transport]\nkind = "nats"\n[output]'), "nats.toml")
+    cli("run", "exp.toml", "-q", "--out", "reference", check=0)
+    kill = random.Random(3).randrange(25, 150)
+    _kill_at(["nats.toml"], tmp_path / "run", kill, tmp_path)
+    p = cli("run", "--resume", "run", "-q", check=0)
+    assert "resumed at step" in p.stderr, p.stderr
+    s = caviar.load_run(tmp_path / "run").status
+    assert s["status"] == "completed" and s["steps_done"] == 160 and len(s["resumed_at"]) == 1, s
+    assert _messages(tmp_path / "run").equals(_messages(tmp_path / "reference"))

@@ -93,6 +93,7 @@ class Guard:
         """The body of a frame of the core received on ``subject``; ValueError (counted)
         if it fails authentication or repeats a sequence number."""
     def schedule(self, every: int, offset: int, steps: Optional[int], shards: int, exclusive: bool) -> None: ...
+    def resume_at(self, next_step: int) -> None: ...
     def accept_step(self, step: int, shard: int) -> None:
         """ValueError (counted) for a step out of sequence."""
     def refuse(self) -> None:

@@ -199,6 +199,8 @@ class Worker:
         me = f"{self.prefix}.{self.module}.{self.id}"
         await self.nc.subscribe(f"{me}.setup", cb=self.on_setup)
         await self.nc.subscribe(f"{me}.teardown", cb=self.on_teardown)
+        await self.nc.subscribe(f"{me}.state", cb=self.on_state)
+        await self.nc.subscribe(f"{me}.resume", cb=self.on_resume)
         await self.nc.subscribe(f"{self.prefix}.stop", cb=self.on_stop)
         await self.nc.publish(loaded, self.guard.seal(loaded, json.dumps(
             {"worker": self.id, "subscribe": subscribe, "publishes": publishes}).encode()))
@@ -298,6 +300,41 @@ class Worker:
         await self._respond(msg, json.dumps(result).encode())
         await self.nc.flush()
         self.done.set()
+
+    async def on_state(self, msg: Msg) -> None:
+        """A checkpoint: the plugin's state (hex), "stateless", or why it has none."""
+        if self._open(msg) is None:
+            return
+        if not msg.reply:
+            self._refuse("a state request without a reply subject")
+            return
+        result: dict
+        try:
+            kind, value = self._plugin().state()
+            result = {"ok": True, "kind": kind, "hex": value.hex() if kind == "saved" else None,
+                      "why": value if kind == "unsupported" else None}
+        except Exception as e:
+            result = error_reply(e)
+        await self._respond(msg, json.dumps(result).encode())
+
+    async def on_resume(self, msg: Msg) -> None:
+        """A resumed run: the state to restore (if any), and the step it goes on at."""
+        data = self._open(msg)
+        if data is None:
+            return
+        if not msg.reply:
+            self._refuse("a resume without a reply subject")
+            return
+        c = json.loads(data)
+        result: dict
+        try:
+            if c.get("hex") is not None:
+                self._plugin().restore(bytes.fromhex(c["hex"]))
+            self.guard.resume_at(int(c["next_step"]))
+            result = {"ok": True}
+        except Exception as e:
+            result = error_reply(e)
+        await self._respond(msg, json.dumps(result).encode())
 
     async def on_stop(self, msg: Msg) -> None:
         if self._open(msg) is not None:

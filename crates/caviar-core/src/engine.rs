@@ -935,6 +935,15 @@ impl Engine {
                 .map(|s| s.to_message().map(Arc::new))
                 .collect::<Result<_, _>>()
                 .map_err(&fail)?;
+            slot.module
+                .resume_at(cp.next_step)
+                .map_err(|error| EngineError::Module {
+                    module: slot.name.clone(),
+                    phase: "restore",
+                    step: Some(cp.next_step),
+                    time: Some(cp.next_step as f64 * ts),
+                    error: Box::new(error),
+                })?;
         }
         self.next_step = cp.next_step;
         self.wall_s = cp.wall_s;

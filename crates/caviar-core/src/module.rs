@@ -154,6 +154,11 @@ pub trait Module: Send {
         Err(ModuleError::new("it has no restore() hook"))
     }
 
+    /// A resumed run goes on at `next_step` (after `restore`, for every module).
+    fn resume_at(&mut self, _next_step: u64) -> Result<(), ModuleError> {
+        Ok(())
+    }
+
     /// Whether `step` may run on a worker thread beside the other modules of its
     /// stage. Python plugins say no: they share one interpreter lock anyway and
     /// running them on the calling thread keeps tracebacks and signals simple.
@@ -199,11 +204,10 @@ pub trait RemoteModule: Send {
         Ok(())
     }
 
-    /// As [`Module::state`]; default: unsupported (the NATS transport does not carry
-    /// states yet).
+    /// As [`Module::state`]; default: unsupported.
     fn state(&mut self) -> Result<ModuleState, ModuleError> {
         Ok(ModuleState::Unsupported(
-            "its transport does not carry module states (resume runs in process only)".into(),
+            "its transport does not carry module states".into(),
         ))
     }
 
@@ -212,6 +216,11 @@ pub trait RemoteModule: Send {
         Err(ModuleError::new(
             "its transport does not carry module states",
         ))
+    }
+
+    /// As [`Module::resume_at`].
+    fn resume_at(&mut self, _next_step: u64) -> Result<(), ModuleError> {
+        Ok(())
     }
 }
 
@@ -269,6 +278,13 @@ impl AnyModule {
         match self {
             AnyModule::Local(m) => m.restore(state),
             AnyModule::Remote(m) => m.restore(state),
+        }
+    }
+
+    pub fn resume_at(&mut self, next_step: u64) -> Result<(), ModuleError> {
+        match self {
+            AnyModule::Local(m) => m.resume_at(next_step),
+            AnyModule::Remote(m) => m.resume_at(next_step),
         }
     }
 }

@@ -302,15 +302,7 @@ impl RunSession {
         // The run as first started: its file and overrides (already in the saved text).
         cfg.file = before.config_file.clone();
         cfg.overrides = before.overrides.clone();
-        if !cfg.in_process() {
-            return Err(io(format!(
-                "{}: cannot resume a run over the '{}' transport: resume runs in process only                  (set transport.kind = \"inprocess\" to run it here)",
-                run_dir.display(),
-                cfg.transport_kind()
-            )));
-        }
-        let specs = load_modules(&cfg, loader)?;
-        let warnings = wiring_warnings(&cfg, &specs, &|_| None);
+        let transport = transport::check(&cfg)?;
         let exclude = cfg
             .config
             .output
@@ -318,24 +310,43 @@ impl RunSession {
             .iter()
             .map(|p| Pattern::new(p).expect("validated"))
             .collect();
-        let recorder = Recorder::resume(
-            run_dir,
-            exclude,
-            Duration::from_secs_f64(cfg.config.output.flush_interval),
-            cp.next_step,
-        )
-        .map_err(|e| io(e.to_string()))?;
-        let mut engine = engine_with(&cfg, run_dir, specs, recorder)?;
+        let recorder = |cfg: &LoadedConfig| {
+            Recorder::resume(
+                run_dir,
+                exclude,
+                Duration::from_secs_f64(cfg.config.output.flush_interval),
+                cp.next_step,
+            )
+            .map_err(|e| io(e.to_string()))
+        };
+        // In process: the plugins here; over a transport: its server and workers again
+        // (their logs start afresh in the run directory).
+        let (mut engine, connection, warnings) = match transport {
+            None => {
+                let specs = load_modules(&cfg, loader)?;
+                let warnings = wiring_warnings(&cfg, &specs, &|_| None);
+                let engine = engine_with(&cfg, run_dir, specs, recorder(&cfg)?)?;
+                (engine, None, warnings)
+            }
+            Some(t) => {
+                t.check_files(&cfg)?;
+                let p = t.prepare(&cfg, loader.worker_launcher().as_ref(), run_dir)?;
+                let warnings = wiring_warnings(&cfg, &p.modules, &|_| None);
+                let mut engine = engine_with(&cfg, run_dir, p.modules, recorder(&cfg)?)?;
+                if let Some(tap) = p.tap {
+                    engine.set_tap(tap);
+                }
+                (engine, Some(p.connection), warnings)
+            }
+        };
         if let Some(probe) = loader.resource_probe() {
             engine.set_probe(probe);
         }
-        let mut monitor = Monitor::install(
-            &mut engine,
-            Some(Deadlines {
-                step: Duration::from_secs_f64(cfg.step_timeout()),
-                setup: Duration::from_secs_f64(cfg.setup_timeout()),
-            }),
-        );
+        let watchdog = connection.is_none().then(|| Deadlines {
+            step: Duration::from_secs_f64(cfg.step_timeout()),
+            setup: Duration::from_secs_f64(cfg.setup_timeout()),
+        });
+        let mut monitor = Monitor::install(&mut engine, watchdog);
         RunStatus::of(&cfg, &engine, RunState::Running, None)
             .write(run_dir)
             .map_err(io)?;
@@ -344,7 +355,7 @@ impl RunSession {
             cfg,
             engine,
             monitor: Some(monitor),
-            connection: None,
+            connection,
             warnings,
             ended: None,
         };

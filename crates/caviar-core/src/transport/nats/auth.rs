@@ -211,6 +211,20 @@ impl StepGuard {
         }
     }
 
+    /// The steps before `next_step` count as run (a resumed run): the next one expected
+    /// is the first on the schedule from `next_step`, and no earlier step is accepted.
+    pub fn resume_at(&mut self, next_step: u64) {
+        let first = if next_step <= self.offset {
+            self.offset
+        } else {
+            self.offset + (next_step - self.offset).div_ceil(self.every) * self.every
+        };
+        if first >= self.offset + self.every {
+            self.current = Some(first - self.every);
+            self.shards_seen = (0..self.shards).collect();
+        }
+    }
+
     /// Accepts `step` (shard `shard`) or says why not; an accepted step is remembered.
     pub fn accept(&mut self, step: u64, shard: u64) -> Result<(), String> {
         let on_grid = step >= self.offset && (step - self.offset).is_multiple_of(self.every);
@@ -309,6 +323,13 @@ impl Guard {
         self.steps = Some(StepGuard::new(every, offset, steps, shards, exclusive));
     }
 
+    /// A resumed run goes on at `next_step`: the steps before it count as run.
+    pub fn resume_at(&mut self, next_step: u64) {
+        if let Some(g) = self.steps.as_mut() {
+            g.resume_at(next_step);
+        }
+    }
+
     /// Accepts a step (already authenticated) or counts a refusal.
     pub fn accept_step(&mut self, step: u64, shard: u64) -> Result<(), String> {
         let r = match self.steps.as_mut() {
@@ -384,5 +405,19 @@ mod tests {
         g.accept(4, 1).unwrap(); // other workers took steps 1-3
         assert!(g.accept(2, 0).is_err());
         assert!(g.accept(5, 3).is_err(), "no shard 3");
+    }
+
+    #[test]
+    fn a_resumed_schedule_expects_the_first_step_on_it_from_the_checkpoint() {
+        // every 2 from 1: steps 1, 3, 5, 7; resumed at step 4, the next is 5.
+        let mut g = StepGuard::new(2, 1, Some(9), 1, true);
+        g.resume_at(4);
+        assert!(g.accept(3, 0).is_err(), "before the checkpoint");
+        assert!(g.accept(7, 0).is_err(), "skips step 5");
+        g.accept(5, 0).unwrap();
+        // Resumed at the very start: as a fresh schedule.
+        let mut g = StepGuard::new(1, 0, None, 1, true);
+        g.resume_at(0);
+        g.accept(0, 0).unwrap();
     }
 }

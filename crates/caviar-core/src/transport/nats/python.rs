@@ -124,6 +124,11 @@ impl Guard {
             .schedule(every, offset, steps, shards, exclusive);
     }
 
+    /// A resumed run: the next step is `next_step` (the first on the schedule from it).
+    fn resume_at(&self, next_step: u64) {
+        self.0.lock().unwrap().resume_at(next_step);
+    }
+
     /// Accepts a step, or ValueError (counted) when it is out of sequence.
     fn accept_step(&self, step: u64, shard: u64) -> PyResult<()> {
         self.0

@@ -10,7 +10,7 @@ use super::control::LoadedPlugin;
 use super::link::Link;
 use super::wire::{self, WireError};
 use crate::message::{Outgoing, SharedMessage};
-use crate::module::{ModuleError, RemoteModule, SetupContext, StepInfo, Usage};
+use crate::module::{ModuleError, ModuleState, RemoteModule, SetupContext, StepInfo, Usage};
 
 /// A remote module whose workers are connected with the plugin loaded.
 pub(crate) struct Ready {
@@ -34,6 +34,8 @@ pub(crate) struct WorkerModule {
     /// A step of it was given up (past its deadline, Ctrl-C): its workers are busy
     /// with it and cannot tear down; they are killed at once.
     stuck: bool,
+    /// A state to restore, sent with the resume request.
+    restored: Option<Vec<u8>>,
 }
 
 #[derive(Deserialize)]
@@ -57,6 +59,7 @@ impl WorkerModule {
             pending: Vec::new(),
             at: None,
             stuck: false,
+            restored: None,
         }
     }
 
@@ -80,13 +83,24 @@ impl WorkerModule {
         })
     }
 
-    /// Sends a control request (setup, teardown) to every worker and checks each answer.
+    /// Sends a control request (setup, teardown, resume) to every worker and checks each
+    /// answer.
     fn control(
         &self,
         leaf: &str,
         body: &serde_json::Value,
         timeout: Duration,
     ) -> Result<(), ModuleError> {
+        self.control_replies(leaf, body, timeout).map(drop)
+    }
+
+    /// As [`Self::control`], returning each worker's answer (JSON).
+    fn control_replies(
+        &self,
+        leaf: &str,
+        body: &serde_json::Value,
+        timeout: Duration,
+    ) -> Result<Vec<serde_json::Value>, ModuleError> {
         let payload = serde_json::to_vec(body).expect("json");
         let pending: Vec<(String, Pending)> = self
             .workers
@@ -98,6 +112,7 @@ impl WorkerModule {
                 )
             })
             .collect();
+        let mut answers = Vec::new();
         for (worker, task) in pending {
             let what = format!("{leaf} of worker {worker}");
             let reply = self
@@ -108,7 +123,9 @@ impl WorkerModule {
                 .link
                 .conn
                 .open_reply(&what, reply.subject.as_str(), &reply.payload)?;
-            let ack: Ack = serde_json::from_slice(body)
+            let answer: serde_json::Value = serde_json::from_slice(body)
+                .map_err(|e| ModuleError::new(format!("{what}: bad reply: {e}")))?;
+            let ack: Ack = serde_json::from_value(answer.clone())
                 .map_err(|e| ModuleError::new(format!("{what}: bad reply: {e}")))?;
             if let Some(n) = ack.rejected {
                 self.link
@@ -121,8 +138,9 @@ impl WorkerModule {
             if !ack.ok {
                 return Err(wire::failure(ack.error));
             }
+            answers.push(answer);
         }
-        Ok(())
+        Ok(answers)
     }
 }
 
@@ -237,6 +255,58 @@ impl RemoteModule for WorkerModule {
             usage.gpu_mem_mib = max(usage.gpu_mem_mib, u.gpu_mem_mib);
         }
         Ok(usage)
+    }
+
+    fn state(&mut self) -> Result<ModuleState, ModuleError> {
+        // A worker that does not answer (a Rust worker has no state requests; one that
+        // died is found at the next step) makes the module not resumable, not the run fail.
+        let answers =
+            match self.control_replies("state", &serde_json::json!({}), self.link.timeouts.startup)
+            {
+                Ok(a) => a,
+                Err(e) => {
+                    return Ok(ModuleState::Unsupported(format!(
+                        "its worker did not answer the state request ({e})"
+                    )))
+                }
+            };
+        let kinds: Vec<&str> = answers
+            .iter()
+            .map(|a| a["kind"].as_str().unwrap_or("?"))
+            .collect();
+        if kinds.iter().all(|k| *k == "stateless") {
+            return Ok(ModuleState::Stateless);
+        }
+        if let [one] = answers.as_slice() {
+            match one["kind"].as_str() {
+                Some("saved") => {
+                    let hex = one["hex"].as_str().unwrap_or_default();
+                    return crate::checkpoint::unhex(hex)
+                        .map(ModuleState::Saved)
+                        .map_err(|e| ModuleError::new(format!("state of worker: {e}")));
+                }
+                Some("unsupported") => {
+                    let why = one["why"].as_str().unwrap_or("no state hooks");
+                    return Ok(ModuleState::Unsupported(why.to_string()));
+                }
+                _ => {}
+            }
+        }
+        Ok(ModuleState::Unsupported(format!(
+            "its state is split over {} workers (resume takes one worker per stateful module)",
+            answers.len()
+        )))
+    }
+
+    fn restore(&mut self, state: &[u8]) -> Result<(), ModuleError> {
+        self.restored = Some(state.to_vec());
+        Ok(())
+    }
+
+    fn resume_at(&mut self, next_step: u64) -> Result<(), ModuleError> {
+        let hex = self.restored.take().map(|b| crate::checkpoint::hex(&b));
+        let body = serde_json::json!({ "next_step": next_step, "hex": hex });
+        self.control("resume", &body, self.link.timeouts.startup)
     }
 
     fn teardown(&mut self) -> Result<(), ModuleError> {
