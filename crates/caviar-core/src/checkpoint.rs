@@ -12,9 +12,9 @@
 //! `--set` overrides applied), sets every module up again, restores the states and
 //! inboxes, drops from the recording the steps after the checkpoint (the crashed run
 //! may have recorded some), and goes on: it records exactly the messages an
-//! uninterrupted run with the same seed records (tested, CPU). A module that has no
-//! state hooks and does not declare itself stateless makes `--resume` refuse, naming
-//! it; so does a run over a transport (in-process only, for now).
+//! uninterrupted run with the same seed records (tested, CPU, in process and over NATS,
+//! whose workers answer `state` and `resume` requests). A module that has no state hooks
+//! and does not declare itself stateless makes `--resume` refuse, naming it.
 
 use std::path::{Path, PathBuf};
 
