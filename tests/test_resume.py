@@ -125,9 +125,13 @@ stage = "b"
 plugin = "sample_plugins:Echo"
 """)
     _kill_at(["exp.toml"], tmp_path / "run", 30, tmp_path)
+    why = "plugin sample_plugins.Echo has no state()/restore() hooks and does not declare stateless = True"
     p = cli("run", "--resume", "run", check=2)
-    assert ("cannot resume: module 'echo': plugin sample_plugins.Echo has no state()/restore() hooks "
-            "and does not declare stateless = True") in p.stderr, p.stderr
+    assert f"cannot resume: module 'echo': {why}" in p.stderr, p.stderr
+    assert f"resume    not possible: module 'echo': {why}" in cli("inspect", "run", check=0).stdout
+    # The checkpoint of a run that cannot be resumed names the module and holds nothing else.
+    cp = json.loads((tmp_path / "run" / "checkpoint.json").read_text())
+    assert [m["name"] for m in cp["modules"]] == ["echo"] and cp["modules"][0]["inbox"] == []
     assert caviar.load_run(tmp_path / "run").status["status"] != "running"
 
 

@@ -838,7 +838,9 @@ impl Engine {
 
     /// A checkpoint of the run between two steps (see [`crate::checkpoint`]): flushes
     /// the recording so that every step before it is on disk, then asks every module
-    /// for its state. A module whose `state` fails fails the run, named.
+    /// for its state. A module whose `state` fails fails the run, named; the first that
+    /// cannot be resumed ends the checkpoint there, naming it (and `checkpoint_step`
+    /// stays as it was: there is nothing to resume from).
     pub fn checkpoint(&mut self) -> Result<Checkpoint, EngineError> {
         if let Some(rec) = self.recorder.as_mut() {
             rec.flush()?;
@@ -865,6 +867,16 @@ impl Engine {
             } else {
                 ModuleState::Stateless
             };
+            if let ModuleState::Unsupported(why) = state {
+                // The run cannot be resumed: the checkpoint only says which module and
+                // why (no other state is asked for, no inbox written: it costs nothing).
+                cp.modules = vec![ModuleCheckpoint {
+                    name: slot.name.clone(),
+                    state: SavedState::Unsupported { why },
+                    inbox: Vec::new(),
+                }];
+                return Ok(cp);
+            }
             cp.modules.push(ModuleCheckpoint {
                 name: slot.name.clone(),
                 state: state.into(),

@@ -102,13 +102,23 @@ fn write_summary(s: &mut String, run_dir: &Path, status: &RunStatus, messages: &
     let checkpoint = (status.status != crate::status::RunState::Completed)
         .then(|| crate::checkpoint::Checkpoint::read(run_dir).ok())
         .flatten();
-    if let Some(k) = checkpoint.map(|c| c.next_step) {
-        writeln!(
-            s,
-            "resume    from step {k}: caviar-core run --resume {}",
-            run_dir.display()
-        )
-        .unwrap();
+    if let Some(cp) = checkpoint {
+        let refusal = cp.modules.iter().find_map(|m| match &m.state {
+            crate::checkpoint::SavedState::Unsupported { why } => Some((&m.name, why)),
+            _ => None,
+        });
+        match refusal {
+            Some((name, why)) => {
+                writeln!(s, "resume    not possible: module '{name}': {why}").unwrap()
+            }
+            None => writeln!(
+                s,
+                "resume    from step {}: caviar-core run --resume {}",
+                cp.next_step,
+                run_dir.display()
+            )
+            .unwrap(),
+        }
     }
     if let Some(err) = &status.error {
         writeln!(s, "error     {}", err.message()).unwrap();

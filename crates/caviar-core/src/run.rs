@@ -475,6 +475,16 @@ fn checkpoint_due(
     }
     let t = std::time::Instant::now();
     let cp = engine.checkpoint()?;
+    let resumable = !cp
+        .modules
+        .iter()
+        .any(|m| matches!(m.state, SavedState::Unsupported { .. }));
+    if !resumable && engine.run_dir().join(crate::checkpoint::FILE).exists() {
+        // Keep the checkpoint there is (a worker that did not answer this time must not
+        // take away the last good one; a refusal is already written).
+        engine.add_checkpoint_s(t.elapsed().as_secs_f64());
+        return Ok(());
+    }
     cp.write(engine.run_dir()).map_err(|message| {
         EngineError::Record(crate::recorder::RecordError::Format {
             path: engine.run_dir().join(crate::checkpoint::FILE),
