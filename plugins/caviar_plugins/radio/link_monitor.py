@@ -53,12 +53,12 @@ class LinkMonitor(caviar.Plugin):
         return path
 
     def write_plot(self):
-        import matplotlib
+        # A Figure of its own, not pyplot: the plot is drawn without a display and the host's
+        # backend (a notebook's inline plots, say) is left as it was.
+        from matplotlib.figure import Figure
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+        fig = Figure(figsize=(11, 4))
+        ax1, ax2 = fig.subplots(1, 2)
         for ue in sorted({r[1] for r in self.rows}):
             rows = [r for r in self.rows if r[1] == ue]
             ax1.plot([r[0] for r in rows], [r[2] for r in rows], label=ue)
@@ -71,5 +71,4 @@ class LinkMonitor(caviar.Plugin):
         fig.tight_layout()
         path = self.ctx.artifact_dir / "throughput.png"
         fig.savefig(path, dpi=100)
-        plt.close(fig)
         return path
