@@ -34,8 +34,13 @@ fi
 log "Python packages"
 .venv/bin/pip install --quiet --upgrade pip maturin
 # Builds the Rust extension caviar._core (release) and installs caviar in editable mode.
-.venv/bin/pip install --quiet -e ".[test]"
+.venv/bin/pip install --quiet -e ".[test,ml]"
 .venv/bin/pip install --quiet -e "plugins[radio,onnx,osm,traffic,network,live]"
+# The `deepmimo` extra (caviar-core export deepmimo): deepmimo 4.x pins numpy<2.3, which would
+# downgrade numpy under sionna and torch; it runs on theirs (tests/test_deepmimo.py), so it is
+# installed without its dependencies, and those numpy aside here.
+.venv/bin/pip install --quiet "tqdm>=4.59" requests "matplotlib>=3.8.2" "scipy>=1.6.2"
+.venv/bin/pip install --quiet --no-deps "deepmimo>=4,<5"
 
 # The browser view: its bundle ships built; chromium (apt) and playwright for its tests.
 bash scripts/setup-view.sh
