@@ -9,7 +9,7 @@ log() { printf '\n== %s\n' "$*"; }
 log "cargo clippy (warnings are errors)"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 log "ruff"
-.venv/bin/ruff check python plugins tests benches blueprints
+.venv/bin/ruff check python plugins tests benches blueprints examples
 log "mypy"
 .venv/bin/mypy
 log "cargo test"
