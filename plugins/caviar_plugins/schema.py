@@ -61,6 +61,11 @@ PREDICTION = "communications.prediction"
 (:mod:`caviar_plugins.radio.prediction`)."""
 BEAM_GAINS = "communications.beam_gains"
 """Prefix: ``communications.beam_gains.<UE_Id>`` gains of all beam pairs (float32, binary)."""
+PATHS = "communications.paths"
+"""Prefix: ``communications.paths.<UE_Id>`` the UE's ray-traced paths of the step (``sionna-link``'s
+``publish_paths``): per path the coefficient, delay, angles of departure and arrival, interaction
+types and points, with the tx/rx positions and the link's settings; binary, an ``.npz`` archive
+(:class:`caviar_plugins.radio.path_data.PathData`, ``PathData.from_bytes(message.data)``)."""
 
 # The radio network (several cells; caviar_plugins.network)
 NETWORK_UE = "network.ue"

@@ -22,6 +22,7 @@ import numpy as np
 from caviar_plugins.assets import SCENES
 from caviar_plugins.radio.beams import beam_gains, dft_codebook, flat_dft_codebook
 from caviar_plugins.radio.link_report import line_of_sight_paths
+from caviar_plugins.radio.path_data import PathData, receiver_paths
 from caviar_plugins.radio.shoot_cache import ShootCache
 
 CODEBOOKS = ("kronecker", "flat-dft")
@@ -140,6 +141,9 @@ class Link:
     paths_dropped: int = 0
     """Candidate paths of this solve that Sionna's buffer (``max_num_paths_per_src``)
     could not hold and dropped: when > 0 the channel may miss paths."""
+    paths: PathData | None = None
+    """The receiver's paths (coefficients, delays, angles, interactions), when the scene
+    keeps them (:attr:`RadioScene.keep_paths`)."""
 
     @property
     def path_gain(self) -> float:
@@ -200,6 +204,9 @@ class RadioScene:
         self._solved: tuple[tuple, dict] | None = None
         self._body_template = s.objects.get("Cube")
         self._bodies_on = cfg.uav_mesh
+        self.keep_paths = False
+        """Attach every receiver's :class:`~caviar_plugins.radio.path_data.PathData` to its
+        :class:`Link` (costs the paths' interactions and vertices on each solve)."""
 
     def _watch_path_buffer(self) -> None:
         """Keeps a reference to the per-source candidate counter of Sionna's
@@ -339,13 +346,18 @@ class RadioScene:
         rx_pos = np.array([self._where[key] for key in self.receivers])
         direct = np.linalg.norm(rx_pos - np.asarray(c.tx_position, dtype=float), axis=1)
         los = np.any(line_of_sight_paths(tau, valid, direct[:, None]), axis=1)
+        found = receiver_paths(paths, self.scene, c.tx_position, rx_pos, c.frequency_hz) if self.keep_paths else None
         out = {}
         for i, key in enumerate(self.receivers):
             h = cfr[i, :, 0, :, 0, 0]
             if c.normalize:
                 h = normalize_channel(h)
+            if found is not None:
+                power = float(np.mean(np.abs(cfr[i, :, 0, :, 0, 0]) ** 2))
+                found[i].h_scale = 1 / np.sqrt(power) if c.normalize and power > 0 else 1.0
             out[key] = Link(h=h, gains=beam_gains(h, self.w_tx, self.w_rx), los=bool(los[i]),
-                            n_paths=int(valid[i].sum()), paths_dropped=dropped)
+                            n_paths=int(valid[i].sum()), paths_dropped=dropped,
+                            paths=None if found is None else found[i])
         placed = {k for k, _ in self._placed}
         out = {k: link for k, link in out.items() if k in placed}
         self._solved = (self._placed, out)

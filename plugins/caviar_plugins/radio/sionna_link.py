@@ -9,6 +9,8 @@ positions, ray traces them in one solver call and publishes, per UAV:
 * ``communications.link`` — LOS flag, best and used pair, path gain, SNR, paths;
 * ``communications.channel.<UE_Id>`` — H (N_rx_ant × N_tx_ant, complex64), binary;
 * ``communications.beam_gains.<UE_Id>`` — gains of all pairs (C_rx × C_tx, float32), binary;
+* ``communications.paths.<UE_Id>`` — with ``publish_paths``, the paths (coefficients,
+  delays, angles, interactions; :class:`~caviar_plugins.radio.path_data.PathData`), binary;
 
 and then ``communications.state`` ``"Ready"``. Beam pair index = rx_beam · 64 + tx_beam.
 """
@@ -16,6 +18,7 @@ and then ``communications.state`` ``"Ready"``. Beam pair index = rx_beam · 64 +
 from __future__ import annotations
 
 import dataclasses
+from importlib import metadata
 
 import numpy as np
 
@@ -25,8 +28,18 @@ from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.radio.link_report import LINK_TOPICS, link_messages
 from caviar_plugins.radio.prediction import Forecaster, prediction_payload
-from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene
-from caviar_plugins.schema import BEAM_SELECTION, FORECAST, POSITIONS, PREDICTION, STATE, read_position
+from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene, scene_path
+from caviar_plugins.schema import (
+    BEAM_SELECTION,
+    FORECAST,
+    PATHS,
+    POSITIONS,
+    PREDICTION,
+    STATE,
+    every_ue,
+    per_ue,
+    read_position,
+)
 
 
 @dataclasses.dataclass
@@ -36,6 +49,12 @@ class SionnaLinkParams(RadioConfig):
     interference_dbw: float = -130.0
     publish_channels: bool = True
     """Publish H and the beam gains as binary payloads."""
+    publish_paths: bool = False
+    """Publish every UE's paths each step on ``communications.paths.<UE_Id>``: per path the
+    coefficient at the array centres, delay, angles of departure and arrival, interaction
+    types and points (:class:`~caviar_plugins.radio.path_data.PathData`), what
+    ``caviar-core export deepmimo`` turns into a DeepMIMO scenario. Needs a single
+    polarization ('V' or 'H')."""
     protocol: str = "physical"
     """``physical``: H with path loss, the link budget above, the Kronecker codebook at
     ``spacing``. ``paper``: the 2023 code's link (docs/paper-protocol.md): LOS path
@@ -110,6 +129,7 @@ class SionnaLinkParams(RadioConfig):
             raise ValueError("lookahead_steps and cache_tolerance_m must be >= 0")
         if self.warm_up_ues < 0:
             raise ValueError(f"warm_up_ues: expected >= 0, got {self.warm_up_ues}")
+        _check_publish_paths(self)
         if self.warm_up_ues and self.uav_mesh:
             raise ValueError("warm_up_ues needs uav_mesh = false (a warm-up receiver would take a UAV body "
                              "along, and adding bodies later recompiles the kernels anyway)")
@@ -127,13 +147,15 @@ class SionnaLinkParams(RadioConfig):
 
 class SionnaLink(caviar.Plugin):
     subscribe = [POSITIONS, BEAM_SELECTION, FORECAST]
-    publishes = (*LINK_TOPICS, STATE, PREDICTION)
+    publishes = (*LINK_TOPICS, STATE, PREDICTION, every_ue(PATHS))
     Params = SionnaLinkParams
 
     def setup(self, ctx):
         p = ctx.params
         self.p = p
         self.radio = RadioScene(p.radio(), seed=ctx.seed, base_dir=ctx.config_dir)
+        self.radio.keep_paths = p.publish_paths
+        self.path_settings = _path_settings(p, ctx) if p.publish_paths else {}
         self.budget = LinkBudget(bandwidth_hz=p.bandwidth_hz, tx_power_w=p.tx_power_w,
                                  interference_dbw=p.interference_dbw)
         self.ue_type: dict[str, str] = {}
@@ -173,6 +195,8 @@ class SionnaLink(caviar.Plugin):
             mbps, extra = decoded.get(ue, (None, None))
             yield from link_messages(self.ue_type[ue], ue, link, self.selected.get(ue), n_pairs, self._mbps,
                                      self._snr, self.p.publish_channels, extra, throughput_mbps=mbps)
+            if self.p.publish_paths and link.paths is not None:
+                yield per_ue(PATHS, ue), dataclasses.replace(link.paths, settings=self.path_settings).to_bytes()
         yield STATE, "Ready"
 
     def _read(self, t: float, inbox) -> None:
@@ -234,6 +258,21 @@ class SionnaLink(caviar.Plugin):
         if self.p.protocol == "paper":
             return float(paper.paper_rate_mbps(gain))
         return float(self.budget.throughput_mbps(gain))
+
+
+def _check_publish_paths(p: SionnaLinkParams) -> None:
+    if p.publish_paths and p.polarization not in ("V", "H"):
+        raise ValueError(f"publish_paths needs polarization = 'V' or 'H' (one coefficient per path), "
+                         f"got {p.polarization!r}")
+
+
+def _path_settings(p: SionnaLinkParams, ctx) -> dict:
+    """What an exporter of the paths needs to know of the link: its ray-tracing settings,
+    the scene's file (None: free space), the bandwidth and the versions."""
+    scene = scene_path(p.scene, ctx.config_dir)
+    return {**dataclasses.asdict(p.radio()), "scene_file": None if scene is None else str(scene.resolve()),
+            "bandwidth_hz": p.bandwidth_hz, "protocol": p.protocol, "module": ctx.name, "plugin": "sionna-link",
+            "sionna_rt": metadata.version("sionna-rt")}
 
 
 def _time(message, t: float) -> float:
