@@ -1,0 +1,74 @@
+"""``caviar-core export ...`` (entry point group ``caviar.commands``, name ``export``):
+a recorded run in another tool's format.
+
+    export deepmimo RUN_DIR OUT [--module NAME] [--quiet] [--debug]
+
+``deepmimo``: a DeepMIMO v4 scenario from the path data of a ray-traced run
+(``sionna-link``'s ``publish_paths = true``; :mod:`caviar_plugins.radio.deepmimo_export`).
+
+Exit status: 0 written; 2 bad input (no run directory, a run without path data, an OUT
+that exists, deepmimo missing, bad option), one line on stderr naming what is wrong;
+1 an unexpected error (one line; ``--debug`` shows the traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+PROG = "caviar-core export"
+
+
+class _Usage(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit 2 (argparse's own convention)
+        raise _Usage(message)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, description="A recorded run in another tool's format.")
+    sub = p.add_subparsers(dest="format", required=True, parser_class=_Parser)
+    d = sub.add_parser("deepmimo", help="a DeepMIMO v4 scenario from a ray-traced run's path data",
+                       description="Writes OUT, a DeepMIMO v4 scenario (params.json, objects.json, vertices.npz, "
+                       "per-link .npz files; one subfolder per step when there are several) from the paths that "
+                       "sionna-link published with publish_paths = true, converted by DeepMIMO's Sionna RT "
+                       "converter. Load it with deepmimo.config.set('scenarios_folder', PARENT_OF_OUT) and "
+                       "deepmimo.load(NAME_OF_OUT, max_paths=25).")
+    d.add_argument("run_dir", type=pathlib.Path, help="the run directory (caviar-core run's output)")
+    d.add_argument("out", type=pathlib.Path, help="the scenario folder to create (a new, lower-case name)")
+    d.add_argument("--module", help="the module whose paths to export, when several published some")
+    d.add_argument("--quiet", action="store_true", help="no progress lines")
+    d.add_argument("--debug", action="store_true", help="tracebacks for unexpected errors")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = parser().parse_args(argv)
+    except _Usage as e:
+        print(f"{PROG}: error: {e}", file=sys.stderr)
+        return 2
+    except SystemExit as e:  # --help
+        return int(e.code or 0)
+    from caviar_plugins.radio.deepmimo_export import ExportError, export_deepmimo
+
+    try:
+        export_deepmimo(args.run_dir, args.out, module=args.module, progress=None if args.quiet else print)
+    except ExportError as e:
+        print(f"{PROG} deepmimo: error: {e}", file=sys.stderr)
+        return 2
+    except Exception as e:  # noqa: BLE001 - one line unless --debug
+        if args.debug:
+            raise
+        print(f"{PROG} deepmimo: error: {type(e).__name__}: {e} (--debug for the traceback)", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
