@@ -258,3 +258,21 @@ def test_two_uavs_pass_pettingzoos_parallel_api_test_and_repeat_with_a_seed(tmp_
         assert {i["pair"] for i in i1.values()} == {5, 130}  # each UAV's link used its agent's pair
     finally:
         env.close()
+
+
+def test_a_tiny_learning_baseline_beats_random_choice(tmp_path):
+    """Two training flights of 15 steps, 12 steps of the held-out flight, 1e4 rays: the agent
+    trained in the environment already does better than random; the oracle is the best."""
+    from caviar_plugins.beam_selection import gym_baseline
+
+    report = gym_baseline.main(["--episodes", "2", "--steps", "15", "--test-steps", "12", "--rays", "10000",
+                                "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--quiet"])
+    table = report["table"]
+    agent, random, oracle = table["trained agent (SweepBandit)"], table["random"], table["oracle"]
+    assert report["train_samples"] == 30 and report["test_steps"] == 12
+    assert agent["mean_reward"] > random["mean_reward"] + 0.1 and agent["top1_pct"] > random["top1_pct"]
+    assert oracle["top1_pct"] == 100.0 and oracle["mean_reward"] == 1.0
+    assert all(s["throughput_mbps"] <= oracle["throughput_mbps"] + 1e-9 for s in table.values())
+    written = json.loads((tmp_path / "out" / "gym-baseline.json").read_text())
+    assert written["table"] == table and (tmp_path / "out" / "gym-baseline.png").stat().st_size > 10_000
+    assert "| trained agent (SweepBandit) |" in (tmp_path / "out" / "gym-baseline.md").read_text()
