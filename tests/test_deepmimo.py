@@ -207,6 +207,23 @@ def test_published_paths_rebuild_the_mimo_channel_of_rotated_arrays():
         assert np.linalg.norm(h - link.h) < 0.1 * np.linalg.norm(link.h), key  # measured: 2-3.4 %
 
 
+def test_in_free_space_the_one_path_is_friis_along_the_straight_line():
+    radio = RadioScene(RadioConfig(scene="empty", uav_mesh=False, max_depth=0, samples_per_src=1000, pattern="iso",
+                                   tx_array=[4, 4], tx_orientation=[0.0, 0.0, 0.0], antenna_offset=[0.0, 0.0, 0.0]))
+    radio.keep_paths = True
+    radio.place({"far": np.array([300.0, -200.0, 20.0])})
+    p = radio.solve()["far"].paths
+    d = p.rx_position - p.tx_position
+    dist = np.linalg.norm(d)
+    assert p.n_paths == 1 and np.all(p.interactions == 0)
+    assert p.tau_s[0] * SPEED_OF_LIGHT == pytest.approx(dist, abs=1e-3)
+    friis_db = 20 * np.log10(SPEED_OF_LIGHT / FC / (4 * np.pi * dist))  # isotropic elements, matched polarization
+    assert 20 * np.log10(abs(p.a[0])) == pytest.approx(friis_db, abs=0.01)
+    k = d / dist  # departs along d, arrives from -d
+    np.testing.assert_allclose([np.cos(p.theta_t[0]), np.arctan2(k[1], k[0])], [k[2], p.phi_t[0]], atol=1e-5)
+    np.testing.assert_allclose([np.cos(p.theta_r[0]), np.arctan2(-k[1], -k[0])], [-k[2], p.phi_r[0]], atol=1e-5)
+
+
 def test_path_payload_round_trips_and_rejects_garbage():
     p = PathData(a=np.array([1 + 2j], np.complex64), tau_s=np.array([1e-6], np.float32),
                  theta_t=np.ones(1, np.float32), phi_t=np.zeros(1, np.float32), theta_r=np.ones(1, np.float32),
