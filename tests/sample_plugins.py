@@ -250,6 +250,7 @@ class LineMover(caviar.Plugin):
     """UEs moving along straight lines at constant speed: ``3D.mobility.positions``."""
 
     publishes = ("3D.mobility.positions",)
+    stateless = True  # positions from t alone
 
     @dataclasses.dataclass
     class Params:

@@ -28,6 +28,12 @@ class BeamDataset(caviar.Plugin):
         self.ctx = ctx
         self.positions: dict[str, np.ndarray] = {}
 
+    def state(self):
+        return {"positions": self.positions}
+
+    def restore(self, state):
+        self.positions = state["positions"]
+
     def step(self, t, inbox):
         for m in inbox.on(POSITIONS):
             self.positions[m.data["UE_Id"]] = read_position(m.data)

@@ -65,6 +65,15 @@ class BeamSelector(caviar.Plugin):
         self.last_best: dict[str, int] = {}
         self.last_gains: dict[str, np.ndarray] = {}
 
+    def state(self):
+        # The model comes from setup; ctx.rng (method = "random") is saved by the host.
+        return {"last_best": self.last_best, "last_gains": self.last_gains,
+                "paper_rng": self.paper_rng.bit_generator.state}
+
+    def restore(self, state):
+        self.last_best, self.last_gains = state["last_best"], state["last_gains"]
+        self.paper_rng.bit_generator.state = state["paper_rng"]
+
     def step(self, t, inbox):
         p = self.ctx.params
         for m in inbox.on(LINK):

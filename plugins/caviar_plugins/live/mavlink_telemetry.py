@@ -155,6 +155,9 @@ class MavlinkTelemetry(caviar.Plugin):
     """Positions of real vehicles from MAVLink over UDP (see the module's docstring)."""
 
     publishes = (POSITIONS, LIVE_TELEMETRY)
+    # Live input: the vehicle flew on while the run was down, so a resumed run listens again
+    # and publishes what arrives from then on (the telemetry counts start again from zero).
+    stateless = True
 
     @dataclasses.dataclass
     class Params:

@@ -34,6 +34,13 @@ class RandomWaypointFlight(caviar.Plugin):
         self.pos = self._waypoint()
         self.target = self._waypoint()
 
+    def state(self):
+        # The waypoints still to come are drawn from ctx.rng, which the host saves.
+        return {"pos": self.pos, "target": self.target}
+
+    def restore(self, state):
+        self.pos, self.target = state["pos"], state["target"]
+
     def _waypoint(self) -> np.ndarray:
         rng, p = self.ctx.rng, self.ctx.params
         on_route = self.route.at(rng.uniform(0, self.route.length))

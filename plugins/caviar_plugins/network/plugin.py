@@ -152,6 +152,7 @@ class RadioNetwork(caviar.Plugin):
             self.map_settings = RadioMapSettings(**self.radio_map) if self.radio_map else None
 
     def setup(self, ctx):
+        self.ctx = ctx
         p = ctx.params
         self.p = p
         self.cells = p.cells
@@ -186,6 +187,22 @@ class RadioNetwork(caviar.Plugin):
         self.channels: TracedChannels | None = None  # the last trace, rows in self.traced order
         self.traced: dict[str, int] = {}  # UE_Id -> row of self.channels
         self.refreshed_at = -np.inf  # the last refresh on the refresh_s schedule
+
+    def state(self):
+        # Cells, tracer and radio map come from setup (the map's files are written again);
+        # what it still had to announce, the UEs, handover state, link level and the last
+        # trace (the channels evolve from it until the next refresh) are the state.
+        return {"map_files": [f.relative_to(self.ctx.run_dir).as_posix() for f in self.map_files],
+                "layer": self.layer, "ues": self.ues, "free": self.free, "last_sinr": self.last_sinr,
+                "handover": self.mm.ues, "link": self.link.state(), "channels": self.channels,
+                "traced": self.traced, "refreshed_at": self.refreshed_at}
+
+    def restore(self, state):
+        self.map_files = [self.ctx.run_dir / f for f in state["map_files"]]
+        self.layer, self.ues, self.free = state["layer"], state["ues"], state["free"]
+        self.last_sinr, self.mm.ues = state["last_sinr"], state["handover"]
+        self.link.restore(state["link"])
+        self.channels, self.traced, self.refreshed_at = state["channels"], state["traced"], state["refreshed_at"]
 
     def _channel_gains(self, t: float, ids: list[str], pos: np.ndarray) -> np.ndarray:
         """Channel gains (path and sector pattern, dB) of every cell toward the UEs

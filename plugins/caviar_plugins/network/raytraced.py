@@ -56,6 +56,9 @@ class TraceSettings:
     paths_per_link: int = 16
     """The strongest paths kept per cell and UE for the evolution (the rest are weaker
     than the noise of the sum)."""
+    threads: int = 0
+    """Dr.Jit CPU threads; 0 = all cores. As sionna-link's ``threads``: ``1`` makes the
+    traces bit-identical from run to run (the parallel sums differ in the last bits)."""
 
     def __post_init__(self):
         if self.max_depth < 0:
@@ -68,6 +71,8 @@ class TraceSettings:
             raise ValueError(f"raytracing.evolve: expected one of {list(EVOLUTIONS)}, got {self.evolve!r}")
         if self.paths_per_link < 1:
             raise ValueError(f"raytracing.paths_per_link: expected >= 1, got {self.paths_per_link}")
+        if self.threads < 0:
+            raise ValueError(f"raytracing.threads: expected 0 (all cores) or more, got {self.threads}")
 
 
 @dataclasses.dataclass
@@ -114,6 +119,10 @@ class SiteTracer:
         configure_drjit()
         import sionna.rt as rt
 
+        if settings.threads > 0:
+            import drjit as dr
+
+            dr.set_thread_count(settings.threads)
         self.rt, self.s, self.cells, self.seed = rt, settings, list(cells), int(seed) % (2**31)
         path = scene_path(settings.scene, base_dir)
         self.scene = rt.load_scene(str(path)) if path else rt.load_scene()

@@ -199,6 +199,37 @@ class LinkLevel:
             harq[:, :old], rate_last[:, :, :old] = self.harq, self.rate_last
         self.olla, self.pf, self.harq, self.rate_last = olla, pf, harq, rate_last
 
+    def state(self) -> dict[str, Any]:
+        """What changes from slot to slot, for a checkpoint: the capacity, every tensor
+        the OLLA loops and the PF scheduler keep, the HARQ outcomes, the achieved rates and
+        the position of Sionna's random stream (the PHY abstraction's ACK draws)."""
+        if self._sys is None:
+            return {"capacity": self.capacity}
+        torch = self._torch
+        return {"capacity": self.capacity,
+                "olla": _tensors(self.olla, torch), "pf": _tensors(self.pf, torch),
+                "harq": self.harq.clone(), "rate_last": self.rate_last.clone(),
+                "rng": self._rng().get_state()}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Puts back :meth:`state` into a link level built with the same settings."""
+        if state["capacity"] > self.capacity:
+            self._grow(state["capacity"])
+        if self._sys is None:
+            return
+        for obj, saved in ((self.olla, state["olla"]), (self.pf, state["pf"])):
+            for name, value in saved.items():
+                setattr(obj, name, value.clone())
+        self.harq, self.rate_last = state["harq"].clone(), state["rate_last"].clone()
+        self._rng().set_state(state["rng"])
+
+    def _rng(self):
+        """Sionna's torch generator on the CPU (``sionna.phy.config``), which the PHY
+        abstraction draws its block errors from."""
+        import sionna.phy
+
+        return sionna.phy.config.torch_rng("cpu")
+
     def table_bler(self, mcs: int, sinr_db: float, cb_size: int) -> float:
         """The BLER this link level uses for ``mcs`` at ``sinr_db`` and code-block size
         ``cb_size`` (Sionna's interpolated NR PDSCH table ``mcs_table``)."""
@@ -354,3 +385,9 @@ class LinkLevel:
                 else:  # round-robin: one UE per slot, in turn
                     granted[j, c, :, int(ues[(first_slot + j) % ues.size])] = True
         return granted
+
+
+def _tensors(obj: Any, torch: Any) -> dict[str, Any]:
+    """Copies of the tensors an object (a Sionna SYS block) holds as attributes: its state
+    between calls, whatever the block names it."""
+    return {k: v.clone() for k, v in vars(obj).items() if isinstance(v, torch.Tensor)}

@@ -76,7 +76,8 @@ class ScattererPool:
     """``capacity[group]`` boxes of ``materials[group]`` (Sionna radio materials) added to
     ``scene`` in one edit."""
 
-    def __init__(self, scene, capacity: dict[str, int], materials: dict[str, object], prefix: str = "scatterer"):
+    def __init__(self, scene, capacity: dict[str, int], materials: dict[str, object], prefix: str = "scatterer",
+                 edits: list[tuple[str, dict[str, int]]] | None = None):
         import mitsuba as mi
         import sionna.rt as rt
 
@@ -92,6 +93,9 @@ class ScattererPool:
         self.edits = 0
         self.last_update_s = 0.0
         self.last_changed = 0
+        # Every grow (the first too) as (prefix, boxes added), in order; pools of one scene
+        # may share the list: replayed in order, the same edits give the same object ids.
+        self.edit_log = edits if edits is not None else []
         self.grow(capacity)
 
     def grow(self, more: dict[str, int]) -> None:
@@ -119,6 +123,24 @@ class ScattererPool:
         if objects:
             self.scene.edit(add=objects)
             self.edits += 1
+        self.edit_log.append((self.prefix, dict(more)))
+
+    def snapshot(self) -> dict:
+        """The boxes' assignment and what each shows, for a checkpoint; :meth:`restore`
+        shows it again in a pool grown to the same boxes (replay :attr:`edit_log` first)."""
+        return {"free": {g: list(f) for g, f in self.free.items()}, "used": dict(self.used),
+                "state": dict(self.state)}
+
+    def restore(self, snapshot: dict) -> None:
+        self.free = {g: list(f) for g, f in snapshot["free"].items()}
+        self.used = dict(snapshot["used"])
+        params = self.scene.mi_scene_params
+        for (group, i), state in snapshot["state"].items():
+            if self.state.get((group, i)) != state:
+                self.state[(group, i)] = state
+                self._show(params, group, i, self.slots[group][i], state)
+        params.update()
+        self.scene.scene_geometry_updated()
 
     @staticmethod
     def _parked(group: str, i: int) -> np.ndarray:

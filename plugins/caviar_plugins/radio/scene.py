@@ -290,6 +290,27 @@ class RadioScene:
                 self.bodies[key].position = pos.tolist()
         self._placed = tuple((k, tuple(np.asarray(p, dtype=float))) for k, p in positions.items())
 
+    def snapshot(self) -> dict[str, Any]:
+        """What a checkpoint keeps of the scene: every receiver in the scene's order at the
+        UE position it was last placed at (stale ones too: they are traced with the others),
+        the last placement and solve (a step in which nothing moved reuses it), and whether
+        the shoot cache had seen the current geometry. Picklable; see :meth:`restore`."""
+        offset = np.asarray(self.cfg.antenna_offset, dtype=float)
+        return {"receivers": [(k, self._where[k] - offset) for k in self.receivers],
+                "placed": self._placed, "solved": self._solved,
+                "geometry_seen": self.shoot_cache is not None and self.shoot_cache.has_seen_geometry}
+
+    def restore(self, snapshot: dict[str, Any]) -> None:
+        """Rebuilds :meth:`snapshot`'s state in a freshly set-up scene: the receivers and
+        UAV bodies where they were, and, when the shoot cache had seen this geometry, one
+        solve that lets it see it again, so the next solve is served as it would have been."""
+        if snapshot["receivers"]:
+            self.place(dict(snapshot["receivers"]))
+            if snapshot["geometry_seen"]:
+                self._solved = None
+                self.solve()
+        self._placed, self._solved = snapshot["placed"], snapshot["solved"]
+
     def remove(self, keys) -> None:
         """Takes the receivers of ``keys`` (never UAV bodies) out of the scene."""
         for key in keys:
@@ -388,6 +409,13 @@ class LookaheadTracer:
         self.cache: dict[str, list[tuple[np.ndarray, Link]]] = {}
         self.solves = 0
         self.hits = 0
+
+    def state(self) -> dict[str, Any]:
+        """The cached links and counters, for a checkpoint (the scene keeps its own)."""
+        return {"cache": self.cache, "solves": self.solves, "hits": self.hits}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.cache, self.solves, self.hits = state["cache"], state["solves"], state["hits"]
 
     def lookup(self, ue: str, position) -> Link | None:
         p = np.asarray(position, dtype=float)

@@ -75,6 +75,12 @@ class ShootCache:
         self.connects = 0
         """Solves served from a recorded shoot phase."""
 
+    @property
+    def has_seen_geometry(self) -> bool:
+        """Whether the last solve's geometry was seen, so that the next solve with it is
+        served from the cache (a resumed run sees it once more before going on)."""
+        return self._seen is not None
+
     def __call__(self, mi_scene, src_positions, tgt_positions, samples_per_src: int, max_num_paths_per_src: int,
                  max_depth: int, los: bool, specular_reflection: bool, diffuse_reflection: bool, refraction: bool,
                  diffraction: bool, edge_diffraction: bool, seed: int = 1, src_boxes=None):

@@ -259,6 +259,25 @@ class SionnaLink(caviar.Plugin):
             return float(paper.paper_rate_mbps(gain))
         return float(self.budget.throughput_mbps(gain))
 
+    def state(self):
+        # The scene, budget and solver come from setup; what the UEs did, the forecasts,
+        # the look-ahead's traces, the link level's loops and the scene's receivers are the state.
+        return {"ue_type": self.ue_type, "positions": self.positions, "selected": self.selected,
+                "forecast": self.forecast, "forecaster": self.forecaster, "scene": self.radio.snapshot(),
+                "lookahead": None if self.lookahead is None else self.lookahead.state(),
+                "link_level": None if self.link_level is None else self.link_level.state(),
+                "columns": getattr(self, "columns", None)}
+
+    def restore(self, state):
+        self.ue_type, self.positions, self.selected = state["ue_type"], state["positions"], state["selected"]
+        self.forecast, self.forecaster = state["forecast"], state["forecaster"]
+        self.radio.restore(state["scene"])
+        if self.lookahead is not None:
+            self.lookahead.restore(state["lookahead"])
+        if self.link_level is not None:
+            self.link_level.restore(state["link_level"])
+            self.columns = state["columns"]
+
 
 def _check_publish_paths(p: SionnaLinkParams) -> None:
     if p.publish_paths and p.polarization not in ("V", "H"):

@@ -47,6 +47,12 @@ class Mission(caviar.Plugin):
         self.throughput: dict[str, float] = {}
         self.rescues: list[dict] = []
 
+    def state(self):
+        return {"throughput": self.throughput, "rescues": self.rescues}
+
+    def restore(self, state):
+        self.throughput, self.rescues = state["throughput"], state["rescues"]
+
     def step(self, t, inbox):
         p = self.ctx.params
         is_paper = p.protocol == "paper"

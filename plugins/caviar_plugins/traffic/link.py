@@ -116,10 +116,11 @@ class SionnaTrafficLink(caviar.Plugin):
         rt = self.radio.rt
         n_slots = len(p.connected) + p.connected_count
         capacity = {"vehicle": p.vehicle_pool, "person": p.person_pool} if p.scatterers else {}
+        self.pool_edits: list[tuple[str, dict[str, int]]] = []  # both pools' growth, in order (checkpoints)
         self.pool = ScattererPool(self.radio.scene, capacity, {
             "vehicle": rt.ITURadioMaterial("traffic-vehicle", p.vehicle_material, thickness=0.01),
             "person": rt.ITURadioMaterial("traffic-person", p.person_material, thickness=p.person_thickness),
-        }, prefix="traffic")
+        }, prefix="traffic", edits=self.pool_edits)
         self.uav_pool: ScattererPool | None = None
         self.rx_slots = [f"car-slot-{i}" for i in range(n_slots)]
         self.slot_of: dict[str, str] = {}  # connected vehicle -> receiver slot
@@ -227,10 +228,7 @@ class SionnaTrafficLink(caviar.Plugin):
         if self.uav_pool is None and uav:
             # UAV bodies: a pool of their own the first time UAVs are seen (their receivers
             # are new then too, so this edit costs no extra recompile later).
-            rt = self.radio.rt
-            self.uav_pool = ScattererPool(self.radio.scene, {"uav": len(uav)},
-                                          {"uav": rt.ITURadioMaterial("traffic-uav", "metal", thickness=0.01)},
-                                          prefix="traffic-uav")
+            self._new_uav_pool({"uav": len(uav)})
         if self.uav_pool is not None:
             self.uav_pool.update(uav, grow=True)
         before = self.pool.capacity
@@ -239,6 +237,39 @@ class SionnaTrafficLink(caviar.Plugin):
             if n > before.get(group, 0):
                 print(f"{self.ctx.name}: {group} pool grown from {before.get(group, 0)} to {n} boxes (one scene "
                       f"edit and recompile); set {group}_pool >= {n} to avoid it", file=sys.stderr)
+
+    def _new_uav_pool(self, capacity: dict[str, int]) -> None:
+        rt = self.radio.rt
+        self.uav_pool = ScattererPool(self.radio.scene, capacity,
+                                      {"uav": rt.ITURadioMaterial("traffic-uav", "metal", thickness=0.01)},
+                                      prefix="traffic-uav", edits=self.pool_edits)
+
+    def state(self):
+        # The scene, budget and pools' first boxes come from setup; the pools' growth (replayed
+        # in order), their boxes, the receivers and what the UEs did are the state.
+        return {"pool_edits": list(self.pool_edits), "pool": self.pool.snapshot(),
+                "uav_pool": None if self.uav_pool is None else self.uav_pool.snapshot(),
+                "slot_of": self.slot_of, "rx_pos": self.rx_pos, "rx_vel": self.rx_vel, "ue_type": self.ue_type,
+                "selected": self.selected, "prev": self.prev, "n_chosen": self.n_chosen,
+                "scene": self.radio.snapshot()}
+
+    def restore(self, state):
+        for prefix, more in state["pool_edits"][len(self.pool_edits):]:
+            if prefix == self.pool.prefix:
+                self.pool.grow(more)
+            elif self.uav_pool is None:
+                self._new_uav_pool(more)
+            else:
+                self.uav_pool.grow(more)
+        self.pool.restore(state["pool"])
+        if self.uav_pool is not None:
+            self.uav_pool.restore(state["uav_pool"])
+        self.slot_of, self.rx_pos, self.rx_vel = state["slot_of"], state["rx_pos"], state["rx_vel"]
+        self.ue_type, self.selected, self.prev = state["ue_type"], state["selected"], state["prev"]
+        self.n_chosen = state["n_chosen"]
+        self.radio.restore(state["scene"])
+        for slot, rx in self.radio.receivers.items():
+            rx.velocity = self.rx_vel[slot].tolist()
 
     def _paths_info(self) -> dict[str, dict]:
         """Doppler of the strongest and of the line-of-sight path of each receiver."""

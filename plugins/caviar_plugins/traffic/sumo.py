@@ -150,6 +150,26 @@ class Sumo:
             arrived += list(sim.getArrivedIDList()) + list(sim.getArrivedPersonIDList())
         return departed, arrived
 
+    def save_state(self, path: pathlib.Path) -> bytes:
+        """SUMO's state now (``simulation.saveState``), as the bytes of the file it wrote."""
+        try:
+            self.api.simulation.saveState(str(path))
+        except Exception as e:
+            self._fail(e)
+        data = path.read_bytes()
+        path.unlink()
+        return data
+
+    def load_state(self, path: pathlib.Path, data: bytes) -> None:
+        """Puts back a state :meth:`save_state` returned (``simulation.loadState``)."""
+        path.write_bytes(data)
+        try:
+            self.api.simulation.loadState(str(path))
+        except Exception as e:
+            self._fail(e)
+        finally:
+            path.unlink()
+
     def entities(self) -> list[Entity]:
         """Every vehicle and person in the network now, vehicles first, each sorted by id."""
         out = []

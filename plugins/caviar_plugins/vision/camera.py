@@ -333,6 +333,7 @@ class Camera(caviar.Plugin):
 
     subscribe = [POSITIONS]
     publishes = (every_ue(CAMERA), f"{every_ue(CAMERA)}.{FILE}")
+    stateless = True  # each step's images from that step's positions: a resumed run needs only setup
 
     @dataclasses.dataclass
     class Params(VisualConfig):

@@ -69,6 +69,14 @@ class ImageLink(caviar.Plugin):
         self.throughput: dict[str, float] = {}
         self.paper_rng = np.random.default_rng(1)
 
+    def state(self):
+        # ctx.rng (the physical packet losses) is saved by the host.
+        return {"throughput": self.throughput, "paper_rng": self.paper_rng.bit_generator.state}
+
+    def restore(self, state):
+        self.throughput = state["throughput"]
+        self.paper_rng.bit_generator.state = state["paper_rng"]
+
     def step(self, t, inbox):
         is_paper = self.ctx.params.protocol == "paper"
         previous = dict(self.throughput)

@@ -410,6 +410,13 @@ class PersonDetector(caviar.Plugin):
         if self.pool is not None:
             self.pool.shutdown()
 
+    def state(self):
+        # The model and the threads come from setup; the last known positions are the state.
+        return {"positions": self.positions}
+
+    def restore(self, state):
+        self.positions = state["positions"]
+
     def step(self, t, inbox):
         for m in inbox.on(POSITIONS):
             self.positions[m.data["UE_Id"]] = read_position(m.data)
