@@ -17,11 +17,11 @@ from conftest import write_config
 
 FC = 40e9
 SPEED_OF_LIGHT = 299_792_458.0
-RECORDED_AT_HZ = FC
-"""The baseband frequency at which sionna-link's recorded H is Sionna's CFR: scene.py calls
-``paths.cfr(frequencies=[frequency_hz])``, and ``cfr`` adds exp(−j2π f τ) on top of the
-carrier phase ``cir`` already applied, so H carries the carrier phase twice (reported; with
-``frequencies=[0.0]`` this becomes 0 and H the narrowband channel at the carrier)."""
+RECORDED_AT_HZ = 0.0
+"""The baseband frequency at which sionna-link's recorded H is Sionna's CFR: 0, the
+narrowband channel at the carrier, Σ a·exp(−j2π f_c τ) (scene.py calls
+``paths.cfr(frequencies=[0.0])``; ``cfr`` adds exp(−j2π f τ) on top of the carrier phase
+``cir`` applied)."""
 DEEPMIMO_CODE = {1: 1, 2: 3, 4: 4, 8: 2}  # Sionna's interaction type -> DeepMIMO's digit
 
 CONFIG = """

@@ -37,6 +37,21 @@ def test_free_space_path_gain_equals_friis():
         assert 10 * math.log10(links[key].path_gain) == pytest.approx(friis_db, abs=0.1)
 
 
+def test_the_channel_carries_the_carrier_phase_of_the_path_once():
+    """H at the carrier of a free-space path is λ/(4πd)·exp(−j2πd/λ): its phase once (a CFR
+    at f_c on top of cir()'s carrier phase doubled it). Float32 phases: a few ulps of 2πd/λ."""
+    radio = free_space(tx_array=[1, 1], rx_array=[1, 1], pattern="iso", normalize=False)
+    radio.place({k: np.array(v) for k, v in RX.items()})
+    for key, link in radio.solve().items():
+        d = float(np.linalg.norm(RX[key]))
+        phase = 2 * math.pi * d / LAMBDA
+        expected = LAMBDA / (4 * math.pi * d) * np.exp(-1j * phase)
+        h = complex(link.h[0, 0])
+        assert abs(h) == pytest.approx(abs(expected), rel=1e-4)
+        error = np.angle(h / expected)
+        assert abs(error) <= 8 * phase * 2.0**-24 + 1e-3, (key, error)
+
+
 def test_beam_gains_equal_a_direct_computation_from_h():
     radio = free_space(max_depth=1)
     radio.place({k: np.array(v) for k, v in RX.items()})

@@ -358,8 +358,9 @@ class RadioScene:
             warnings.warn(f"Sionna's path buffer overflowed: {dropped} candidate paths dropped "
                           f"(max_num_paths_per_src = {c.max_num_paths_per_src}); raise it", RuntimeWarning,
                           stacklevel=2)
-        # paths.a lacks the carrier phase: the CFR at the carrier includes it.
-        cfr = paths.cfr(frequencies=np.array([c.frequency_hz]), normalize_delays=False, out_type="numpy")
+        # The channel at the carrier: Σ a·exp(−j2π f_c τ). paths.a lacks the carrier phase;
+        # cfr() takes it from cir() and adds exp(−j2π f τ) for baseband offsets f: f = 0 here.
+        cfr = paths.cfr(frequencies=np.array([0.0]), normalize_delays=False, out_type="numpy")
         valid = np.array(paths.valid).reshape(len(self.receivers), -1)  # [rx, paths] (one tx)
         tau = np.array(paths.tau).reshape(len(self.receivers), -1)
         # Every receiver of the scene was traced, in the scene's order (which is not the
