@@ -184,11 +184,20 @@ class RadioScene:
         s.rx_array = self._array(cfg.rx_array)
         s.add(rt.Transmitter("tx", position=cfg.tx_position, orientation=cfg.tx_orientation))
         self.solver = rt.PathSolver()
-        self._watch_path_buffer()
+        from caviar_plugins.radio import sionna_internals as internals
+
+        self._path_counter = None
         self.shoot_cache: ShootCache | None = None
-        if cfg.shoot_cache:
-            self.shoot_cache = ShootCache(self.solver._candidate_generator, self.geometry_fingerprint)
-            self.solver._candidate_generator = self.shoot_cache
+        if internals.PROBLEM is not None:
+            # Sionna's own loop, unwatched: correct, slower, and an overflowing path buffer goes unreported.
+            warnings.warn(f"{internals.PROBLEM}: Sionna's own shoot-and-bounce runs"
+                          f"{' (shoot_cache = true ignored)' if cfg.shoot_cache else ''}, and candidates dropped "
+                          "for lack of path buffer are not reported", RuntimeWarning, stacklevel=2)
+        else:
+            internals.watch_candidate_counter(self.solver, self._saw_candidate_counter)
+            if cfg.shoot_cache:
+                self.shoot_cache = ShootCache(internals.candidate_generator(self.solver), self.geometry_fingerprint)
+                internals.replace_candidate_generator(self.solver, self.shoot_cache)
         if cfg.codebook == "flat-dft":
             self.w_tx = flat_dft_codebook(s.tx_array.num_ant)
             self.w_rx = flat_dft_codebook(s.rx_array.num_ant)
@@ -202,32 +211,19 @@ class RadioScene:
         self._placed: tuple = ()
         self._where: dict[str, np.ndarray] = {}  # receiver key -> its position (antenna offset added)
         self._solved: tuple[tuple, dict] | None = None
+        self.last_paths: Any = None
+        """Sionna's ``Paths`` of the last solve that traced (amplitudes, delays, Doppler shifts...)."""
         self._body_template = s.objects.get("Cube")
         self._bodies_on = cfg.uav_mesh
         self.keep_paths = False
         """Attach every receiver's :class:`~caviar_plugins.radio.path_data.PathData` to its
         :class:`Link` (costs the paths' interactions and vertices on each solve)."""
 
-    def _watch_path_buffer(self) -> None:
-        """Keeps a reference to the per-source candidate counter of Sionna's
-        shoot-and-bounce (``paths_counter_per_source``, incremented for every candidate
-        *before* the ``max_num_paths_per_src`` cap is applied): after a solve, a count
-        above the cap is the number of candidates dropped (NVlabs/sionna#1172)."""
-        self._path_counter = None
-        gen = getattr(self.solver, "_candidate_generator", None)
-        if gen is None:
-            return
-        for name, index in (("_los", 4), ("_shoot_and_bounce", 7)):
-            method = getattr(gen, name, None)
-            if method is None:
-                continue
-
-            def spy(*args, _method=method, _index=index, _name=name, **kwargs):
-                counter = kwargs.get("paths_counter_per_source", args[_index] if len(args) > _index else None)
-                self._path_counter = counter
-                return _method(*args, **kwargs)
-
-            setattr(gen, name, spy)
+    def _saw_candidate_counter(self, counter) -> None:
+        """Keeps the per-source candidate counter of Sionna's shoot-and-bounce (incremented
+        for every candidate *before* the ``max_num_paths_per_src`` cap): after a solve, a
+        count above the cap is the number of candidates dropped (NVlabs/sionna#1172)."""
+        self._path_counter = counter
 
     def geometry_fingerprint(self) -> tuple:
         """What the rays' bounces depend on besides the transmitters and the solver's
@@ -342,13 +338,15 @@ class RadioScene:
             self._metal_material = self.rt.ITURadioMaterial("uav-metal", "metal", thickness=0.1)
         return self._metal_material
 
-    def solve(self) -> dict[str, Link]:
-        """Ray traces every receiver in one call (or reuses the last result if nothing
-        moved); returns the links of the receivers the last :meth:`place` placed."""
-        if self._solved is not None and self._solved[0] == self._placed:
+    def solve(self, force: bool = False) -> dict[str, Link]:
+        """Ray traces every receiver in one call (or reuses the last result if no receiver
+        moved, unless ``force``: for a caller that moved objects of the scene itself);
+        returns the links of the receivers the last :meth:`place` placed. The traced
+        paths stay in :attr:`last_paths`."""
+        if not force and self._solved is not None and self._solved[0] == self._placed:
             return self._solved[1]
         c = self.cfg
-        paths = self.solver(self.scene, max_depth=c.max_depth, samples_per_src=c.samples_per_src,
+        paths = self.last_paths = self.solver(self.scene, max_depth=c.max_depth, samples_per_src=c.samples_per_src,
                             synthetic_array=True, los=c.los, specular_reflection=c.specular_reflection,
                             diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
                             diffraction=c.diffraction, seed=self.seed,

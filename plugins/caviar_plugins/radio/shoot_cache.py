@@ -55,7 +55,8 @@ def _jit() -> tuple[Any, Any]:
 
 
 class ShootCache:
-    """A drop-in for ``PathSolver._candidate_generator`` (see the module docstring).
+    """A drop-in for the solver's candidate generator (see the module docstring); every
+    Sionna internal it uses goes through :mod:`caviar_plugins.radio.sionna_internals`.
 
     ``fingerprint()`` returns a hashable description of everything but the targets that
     the bounces depend on; :meth:`RadioScene` supplies one.
@@ -85,7 +86,7 @@ class ShootCache:
                  max_depth: int, los: bool, specular_reflection: bool, diffuse_reflection: bool, refraction: bool,
                  diffraction: bool, edge_diffraction: bool, seed: int = 1, src_boxes=None):
         dr, mi = _jit()
-        from sionna.rt.path_solvers.paths_buffer import PathsBuffer
+        from caviar_plugins.radio import sionna_internals as internals
 
         flags = (specular_reflection, diffuse_reflection, refraction, diffraction, edge_diffraction)
         key = (self.fingerprint(), id(mi_scene), tuple(dr.ravel(src_positions).numpy().tolist()), samples_per_src,
@@ -107,10 +108,10 @@ class ShootCache:
         shots = self._shots
         assert shots is not None
         num_sources = dr.shape(src_positions)[1]
-        paths = PathsBuffer(max_num_paths_per_src * num_sources, max_depth, diffraction)
+        paths = internals.new_paths_buffer(max_num_paths_per_src * num_sources, max_depth, diffraction)
         counter = dr.zeros(mi.UInt, num_sources)
         if los:
-            self.generator._los(mi_scene, src_positions, tgt_positions, paths, counter, None)
+            internals.add_line_of_sight(self.generator, mi_scene, src_positions, tgt_positions, paths, counter)
         _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
         self.paths_counter_per_source = counter
         self.connects += 1
@@ -134,23 +135,26 @@ class _Shots:
 def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, flags, seed: int) -> _Shots:
     """Sionna's bounce loop, one wavefront per depth, without the targets."""
     dr, mi = _jit()
-    from sionna.rt.constants import InteractionType
-    from sionna.rt.path_solvers.sample_data import SampleData, source_index_per_sample
-    from sionna.rt.utils import WedgeGeometry, fibonacci_lattice, hash_fnv1a, spawn_ray_from_sources
+    from caviar_plugins.radio import sionna_internals as internals
+
+    InteractionType, WedgeGeometry, fibonacci_lattice, hash_fnv1a, spawn_ray_from_sources = \
+        internals.ray_utilities()
+    sample_fields = internals.sample_data_fields()
+    plane_hashers, edge_hashers = internals.hashers(gen)
 
     specular_on, diffuse_on, refraction_on, diffraction_on, edge_diffraction_on = flags
     num_sources = dr.shape(src_positions)[1]
     n = samples_per_src * num_sources
     shots = _Shots()
-    sampler = gen._sampler
+    sampler = internals.sampler(gen)
     sampler.seed(seed, n)
     shots.width = n
-    shots.samples = dr.zeros(SampleData.SampleDataFields, n * max(1, max_depth))
-    shots.src_indices = source_index_per_sample(num_sources, samples_per_src)
+    shots.samples = dr.zeros(sample_fields, n * max(1, max_depth))
+    shots.src_indices = internals.source_index_per_sample(num_sources, samples_per_src)
     ray = spawn_ray_from_sources(fibonacci_lattice, samples_per_src, src_positions)
     shots.k_tx = dr.copy(ray.d)
     specular_chain = dr.full(mi.Bool, True, n)
-    hashes = [dr.zeros(mi.UInt64, n) for _ in gen.plane_hash_functions]
+    hashes = [dr.zeros(mi.UInt64, n) for _ in plane_hashers]
     active = dr.full(mi.Mask, True, n)
     enabled = 0
     for on, kind in ((specular_on, InteractionType.SPECULAR), (diffuse_on, InteractionType.DIFFUSE),
@@ -167,8 +171,9 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
         sample1 = sampler.next_1d()
         sample2 = sampler.next_2d()
         sample2_diffraction = sampler.next_2d()
-        s, normal, wedges = gen._sample_radio_material(si, ray.o, ray.d, sample1, sample2, sample2_diffraction,
-                                                       loc_en_inter, diffraction_on, edge_diffraction_on, active)
+        s, normal, wedges = internals.sample_radio_material(gen, si, ray.o, ray.d, sample1, sample2,
+                                                            sample2_diffraction, loc_en_inter, diffraction_on,
+                                                            edge_diffraction_on, active)
         k_world = s.wo
         int_type = dr.select(active, s.sampled_component, InteractionType.NONE)
         active &= int_type != InteractionType.NONE
@@ -180,7 +185,7 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
         loc_en_inter[diffuse] &= ~mi.UInt(InteractionType.DIFFRACTION)
         specular_chain &= active & (specular | transmission | diffraction)
         # Sample data of this depth (SampleData.insert writes only live rays).
-        fields = SampleData.SampleDataFields(
+        fields = sample_fields(
             dr.select(active, int_type, 0), dr.select(active, dr.reinterpret_array(mi.UInt, si.shape), 0),
             dr.select(active, si.prim_index, 0), dr.select(active, si.p, mi.Point3f(0.0)),
             dr.select(active, s.pdf, 0.0))
@@ -189,8 +194,8 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
             shots.wedges = dr.select(diffraction, wedges, shots.wedges)
             shots.diffraction_depth = dr.select(diffraction, depth, shots.diffraction_depth)
         for i in range(len(hashes)):
-            plane_hash = gen.plane_hash_functions[i](si.n, si.p)
-            edge_hash = gen.edge_hash_functions[i](wedges.o, wedges.o + wedges.e_hat * wedges.length)
+            plane_hash = plane_hashers[i](si.n, si.p)
+            edge_hash = edge_hashers[i](wedges.o, wedges.o + wedges.e_hat * wedges.length)
             inter_hash = dr.select(int_type == InteractionType.SPECULAR, plane_hash, int_type)
             inter_hash = dr.select(int_type == InteractionType.DIFFRACTION, edge_hash, inter_hash)
             hashes[i] = hash_fnv1a(inter_hash, h=hashes[i])
@@ -236,11 +241,11 @@ class _SampleView:
 
     def __init__(self, shots: _Shots, depth: int, lane):
         dr, mi = _jit()
-        from sionna.rt.path_solvers.sample_data import SampleData
-        from sionna.rt.utils import WedgeGeometry
+        from caviar_plugins.radio import sionna_internals as internals
 
+        WedgeGeometry = internals.ray_utilities()[1]
         self._shots, self.lane = shots, lane
-        self._fields = SampleData.SampleDataFields
+        self._fields = internals.sample_data_fields()
         self._src = dr.gather(mi.UInt, shots.src_indices, lane)
         self._wedges = None
         if shots.wedges is not None:

@@ -81,18 +81,6 @@ class SionnaTrafficLinkParams(SionnaLinkParams):
             raise ValueError("vehicle_pool, person_pool and connected_count must be >= 0")
 
 
-class _Recorder:
-    """Wraps the path solver to keep the last Paths (Doppler shifts, amplitudes)."""
-
-    def __init__(self, solver):
-        self.solver = solver
-        self.last = None
-
-    def __call__(self, *args, **kw):
-        self.last = self.solver(*args, **kw)
-        return self.last
-
-
 class SionnaTrafficLink(caviar.Plugin):
     subscribe = [POSITIONS, BEAM_SELECTION]
     publishes = (*LINK_TOPICS, STATE)
@@ -110,7 +98,6 @@ class SionnaTrafficLink(caviar.Plugin):
         # only cost its fingerprint (0.25 ms per object), so it is on without scatterers only.
         radio_cfg.shoot_cache = radio_cfg.shoot_cache and not p.scatterers
         self.radio = RadioScene(radio_cfg, seed=ctx.seed, base_dir=ctx.config_dir)
-        self.radio.solver = _Recorder(self.radio.solver)
         self.budget = LinkBudget(bandwidth_hz=p.bandwidth_hz, tx_power_w=p.tx_power_w,
                                  interference_dbw=p.interference_dbw)
         rt = self.radio.rt
@@ -203,8 +190,7 @@ class SionnaTrafficLink(caviar.Plugin):
         self.radio.place(self.rx_pos)
         for slot, rx in self.radio.receivers.items():
             rx.velocity = self.rx_vel[slot].tolist()
-        self.radio._solved = None  # the scatterers moved: never reuse the last solve
-        links = self.radio.solve()
+        links = self.radio.solve(force=True)  # the scatterers moved: never reuse the last solve
         extra_info = self._paths_info()
         blockers = self._blockers()
         n_pairs = self.radio.w_rx.shape[1] * self.radio.n_tx_beams
@@ -273,7 +259,7 @@ class SionnaTrafficLink(caviar.Plugin):
 
     def _paths_info(self) -> dict[str, dict]:
         """Doppler of the strongest and of the line-of-sight path of each receiver."""
-        paths = self.radio.solver.last
+        paths = self.radio.last_paths
         keys = list(self.radio.receivers)
         n = len(keys)
         a_re, a_im = paths.a

@@ -1,0 +1,202 @@
+"""Every use of Sionna RT's private internals, in one place.
+
+The shoot cache (:mod:`caviar_plugins.radio.shoot_cache`) splits Sionna's candidate
+generator (``SBCandidateGenerator``) in two phases and the path-buffer watch of
+:class:`~caviar_plugins.radio.scene.RadioScene` reads its per-source candidate counter.
+Both need names Sionna does not document: the solver's ``_candidate_generator``, the
+generator's ``_los``, ``_sampler``, ``_sample_radio_material`` and hashers, the path
+buffer and the sample-data fields, and the positional order of some arguments. Nothing
+else in this project touches them; this module does, and nothing else.
+
+Importing it checks that the installed sionna-rt is the minor version this code was
+written and tested for (:data:`TESTED_VERSION`) and that every name it uses exists with
+the arguments it passes. :data:`PROBLEM` is ``None`` when all is well, otherwise a
+sentence saying what is missing; :func:`require` raises :class:`SionnaInternalsError`
+with it. :class:`~caviar_plugins.radio.scene.RadioScene` then warns and runs Sionna's
+own loop (no shoot cache, no path-buffer overflow report): slower, never wrong.
+
+Import it only after :func:`~caviar_plugins.radio.scene.configure_drjit` (it imports
+Sionna RT, hence Dr.Jit).
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from typing import Any
+
+from caviar_plugins.radio.scene import configure_drjit
+
+TESTED_VERSION = (2, 2)
+"""The sionna-rt minor version the shoot cache was checked against (tests/test_shoot_cache.py);
+plugins/pyproject.toml pins the ``radio`` extra to it."""
+
+
+class SionnaInternalsError(RuntimeError):
+    """The installed Sionna RT lacks an internal this project uses."""
+
+
+# (module, attribute path, for what): every private or undocumented name used here.
+_NEEDED = (
+    ("sionna.rt.path_solvers.path_solver", "PathSolver", "the solver"),
+    ("sionna.rt.path_solvers.sb_candidate_generator", "SBCandidateGenerator._los", "line-of-sight candidates"),
+    ("sionna.rt.path_solvers.sb_candidate_generator", "SBCandidateGenerator._shoot_and_bounce",
+     "the path-buffer watch"),
+    ("sionna.rt.path_solvers.sb_candidate_generator", "SBCandidateGenerator._sample_radio_material",
+     "the shoot phase"),
+    ("sionna.rt.path_solvers.paths_buffer", "PathsBuffer.add_paths", "storing connected paths"),
+    ("sionna.rt.path_solvers.paths_buffer", "PathsBuffer.schedule", "storing connected paths"),
+    ("sionna.rt.path_solvers.paths_buffer", "PathsBuffer.paths_counter", "storing connected paths"),
+    ("sionna.rt.path_solvers.sample_data", "SampleData.SampleDataFields", "the shoot phase's sample data"),
+    ("sionna.rt.path_solvers.sample_data", "source_index_per_sample", "the shoot phase"),
+    ("sionna.rt.constants", "InteractionType", "interaction flags"),
+    ("sionna.rt.utils", "WedgeGeometry", "diffraction"),
+    ("sionna.rt.utils", "fibonacci_lattice", "the rays' directions"),
+    ("sionna.rt.utils", "hash_fnv1a", "chain hashes"),
+    ("sionna.rt.utils", "spawn_ray_from_sources", "the rays' origins"),
+)
+# Arguments passed by position: (method, parameter, its index among the positional ones after self).
+_POSITIONAL = (
+    ("_los", "paths_counter_per_source", 4),
+    ("_shoot_and_bounce", "paths_counter_per_source", 7),
+)
+# Instance attributes of a fresh generator / solver.
+_GENERATOR_ATTRIBUTES = ("_sampler", "plane_hash_functions", "edge_hash_functions")
+
+
+def _resolve(module: str, path: str) -> Any:
+    import importlib
+
+    obj: Any = importlib.import_module(module)
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _check() -> str | None:
+    """None when the installed Sionna RT has everything used here, else what is wrong."""
+    configure_drjit()
+    try:
+        import sionna.rt as rt
+    except ImportError as e:
+        return f"sionna-rt cannot be imported ({e})"
+    version = str(getattr(rt, "__version__", "unknown"))
+    try:
+        major_minor = tuple(int(x) for x in version.split(".")[:2])
+    except ValueError:
+        major_minor = ()
+    tested = ".".join(map(str, TESTED_VERSION))
+    if major_minor != TESTED_VERSION:
+        return (f"sionna-rt {version} is installed; the shoot cache uses Sionna RT internals checked against "
+                f"{tested}.x only (pip install 'sionna-rt>={tested},<{TESTED_VERSION[0]}.{TESTED_VERSION[1] + 1}')")
+    for module, path, purpose in _NEEDED:
+        try:
+            _resolve(module, path)
+        except (ImportError, AttributeError):
+            return f"sionna-rt {version} has no {module}.{path} (used for {purpose})"
+    generator_class = _resolve("sionna.rt.path_solvers.sb_candidate_generator", "SBCandidateGenerator")
+    for method, parameter, index in _POSITIONAL:
+        names = [p.name for p in inspect.signature(getattr(generator_class, method)).parameters.values()][1:]
+        if len(names) <= index or names[index] != parameter:
+            return (f"sionna-rt {version}: SBCandidateGenerator.{method} does not take {parameter!r} as "
+                    f"positional argument {index}")
+    try:
+        solver = rt.PathSolver()
+    except Exception as e:  # noqa: BLE001 - any failure means the internals cannot be used
+        return f"sionna-rt {version}: PathSolver() failed ({e})"
+    generator = getattr(solver, "_candidate_generator", None)
+    if not isinstance(generator, generator_class):
+        return f"sionna-rt {version}: PathSolver has no _candidate_generator of type SBCandidateGenerator"
+    for name in _GENERATOR_ATTRIBUTES:
+        if not hasattr(generator, name):
+            return f"sionna-rt {version}: SBCandidateGenerator has no attribute {name!r}"
+    return None
+
+
+PROBLEM: str | None = _check()
+"""None when the installed Sionna RT has every internal used here; otherwise why not."""
+
+
+def require() -> None:
+    """Raises :class:`SionnaInternalsError` naming what is missing, if anything is."""
+    if PROBLEM is not None:
+        raise SionnaInternalsError(PROBLEM)
+
+
+# --- the solver ------------------------------------------------------------------------------
+
+def candidate_generator(solver: Any) -> Any:
+    """The solver's shoot-and-bounce candidate generator."""
+    require()
+    return solver._candidate_generator
+
+
+def replace_candidate_generator(solver: Any, generator: Any) -> None:
+    """Makes ``solver`` call ``generator`` (same signature as Sionna's) for its candidates."""
+    require()
+    solver._candidate_generator = generator
+
+
+def watch_candidate_counter(solver: Any, on_counter: Callable[[Any], None]) -> None:
+    """Calls ``on_counter(counter)`` with the per-source candidate counter that Sionna's
+    line-of-sight test and shoot-and-bounce increment for every candidate, before the
+    ``max_num_paths_per_src`` cap (NVlabs/sionna#1172): read after a solve, a count above
+    the cap is the number of candidates dropped."""
+    generator = candidate_generator(solver)
+    for name, _, index in _POSITIONAL:
+        method = getattr(generator, name)
+
+        def spy(*args, _method=method, _index=index, **kwargs):
+            on_counter(kwargs.get("paths_counter_per_source", args[_index] if len(args) > _index else None))
+            return _method(*args, **kwargs)
+
+        setattr(generator, name, spy)
+
+
+# --- the generator's parts (the shoot cache) -------------------------------------------------
+
+def add_line_of_sight(generator: Any, mi_scene, src_positions, tgt_positions, paths, counter) -> None:
+    """Sionna's line-of-sight candidates into ``paths``."""
+    generator._los(mi_scene, src_positions, tgt_positions, paths, counter, None)
+
+
+def sampler(generator: Any) -> Any:
+    """The generator's random sampler (Mitsuba's ``independent``)."""
+    return generator._sampler
+
+
+def sample_radio_material(generator: Any, *args) -> Any:
+    """Sionna's interaction sampling at a hit: (sample, oriented normal, wedges)."""
+    return generator._sample_radio_material(*args)
+
+
+def hashers(generator: Any) -> tuple[list, list]:
+    """The generator's plane and edge hash functions (two each: round, floor)."""
+    return generator.plane_hash_functions, generator.edge_hash_functions
+
+
+def new_paths_buffer(size: int, max_depth: int, diffraction: bool) -> Any:
+    from sionna.rt.path_solvers.paths_buffer import PathsBuffer
+
+    return PathsBuffer(size, max_depth, diffraction)
+
+
+def sample_data_fields() -> Any:
+    """``SampleData.SampleDataFields``: (interaction type, shape, primitive, vertex, probability)."""
+    from sionna.rt.path_solvers.sample_data import SampleData
+
+    return SampleData.SampleDataFields
+
+
+def source_index_per_sample(num_sources: int, samples_per_src: int) -> Any:
+    from sionna.rt.path_solvers.sample_data import source_index_per_sample as f
+
+    return f(num_sources, samples_per_src)
+
+
+def ray_utilities() -> tuple[Any, Any, Any, Any, Any]:
+    """(InteractionType, WedgeGeometry, fibonacci_lattice, hash_fnv1a, spawn_ray_from_sources)."""
+    from sionna.rt.constants import InteractionType
+    from sionna.rt.utils import WedgeGeometry, fibonacci_lattice, hash_fnv1a, spawn_ray_from_sources
+
+    return InteractionType, WedgeGeometry, fibonacci_lattice, hash_fnv1a, spawn_ray_from_sources
