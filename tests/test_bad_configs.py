@@ -412,8 +412,8 @@ SET_CASES = [
     ("=5", "--set '=5': '' is not a dotted key path"),
     ("a..b=1", "--set 'a..b=1': 'a..b' is not a dotted key path"),
     ("episode.ts.x=1", "--set 'episode.ts.x=1': 'ts' is a value, not a table"),
-    ("episode=5", "episode: invalid type: integer `5`, expected struct Episode (after --set overrides)"),
-    ("episode.ts=", "episode.ts: invalid type: string \"\", expected f64 (after --set overrides)"),
+    ("episode=5", "episode: invalid type: integer `5`, expected struct Episode (from --set episode=5)"),
+    ("episode.ts=", "cfg.toml:2: episode.ts: invalid type: string \"\", expected f64 (from --set episode.ts=)"),
     ('episode.ts="fast"', "episode.ts: invalid type: string \"fast\""),
     ("episode.steps=0", "cfg.toml:3: episode.steps: expected at least 1 step"),
     ("episode.seed=-1", "episode.seed: invalid value: integer `-1`, expected u64"),
@@ -421,7 +421,9 @@ SET_CASES = [
     ("episode.pace=0", "episode.pace: expected a positive factor of real time"),
     ('episode.behind="later"', "episode.behind: expected one of"),
     ("modules.nope.params.x=1", "modules.nope.stage: this required key is missing (after --set overrides)"),
-    ("modules.uav.every=0", "cfg.toml:14: modules.uav.every: expected a period of at least 1 step"),
+    # Not in the file: the line of the table it was added to, and the override.
+    ("modules.uav.every=0",
+     "cfg.toml:11: modules.uav.every: expected a period of at least 1 step (from --set modules.uav.every=0)"),
     ("modules.uav.params.speed=nan", "cfg.toml:15: modules.uav.params.speed: expected a finite float, got nan"),
     ("modules.uav.params.speed=-1.0", "modules.uav.params.speed: expected a positive number of m/s"),
     ('modules.uav.plugin="no.such:X"', "modules.uav.plugin: cannot import 'no.such' for plugin 'no.such:X'"),
@@ -444,3 +446,24 @@ def test_a_bad_set_override_is_refused_without_a_run(override, expected, tmp_pat
         first = err.splitlines()[0]
         assert str(path) in first and expected in first, first
     assert _listing(tmp_path) == {"cfg.toml"}, "run created files"
+
+
+@pytest.mark.parametrize("extra", [[], ["--strict"], ["--set", "episode.step_timeout=30"],
+                                   ["--set", "output.checkpoint_every=5", "--strict"]])
+def test_with_overrides_messages_name_the_files_own_line(extra, tmp_path, capfd):
+    """--strict and --set add keys to tables above the bad one, which shifts the lines of the
+    overridden text; messages still name the line in the file (and the override, when the bad
+    value came from one)."""
+    path = tmp_path / "cfg.toml"
+    path.write_text(BASE.replace('ue_id = "uav1"', 'ue_id = "uav1"\nspeed_x = 1'))
+    line = BASE.splitlines().index('ue_id = "uav1"') + 2
+    assert _core.main(["caviar-core", "validate", str(path), *extra]) == 2
+    first = capfd.readouterr().err.splitlines()[0]
+    assert first.startswith(f"error: {path}:{line}: modules.uav.params"), first
+    path.write_text(BASE)
+    every = BASE.splitlines().index('plugin = "waypoint-flight"') + 1
+    path.write_text(BASE.replace('plugin = "waypoint-flight"', 'plugin = "waypoint-flight"\nevery = 1'))
+    assert _core.main(["caviar-core", "validate", str(path), *extra, "--set", "modules.uav.every=0"]) == 2
+    first = capfd.readouterr().err.splitlines()[0]
+    assert first == (f"error: {path}:{every + 1}: modules.uav.every: expected a period of at least 1 step "
+                     "(from --set modules.uav.every=0)"), first

@@ -170,6 +170,8 @@ pub struct LoadedConfig {
     pub base_dir: PathBuf,
     /// The TOML text after `--set` overrides: saved into the run directory.
     pub text: String,
+    /// The file's own text, before overrides: the lines messages name are its lines.
+    pub source: String,
     pub overrides: Vec<String>,
 }
 
@@ -273,14 +275,19 @@ impl LoadedConfig {
         }
     }
 
-    /// An error about `key` (dotted path), located at its line in the file.
+    /// An error about `key` (dotted path), located at its line in the file (before any
+    /// override), naming the `--set` override that gave the key its value, if one did.
     pub fn error_at(&self, key: &str, message: impl Into<String>) -> ConfigError {
         let path: Vec<&str> = key.split('.').collect();
+        let mut message = message.into();
+        if let Some(ov) = override_of(&self.overrides, &path) {
+            message.push_str(&format!(" (from --set {ov})"));
+        }
         ConfigError {
             file: self.file.clone(),
-            line: line_of_key(&self.text, &path),
+            line: line_of_key(&self.source, &path),
             key: Some(key.to_string()),
-            message: message.into(),
+            message,
         }
     }
 
@@ -312,9 +319,23 @@ pub fn load(path: &Path, overrides: &[String]) -> Result<LoadedConfig, ConfigErr
     parse(&text, &file, &base_dir, overrides)
 }
 
+/// The last `--set KEY=VALUE` whose key is `path` or a table holding it: where the value
+/// at `path` came from.
+fn override_of<'a>(overrides: &'a [String], path: &[&str]) -> Option<&'a str> {
+    overrides
+        .iter()
+        .rev()
+        .find(|ov| {
+            let key = ov.split_once('=').map_or(ov.as_str(), |(k, _)| k);
+            let set: Vec<&str> = key.trim().split('.').collect();
+            path.len() >= set.len() && path[..set.len()] == set[..]
+        })
+        .map(String::as_str)
+}
+
 /// Like [`load`], from text; `file` is only used in messages.
 pub fn parse(
-    text: &str,
+    source: &str,
     file: &str,
     base_dir: &Path,
     overrides: &[String],
@@ -326,9 +347,9 @@ pub fn parse(
         message,
     };
     let text = if overrides.is_empty() {
-        text.to_string()
+        source.to_string()
     } else {
-        apply_overrides(text, overrides).map_err(|e| error(None, None, e))?
+        apply_overrides(source, overrides).map_err(|e| error(None, None, e))?
     };
     let de = toml::Deserializer::new(&text);
     let config: Config = serde_path_to_error::deserialize(de).map_err(|e| {
@@ -372,7 +393,16 @@ pub fn parse(
             }
         }
         if !overrides.is_empty() {
-            message.push_str(" (after --set overrides)");
+            // Lines were counted in the overridden text: name the file's own line, and
+            // the override that set the key.
+            let path: Vec<&str> = key.as_deref().map_or(vec![], |k| k.split('.').collect());
+            match override_of(overrides, &path).filter(|_| !path.is_empty()) {
+                Some(ov) => message.push_str(&format!(" (from --set {ov})")),
+                None => message.push_str(" (after --set overrides)"),
+            }
+            line = (!path.is_empty())
+                .then(|| line_of_key(source, &path))
+                .flatten();
         }
         error(line, key, message)
     })?;
@@ -381,6 +411,7 @@ pub fn parse(
         file: file.to_string(),
         base_dir: base_dir.to_path_buf(),
         text,
+        source: source.to_string(),
         overrides: overrides.to_vec(),
     };
     validate(&loaded)?;
@@ -904,11 +935,57 @@ speed = 5.0
         assert_eq!(c.params_json("first")["speed"], 2);
         assert_eq!(c.params_json("first")["label"], "uav one");
         let e = parse_str(GOOD, &["episode.steps=many"]).unwrap_err();
-        assert!(e.message.contains("after --set"), "{e}");
+        assert!(e.message.contains("from --set episode.steps=many"), "{e}");
+        assert_eq!(e.line, Some(4), "{e}");
         assert!(parse_str(GOOD, &["nonsense"])
             .unwrap_err()
             .message
             .contains("KEY=VALUE"));
+    }
+
+    #[test]
+    fn with_overrides_errors_name_the_files_own_lines_or_the_override() {
+        // An override that adds a key to [episode] shifts every later line of the
+        // overridden text by one; messages still name the file's lines.
+        let bad = GOOD.replace("every = 2", "every = 0");
+        let plain = parse_str(&bad, &[]).unwrap_err();
+        assert_eq!(plain.line, Some(15), "{plain}");
+        for ov in [
+            &["episode.strict_wiring=true"][..],
+            &["episode.step_timeout=30", "output.name=\"r\""],
+        ] {
+            let e = parse_str(&bad, ov).unwrap_err();
+            assert_eq!(e.key.as_deref(), Some("modules.first.every"), "{e}");
+            assert_eq!(e.line, Some(15), "{ov:?}: {e}");
+        }
+        // A type error found while deserialising: the same.
+        let e = parse_str(
+            &GOOD.replace("offset = 1", "offset = \"one\""),
+            &["episode.strict_wiring=true"],
+        )
+        .unwrap_err();
+        assert_eq!(
+            (e.key.as_deref(), e.line),
+            (Some("modules.first.offset"), Some(16)),
+            "{e}"
+        );
+        // The bad value came from --set: the key's line in the file and the override.
+        let e = parse_str(
+            GOOD,
+            &["episode.strict_wiring=true", "modules.first.every=0"],
+        )
+        .unwrap_err();
+        assert_eq!(e.line, Some(15), "{e}");
+        assert!(
+            e.message.contains("(from --set modules.first.every=0)"),
+            "{e}"
+        );
+        let e = parse_str(
+            GOOD,
+            &["modules.first={ stage = \"zz\", plugin = \"x:Z\" }"],
+        )
+        .unwrap_err();
+        assert!(e.message.contains("from --set modules.first="), "{e}");
     }
 
     #[test]
