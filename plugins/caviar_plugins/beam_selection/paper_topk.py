@@ -27,7 +27,7 @@ import numpy as np
 
 from caviar_plugins.beam_selection.dataset import load
 from caviar_plugins.beam_selection.decision_tree import K_VALUES, MAX_DEPTH, save
-from caviar_plugins.beam_selection.knn import GainKNN, SweepForest
+from caviar_plugins.beam_selection.knn import GainKNN, NearForestFarPrevious, SweepForest
 
 PAPER_TOPK = {1: (70.49, 38.58), 2: (80.93, 51.18), 3: (83.55, 55.11), 4: (85.11, 60.62), 5: (85.37, 60.62),
               10: (86.42, 63.77), 25: (89.55, 68.50), 50: (92.16, 77.16), 75: (95.03, 84.25), 100: (95.82, 85.03)}
@@ -79,8 +79,26 @@ def diagnostics(parts, x, y, cut, test, tree) -> dict:
                 [p["best_pair"][1:] == p["best_pair"][:-1] for p in parts])))}
 
 
-def evaluate(train_runs, test_run, knn_ks=(1, 3, 5, 7, 10, 15, 20)) -> tuple[dict, Any, Any, Any, Any]:
-    """(report, tree, k-NN, k-NN given the previous sweep, sweep forest)."""
+RADII_M = (0.25, 0.5, 1.0, 2.0)
+"""Radii tried for :class:`NearForestFarPrevious` (leave-one-flight-out on the training flights)."""
+
+
+def near_far_lofo(parts, radii=RADII_M) -> dict[float, float]:
+    """Leave-one-flight-out top-1 of :class:`NearForestFarPrevious` per radius (the forest is
+    fitted once per left-out flight)."""
+    out: dict[float, list[float]] = {r: [] for r in radii}
+    for i, held in enumerate(parts):
+        rest = [p for j, p in enumerate(parts) if j != i]
+        m = NearForestFarPrevious().fit(*(np.concatenate([p[k] for p in rest])
+                                          for k in ("position", "previous_gains", "best_pair")))
+        for r in radii:
+            m.radius_m = r
+            out[r].append(hits(m.predict(held["position"], held["previous_gains"]), held["gains"], (1,))[1])
+    return {r: float(np.mean(v)) for r, v in out.items()}
+
+
+def evaluate(train_runs, test_run, knn_ks=(1, 3, 5, 7, 10, 15, 20)) -> tuple[dict, Any, Any, Any, Any, Any]:
+    """(report, tree, k-NN, k-NN given the previous sweep, sweep forest, near forest / far previous)."""
     from sklearn.tree import DecisionTreeClassifier
     from sklearn.utils import shuffle
 
@@ -129,8 +147,17 @@ def evaluate(train_runs, test_run, knn_ks=(1, 3, 5, 7, 10, 15, 20)) -> tuple[dic
     forest = SweepForest().fit(x[:cut], prev_g[:cut], y[:cut])
     out["sweep_forest"] = {name: hits(forest.predict(xs, pg), gs)
                            for name, (xs, gs, pg) in (("validation", val_prev), ("test", test_prev))}
+    # Near the training flights the forest, beyond the previous step's best: radius by
+    # leave-one-flight-out top-1 (ties: the smaller radius).
+    lofo_r = near_far_lofo(parts)
+    radius = max(lofo_r, key=lambda r: (lofo_r[r], -r))
+    near_far = NearForestFarPrevious(radius).fit(x[:cut], prev_g[:cut], y[:cut])
+    out["near_far"] = {name: hits(near_far.predict(xs, pg), gs)
+                       for name, (xs, gs, pg) in (("validation", val_prev), ("test", test_prev))}
+    sizes["near_far_radius_m"] = radius
+    sizes["near_far_lofo_top1"] = {str(r): v for r, v in lofo_r.items()}
     sizes["diagnostics"] = diagnostics(parts, x, y, cut, test, tree)
-    return {**sizes, "results": out}, tree, knn, knn_prev, forest
+    return {**sizes, "results": out}, tree, knn, knn_prev, forest, near_far
 
 
 def write(report: dict, out: pathlib.Path) -> str:
@@ -140,7 +167,7 @@ def write(report: dict, out: pathlib.Path) -> str:
     for k in K_VALUES:
         pv, pt = PAPER_TOPK[k]
         row = {"K": k, "paper_validation": pv, "paper_test": pt}
-        for m in ("tree", "knn", "previous", "knn_previous", "sweep_forest"):
+        for m in ("tree", "knn", "previous", "knn_previous", "sweep_forest", "near_far"):
             for s in ("validation", "test"):
                 row[f"{m}_{s}"] = round(100 * res[m][s][k], 2)
         row["diff_validation"] = round(row["tree_validation"] - pv, 2)
@@ -151,15 +178,17 @@ def write(report: dict, out: pathlib.Path) -> str:
     lines = ["| K | paper val. (%) | tree val. (%) | diff | paper test (%) | tree test (%) | diff | "
              f"k-NN gain (k={report['knn_k']}) val. / test (%) | previous beam val. / test (%) | "
              f"k-NN + previous (k={report['knn_previous_k']}, w={report['knn_previous_weight']}) val. / test (%) | "
-             "**sweep forest** val. / test (%) |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             f"sweep forest val. / test (%) | **near forest, far previous (r = {report['near_far_radius_m']:g} m)** "
+             "val. / test (%) |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['K']} | {r['paper_validation']:.2f} | {r['tree_validation']:.2f} | "
                      f"{r['diff_validation']:+.2f} | {r['paper_test']:.2f} | {r['tree_test']:.2f} | "
                      f"{r['diff_test']:+.2f} | {r['knn_validation']:.2f} / {r['knn_test']:.2f} | "
                      f"{r['previous_validation']:.2f} / {r['previous_test']:.2f} | "
                      f"{r['knn_previous_validation']:.2f} / {r['knn_previous_test']:.2f} | "
-                     f"**{r['sweep_forest_validation']:.2f} / {r['sweep_forest_test']:.2f}** |")
+                     f"{r['sweep_forest_validation']:.2f} / {r['sweep_forest_test']:.2f} | "
+                     f"**{r['near_far_validation']:.2f} / {r['near_far_test']:.2f}** |")
     table = "\n".join(lines)
     import matplotlib
 
@@ -169,13 +198,14 @@ def write(report: dict, out: pathlib.Path) -> str:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4), sharey=True)
     idx = np.arange(len(K_VALUES))
     for ax, s in zip(axes, ("validation", "test"), strict=True):
-        w = 0.14
-        ax.bar(idx - 2.5 * w, [r[f"paper_{s}"] for r in rows], w, label="paper (tree)")
-        ax.bar(idx - 1.5 * w, [r[f"tree_{s}"] for r in rows], w, label="ours: tree")
-        ax.bar(idx - 0.5 * w, [r[f"knn_{s}"] for r in rows], w, label="ours: k-NN gain")
-        ax.bar(idx + 0.5 * w, [r[f"previous_{s}"] for r in rows], w, label="ours: previous beam")
-        ax.bar(idx + 1.5 * w, [r[f"knn_previous_{s}"] for r in rows], w, label="ours: k-NN + previous")
-        ax.bar(idx + 2.5 * w, [r[f"sweep_forest_{s}"] for r in rows], w, label="ours: sweep forest")
+        w = 0.12
+        ax.bar(idx - 3 * w, [r[f"paper_{s}"] for r in rows], w, label="paper (tree)")
+        ax.bar(idx - 2 * w, [r[f"tree_{s}"] for r in rows], w, label="ours: tree")
+        ax.bar(idx - 1 * w, [r[f"knn_{s}"] for r in rows], w, label="ours: k-NN gain")
+        ax.bar(idx, [r[f"previous_{s}"] for r in rows], w, label="ours: previous beam")
+        ax.bar(idx + 1 * w, [r[f"knn_previous_{s}"] for r in rows], w, label="ours: k-NN + previous")
+        ax.bar(idx + 2 * w, [r[f"sweep_forest_{s}"] for r in rows], w, label="ours: sweep forest")
+        ax.bar(idx + 3 * w, [r[f"near_far_{s}"] for r in rows], w, label="ours: near forest, far previous")
         ax.set(xticks=idx, xticklabels=[str(k) for k in K_VALUES], xlabel="K", title=f"top-K, {s}")
         ax.grid(True, axis="y")
     axes[0].set_ylabel("accuracy (%)")
@@ -198,9 +228,11 @@ def main(argv=None) -> None:
     ap.add_argument("--knn-previous-model", type=pathlib.Path,
                     default=pathlib.Path("models/paper-beam-knn-previous.pkl"))
     ap.add_argument("--sweep-model", type=pathlib.Path, default=pathlib.Path("models/paper-beam-sweep-forest.pkl"))
+    ap.add_argument("--near-far-model", type=pathlib.Path, default=pathlib.Path("models/paper-beam-near-far.pkl"))
     args = ap.parse_args(argv)
-    report, tree, knn, knn_prev, forest = evaluate(args.train, args.test)
+    report, tree, knn, knn_prev, forest, near_far = evaluate(args.train, args.test)
     save(forest, args.sweep_model)
+    save(near_far, args.near_far_model)
     save(tree, args.model)
     save(knn, args.knn_model)
     save(knn_prev, args.knn_previous_model)
@@ -225,7 +257,12 @@ def topk_md(report: dict, table: str) -> str:
             f"chosen by leave-one-flight-out top-1 on the training flights). *sweep forest*: "
             f"`caviar_plugins.beam_selection.knn.SweepForest`, extra trees on the position and the previous step's "
             f"normalised gains of all 256 pairs (chosen by leave-one-flight-out top-1 among 6 variants, see "
-            f"docs/paper-protocol.md).\n\n"
+            f"docs/paper-protocol.md). *near forest, far previous*: "
+            f"`caviar_plugins.beam_selection.knn.NearForestFarPrevious`, the sweep forest within r of a training "
+            f"position and the previous step's best pair beyond (r = {report['near_far_radius_m']:g} m chosen by "
+            f"leave-one-flight-out top-1 among {', '.join(f'{float(r):g}' for r in report['near_far_lofo_top1'])} m: "
+            f"{', '.join(f'{100 * v:.1f}' for v in report['near_far_lofo_top1'].values())} %; the model itself chosen "
+            f"among 16 candidates by the same criterion, never on the test flight, see docs/paper-protocol.md).\n\n"
             f"Diagnostics (`diagnostics` in topk.json): {_diag_text(report['diagnostics'])}\n")
 
 
