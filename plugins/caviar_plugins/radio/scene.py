@@ -108,6 +108,14 @@ class RadioConfig:
     0.36x for 10 (1e6 samples, 2 cores). Moving scatterers (UAV bodies, vehicles) change
     the geometry: such solves run Sionna's loop unchanged, as does the first solve of a
     geometry and any solve with more than one source. ``false``: always Sionna's loop."""
+    cache_moving_bodies: bool = False
+    """With ``shoot_cache`` and ``uav_mesh``: the UAV bodies are moving objects on top of
+    the cached bounces of the static scene, so solves are served from the cache while they
+    move: each solve's visibility tests and Sionna's image method run with the bodies where
+    they are (the paths they block are dropped), but paths that reflect or diffract on a body
+    are not traced, nor is a diffuse path whose earlier segments a body blocks (the error
+    against Sionna's loop is measured in the README). ``false``: a moved body is a new
+    geometry, and the solve runs Sionna's loop."""
     threads: int = 0
     """Dr.Jit CPU threads; 0 = all cores. On CPU the solver's parallel sums differ in the
     last float bits from run to run; ``threads = 1`` makes runs bit-identical (measured
@@ -196,7 +204,8 @@ class RadioScene:
         else:
             internals.watch_candidate_counter(self.solver, self._saw_candidate_counter)
             if cfg.shoot_cache:
-                self.shoot_cache = ShootCache(internals.candidate_generator(self.solver), self.geometry_fingerprint)
+                self.shoot_cache = ShootCache(internals.candidate_generator(self.solver), self.geometry_fingerprint,
+                                              movers=self.moving_objects, scene=self.scene)
                 internals.replace_candidate_generator(self.solver, self.shoot_cache)
         if cfg.codebook == "flat-dft":
             self.w_tx = flat_dft_codebook(s.tx_array.num_ant)
@@ -225,13 +234,20 @@ class RadioScene:
         count above the cap is the number of candidates dropped (NVlabs/sionna#1172)."""
         self._path_counter = counter
 
+    def moving_objects(self) -> list[Any]:
+        """The objects the shoot cache handles on top of its recorded bounces (the UAV
+        bodies, with ``cache_moving_bodies``); the geometry fingerprint leaves them out."""
+        return list(self.bodies.values()) if self.cfg.cache_moving_bodies else []
+
     def geometry_fingerprint(self) -> tuple:
         """What the rays' bounces depend on besides the transmitters and the solver's
-        settings: every object's name, position, orientation, scale and material, every
-        material's parameters and the frequency (the shoot cache's key)."""
+        settings: every object's name, position, orientation, scale and material (but the
+        :meth:`moving_objects`), every material's parameters and the frequency (the shoot
+        cache's key)."""
+        moving = {id(obj) for obj in self.moving_objects()}
         objects = tuple((name, *(tuple(np.asarray(getattr(obj, a), dtype=float).ravel().tolist())
                                  for a in ("position", "orientation", "scaling")), obj.radio_material.name)
-                        for name, obj in self.scene.objects.items())
+                        for name, obj in self.scene.objects.items() if id(obj) not in moving)
         materials = []
         for name, mat in self.scene.radio_materials.items():
             values: list[Any] = []

@@ -21,8 +21,9 @@ Sionna RT, hence Dr.Jit).
 
 from __future__ import annotations
 
+import contextlib
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from caviar_plugins.radio.scene import configure_drjit
@@ -200,3 +201,35 @@ def ray_utilities() -> tuple[Any, Any, Any, Any, Any]:
     from sionna.rt.utils import WedgeGeometry, fibonacci_lattice, hash_fnv1a, spawn_ray_from_sources
 
     return InteractionType, WedgeGeometry, fibonacci_lattice, hash_fnv1a, spawn_ray_from_sources
+
+
+# --- the scene's meshes ----------------------------------------------------------------------
+
+OUT_OF_THE_WAY_M = 1.0e4
+"""How far below the scene :func:`objects_out_of_the_way` moves objects."""
+
+
+@contextlib.contextmanager
+def objects_out_of_the_way(scene: Any, objects: Sequence[Any]) -> Iterator[None]:
+    """Moves ``objects`` (Sionna ``SceneObject``s of ``scene``) :data:`OUT_OF_THE_WAY_M`
+    below the scene while the block runs, in one scene update, and then puts their vertex
+    buffers back bit for bit (another update): the geometry afterwards is exactly the one
+    before. Uses the scene's Mitsuba parameters (``mi_scene_params``) and the meshes' ids."""
+    if not objects:
+        yield
+        return
+    import drjit as dr
+    import mitsuba as mi
+
+    params = scene.mi_scene_params
+    keys = [obj._mi_mesh.id() + ".vertex_positions" for obj in objects]
+    saved = [dr.copy(params[k]) for k in keys]
+    for key, vertices in zip(keys, saved, strict=True):
+        params[key] = dr.ravel(dr.unravel(mi.Point3f, vertices) + mi.Vector3f(0.0, 0.0, -OUT_OF_THE_WAY_M))
+    params.update()
+    try:
+        yield
+    finally:
+        for key, vertices in zip(keys, saved, strict=True):
+            params[key] = vertices
+        params.update()
