@@ -347,3 +347,23 @@ class WallClock(caviar.Plugin):
         if self.ctx.params.seconds:
             time.sleep(self.ctx.params.seconds)
         return [("clock.wall", {"step": self.ctx.step, "t": t, "wall": start})]
+
+
+class Status(caviar.Plugin):
+    """Says how far it got on caviar.status every step; at ``bad_at`` tries another
+    reserved topic."""
+
+    stateless = True
+    publishes = (caviar.STATUS_TOPIC, "caviar.other")
+
+    @dataclasses.dataclass
+    class Params:
+        bad_at: int = -1
+
+    def setup(self, ctx):
+        self.ctx = ctx
+
+    def step(self, t, inbox):
+        if self.ctx.step == self.ctx.params.bad_at:
+            yield "caviar.other", "x"
+        yield caviar.STATUS_TOPIC, f"{self.ctx.step + 1} steps\nsaid"

@@ -211,3 +211,33 @@ def test_gpu_sampling_follows_what_nvidia_ml_py_sees():
     if sampler is not None:
         util, mem = sampler.sample()
         assert 0.0 <= util <= 100.0 and mem >= 0.0
+
+
+STATUS = """
+[episode]
+ts = 0.1
+steps = 5
+stages = ["a"]
+
+[modules.counter]
+stage = "a"
+plugin = "sample_plugins:Status"
+"""
+
+
+def test_a_modules_status_line_is_shown_with_the_progress_and_recorded(tmp_path, cli):
+    write_config(tmp_path, STATUS)
+    p = cli("run", "exp.toml", "--out", "st", check=0)  # stderr is a pipe: the log lines
+    lines = p.stderr.splitlines()
+    assert "step 5/5, t = 0.50 s" in "\n".join(lines) and lines[-1] == "  counter: 5 stepssaid", p.stderr
+    assert "counter: 5 stepssaid" in [ln for ln in lines if ln.startswith("step 5/5")][0]
+    log = caviar.load_run(tmp_path / "st")
+    said = log.topic(caviar.STATUS_TOPIC)
+    assert len(said) == 5
+    quiet = cli("run", "exp.toml", "--out", "q", "--quiet", check=0)
+    assert "counter:" not in quiet.stderr
+    # Only caviar.episode.end and caviar.status are open to modules under caviar.
+    write_config(tmp_path, STATUS.replace('"sample_plugins:Status"',
+                                          '"sample_plugins:Status"\nparams = { bad_at = 2 }'))
+    bad = cli("run", "exp.toml", "--out", "bad", check=1)
+    assert "reserved for the core" in bad.stderr and "caviar.status" in bad.stderr, bad.stderr

@@ -14,10 +14,13 @@ from caviar.topics import matches
 
 END_TOPIC = "caviar.episode.end"
 """Publishing on this topic ends the episode after the current step."""
+STATUS_TOPIC = "caviar.status"
+"""A module's one-line status for people (a string, e.g. what share of its work a cache
+served): ``caviar-core run`` shows each module's latest beside its progress."""
 
 __all__ = [
     "Artifact", "ConfigError", "Context", "END_TOPIC", "Inbox", "Message", "Plugin", "RunError",
-    "RunLog", "RunStatus", "Simulation", "__version__", "inspect", "load_run", "matches",
+    "RunLog", "RunStatus", "STATUS_TOPIC", "Simulation", "__version__", "inspect", "load_run", "matches",
 ]
 
 

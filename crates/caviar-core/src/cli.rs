@@ -12,7 +12,8 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 use crate::assembly::PrepareError;
 use crate::config;
-use crate::engine::{Engine, EngineError, StepReport};
+use crate::engine::{Engine, EngineError, StepReport, STATUS_TOPIC};
+use crate::message::Payload;
 use crate::run::{self, PluginLoader, RunSession};
 use crate::status::{rtf_text, RunState};
 
@@ -158,6 +159,30 @@ fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
     }
 }
 
+/// Each module's latest `caviar.status` line, shown beside the progress.
+#[derive(Default)]
+struct Statuses(std::collections::BTreeMap<String, String>);
+
+impl Statuses {
+    fn update(&mut self, report: &StepReport) {
+        for m in &report.messages {
+            if m.topic != STATUS_TOPIC {
+                continue;
+            }
+            if let Payload::Json(text) = &m.payload {
+                let line = serde_json::from_str::<String>(text).unwrap_or_else(|_| text.clone());
+                let line: String = line.chars().filter(|c| !c.is_control()).take(80).collect();
+                self.0.insert(m.source.clone(), line);
+            }
+        }
+    }
+
+    /// `"  comm: …  other: …"`, or nothing.
+    fn text(&self) -> String {
+        self.0.iter().map(|(m, s)| format!("  {m}: {s}")).collect()
+    }
+}
+
 /// Progress for logs (stderr is not a terminal): a line every 10 s of wall time.
 struct LogProgress {
     enabled: bool,
@@ -172,7 +197,7 @@ impl LogProgress {
         }
     }
 
-    fn update(&mut self, engine: &Engine, report: &StepReport) {
+    fn update(&mut self, engine: &Engine, report: &StepReport, statuses: &Statuses) {
         if !self.enabled || (self.last.elapsed().as_secs_f64() < 10.0 && !report.ended) {
             return;
         }
@@ -194,8 +219,9 @@ impl LogProgress {
             .map(|n| format!("/{n}"))
             .unwrap_or_default();
         eprintln!(
-            "step {done}{of}, t = {virtual_s:.2} s, wall {wall:.1} s, RTF {}{eta}",
-            rtf_text(wall, virtual_s)
+            "step {done}{of}, t = {virtual_s:.2} s, wall {wall:.1} s, RTF {}{eta}{}",
+            rtf_text(wall, virtual_s),
+            statuses.text()
         );
     }
 }
@@ -216,11 +242,14 @@ fn progress_bar(engine: &Engine, quiet: bool) -> ProgressBar {
     bar
 }
 
-fn show_progress(bar: &ProgressBar, engine: &Engine, report: &StepReport) {
+fn show_progress(bar: &ProgressBar, engine: &Engine, report: &StepReport, statuses: &Statuses) {
     bar.set_position(report.step + 1);
     let virtual_s = engine.virtual_time_s();
     let rtf = rtf_text(engine.wall_s(), virtual_s);
-    bar.set_message(format!("t = {virtual_s:.2} s  RTF {rtf}"));
+    bar.set_message(format!(
+        "t = {virtual_s:.2} s  RTF {rtf}{}",
+        statuses.text()
+    ));
 }
 
 /// A new run of a configuration, or a run resumed from its checkpoint.
@@ -279,9 +308,11 @@ fn run(
     let sigint = crate::interrupt::Guard::install();
     let bar = progress_bar(session.engine(), quiet);
     let mut log = LogProgress::new(quiet);
+    let mut statuses = Statuses::default();
     let result = session.run(|engine, report| {
-        show_progress(&bar, engine, report);
-        log.update(engine, report);
+        statuses.update(report);
+        show_progress(&bar, engine, report, &statuses);
+        log.update(engine, report, &statuses);
         !interrupted()
     });
     bar.finish_and_clear();
@@ -294,6 +325,11 @@ fn run(
         error,
         started.elapsed().as_secs_f64(),
     );
+    if !quiet {
+        for (module, line) in &statuses.0 {
+            eprintln!("  {module}: {line}");
+        }
+    }
     if viewing && std::io::stderr().is_terminal() && state != RunState::Interrupted {
         eprintln!("view: still serving the finished run; Ctrl-C to stop");
         while !interrupted() {

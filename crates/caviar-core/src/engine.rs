@@ -42,6 +42,11 @@ use crate::topic::{validate_topic, Pattern};
 /// Publishing on this topic ends the episode after the current step.
 pub const END_TOPIC: &str = "caviar.episode.end";
 
+/// A module's one-line status for people (a JSON string, e.g. what share of its work a
+/// cache served): the command line shows each module's latest beside its progress. It is
+/// recorded like any message and means nothing to the engine.
+pub const STATUS_TOPIC: &str = "caviar.status";
+
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
     #[error("module '{module}' failed {}: {}{}", place(.phase, .step, .time), .error.message, trace(.error))]
@@ -1005,9 +1010,10 @@ impl Engine {
 
 fn check_publish(topic: &str) -> Result<(), String> {
     validate_topic(topic).map_err(|e| e.to_string())?;
-    if topic.starts_with("caviar.") && topic != END_TOPIC {
+    if topic.starts_with("caviar.") && topic != END_TOPIC && topic != STATUS_TOPIC {
         return Err(format!(
-            "topics under 'caviar.' are reserved for the core (modules may publish '{END_TOPIC}')"
+            "topics under 'caviar.' are reserved for the core (modules may publish '{END_TOPIC}' \
+             and '{STATUS_TOPIC}')"
         ));
     }
     Ok(())

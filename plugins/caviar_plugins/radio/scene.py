@@ -105,17 +105,20 @@ class RadioConfig:
     materials, frequency, transmitters), trace only the receivers' visibility tests in
     later solves (:mod:`~caviar_plugins.radio.shoot_cache`): the paths of Sionna's loop
     (without the specular chains its hash table drops), 0.08x its time for 1 receiver,
-    0.36x for 10 (1e6 samples, 2 cores). Moving scatterers (UAV bodies, vehicles) change
-    the geometry: such solves run Sionna's loop unchanged, as does the first solve of a
-    geometry and any solve with more than one source. ``false``: always Sionna's loop."""
-    cache_moving_bodies: bool = False
+    0.36x for 10 (1e6 samples, 2 cores). UAV bodies move on top of it
+    (``cache_moving_bodies``); other moving scatterers (vehicles) change the geometry: such
+    solves run Sionna's loop unchanged, as does the first solve of a geometry and any solve
+    with more than one source. ``false``: always Sionna's loop."""
+    cache_moving_bodies: bool = True
     """With ``shoot_cache`` and ``uav_mesh``: the UAV bodies are moving objects on top of
     the cached bounces of the static scene, so solves are served from the cache while they
-    move: each solve's visibility tests and Sionna's image method run with the bodies where
-    they are (the paths they block are dropped), but paths that reflect or diffract on a body
-    are not traced, nor is a diffuse path whose earlier segments a body blocks (the error
-    against Sionna's loop is measured in the README). ``false``: a moved body is a new
-    geometry, and the solve runs Sionna's loop."""
+    move. Each solve's visibility tests and Sionna's image method run with the bodies where
+    they are (the paths they block are dropped); the paths by way of a body come from rays
+    aimed at it from the transmitter and from the recorded rays that now meet it after a
+    bounce, bounced on in the scene as it is (:mod:`~caviar_plugins.radio.shoot_cache`).
+    Not re-checked: the earlier segments of a diffuse path (a body in them). Measured
+    against Sionna's loop in the README. ``false``: a moved body is a new geometry, and the
+    solve runs Sionna's loop."""
     threads: int = 0
     """Dr.Jit CPU threads; 0 = all cores. On CPU the solver's parallel sums differ in the
     last float bits from run to run; ``threads = 1`` makes runs bit-identical (measured
@@ -220,6 +223,8 @@ class RadioScene:
         self._placed: tuple = ()
         self._where: dict[str, np.ndarray] = {}  # receiver key -> its position (antenna offset added)
         self._solved: tuple[tuple, dict] | None = None
+        self.solves = 0
+        """Solves that traced (not those that reused the last one)."""
         self.last_paths: Any = None
         """Sionna's ``Paths`` of the last solve that traced (amplitudes, delays, Doppler shifts...)."""
         self._body_template = s.objects.get("Cube")
@@ -310,7 +315,9 @@ class RadioScene:
         offset = np.asarray(self.cfg.antenna_offset, dtype=float)
         return {"receivers": [(k, self._where[k] - offset) for k in self.receivers],
                 "placed": self._placed, "solved": self._solved,
-                "geometry_seen": self.shoot_cache is not None and self.shoot_cache.has_seen_geometry}
+                "geometry_seen": self.shoot_cache is not None and self.shoot_cache.has_seen_geometry,
+                "counts": (self.solves, *((self.shoot_cache.connects, self.shoot_cache.shoots)
+                                          if self.shoot_cache is not None else ()))}
 
     def restore(self, snapshot: dict[str, Any]) -> None:
         """Rebuilds :meth:`snapshot`'s state in a freshly set-up scene: the receivers and
@@ -322,6 +329,11 @@ class RadioScene:
                 self._solved = None
                 self.solve()
         self._placed, self._solved = snapshot["placed"], snapshot["solved"]
+        counts = snapshot.get("counts", ())
+        if counts:
+            self.solves = counts[0]
+        if len(counts) == 3 and self.shoot_cache is not None:
+            self.shoot_cache.connects, self.shoot_cache.shoots = counts[1], counts[2]
 
     def remove(self, keys) -> None:
         """Takes the receivers of ``keys`` (never UAV bodies) out of the scene."""
@@ -362,6 +374,7 @@ class RadioScene:
         if not force and self._solved is not None and self._solved[0] == self._placed:
             return self._solved[1]
         c = self.cfg
+        self.solves += 1
         paths = self.last_paths = self.solver(self.scene, max_depth=c.max_depth, samples_per_src=c.samples_per_src,
                             synthetic_array=True, los=c.los, specular_reflection=c.specular_reflection,
                             diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,

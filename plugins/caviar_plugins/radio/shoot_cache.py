@@ -48,6 +48,17 @@ from typing import Any
 import numpy as np
 
 
+def _array(cls, values: np.ndarray):
+    """A Dr.Jit array of ``values``, made from 64-byte aligned memory: Dr.Jit takes numpy's
+    memory as it is and compiles a kernel anew for each alignment it meets."""
+    values = np.ascontiguousarray(values)
+    buf = np.empty(values.nbytes + 64, dtype=np.uint8)
+    start = -buf.ctypes.data % 64
+    aligned = buf[start:start + values.nbytes].view(values.dtype)
+    aligned[...] = values.ravel()
+    return cls(aligned)
+
+
 def _jit() -> tuple[Any, Any]:
     """Dr.Jit and Mitsuba, untyped: Dr.Jit's stubs do not know Mitsuba's array types."""
     import drjit
@@ -112,11 +123,11 @@ class ShootCache:
             return self.generator(mi_scene, src_positions, tgt_positions, samples_per_src, max_num_paths_per_src,
                                   max_depth, los, specular_reflection, diffuse_reflection, refraction, diffraction,
                                   edge_diffraction, seed, src_boxes)
-        if self._key != key:
-            moving = list(self.movers()) if self.movers is not None else []
+        moving = list(self.movers()) if self.movers is not None else []
+        if self._key != key or self._shots is None or (moving and not self._shots.keeps_state):
             with internals.objects_out_of_the_way(self.scene, moving):
                 self._shots = _shoot(self.generator, mi_scene, src_positions, samples_per_src, max_depth, flags,
-                                     seed)
+                                     seed, keep_state=bool(moving))
             self._key = key
             self.shoots += 1
         shots = self._shots
@@ -127,19 +138,16 @@ class ShootCache:
         if los:
             internals.add_line_of_sight(self.generator, mi_scene, src_positions, tgt_positions, paths, counter)
         _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
-        moving = list(self.movers()) if self.movers is not None else []
         if moving:
-            # Paths by way of the moving objects: rays aimed at each one's bounding sphere,
-            # bounced in the scene as it is now, connected from the first hit on one of them.
+            # Paths by way of the moving objects (see _by_way_of_movers).
             boxes = np.array([[np.array(o.mi_mesh.bbox().min), np.array(o.mi_mesh.bbox().max)] for o in moving],
                              dtype=float).reshape(-1, 2, 3)
             source = np.array(dr.ravel(src_positions).numpy(), dtype=float)[:3]
             aimed = np.concatenate([aim_at(source, box.mean(axis=0), np.linalg.norm(box[1] - box[0]) / 2,
                                            self.rays_per_moving_object) for box in boxes])
-            local = _shoot(self.generator, mi_scene, src_positions, 0, max_depth,
-                           (specular_reflection, False, refraction, diffraction, edge_diffraction), seed,
-                           aimed=aimed, touch_boxes=boxes + [[-MARGIN_M], [MARGIN_M]])
-            _connect(local, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
+            more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed, boxes,
+                                     aimed)
+            _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
         self.paths_counter_per_source = counter
         self.connects += 1
         return paths
@@ -148,6 +156,8 @@ class ShootCache:
 RAYS_PER_MOVING_OBJECT = 4096
 """Rays aimed at each moving object's bounding sphere per solve (about 5 cm apart on a
 2 m UAV body, against about 1.3 m for 3e5 rays over the whole sphere at 200 m)."""
+PAD_RAYS = 1024
+"""The rays by way of moving objects come in multiples of this (see :func:`_by_way_of_movers`)."""
 MARGIN_M = 0.01
 """A hit within this distance of a moving object's bounding box counts as a hit on it."""
 
@@ -184,52 +194,66 @@ class _Shots:
         self.diffraction_depth: Any = None  # depth of that diffraction, 0 if none
         self.src_indices: Any = None
         self.k_tx: Any = None
+        self.keeps_state = False  # whether each depth keeps where its rays go next (moving objects)
 
 
 def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, flags, seed: int,
-           aimed=None, touch_boxes=None) -> _Shots:
+           keep_state: bool = False) -> _Shots:
     """Sionna's bounce loop, one wavefront per depth, without the targets.
 
-    ``aimed`` (directions, an (n, 3) array, from the single source): these rays instead of
-    Sionna's Fibonacci lattice. ``touch_boxes`` ((B, 2, 3): min and max corners): a ray is
-    kept for the connect phase only from the depth at which it first hit inside a box."""
+    ``keep_state``: each depth's record also keeps what a ray needs to go on from there
+    (:func:`_by_way_of_movers`)."""
     dr, mi = _jit()
     from caviar_plugins.radio import sionna_internals as internals
 
-    InteractionType, WedgeGeometry, fibonacci_lattice, hash_fnv1a, spawn_ray_from_sources = \
-        internals.ray_utilities()
-    sample_fields = internals.sample_data_fields()
-    plane_hashers, edge_hashers = internals.hashers(gen)
-
-    specular_on, diffuse_on, refraction_on, diffraction_on, edge_diffraction_on = flags
+    InteractionType, WedgeGeometry, fibonacci_lattice, _, spawn_ray_from_sources = internals.ray_utilities()
+    specular_on, diffuse_on, refraction_on, diffraction_on, _ = flags
     num_sources = dr.shape(src_positions)[1]
-    if aimed is not None:
-        samples_per_src = len(aimed)
     n = samples_per_src * num_sources
     shots = _Shots()
-    sampler = internals.sampler(gen)
-    sampler.seed(seed, n)
+    internals.sampler(gen).seed(seed, n)
     shots.width = n
-    shots.samples = dr.zeros(sample_fields, n * max(1, max_depth))
+    shots.samples = dr.zeros(internals.sample_data_fields(), n * max(1, max_depth))
     shots.src_indices = internals.source_index_per_sample(num_sources, samples_per_src)
     ray = spawn_ray_from_sources(fibonacci_lattice, samples_per_src, src_positions)
-    if aimed is not None:
-        ray.d = mi.Vector3f(*(mi.Float(aimed[:, i].astype(np.float32)) for i in range(3)))
-    touched = dr.full(mi.Bool, touch_boxes is None, n)
+    shots.keeps_state = keep_state
     shots.k_tx = dr.copy(ray.d)
-    specular_chain = dr.full(mi.Bool, True, n)
-    hashes = [dr.zeros(mi.UInt64, n) for _ in plane_hashers]
-    active = dr.full(mi.Mask, True, n)
     enabled = 0
     for on, kind in ((specular_on, InteractionType.SPECULAR), (diffuse_on, InteractionType.DIFFUSE),
                      (refraction_on, InteractionType.REFRACTION), (diffraction_on, InteractionType.DIFFRACTION)):
         if on:
             enabled |= int(kind)
-    loc_en_inter = dr.full(mi.UInt, enabled, n)
     shots.wedges = WedgeGeometry.build_with_size(n) if diffraction_on else None
     shots.diffraction_depth = dr.zeros(mi.UInt, n)
+    state = {"ray": ray, "specular_chain": dr.full(mi.Bool, True, n),
+             "hashes": [dr.zeros(mi.UInt64, n) for _ in internals.hashers(gen)[0]],
+             "active": dr.full(mi.Mask, True, n), "loc_en_inter": dr.full(mi.UInt, enabled, n),
+             "touched": dr.full(mi.Bool, True, n)}
+    _bounce(gen, mi_scene, shots, state, 1, max_depth, flags, None, keep_state=keep_state)
+    return shots
+
+
+def _bounce(gen, mi_scene, shots: _Shots, state: dict, first_depth: int, max_depth: int, flags, touch_boxes,
+            keep_state: bool, start=None) -> None:
+    """The bounce loop from ``first_depth`` on (Sionna's inner loop without the targets),
+    appending one record per depth to ``shots.depths``. ``start`` (optional, per ray): the
+    depth at which each ray sets off; until then it waits, its state untouched."""
+    dr, mi = _jit()
+    from caviar_plugins.radio import sionna_internals as internals
+
+    InteractionType, _, _, hash_fnv1a, _ = internals.ray_utilities()
+    sample_fields = internals.sample_data_fields()
+    plane_hashers, edge_hashers = internals.hashers(gen)
+    sampler = internals.sampler(gen)
+    _, _, _, diffraction_on, edge_diffraction_on = flags
+    n = shots.width
+    ray, specular_chain, hashes = state["ray"], state["specular_chain"], state["hashes"]
+    active, loc_en_inter, touched = state["active"], state["loc_en_inter"], state["touched"]
     lane = dr.arange(mi.UInt, n)
-    for depth in range(1, max_depth + 1):
+    for depth in range(first_depth, max_depth + 1):
+        waiting = start > depth if start is not None else dr.full(mi.Bool, False, n)
+        before = active
+        active = active & ~waiting
         si = mi_scene.ray_intersect(ray, coherent=True, ray_flags=mi.RayFlags.Minimal, active=active)
         active &= si.is_valid()
         sample1 = sampler.next_1d()
@@ -247,13 +271,15 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
         diffraction = int_type == InteractionType.DIFFRACTION
         loc_en_inter[diffraction] &= ~mi.UInt(InteractionType.DIFFUSE + InteractionType.DIFFRACTION)
         loc_en_inter[diffuse] &= ~mi.UInt(InteractionType.DIFFRACTION)
-        specular_chain &= active & (specular | transmission | diffraction)
+        specular_chain = dr.select(waiting, specular_chain, specular_chain & active & (specular | transmission |
+                                                                                     diffraction))
         # Sample data of this depth (SampleData.insert writes only live rays).
         fields = sample_fields(
             dr.select(active, int_type, 0), dr.select(active, dr.reinterpret_array(mi.UInt, si.shape), 0),
             dr.select(active, si.prim_index, 0), dr.select(active, si.p, mi.Point3f(0.0)),
             dr.select(active, s.pdf, 0.0))
-        dr.scatter(shots.samples, fields, (depth - 1) * n + lane)
+        # (opaque offsets: continued rays come in varying numbers, the kernels stay the same)
+        dr.scatter(shots.samples, fields, dr.opaque(mi.UInt, (depth - 1) * n) + lane, active=~waiting)
         if diffraction_on:
             shots.wedges = dr.select(diffraction, wedges, shots.wedges)
             shots.diffraction_depth = dr.select(diffraction, depth, shots.diffraction_depth)
@@ -262,7 +288,7 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
             edge_hash = edge_hashers[i](wedges.o, wedges.o + wedges.e_hat * wedges.length)
             inter_hash = dr.select(int_type == InteractionType.SPECULAR, plane_hash, int_type)
             inter_hash = dr.select(int_type == InteractionType.DIFFRACTION, edge_hash, inter_hash)
-            hashes[i] = hash_fnv1a(inter_hash, h=hashes[i])
+            hashes[i] = dr.select(waiting, hashes[i], hash_fnv1a(inter_hash, h=hashes[i]))
         if touch_boxes is not None:
             for lo, hi in touch_boxes:  # opaque: the boxes move every solve, the kernels stay
                 low, high = (dr.opaque(mi.Point3f, [float(x) for x in c]) for c in (lo, hi))
@@ -272,17 +298,144 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
                   "diffuse": dr.gather(mi.Bool, diffuse, alive),
                   "specular_chain": dr.gather(mi.Bool, specular_chain, alive),
                   "hashes": [dr.gather(mi.UInt64, h, alive) for h in hashes]}
-        ray = si.spawn_ray(d=k_world)
+        ray = dr.select(waiting, ray, si.spawn_ray(d=k_world))
         specular_chain |= diffuse
+        active = dr.select(waiting, before, active)
+        if keep_state:  # where each live ray goes next, and its state: for rays that now meet a moving object
+            record.update({"o": dr.gather(mi.Point3f, ray.o, alive), "d": dr.gather(mi.Vector3f, ray.d, alive),
+                           "chain_next": dr.gather(mi.Bool, specular_chain, alive),
+                           "loc": dr.gather(mi.UInt, loc_en_inter, alive)})
         sampler.schedule_state()
-        state = [record, shots.samples, ray, specular_chain, hashes, active, loc_en_inter, shots.wedges,
-                 shots.diffraction_depth, touched]
-        dr.eval(*[x for x in state if x is not None])
+        keep = [record, shots.samples, ray, specular_chain, hashes, active, loc_en_inter, shots.wedges,
+                shots.diffraction_depth, touched]
+        dr.eval(*[x for x in keep if x is not None])
         _group_chains(record)
         shots.depths.append(record)
         if dr.width(dr.compress(active)) == 0:
             break
-    return shots
+
+
+def _slab_hits(o, d, boxes):
+    """Whether each ray (origin ``o``, direction ``d``) meets one of ``boxes`` ahead of it."""
+    dr, mi = _jit()
+    hit = dr.full(mi.Bool, False, dr.width(o))
+    inv = mi.Vector3f(1.0) / d
+    for lo, hi in boxes:
+        low, high = (dr.opaque(mi.Point3f, [float(x) for x in c]) for c in (lo, hi))
+        t0, t1 = (low - o) * inv, (high - o) * inv
+        near = dr.max(dr.minimum(t0, t1))
+        far = dr.min(dr.maximum(t0, t1))
+        hit |= far >= dr.maximum(near, 0.0)
+    return hit
+
+
+def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: int, flags, seed: int, boxes,
+                      aimed: np.ndarray) -> _Shots:
+    """The rays that meet a moving object, bounced in the scene as it is now and connected
+    from their first hit on one (one bounce loop for all, each ray setting off at its own
+    depth):
+
+    * ``aimed`` rays from the source at the objects (depth 1), for the paths that meet one
+      first, with the diffuse branch off (their density is not Sionna's);
+    * the rays of the recorded bounces that now meet one after a bounce on the static scene
+      (Sionna's loop, run now, would send them onto it): each goes on from the depth at which
+      it meets it, with the interactions it had before."""
+    dr, mi = _jit()
+    from caviar_plugins.radio import sionna_internals as internals
+
+    InteractionType, WedgeGeometry, _, _, _ = internals.ray_utilities()
+    sample_fields = internals.sample_data_fields()
+    specular_on, _, refraction_on, diffraction_on, _ = flags
+    # Recorded rays whose next segment meets a box before the static scene.
+    picked = []  # (depth, indices into the record)
+    for d, rec in enumerate(shots.depths[: max_depth - 1], start=1):
+        if dr.width(rec["lane"]) == 0 or "o" not in rec:
+            continue
+        near = np.flatnonzero(np.asarray(_slab_hits(rec["o"], rec["d"], boxes), dtype=bool))
+        if len(near) == 0:
+            continue
+        idx = _array(mi.UInt, near.astype(np.uint32))
+        si = mi_scene.ray_intersect(mi.Ray3f(dr.gather(mi.Point3f, rec["o"], idx),
+                                             dr.gather(mi.Vector3f, rec["d"], idx)),
+                                    coherent=False, ray_flags=mi.RayFlags.Minimal)
+        on = dr.full(mi.Bool, False, len(near))
+        for lo, hi in boxes:
+            low, high = (dr.opaque(mi.Point3f, [float(x) - MARGIN_M for x in lo]),
+                         dr.opaque(mi.Point3f, [float(x) + MARGIN_M for x in hi]))
+            on |= si.is_valid() & dr.all((si.p >= low) & (si.p <= high))
+        pick = near[np.asarray(on, dtype=bool)]
+        if len(pick):
+            picked.append((d, pick))
+    a = len(aimed)
+    used = a + sum(len(pick) for _, pick in picked)
+    # Padded to a multiple of PAD_RAYS with rays that never set off: Dr.Jit compiles the loop
+    # anew for a new width, and the number of rays met varies from solve to solve.
+    k = -(-used // PAD_RAYS) * PAD_RAYS
+    out = _Shots()
+    out.width = k
+    out.samples = dr.zeros(sample_fields, k * max_depth)
+    enabled = sum(int(kind) for on, kind in ((specular_on, InteractionType.SPECULAR),
+                                             (refraction_on, InteractionType.REFRACTION),
+                                             (diffraction_on, InteractionType.DIFFRACTION)) if on)
+    origin = np.repeat(np.array(dr.ravel(src_positions).numpy(), dtype=np.float32)[None, :3], a, axis=0)
+    o, d_, k_tx = [origin], [aimed.astype(np.float32)], [aimed.astype(np.float32)]
+    chain, loc, h0, h1 = [np.ones(a, bool)], [np.full(a, enabled, np.uint32)], [np.zeros(a, np.uint64)], \
+        [np.zeros(a, np.uint64)]
+    start, src = [np.ones(a, np.uint32)], [np.zeros(a, np.uint32)]
+    wedges = WedgeGeometry.build_with_size(k) if shots.wedges is not None else None
+    diffraction_depth = dr.zeros(mi.UInt, k)
+    offset = a
+    for d, pick in picked:
+        rec = shots.depths[d - 1]
+        idx = _array(mi.UInt, pick.astype(np.uint32))
+        lanes = dr.gather(mi.UInt, rec["lane"], idx)
+        slots = dr.opaque(mi.UInt, offset) + dr.arange(mi.UInt, len(pick))
+        for dd in range(1, d + 1):  # the interactions before, as recorded
+            dr.scatter(out.samples, dr.gather(sample_fields, shots.samples,
+                                              dr.opaque(mi.UInt, (dd - 1) * shots.width) + lanes),
+                       dr.opaque(mi.UInt, (dd - 1) * k) + slots)
+        if wedges is not None:
+            ddep = dr.gather(mi.UInt, shots.diffraction_depth, lanes)
+            earlier = (ddep > 0) & (ddep <= d)
+            dr.scatter(wedges, dr.gather(WedgeGeometry, shots.wedges, lanes), slots, earlier)
+            dr.scatter(diffraction_depth, ddep, slots, earlier)
+        o.append(np.array(dr.gather(mi.Point3f, rec["o"], idx), dtype=np.float32).reshape(3, -1).T)
+        d_.append(np.array(dr.gather(mi.Vector3f, rec["d"], idx), dtype=np.float32).reshape(3, -1).T)
+        k_tx.append(np.array(dr.gather(mi.Vector3f, shots.k_tx, lanes), dtype=np.float32).reshape(3, -1).T)
+        chain.append(np.asarray(dr.gather(mi.Bool, rec["chain_next"], idx), dtype=bool))
+        loc.append(np.asarray(dr.gather(mi.UInt, rec["loc"], idx), dtype=np.uint32))
+        h0.append(rec["h0"][pick])
+        h1.append(rec["h1"][pick])
+        start.append(np.full(len(pick), d + 1, np.uint32))
+        src.append(np.asarray(dr.gather(mi.UInt, shots.src_indices, lanes), dtype=np.uint32))
+        offset += len(pick)
+    pad = k - used
+    o.append(np.repeat(origin[:1], pad, axis=0) if a else np.zeros((pad, 3), np.float32))
+    d_.append(np.tile(np.array([0.0, 0.0, 1.0], dtype=np.float32), (pad, 1)))
+    k_tx.append(d_[-1])
+    chain.append(np.zeros(pad, bool))
+    loc.append(np.zeros(pad, np.uint32))
+    h0.append(np.zeros(pad, np.uint64))
+    h1.append(np.zeros(pad, np.uint64))
+    start.append(np.full(pad, max_depth + 1, np.uint32))
+    src.append(np.zeros(pad, np.uint32))
+
+    def vec(cls, parts):
+        x = np.concatenate(parts)
+        return cls(*(_array(mi.Float, np.ascontiguousarray(x[:, i])) for i in range(3)))
+
+    out.k_tx = vec(mi.Vector3f, k_tx)
+    out.src_indices = _array(mi.UInt, np.concatenate(src))
+    out.wedges, out.diffraction_depth = wedges, diffraction_depth
+    state = {"ray": mi.Ray3f(vec(mi.Point3f, o), vec(mi.Vector3f, d_)),
+             "specular_chain": _array(mi.Bool, np.concatenate(chain)),
+             "hashes": [_array(mi.UInt64, np.concatenate(h0)), _array(mi.UInt64, np.concatenate(h1))],
+             "active": dr.full(mi.Mask, True, k), "loc_en_inter": _array(mi.UInt, np.concatenate(loc)),
+             "touched": dr.full(mi.Bool, False, k)}
+    internals.sampler(gen).seed(seed, k)
+    _bounce(gen, mi_scene, out, state, 1, max_depth, flags, boxes + [[-MARGIN_M], [MARGIN_M]], keep_state=False,
+            start=_array(mi.UInt, np.concatenate(start)))
+    return out
 
 
 def _group_chains(record: dict) -> None:
@@ -323,9 +476,9 @@ class _SampleView:
                                      WedgeGeometry.build_with_size(dr.width(lane)))
 
     def get(self, depth, active):
-        dr, _ = _jit()
+        dr, mi = _jit()
 
-        index = (depth - 1) * self._shots.width + self.lane
+        index = (depth - 1) * dr.opaque(mi.UInt, self._shots.width) + self.lane
         data = dr.gather(self._fields, self._shots.samples, index, active)
         return data.interaction_type, data.shape, data.primitive, data.vertex, data.prob
 
@@ -344,7 +497,7 @@ def _visibility(mi_scene, rec: dict, tgt_positions, rays, targets):
     import numpy as np
 
     dr, mi = _jit()
-    j, t = mi.UInt(rays.astype(np.uint32)), mi.UInt(targets.astype(np.uint32))
+    j, t = _array(mi.UInt, rays.astype(np.uint32)), _array(mi.UInt, targets.astype(np.uint32))
     si = dr.zeros(mi.SurfaceInteraction3f, len(rays))
     si.p, si.n = dr.gather(mi.Point3f, rec["p"], j), dr.gather(mi.Normal3f, rec["n"], j)
     ray = si.spawn_ray_to(dr.gather(mi.Point3f, tgt_positions, t))
@@ -432,7 +585,7 @@ def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_pat
         order = np.lexsort((all_rays, all_targets))
         all_rays, all_targets, valid_np = all_rays[order], all_targets[order], valid_np[order]
         _, _, direction = _visibility(mi_scene, rec, tgt_positions, all_rays, all_targets)
-        view = _SampleView(shots, depth, dr.gather(mi.UInt, rec["lane"], mi.UInt(all_rays.astype(np.uint32))))
+        view = _SampleView(shots, depth, dr.gather(mi.UInt, rec["lane"], _array(mi.UInt, all_rays.astype(np.uint32))))
         store = dr.full(mi.Bool, True, len(all_rays))
         per_source = dr.scatter_inc(counter, view.src_indices, store)
         dr.eval(per_source)
@@ -440,7 +593,8 @@ def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_pat
         path_ind = dr.scatter_inc(paths.paths_counter, mi.UInt(0), store)
         dr.eval(path_ind)
         k_tx = dr.gather(mi.Vector3f, shots.k_tx, view.lane)
-        paths.add_paths(mi.UInt(depth), path_ind, view, mi.Bool(valid_np), mi.UInt(all_targets.astype(np.uint32)),
+        paths.add_paths(mi.UInt(depth), path_ind, view, _array(mi.Bool, valid_np),
+                        _array(mi.UInt, all_targets.astype(np.uint32)),
                         k_tx, -direction, store)
         paths.schedule()
         dr.eval(counter)

@@ -225,7 +225,7 @@ def objects_out_of_the_way(scene: Any, objects: Sequence[Any]) -> Iterator[None]
     keys = [obj._mi_mesh.id() + ".vertex_positions" for obj in objects]
     saved = [dr.copy(params[k]) for k in keys]
     for key, vertices in zip(keys, saved, strict=True):
-        params[key] = dr.ravel(dr.unravel(mi.Point3f, vertices) + mi.Vector3f(0.0, 0.0, -OUT_OF_THE_WAY_M))
+        params[key] = dr.ravel(dr.unravel(mi.Point3f, vertices) + mi.Point3f(0.0, 0.0, -OUT_OF_THE_WAY_M))
     params.update()
     try:
         yield

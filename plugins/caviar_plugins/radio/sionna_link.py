@@ -147,7 +147,7 @@ class SionnaLinkParams(RadioConfig):
 
 class SionnaLink(caviar.Plugin):
     subscribe = [POSITIONS, BEAM_SELECTION, FORECAST]
-    publishes = (*LINK_TOPICS, STATE, PREDICTION, every_ue(PATHS))
+    publishes = (*LINK_TOPICS, STATE, PREDICTION, every_ue(PATHS), caviar.STATUS_TOPIC)
     Params = SionnaLinkParams
 
     def setup(self, ctx):
@@ -198,6 +198,10 @@ class SionnaLink(caviar.Plugin):
             if self.p.publish_paths and link.paths is not None:
                 yield per_ue(PATHS, ue), dataclasses.replace(link.paths, settings=self.path_settings).to_bytes()
         yield STATE, "Ready"
+        cache = self.radio.shoot_cache
+        if cache is not None and self.radio.solves:
+            yield caviar.STATUS_TOPIC, (f"shoot cache {100 * cache.connects / self.radio.solves:.0f} % of "
+                                        f"{self.radio.solves} solves")
 
     def _read(self, t: float, inbox) -> None:
         for m in inbox:
