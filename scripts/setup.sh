@@ -41,6 +41,10 @@ log "Python packages"
 # installed without its dependencies, and those numpy aside here.
 .venv/bin/pip install --quiet "tqdm>=4.59" requests "matplotlib>=3.8.2" "scipy>=1.6.2"
 .venv/bin/pip install --quiet --no-deps "deepmimo>=4,<5"
+# The `yolo` extra (training the person detector): Ultralytics needs torchvision, whose newest
+# release would replace the torch Sionna SYS brought; held at that torch.
+torch_pin=$(.venv/bin/python -c 'import torch; print(torch.__version__.split("+")[0])')
+.venv/bin/pip install --quiet -e "plugins[yolo]" -c <(echo "torch==$torch_pin")
 
 # The browser view: its bundle ships built; chromium (apt) and playwright for its tests.
 bash scripts/setup-view.sh

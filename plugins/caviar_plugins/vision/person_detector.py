@@ -12,6 +12,10 @@ the loop.
 The ``builtin`` model is trained on first use (about half a minute) and cached under
 ``$CAVIAR_CACHE`` (default ``~/.cache/caviar``); ``model = "PATH.pkl"`` loads another,
 ``model = "PATH.onnx"`` a user-supplied ONNX pixel classifier (see :class:`OnnxPixelModel`).
+
+``model = "yolo"`` runs the project's YOLO, trained on the twin's own frames
+(``python -m caviar_plugins.vision.train_yolo``), with onnxruntime; ``model = "PATH.onnx"``
+with an image input runs any YOLOv8/YOLO11-style ONNX detector (:mod:`caviar_plugins.vision.yolo`).
 """
 
 from __future__ import annotations
@@ -103,7 +107,10 @@ class Detection:
     row: float
     col: float
     pixels: int
+    """Pixels of the region (pixel classifier) or of the box (YOLO)."""
     score: float
+    box: tuple[float, float, float, float] | None = None
+    """x0, y0, x1, y1 in image pixels (YOLO), or None."""
 
 
 class PixelDetector:
@@ -202,6 +209,8 @@ class PixelDetector:
     def load(path: pathlib.Path) -> "PixelDetector":
         if pathlib.Path(path).suffix == ".onnx":
             return PixelDetector(OnnxPixelModel(path))
+        if not pathlib.Path(path).is_file():
+            raise ValueError(f"{path}: no such detector model file")
         try:
             data = pickle.loads(pathlib.Path(path).read_bytes())
         except (OSError, pickle.UnpicklingError, AttributeError, EOFError) as e:
@@ -230,7 +239,7 @@ class OnnxPixelModel:
             raise ValueError(f"{path}: cannot load the ONNX model: {e}") from None
         inputs = self.session.get_inputs()
         width = inputs[0].shape[-1] if len(inputs) == 1 and inputs[0].shape else None
-        if len(inputs) != 1 or (isinstance(width, int) and width != 10):
+        if len(inputs) != 1 or (isinstance(width, int) and width != 10) or len(inputs[0].shape or ()) != 2:
             raise ValueError(f"{path}: expected one input of shape (N, 10), got "
                              f"{[(i.name, i.shape) for i in inputs]}")
         self.input = inputs[0].name
@@ -366,6 +375,46 @@ BUILTIN = {"builtin": "packets", "builtin-paper": "bytes"}
 """Builtin models by name: the degradation they were trained on."""
 
 
+class YoloPersonDetector:
+    """A YOLO ONNX model (:class:`~caviar_plugins.vision.yolo.YoloOnnx`) behind the pixel
+    detector's interface: each box is a :class:`Detection` at the box centre."""
+
+    def __init__(self, model):
+        self.model = model
+
+    @staticmethod
+    def _detections(boxes) -> list[Detection]:
+        out = []
+        for b in boxes:
+            row, col = b.centre
+            out.append(Detection(row, col, int(round((b.x1 - b.x0) * (b.y1 - b.y0))), b.score,
+                                 (b.x0, b.y0, b.x1, b.y1)))
+        return out
+
+    def detect(self, image: np.ndarray) -> list[Detection]:
+        return self._detections(self.model.detect(image))
+
+    def detect_many(self, images: list[np.ndarray], pool: ThreadPoolExecutor | None = None,
+                    chunks: int = 0) -> list[list[Detection]]:
+        # One batch through onnxruntime, whose own threads share the work.
+        return [self._detections(found) for found in self.model.detect_many(images)]
+
+
+def is_image_model(path: pathlib.Path) -> bool:
+    """Whether an ONNX file takes images (N, 3, H, W): a YOLO detector, not a pixel classifier."""
+    if not pathlib.Path(path).is_file():
+        raise ValueError(f"{path}: no such ONNX model file")
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        raise ValueError(f"{path}: ONNX models need onnxruntime (pip install 'caviar-plugins[onnx]')") from None
+    try:
+        inputs = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).get_inputs()
+    except Exception as e:
+        raise ValueError(f"{path}: cannot load the ONNX model: {e}") from None
+    return len(inputs) == 1 and len(inputs[0].shape) == 4
+
+
 class PersonDetector(caviar.Plugin):
     """Detects people in received images (``ai.images.<UE_Id>``, or camera images
     directly) and publishes ``ai.detections`` with each detection's estimated
@@ -377,8 +426,17 @@ class PersonDetector(caviar.Plugin):
     @dataclasses.dataclass
     class Params:
         model: str = "builtin"
-        """``builtin`` (trained on packet loss), ``builtin-paper`` (trained on the 2023
-        byte-level loss of ``protocol = "paper"``) or a model file."""
+        """``builtin`` (the pixel classifier trained on packet loss), ``builtin-paper``
+        (trained on the 2023 byte-level loss of ``protocol = "paper"``), ``yolo`` (the
+        project's YOLO trained on the twin's frames, ONNX) or a model file: ``.pkl`` (a pixel
+        classifier), ``.onnx`` taking images (N, 3, H, W) (any YOLOv8/YOLO11-style detector,
+        :mod:`caviar_plugins.vision.yolo`) or pixel features (N, 10) (:class:`OnnxPixelModel`)."""
+        confidence: float = 0.25
+        """YOLO: boxes scored below this are dropped."""
+        iou: float = 0.45
+        """YOLO: non-maximum suppression's IoU threshold."""
+        person_class: int = 0
+        """YOLO: the class index of persons (0 in the project's model and in COCO)."""
         fov_deg: float = 70.0
         """Horizontal field of view of the camera (as in the camera module)."""
         workers: int = 0
@@ -398,8 +456,19 @@ class PersonDetector(caviar.Plugin):
         p = ctx.params
         if p.workers < 0:
             raise ValueError(f"params.workers = {p.workers}: expected 0 (one per CPU core) or more")
+        if not 0.0 <= p.confidence <= 1.0:
+            raise ValueError(f"params.confidence = {p.confidence}: expected a score between 0 and 1")
+        if not 0.0 < p.iou <= 1.0:
+            raise ValueError(f"params.iou = {p.iou}: expected an IoU in (0, 1]")
+        self.detector: PixelDetector | YoloPersonDetector
         if p.model in BUILTIN:
             self.detector = builtin_model(BUILTIN[p.model])
+        elif p.model == "yolo" or (p.model.endswith(".onnx") and is_image_model(ctx.resolve(p.model))):
+            from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx
+
+            path = BUILTIN_YOLO if p.model == "yolo" else ctx.resolve(p.model)
+            self.detector = YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class,
+                                                        threads=p.workers))
         else:
             self.detector = PixelDetector.load(ctx.resolve(p.model))
         self.positions: dict[str, np.ndarray] = {}
@@ -435,6 +504,8 @@ class PersonDetector(caviar.Plugin):
             found = []
             for d in detections:
                 item: dict[str, Any] = {"row": d.row, "col": d.col, "pixels": d.pixels, "score": round(d.score, 4)}
+                if d.box is not None:
+                    item["box"] = [round(v, 2) for v in d.box]
                 if pos is not None:
                     item["ground"] = pixel_to_ground(d.row, d.col, image.shape, pos, self.ctx.params.fov_deg)
                 found.append(item)
