@@ -460,6 +460,8 @@ class PersonDetector(caviar.Plugin):
             raise ValueError(f"params.confidence = {p.confidence}: expected a score between 0 and 1")
         if not 0.0 < p.iou <= 1.0:
             raise ValueError(f"params.iou = {p.iou}: expected an IoU in (0, 1]")
+        if p.person_class < 0:
+            raise ValueError(f"params.person_class = {p.person_class}: expected a class index (0 or more)")
         self.detector: PixelDetector | YoloPersonDetector
         if p.model in BUILTIN:
             self.detector = builtin_model(BUILTIN[p.model])

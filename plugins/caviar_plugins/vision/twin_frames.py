@@ -366,6 +366,8 @@ def write_dataset(out: pathlib.Path, counts: dict[str, int], cfg: FrameConfig | 
         views = list(twin.views())[:count]
         for i, (f, pos, heading) in enumerate(tqdm(views, desc=f"{split} frames", disable=not progress,
                                                    unit="frame")):
+            # One light per flight (the flight's first draw; each frame draws one, which keeps the
+            # random stream of the frames the committed model was trained on).
             light = lights.setdefault(f, twin.light(rng))
             t1 = time.perf_counter()
             image, labels = twin.render(pos, heading, light)

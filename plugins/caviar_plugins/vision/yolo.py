@@ -81,6 +81,10 @@ class YoloOnnx:
     def __init__(self, path, confidence: float = 0.25, iou_threshold: float = 0.45, person_class: int = 0,
                  imgsz: tuple[int, int] | None = None, threads: int = 0):
         path = pathlib.Path(path)
+        if person_class < 0:
+            raise ValueError(f"{path}: person_class = {person_class}: expected a class index (0 or more)")
+        if not 0.0 <= confidence <= 1.0:
+            raise ValueError(f"{path}: confidence = {confidence}: expected a score between 0 and 1")
         try:
             import onnxruntime as ort
         except ImportError:
@@ -142,8 +146,10 @@ class YoloOnnx:
         batch = np.stack([p[0] for p in prepared]).transpose(0, 3, 1, 2).astype(np.float32) / 255.0
         fixed = self.session.get_inputs()[0].shape[0]
         if isinstance(fixed, int) and fixed != len(images):  # a batch size baked into the file
-            outs = [self.session.run(None, {self.input: batch[i:i + fixed]})[0] for i in range(0, len(batch), fixed)]
-            raw = np.concatenate(outs)
+            pad = -len(batch) % fixed  # the last chunk filled with grey frames, their outputs dropped
+            padded = np.concatenate([batch, np.full((pad, *batch.shape[1:]), 114 / 255.0, dtype=np.float32)])
+            outs = [self.session.run(None, {self.input: padded[i:i + fixed]})[0] for i in range(0, len(padded), fixed)]
+            raw = np.concatenate(outs)[:len(images)]
         else:
             raw = self.session.run(None, {self.input: batch})[0]
         result = []
@@ -162,7 +168,8 @@ class YoloOnnx:
     def _decode(self, out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Boxes (x0, y0, x1, y1, input pixels) and scores of one image's output."""
         if out.shape[-1] == 6 and out.shape[0] != 6:  # end-to-end: (K, 6)
-            keep = (out[:, 4] >= self.confidence) & (np.rint(out[:, 5]) == self.person_class)
+            # (rows of score 0 are the padding of a fixed K)
+            keep = (out[:, 4] >= self.confidence) & (out[:, 4] > 0) & (np.rint(out[:, 5]) == self.person_class)
             return out[keep, :4], out[keep, 4]
         if out.shape[0] > out.shape[1]:  # (A, 4 + C): transposed raw (a model has more anchors than classes)
             out = out.T

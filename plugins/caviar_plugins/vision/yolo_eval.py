@@ -41,6 +41,21 @@ def held_out_frames(dataset: pathlib.Path, split: str = "test", limit: int = 0) 
     return images, truths
 
 
+def camera_frames(count: int = 120, seed: int = 1235) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The camera plugin's own flat-colour frames, as the detector meets them in the SAR loop:
+    the pixel forest's held-out frames (:func:`~caviar_plugins.vision.person_detector.frames`,
+    seed 1235 as in ``docs/results/detector.json``) without their packet loss, each person's box
+    from the renderer's labels."""
+    from caviar_plugins.vision.person_detector import frames
+    from caviar_plugins.vision.twin_frames import yolo_boxes
+
+    images, truths = [], []
+    for image, labels, _ in frames(count, seed, loss_rates=(0.0,)):
+        images.append(image)
+        truths.append(np.array([b[1:] for b in yolo_boxes(labels, 1)], dtype=float).reshape(-1, 4))
+    return images, truths
+
+
 def pixel_boxes(detector, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pixel classifier's detections as boxes (its regions' bounding boxes) and scores."""
     from scipy.ndimage import find_objects, label
