@@ -81,7 +81,8 @@ def test_a_selected_pair_is_used_and_dropped_paths_come_last():
         list(link_messages("UAV", "uav1", _link(), 6, 6, _mbps, _snr, False))
 
 
-@pytest.mark.parametrize("plugin, own", [(SionnaLink, ("communications.prediction", "communications.paths.*")),
+@pytest.mark.parametrize("plugin, own", [(SionnaLink, ("communications.prediction", "communications.paths.*",
+                                                       "caviar.status")),
                                          (SionnaTrafficLink, ())])
 def test_both_link_plugins_declare_what_the_report_publishes(plugin, own):
     assert plugin.publishes == (*LINK_TOPICS, STATE, *own)
