@@ -83,6 +83,6 @@ def test_a_selected_pair_is_used_and_dropped_paths_come_last():
 
 @pytest.mark.parametrize("plugin, own", [(SionnaLink, ("communications.prediction", "communications.paths.*",
                                                        "caviar.status")),
-                                         (SionnaTrafficLink, ())])
+                                         (SionnaTrafficLink, ("caviar.status",))])
 def test_both_link_plugins_declare_what_the_report_publishes(plugin, own):
     assert plugin.publishes == (*LINK_TOPICS, STATE, *own)

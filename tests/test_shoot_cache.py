@@ -190,3 +190,45 @@ def test_chains_lost_to_sionnas_hash_table_are_found(monkeypatch):
     assert all(link.paths_dropped == 0 for link in (*got.values(), *lossy.values()))
     assert sum(link.n_paths for link in lossy.values()) < 0.97 * sum(link.n_paths for link in ref.values())
     assert_same_links(got, ref)
+
+
+def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
+    """Cars (pool boxes, as sionna-traffic-link moves them) driving under the SAR flight:
+    declared moving objects, they leave the recorded bounces alone, so every solve after the
+    first two is served from the cache, and each link keeps what Sionna's loop (run every
+    step, the cars a new geometry) finds: the line-of-sight flag, at least its paths, its
+    path gain or more, the best pair; a parked box gets no rays."""
+    from caviar_plugins.radio.scatterers import Body, ScattererPool
+
+    def with_pool(**kw):
+        radio = RadioScene(RadioConfig(**SETTINGS, uav_mesh=False, rays_per_moving_object=512, **kw), seed=5)
+        metal = radio.rt.ITURadioMaterial("car-metal", "metal", thickness=0.01)
+        pool = ScattererPool(radio.scene, {"vehicle": 4}, {"vehicle": metal}, prefix="cars")
+        radio.add_moving_objects(pool.objects(), away=pool.parked)
+        return radio, pool
+
+    cached, cached_pool = with_pool()
+    plain, plain_pool = with_pool(cache_moving_bodies=False)
+    more, same_pair, links = 0, 0, 0
+    for k in range(5):
+        pos = {"a": ROUTE.at(10.0 * k), "b": ROUTE.at(150.0 + 10.0 * k)}
+        cars = [Body(f"car{i}", "vehicle", (*(p[:2] + [6.0 * i - 3.0 + 2.0 * k, 4.0]), 0.0), 0.1, (4.5, 1.8, 1.5))
+                for i, p in enumerate(pos.values())]
+        for radio, pool in ((cached, cached_pool), (plain, plain_pool)):
+            pool.update(cars)
+            radio.place(pos)
+        got, ref = cached.solve(force=True), plain.solve(force=True)
+        for key in pos:
+            x, y = got[key], ref[key]
+            assert x.los == y.los, (k, key)
+            assert x.n_paths >= y.n_paths, (k, key, x.n_paths, y.n_paths)
+            assert 10 * np.log10(x.path_gain / y.path_gain) > -0.05, (k, key)
+            more += x.n_paths > y.n_paths
+            same_pair += x.best_pair == y.best_pair
+            links += 1
+    assert cached.shoot_cache.connects == 4 and cached.shoot_cache.shoots == 1
+    assert plain.shoot_cache.connects == 0
+    assert same_pair >= links - 1, (same_pair, links)
+    parked = [obj for obj in cached_pool.objects() if cached_pool.parked(obj)]
+    assert len(parked) == 2 and all(cached._rays_at(obj) == 0 for obj in parked)
+    assert all(cached._rays_at(obj) == 512 for obj in cached_pool.objects() if not cached_pool.parked(obj))

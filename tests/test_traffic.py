@@ -188,6 +188,41 @@ def test_a_vehicle_stopped_on_the_line_lowers_the_path_gain(tmp_path, grid):
     assert without["path_gain_db"] == pytest.approx(free_space, abs=0.1)
 
 
+def test_a_moving_car_reflects_where_the_image_method_says_on_the_shoot_cache(tmp_path):
+    """Free space, a metal car driving past a line of sight: its side reflects the wave. With
+    the car a moving object of the shoot cache, the solves after the first two are served
+    from it, and the last finds the line of sight and the reflection off the car's side at
+    the delays of the straight line and of the receiver's image in the side's plane (an
+    independent computation), at the power Sionna's loop finds with a million rays."""
+    tx, rx = np.array([0.0, 0.0, 1.0]), np.array([40.0, 0.0, 1.0])
+    plugin = radio_plugin(tmp_path, tx_position=tx.tolist(), max_depth=2, samples_per_src=10_000,
+                          diffraction=False, threads=1)
+    ue = position_payload("ue", rx, "pedestrian-phone")
+    for x in (17.0, 18.5, 20.0):  # the car's footprint centre, 5 m off the line, heading +x
+        car = position_payload("car", (x, 5.0, 0.0), "car")
+        car.update(heading=0.0, speed=10.0, velocity={"x": 10.0, "y": 0.0, "z": 0.0},
+                   dimensions={"length": 4.5, "width": 1.8, "height": 1.5})
+        link = step(plugin, x, [car, ue])["ue"]
+    radio = plugin.radio
+    assert radio.shoot_cache.shoots == 1 and radio.shoot_cache.connects == 2
+    side = 5.0 - 1.8 / 2  # the car's side facing the line, the plane y = 4.1
+    image = rx * [1.0, 1.0, 1.0] + [0.0, 2 * side, 0.0]
+    c = 299_792_458.0
+    expected = sorted([np.linalg.norm(rx - tx) / c, np.linalg.norm(image - tx) / c])
+    valid = np.array(radio.last_paths.valid).ravel()
+    tau = np.sort(np.array(radio.last_paths.tau).ravel()[valid])
+    np.testing.assert_allclose(tau, expected, rtol=0, atol=1e-12)
+    c_ = radio.cfg
+    dense = radio.rt.PathSolver()(radio.scene, max_depth=2, samples_per_src=1_000_000, synthetic_array=True,
+                                  los=True, specular_reflection=True, diffuse_reflection=c_.diffuse_reflection,
+                                  refraction=c_.refraction, diffraction=False, seed=radio.seed)
+    h = dense.cfr(frequencies=np.array([0.0]), normalize_delays=False, out_type="numpy")
+    dense_db = 10 * np.log10(np.mean(np.abs(h) ** 2))
+    assert link["path_gain_db"] == pytest.approx(dense_db, abs=0.01)
+    free_space = 20 * math.log10(LAMBDA / (4 * math.pi * 40.0))
+    assert abs(link["path_gain_db"] - free_space) > 0.1  # the reflection counts
+
+
 def test_doppler_of_the_los_path_is_v_cos_theta_over_lambda(tmp_path):
     tx = np.array([0.0, 0.0, 25.0])
     plugin = radio_plugin(tmp_path, tx_position=tx.tolist(), connected=["car1", "car2"])

@@ -84,6 +84,7 @@ class ScattererPool:
         self.mi = mi
         self.scene = scene
         self.slots: dict[str, list] = {}  # group -> [SceneObject]
+        self._slot_of_object: dict[int, tuple[str, int]] = {}  # id(SceneObject) -> (group, slot)
         self.free: dict[str, list[int]] = {}
         self.used: dict[str, tuple[str, int]] = {}  # key -> (group, slot)
         self.state: dict[tuple[str, int], tuple | None] = {}  # what each slot shows now
@@ -118,6 +119,7 @@ class ScattererPool:
                                           radio_material=self.materials[group])
                 obj.velocity = [0.0, 0.0, 0.0]  # creates the attribute now: no recompile later
                 slots.append(obj)
+                self._slot_of_object[id(obj)] = (group, i)
                 objects.append(obj)
             free[:0] = list(range(start + n - 1, start - 1, -1))  # pop() gives the lowest slot first
         if objects:
@@ -206,6 +208,14 @@ class ScattererPool:
         params[obj.mi_mesh.id() + ".vertex_positions"] = self.mi.Float(verts.ravel().astype(np.float32))
         if tuple(np.asarray(obj.velocity).ravel()) != tuple(np.asarray(vel, dtype=np.float32)):
             obj.velocity = [float(v) for v in vel]
+
+    def objects(self) -> list:
+        """Every box of the pool (scene objects), parked or not."""
+        return [obj for objs in self.slots.values() for obj in objs]
+
+    def parked(self, obj) -> bool:
+        """Whether the box ``obj`` of this pool is parked (shows no body now)."""
+        return self.state.get(self._slot_of_object[id(obj)]) is None
 
     def slot_of(self, key: str):
         """The scene object showing ``key``, or None."""

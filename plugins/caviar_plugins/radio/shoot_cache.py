@@ -73,20 +73,25 @@ class ShootCache:
 
     ``fingerprint()`` returns a hashable description of everything but the targets that
     the bounces depend on; :meth:`RadioScene` supplies one. ``movers()`` (optional) returns
-    the scene objects that move from solve to solve (UAV bodies) and that the fingerprint
-    leaves out: the bounces are recorded with them moved out of the way, and each solve's
-    visibility tests (and the image method after it) run in the scene with them where they
-    are, so the paths they block are dropped; paths that reflect or diffract on them are
-    not found (see the module docstring).
+    the scene objects that move from solve to solve (UAV bodies, vehicles) and that the
+    fingerprint leaves out: the bounces are recorded with them moved out of the way, and each
+    solve's visibility tests (and the image method after it) run in the scene with them where
+    they are, so the paths they block are dropped; the paths by way of them come from rays
+    aimed at each (``rays_for(obj)`` of them, :data:`RAYS_PER_MOVING_OBJECT` without it; None:
+    as many as fall on it of the solve's rays spread over all directions, :func:`as_dense_as`;
+    0: none, for an object parked out of the scene) and from the recorded rays that now meet
+    one (see :func:`_by_way_of_movers`).
     """
 
     def __init__(self, generator: Any, fingerprint: Callable[[], Hashable],
-                 movers: Callable[[], Sequence[Any]] | None = None, scene: Any = None):
+                 movers: Callable[[], Sequence[Any]] | None = None, scene: Any = None,
+                 rays_for: Callable[[Any], int | None] | None = None):
         self.generator = generator
         self.fingerprint = fingerprint
         self.movers = movers
         self.scene = scene
         self.rays_per_moving_object = RAYS_PER_MOVING_OBJECT
+        self.rays_for = rays_for
         self._seen: Hashable | None = None
         self._key: Hashable | None = None
         self._shots: _Shots | None = None
@@ -143,10 +148,16 @@ class ShootCache:
             boxes = np.array([[np.array(o.mi_mesh.bbox().min), np.array(o.mi_mesh.bbox().max)] for o in moving],
                              dtype=float).reshape(-1, 2, 3)
             source = np.array(dr.ravel(src_positions).numpy(), dtype=float)[:3]
-            aimed = np.concatenate([aim_at(source, box.mean(axis=0), np.linalg.norm(box[1] - box[0]) / 2,
-                                           self.rays_per_moving_object) for box in boxes])
-            more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed, boxes,
-                                     aimed)
+            counts = [self.rays_for(o) if self.rays_for is not None else self.rays_per_moving_object
+                      for o in moving]
+            spheres = [(box.mean(axis=0), np.linalg.norm(box[1] - box[0]) / 2) for box in boxes]
+            counts = [as_dense_as(samples_per_src, source, *sphere) if n is None else n
+                      for n, sphere in zip(counts, spheres, strict=True)]
+            aimed = np.concatenate([np.zeros((0, 3))] + [
+                aim_at(source, centre, radius, n) for (centre, radius), n in zip(spheres, counts, strict=True)
+                if n > 0])
+            more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed,
+                                     _shape_table(self.scene, moving), aimed)
             _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
         self.paths_counter_per_source = counter
         self.connects += 1
@@ -158,8 +169,34 @@ RAYS_PER_MOVING_OBJECT = 4096
 2 m UAV body, against about 1.3 m for 3e5 rays over the whole sphere at 200 m)."""
 PAD_RAYS = 1024
 """The rays by way of moving objects come in multiples of this (see :func:`_by_way_of_movers`)."""
-MARGIN_M = 0.01
-"""A hit within this distance of a moving object's bounding box counts as a hit on it."""
+
+
+def _shape_table(scene, objects) -> Any:
+    """A Dr.Jit Bool array indexed by Mitsuba shape id (a hit's ``si.shape`` as UInt32):
+    true for the shapes of ``objects``, false for every other shape and for "no shape" (0).
+    One gather per hit then tells whether it is on a moving object, whatever their number."""
+    dr, mi = _jit()
+    ids = [int(o.object_id) for o in objects]
+    size = max([int(o.object_id) for o in scene.objects.values()] + ids) + 2  # the last entry: any other id
+    table = np.zeros(size, dtype=bool)
+    table[ids] = True
+    return _array(mi.Bool, table)
+
+
+def _on_shapes(table, si) -> Any:
+    """Whether each hit of ``si`` lies on a shape that ``table`` (:func:`_shape_table`) marks."""
+    dr, mi = _jit()
+    ids = dr.minimum(dr.reinterpret_array(mi.UInt32, si.shape), dr.width(table) - 1)
+    return si.is_valid() & dr.gather(mi.Bool, table, ids, si.is_valid())
+
+
+def as_dense_as(samples_per_src: int, source: np.ndarray, center: np.ndarray, radius: float) -> int:
+    """How many of ``samples_per_src`` rays spread evenly over the sphere of directions fall
+    in the cone from ``source`` that holds the sphere of ``radius`` about ``center``
+    (rounded up): rays aimed at it this many are as dense as Sionna's."""
+    dist = float(np.linalg.norm(np.asarray(center, dtype=float) - np.asarray(source, dtype=float)))
+    cos_half = np.sqrt(1 - (radius / dist) ** 2) if dist > radius else -1.0
+    return int(np.ceil(samples_per_src * (1 - cos_half) / 2))
 
 
 def aim_at(source: np.ndarray, center: np.ndarray, radius: float, count: int) -> np.ndarray:
@@ -233,11 +270,13 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
     return shots
 
 
-def _bounce(gen, mi_scene, shots: _Shots, state: dict, first_depth: int, max_depth: int, flags, touch_boxes,
+def _bounce(gen, mi_scene, shots: _Shots, state: dict, first_depth: int, max_depth: int, flags, touch_shapes,
             keep_state: bool, start=None) -> None:
     """The bounce loop from ``first_depth`` on (Sionna's inner loop without the targets),
     appending one record per depth to ``shots.depths``. ``start`` (optional, per ray): the
-    depth at which each ray sets off; until then it waits, its state untouched."""
+    depth at which each ray sets off; until then it waits, its state untouched.
+    ``touch_shapes`` (optional, :func:`_shape_table`): record a ray only from its first hit
+    on one of those shapes on (``state["touched"]``)."""
     dr, mi = _jit()
     from caviar_plugins.radio import sionna_internals as internals
 
@@ -289,47 +328,145 @@ def _bounce(gen, mi_scene, shots: _Shots, state: dict, first_depth: int, max_dep
             inter_hash = dr.select(int_type == InteractionType.SPECULAR, plane_hash, int_type)
             inter_hash = dr.select(int_type == InteractionType.DIFFRACTION, edge_hash, inter_hash)
             hashes[i] = dr.select(waiting, hashes[i], hash_fnv1a(inter_hash, h=hashes[i]))
-        if touch_boxes is not None:
-            for lo, hi in touch_boxes:  # opaque: the boxes move every solve, the kernels stay
-                low, high = (dr.opaque(mi.Point3f, [float(x) for x in c]) for c in (lo, hi))
-                touched |= active & dr.all((si.p >= low) & (si.p <= high))
-        alive = dr.compress(active & touched)
-        record = {"lane": alive, "p": dr.gather(mi.Point3f, si.p, alive), "n": dr.gather(mi.Normal3f, normal, alive),
-                  "diffuse": dr.gather(mi.Bool, diffuse, alive),
-                  "specular_chain": dr.gather(mi.Bool, specular_chain, alive),
-                  "hashes": [dr.gather(mi.UInt64, h, alive) for h in hashes]}
+        if touch_shapes is not None:
+            touched |= active & _on_shapes(touch_shapes, si)
+        recorded = active & touched
+        hit_p, chain_here = si.p, specular_chain
         ray = dr.select(waiting, ray, si.spawn_ray(d=k_world))
-        specular_chain |= diffuse
+        specular_chain = specular_chain | diffuse
         active = dr.select(waiting, before, active)
+        sampler.schedule_state()
+        # Everything of this depth in one kernel: a gather from an array not yet evaluated
+        # would trace and run the intersection and the material sampling again for it.
+        depth_state = [recorded, hit_p, normal, diffuse, chain_here, hashes, shots.samples, ray, specular_chain,
+                       active, loc_en_inter, shots.wedges, shots.diffraction_depth, touched]
+        dr.eval(*[x for x in depth_state if x is not None])
+        alive = dr.compress(recorded)
+        record = {"lane": alive, "p": dr.gather(mi.Point3f, hit_p, alive), "n": dr.gather(mi.Normal3f, normal, alive),
+                  "diffuse": dr.gather(mi.Bool, diffuse, alive),
+                  "specular_chain": dr.gather(mi.Bool, chain_here, alive),
+                  "hashes": [dr.gather(mi.UInt64, h, alive) for h in hashes]}
         if keep_state:  # where each live ray goes next, and its state: for rays that now meet a moving object
             record.update({"o": dr.gather(mi.Point3f, ray.o, alive), "d": dr.gather(mi.Vector3f, ray.d, alive),
                            "chain_next": dr.gather(mi.Bool, specular_chain, alive),
                            "loc": dr.gather(mi.UInt, loc_en_inter, alive)})
-        sampler.schedule_state()
-        keep = [record, shots.samples, ray, specular_chain, hashes, active, loc_en_inter, shots.wedges,
-                shots.diffraction_depth, touched]
-        dr.eval(*[x for x in keep if x is not None])
+        dr.eval(record)
         _group_chains(record)
         shots.depths.append(record)
         if dr.width(dr.compress(active)) == 0:
             break
 
 
-def _slab_hits(o, d, boxes):
-    """Whether each ray (origin ``o``, direction ``d``) meets one of ``boxes`` ahead of it."""
+def _bounce_in_one_loop(gen, mi_scene, shots: _Shots, state: dict, max_depth: int, flags, touch_shapes,
+                        start) -> None:
+    """:func:`_bounce` (without ``keep_state``) as one Dr.Jit symbolic loop: its body is
+    traced once per solve instead of once per depth (the tracing of Sionna's material and
+    wedge sampling, not the rays, is what a few thousand rays cost), and each depth's
+    record is written to flat buffers (depth-major) that are compressed afterwards. The same
+    operations in the same order as :func:`_bounce`: the same rays, hits and records."""
     dr, mi = _jit()
-    hit = dr.full(mi.Bool, False, dr.width(o))
-    inv = mi.Vector3f(1.0) / d
-    for lo, hi in boxes:
-        low, high = (dr.opaque(mi.Point3f, [float(x) for x in c]) for c in (lo, hi))
-        t0, t1 = (low - o) * inv, (high - o) * inv
-        near = dr.max(dr.minimum(t0, t1))
-        far = dr.min(dr.maximum(t0, t1))
-        hit |= far >= dr.maximum(near, 0.0)
-    return hit
+    from caviar_plugins.radio import sionna_internals as internals
+
+    InteractionType, _, _, hash_fnv1a, _ = internals.ray_utilities()
+    sample_fields = internals.sample_data_fields()
+    plane_hashers, edge_hashers = internals.hashers(gen)
+    sampler = internals.sampler(gen)
+    _, _, _, diffraction_on, edge_diffraction_on = flags
+    n = shots.width
+    width = dr.opaque(mi.UInt, n)
+    lane = dr.arange(mi.UInt, n)
+    size = n * max_depth
+    out = {"recorded": dr.zeros(mi.Bool, size), "p": dr.zeros(mi.Point3f, size), "n": dr.zeros(mi.Normal3f, size),
+           "diffuse": dr.zeros(mi.Bool, size), "specular_chain": dr.zeros(mi.Bool, size),
+           "hashes": [dr.zeros(mi.UInt64, size) for _ in state["hashes"]]}
+    with_wedges = shots.wedges is not None
+    wedges_state = shots.wedges if with_wedges else mi.UInt(0)
+    diffraction_depth = shots.diffraction_depth if with_wedges else mi.UInt(0)
+
+    def cond(depth, *_):
+        return depth <= max_depth
+
+    def body(depth, ray, specular_chain, hashes, active, loc_en_inter, touched, wedges_kept, ddepth, sampler_):
+        waiting = start > depth
+        before = active
+        active = active & ~waiting
+        si = mi_scene.ray_intersect(ray, coherent=True, ray_flags=mi.RayFlags.Minimal, active=active)
+        active &= si.is_valid()
+        sample1 = sampler_.next_1d()
+        sample2 = sampler_.next_2d()
+        sample2_diffraction = sampler_.next_2d()
+        s, normal, wedges = internals.sample_radio_material(gen, si, ray.o, ray.d, sample1, sample2,
+                                                            sample2_diffraction, loc_en_inter, diffraction_on,
+                                                            edge_diffraction_on, active)
+        k_world = s.wo
+        int_type = dr.select(active, s.sampled_component, InteractionType.NONE)
+        active &= int_type != InteractionType.NONE
+        specular = int_type == InteractionType.SPECULAR
+        transmission = int_type == InteractionType.REFRACTION
+        diffuse = int_type == InteractionType.DIFFUSE
+        diffraction = int_type == InteractionType.DIFFRACTION
+        loc_en_inter = dr.select(diffraction, loc_en_inter & ~mi.UInt(InteractionType.DIFFUSE
+                                                                      + InteractionType.DIFFRACTION), loc_en_inter)
+        loc_en_inter = dr.select(diffuse, loc_en_inter & ~mi.UInt(InteractionType.DIFFRACTION), loc_en_inter)
+        specular_chain = dr.select(waiting, specular_chain, specular_chain & active & (specular | transmission |
+                                                                                     diffraction))
+        at = (depth - 1) * width + lane
+        fields = sample_fields(
+            dr.select(active, int_type, 0), dr.select(active, dr.reinterpret_array(mi.UInt, si.shape), 0),
+            dr.select(active, si.prim_index, 0), dr.select(active, si.p, mi.Point3f(0.0)),
+            dr.select(active, s.pdf, 0.0))
+        dr.scatter(shots.samples, fields, at, ~waiting)
+        if with_wedges:
+            wedges_kept = dr.select(diffraction, wedges, wedges_kept)
+            ddepth = dr.select(diffraction, depth, ddepth)
+        hashes = list(hashes)
+        for i in range(len(hashes)):
+            plane_hash = plane_hashers[i](si.n, si.p)
+            edge_hash = edge_hashers[i](wedges.o, wedges.o + wedges.e_hat * wedges.length)
+            inter_hash = dr.select(int_type == InteractionType.SPECULAR, plane_hash, int_type)
+            inter_hash = dr.select(int_type == InteractionType.DIFFRACTION, edge_hash, inter_hash)
+            hashes[i] = dr.select(waiting, hashes[i], hash_fnv1a(inter_hash, h=hashes[i]))
+        if touch_shapes is not None:
+            touched |= active & _on_shapes(touch_shapes, si)
+        recorded = active & touched
+        dr.scatter(out["recorded"], recorded, at)
+        for key, value in (("p", si.p), ("n", normal), ("diffuse", diffuse), ("specular_chain", specular_chain)):
+            dr.scatter(out[key], value, at, recorded)
+        for i, h in enumerate(hashes):
+            dr.scatter(out["hashes"][i], h, at, recorded)
+        ray = dr.select(waiting, ray, si.spawn_ray(d=k_world))
+        specular_chain = specular_chain | diffuse
+        active = dr.select(waiting, before, active)
+        return (depth + 1, ray, specular_chain, hashes, active, loc_en_inter, touched, wedges_kept, ddepth,
+                sampler_)
+
+    loop_state = (dr.full(mi.UInt, 1, n), state["ray"], state["specular_chain"], list(state["hashes"]),
+                  state["active"], state["loc_en_inter"], state["touched"], wedges_state, diffraction_depth, sampler)
+    with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
+        result = dr.while_loop(loop_state, cond, body, label="caviar_moving_objects")
+    if with_wedges:
+        shots.wedges, shots.diffraction_depth = result[7], result[8]
+    dr.eval(out, shots.samples, shots.wedges, shots.diffraction_depth)
+    recorded = np.asarray(out["recorded"], dtype=bool).reshape(max_depth, n)
+    for depth in range(1, max_depth + 1):
+        rays = np.flatnonzero(recorded[depth - 1])
+        if not recorded[depth - 1:].any():
+            break
+        if len(rays) == 0:  # (nothing recorded at this depth, more later: an empty record keeps the depths' order)
+            shots.depths.append({"lane": mi.UInt()})
+            continue
+        alive = _array(mi.UInt, rays.astype(np.uint32))
+        at = dr.opaque(mi.UInt, (depth - 1) * n) + alive
+        record = {"lane": alive, "p": dr.gather(mi.Point3f, out["p"], at), "n": dr.gather(mi.Normal3f, out["n"], at),
+                  "diffuse": dr.gather(mi.Bool, out["diffuse"], at),
+                  "specular_chain": dr.gather(mi.Bool, out["specular_chain"], at),
+                  "hashes": [dr.gather(mi.UInt64, h, at) for h in out["hashes"]]}
+        dr.eval(record)
+        _group_chains(record)
+        shots.depths.append(record)
 
 
-def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: int, flags, seed: int, boxes,
+def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: int, flags, seed: int, movers,
                       aimed: np.ndarray) -> _Shots:
     """The rays that meet a moving object, bounced in the scene as it is now and connected
     from their first hit on one (one bounce loop for all, each ray setting off at its own
@@ -346,31 +483,20 @@ def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: in
     InteractionType, WedgeGeometry, _, _, _ = internals.ray_utilities()
     sample_fields = internals.sample_data_fields()
     specular_on, _, refraction_on, diffraction_on, _ = flags
-    # Recorded rays whose next segment meets a box before the static scene.
+    # Recorded rays whose next segment now meets a moving object first (one ray cast each).
     picked = []  # (depth, indices into the record)
     for d, rec in enumerate(shots.depths[: max_depth - 1], start=1):
         if dr.width(rec["lane"]) == 0 or "o" not in rec:
             continue
-        near = np.flatnonzero(np.asarray(_slab_hits(rec["o"], rec["d"], boxes), dtype=bool))
-        if len(near) == 0:
-            continue
-        idx = _array(mi.UInt, near.astype(np.uint32))
-        si = mi_scene.ray_intersect(mi.Ray3f(dr.gather(mi.Point3f, rec["o"], idx),
-                                             dr.gather(mi.Vector3f, rec["d"], idx)),
-                                    coherent=False, ray_flags=mi.RayFlags.Minimal)
-        on = dr.full(mi.Bool, False, len(near))
-        for lo, hi in boxes:
-            low, high = (dr.opaque(mi.Point3f, [float(x) - MARGIN_M for x in lo]),
-                         dr.opaque(mi.Point3f, [float(x) + MARGIN_M for x in hi]))
-            on |= si.is_valid() & dr.all((si.p >= low) & (si.p <= high))
-        pick = near[np.asarray(on, dtype=bool)]
+        si = mi_scene.ray_intersect(mi.Ray3f(rec["o"], rec["d"]), coherent=False, ray_flags=mi.RayFlags.Minimal)
+        pick = np.flatnonzero(np.asarray(_on_shapes(movers, si), dtype=bool))
         if len(pick):
             picked.append((d, pick))
     a = len(aimed)
     used = a + sum(len(pick) for _, pick in picked)
     # Padded to a multiple of PAD_RAYS with rays that never set off: Dr.Jit compiles the loop
     # anew for a new width, and the number of rays met varies from solve to solve.
-    k = -(-used // PAD_RAYS) * PAD_RAYS
+    k = max(1, -(-used // PAD_RAYS)) * PAD_RAYS
     out = _Shots()
     out.width = k
     out.samples = dr.zeros(sample_fields, k * max_depth)
@@ -433,8 +559,8 @@ def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: in
              "active": dr.full(mi.Mask, True, k), "loc_en_inter": _array(mi.UInt, np.concatenate(loc)),
              "touched": dr.full(mi.Bool, False, k)}
     internals.sampler(gen).seed(seed, k)
-    _bounce(gen, mi_scene, out, state, 1, max_depth, flags, boxes + [[-MARGIN_M], [MARGIN_M]], keep_state=False,
-            start=_array(mi.UInt, np.concatenate(start)))
+    _bounce_in_one_loop(gen, mi_scene, out, state, max_depth, flags, movers,
+                        start=_array(mi.UInt, np.concatenate(start)))
     return out
 
 

@@ -198,10 +198,9 @@ class SionnaLink(caviar.Plugin):
             if self.p.publish_paths and link.paths is not None:
                 yield per_ue(PATHS, ue), dataclasses.replace(link.paths, settings=self.path_settings).to_bytes()
         yield STATE, "Ready"
-        cache = self.radio.shoot_cache
-        if cache is not None and self.radio.solves:
-            yield caviar.STATUS_TOPIC, (f"shoot cache {100 * cache.connects / self.radio.solves:.0f} % of "
-                                        f"{self.radio.solves} solves")
+        status = self.radio.cache_status()
+        if status is not None:
+            yield caviar.STATUS_TOPIC, status
 
     def _read(self, t: float, inbox) -> None:
         for m in inbox:
