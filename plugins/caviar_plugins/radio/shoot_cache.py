@@ -148,11 +148,10 @@ class ShootCache:
             boxes = np.array([[np.array(o.mi_mesh.bbox().min), np.array(o.mi_mesh.bbox().max)] for o in moving],
                              dtype=float).reshape(-1, 2, 3)
             source = np.array(dr.ravel(src_positions).numpy(), dtype=float)[:3]
-            counts = [self.rays_for(o) if self.rays_for is not None else self.rays_per_moving_object
-                      for o in moving]
+            asked = [self.rays_for(o) if self.rays_for is not None else self.rays_per_moving_object for o in moving]
             spheres = [(box.mean(axis=0), np.linalg.norm(box[1] - box[0]) / 2) for box in boxes]
             counts = [as_dense_as(samples_per_src, source, *sphere) if n is None else n
-                      for n, sphere in zip(counts, spheres, strict=True)]
+                      for n, sphere in zip(asked, spheres, strict=True)]
             aimed = np.concatenate([np.zeros((0, 3))] + [
                 aim_at(source, centre, radius, n) for (centre, radius), n in zip(spheres, counts, strict=True)
                 if n > 0])
