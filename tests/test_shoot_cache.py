@@ -232,3 +232,8 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
     parked = [obj for obj in cached_pool.objects() if cached_pool.parked(obj)]
     assert len(parked) == 2 and all(cached._rays_at(obj) == 0 for obj in parked)
     assert all(cached._rays_at(obj) == 512 for obj in cached_pool.objects() if not cached_pool.parked(obj))
+
+
+def test_a_negative_ray_count_for_moving_objects_is_refused_by_name():
+    with pytest.raises(ValueError, match=r"rays_per_moving_object: expected >= 0 .*got -1"):
+        RadioConfig(rays_per_moving_object=-1)

@@ -106,10 +106,11 @@ class RadioConfig:
     materials, frequency, transmitters), trace only the receivers' visibility tests in
     later solves (:mod:`~caviar_plugins.radio.shoot_cache`): the paths of Sionna's loop
     (without the specular chains its hash table drops), 0.08x its time for 1 receiver,
-    0.36x for 10 (1e6 samples, 2 cores). UAV bodies move on top of it
-    (``cache_moving_bodies``); other moving scatterers (vehicles) change the geometry: such
-    solves run Sionna's loop unchanged, as does the first solve of a geometry and any solve
-    with more than one source. ``false``: always Sionna's loop."""
+    0.36x for 10 (1e6 samples, 2 cores). UAV bodies and the objects of
+    :meth:`RadioScene.add_moving_objects` (vehicles) move on top of it
+    (``cache_moving_bodies``); other changes of the geometry, the first solve of a geometry
+    and any solve with more than one source run Sionna's loop unchanged. ``false``: always
+    Sionna's loop."""
     cache_moving_bodies: bool = True
     """With ``shoot_cache`` and ``uav_mesh``: the UAV bodies are moving objects on top of
     the cached bounces of the static scene, so solves are served from the cache while they
