@@ -312,8 +312,9 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
 
     * ``old``: ``shoot_cache = false``, Sionna's loop every step (today's link until #24);
     * ``new``: the default, the shoot cache with the pools' boxes as moving objects;
-    * ``floor``: the shoot cache without any boxes (``scatterers = false``): what serving six
-      receivers from recorded bounces costs with nothing moving, the least ``new`` can cost.
+    * ``floor``: the shoot cache without the traffic boxes (``scatterers = false``; the UAV's
+      body still moves): what serving six receivers from recorded bounces costs, about the
+      least ``new`` can cost.
 
     A step's time is the sum of its modules' wall times (SUMO, the UAV, the link, the
     monitor), median over the steps after the first ``skip`` of all runs of a variant (SUMO's
@@ -586,7 +587,8 @@ def main() -> None:
                        "receivers, 1e5 samples) with shoot_cache = false (Sionna's loop every step, today's link) "
                        "and with the default (the pools' boxes as moving objects of the shoot cache), runs in "
                        "turn; a step = the sum of its modules' wall times, median after the first ten (the "
-                       "vehicles depart over the first 10 s). floor: the shoot cache with no boxes at all. "
+                       "vehicles depart over the first 10 s). floor: the shoot cache without the traffic boxes (the "
+                       "UAV's body still moving). "
                        "accuracy: the new run's positions replayed into the link, each connected receiver "
                        "against Sionna's loop with an 8x table on the same geometry.",
         },

@@ -237,3 +237,27 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
 def test_a_negative_ray_count_for_moving_objects_is_refused_by_name():
     with pytest.raises(ValueError, match=r"rays_per_moving_object: expected >= 0 .*got -1"):
         RadioConfig(rays_per_moving_object=-1)
+
+
+def test_rays_as_dense_as_sionnas_are_as_many_as_its_own_rays_that_meet_the_sphere():
+    """``as_dense_as`` against a count of Sionna's own rays (its Fibonacci directions from
+    the source) that fall in the cone holding each sphere; a source inside a sphere is capped."""
+    import mitsuba as mi
+    import sionna.rt  # noqa: F401  (sets Mitsuba's variant)
+
+    from caviar_plugins.radio import sionna_internals as internals
+    from caviar_plugins.radio.shoot_cache import MAX_DENSE_RAYS, as_dense_as
+
+    _, _, fibonacci_lattice, _, spawn_ray_from_sources = internals.ray_utilities()
+    n, source = 100_000, np.array([0.0, 0.0, 30.0])
+    ray = spawn_ray_from_sources(fibonacci_lattice, n, mi.Point3f(*(float(x) for x in source)))
+    d = np.array(ray.d).T  # (n, 3) unit directions
+    assert d.shape == (n, 3)
+    for centre, radius in (((50.0, 0.0, 1.0), 2.5), ((0.0, 120.0, 1.5), 2.5), ((30.0, -30.0, 30.0), 1.7)):
+        axis = np.array(centre) - source
+        dist = np.linalg.norm(axis)
+        inside = d @ (axis / dist) >= np.sqrt(1 - (radius / dist) ** 2)
+        count = int(inside.sum())
+        assert count > 5
+        assert abs(as_dense_as(n, source, np.array(centre), radius) - count) <= 0.05 * count + 3, (centre, count)
+    assert as_dense_as(n, source, source + [0.5, 0.0, 0.0], 2.0) == min(n, MAX_DENSE_RAYS)

@@ -157,7 +157,8 @@ class ShootCache:
                 if n > 0])
             more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed,
                                      _shape_table(self.scene, moving), aimed)
-            _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
+            if more is not None:
+                _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
         self.paths_counter_per_source = counter
         self.connects += 1
         return paths
@@ -189,13 +190,19 @@ def _on_shapes(table, si) -> Any:
     return si.is_valid() & dr.gather(mi.Bool, table, ids, si.is_valid())
 
 
+MAX_DENSE_RAYS = 16 * RAYS_PER_MOVING_OBJECT
+"""At most this many rays for one object by :func:`as_dense_as` (a transmitter inside or
+next to an object's bounding sphere would otherwise send it a whole solve's rays)."""
+
+
 def as_dense_as(samples_per_src: int, source: np.ndarray, center: np.ndarray, radius: float) -> int:
     """How many of ``samples_per_src`` rays spread evenly over the sphere of directions fall
     in the cone from ``source`` that holds the sphere of ``radius`` about ``center``
-    (rounded up): rays aimed at it this many are as dense as Sionna's."""
+    (rounded up, at most :data:`MAX_DENSE_RAYS`): rays aimed at it this many are as dense
+    as Sionna's."""
     dist = float(np.linalg.norm(np.asarray(center, dtype=float) - np.asarray(source, dtype=float)))
     cos_half = np.sqrt(1 - (radius / dist) ** 2) if dist > radius else -1.0
-    return int(np.ceil(samples_per_src * (1 - cos_half) / 2))
+    return min(int(np.ceil(samples_per_src * (1 - cos_half) / 2)), MAX_DENSE_RAYS)
 
 
 def aim_at(source: np.ndarray, center: np.ndarray, radius: float, count: int) -> np.ndarray:
@@ -263,19 +270,15 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
     shots.diffraction_depth = dr.zeros(mi.UInt, n)
     state = {"ray": ray, "specular_chain": dr.full(mi.Bool, True, n),
              "hashes": [dr.zeros(mi.UInt64, n) for _ in internals.hashers(gen)[0]],
-             "active": dr.full(mi.Mask, True, n), "loc_en_inter": dr.full(mi.UInt, enabled, n),
-             "touched": dr.full(mi.Bool, True, n)}
-    _bounce(gen, mi_scene, shots, state, 1, max_depth, flags, None, keep_state=keep_state)
+             "active": dr.full(mi.Mask, True, n), "loc_en_inter": dr.full(mi.UInt, enabled, n)}
+    _bounce(gen, mi_scene, shots, state, max_depth, flags, keep_state=keep_state)
     return shots
 
 
-def _bounce(gen, mi_scene, shots: _Shots, state: dict, first_depth: int, max_depth: int, flags, touch_shapes,
-            keep_state: bool, start=None) -> None:
-    """The bounce loop from ``first_depth`` on (Sionna's inner loop without the targets),
-    appending one record per depth to ``shots.depths``. ``start`` (optional, per ray): the
-    depth at which each ray sets off; until then it waits, its state untouched.
-    ``touch_shapes`` (optional, :func:`_shape_table`): record a ray only from its first hit
-    on one of those shapes on (``state["touched"]``)."""
+def _bounce(gen, mi_scene, shots: _Shots, state: dict, max_depth: int, flags, keep_state: bool) -> None:
+    """The recorded bounces of the static scene (:func:`_shoot`): Sionna's inner loop without
+    the targets, one wavefront per depth, appending one record per depth to ``shots.depths``
+    (the rays still alive there)."""
     dr, mi = _jit()
     from caviar_plugins.radio import sionna_internals as internals
 
@@ -286,12 +289,9 @@ def _bounce(gen, mi_scene, shots: _Shots, state: dict, first_depth: int, max_dep
     _, _, _, diffraction_on, edge_diffraction_on = flags
     n = shots.width
     ray, specular_chain, hashes = state["ray"], state["specular_chain"], state["hashes"]
-    active, loc_en_inter, touched = state["active"], state["loc_en_inter"], state["touched"]
+    active, loc_en_inter = state["active"], state["loc_en_inter"]
     lane = dr.arange(mi.UInt, n)
-    for depth in range(first_depth, max_depth + 1):
-        waiting = start > depth if start is not None else dr.full(mi.Bool, False, n)
-        before = active
-        active = active & ~waiting
+    for depth in range(1, max_depth + 1):
         si = mi_scene.ray_intersect(ray, coherent=True, ray_flags=mi.RayFlags.Minimal, active=active)
         active &= si.is_valid()
         sample1 = sampler.next_1d()
@@ -309,15 +309,13 @@ def _bounce(gen, mi_scene, shots: _Shots, state: dict, first_depth: int, max_dep
         diffraction = int_type == InteractionType.DIFFRACTION
         loc_en_inter[diffraction] &= ~mi.UInt(InteractionType.DIFFUSE + InteractionType.DIFFRACTION)
         loc_en_inter[diffuse] &= ~mi.UInt(InteractionType.DIFFRACTION)
-        specular_chain = dr.select(waiting, specular_chain, specular_chain & active & (specular | transmission |
-                                                                                     diffraction))
+        specular_chain = specular_chain & active & (specular | transmission | diffraction)
         # Sample data of this depth (SampleData.insert writes only live rays).
         fields = sample_fields(
             dr.select(active, int_type, 0), dr.select(active, dr.reinterpret_array(mi.UInt, si.shape), 0),
             dr.select(active, si.prim_index, 0), dr.select(active, si.p, mi.Point3f(0.0)),
             dr.select(active, s.pdf, 0.0))
-        # (opaque offsets: continued rays come in varying numbers, the kernels stay the same)
-        dr.scatter(shots.samples, fields, dr.opaque(mi.UInt, (depth - 1) * n) + lane, active=~waiting)
+        dr.scatter(shots.samples, fields, dr.opaque(mi.UInt, (depth - 1) * n) + lane)
         if diffraction_on:
             shots.wedges = dr.select(diffraction, wedges, shots.wedges)
             shots.diffraction_depth = dr.select(diffraction, depth, shots.diffraction_depth)
@@ -326,19 +324,16 @@ def _bounce(gen, mi_scene, shots: _Shots, state: dict, first_depth: int, max_dep
             edge_hash = edge_hashers[i](wedges.o, wedges.o + wedges.e_hat * wedges.length)
             inter_hash = dr.select(int_type == InteractionType.SPECULAR, plane_hash, int_type)
             inter_hash = dr.select(int_type == InteractionType.DIFFRACTION, edge_hash, inter_hash)
-            hashes[i] = dr.select(waiting, hashes[i], hash_fnv1a(inter_hash, h=hashes[i]))
-        if touch_shapes is not None:
-            touched |= active & _on_shapes(touch_shapes, si)
-        recorded = active & touched
+            hashes[i] = hash_fnv1a(inter_hash, h=hashes[i])
+        recorded = dr.copy(active)
         hit_p, chain_here = si.p, specular_chain
-        ray = dr.select(waiting, ray, si.spawn_ray(d=k_world))
+        ray = si.spawn_ray(d=k_world)
         specular_chain = specular_chain | diffuse
-        active = dr.select(waiting, before, active)
         sampler.schedule_state()
         # Everything of this depth in one kernel: a gather from an array not yet evaluated
         # would trace and run the intersection and the material sampling again for it.
         depth_state = [recorded, hit_p, normal, diffuse, chain_here, hashes, shots.samples, ray, specular_chain,
-                       active, loc_en_inter, shots.wedges, shots.diffraction_depth, touched]
+                       active, loc_en_inter, shots.wedges, shots.diffraction_depth]
         dr.eval(*[x for x in depth_state if x is not None])
         alive = dr.compress(recorded)
         record = {"lane": alive, "p": dr.gather(mi.Point3f, hit_p, alive), "n": dr.gather(mi.Normal3f, normal, alive),
@@ -352,7 +347,7 @@ def _bounce(gen, mi_scene, shots: _Shots, state: dict, first_depth: int, max_dep
         dr.eval(record)
         _group_chains(record)
         shots.depths.append(record)
-        if dr.width(dr.compress(active)) == 0:
+        if dr.width(alive) == 0:
             break
 
 
@@ -466,7 +461,7 @@ def _bounce_in_one_loop(gen, mi_scene, shots: _Shots, state: dict, max_depth: in
 
 
 def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: int, flags, seed: int, movers,
-                      aimed: np.ndarray) -> _Shots:
+                      aimed: np.ndarray) -> _Shots | None:
     """The rays that meet a moving object, bounced in the scene as it is now and connected
     from their first hit on one (one bounce loop for all, each ray setting off at its own
     depth):
@@ -493,9 +488,11 @@ def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: in
             picked.append((d, pick))
     a = len(aimed)
     used = a + sum(len(pick) for _, pick in picked)
+    if used == 0:  # every moving object parked, none met: no paths by way of them
+        return None
     # Padded to a multiple of PAD_RAYS with rays that never set off: Dr.Jit compiles the loop
     # anew for a new width, and the number of rays met varies from solve to solve.
-    k = max(1, -(-used // PAD_RAYS)) * PAD_RAYS
+    k = -(-used // PAD_RAYS) * PAD_RAYS
     out = _Shots()
     out.width = k
     out.samples = dr.zeros(sample_fields, k * max_depth)

@@ -101,6 +101,8 @@ class SionnaTrafficLink(caviar.Plugin):
         radio_cfg.uav_mesh = False  # UAV bodies are boxes of the pool
         # The pools' boxes are the shoot cache's moving objects (cache_moving_bodies): the
         # bounces of the static scene are recorded once and the boxes handled on top of them.
+        # Without cache_moving_bodies every step would be a new geometry: no cache then.
+        radio_cfg.shoot_cache = radio_cfg.shoot_cache and (radio_cfg.cache_moving_bodies or not p.scatterers)
         self.radio = RadioScene(radio_cfg, seed=ctx.seed, base_dir=ctx.config_dir)
         self.budget = LinkBudget(bandwidth_hz=p.bandwidth_hz, tx_power_w=p.tx_power_w,
                                  interference_dbw=p.interference_dbw)
