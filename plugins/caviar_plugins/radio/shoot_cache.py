@@ -275,6 +275,54 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
     return shots
 
 
+def _interact(gen, mi_scene, sampler, ray, active, loc_en_inter, specular_chain, hashes, flags, waiting=None):
+    """One depth of Sionna's bounce loop without the targets, for the rays of ``ray``: the
+    hit, the sampled interaction (Sionna's material and wedge sampling, its random numbers),
+    the locally enabled interactions, the specular-chain flag and hashes updated, and the
+    sample data of this depth. Rays in ``waiting`` (optional) keep their flag and hashes.
+    Returns a dict; ``active`` is the rays that interacted."""
+    dr, mi = _jit()
+    from caviar_plugins.radio import sionna_internals as internals
+
+    InteractionType, _, _, hash_fnv1a, _ = internals.ray_utilities()
+    plane_hashers, edge_hashers = internals.hashers(gen)
+    _, _, _, diffraction_on, edge_diffraction_on = flags
+    si = mi_scene.ray_intersect(ray, coherent=True, ray_flags=mi.RayFlags.Minimal, active=active)
+    active = active & si.is_valid()
+    sample1 = sampler.next_1d()
+    sample2 = sampler.next_2d()
+    sample2_diffraction = sampler.next_2d()
+    s, normal, wedges = internals.sample_radio_material(gen, si, ray.o, ray.d, sample1, sample2, sample2_diffraction,
+                                                        loc_en_inter, diffraction_on, edge_diffraction_on, active)
+    int_type = dr.select(active, s.sampled_component, InteractionType.NONE)
+    active &= int_type != InteractionType.NONE
+    specular = int_type == InteractionType.SPECULAR
+    transmission = int_type == InteractionType.REFRACTION
+    diffuse = int_type == InteractionType.DIFFUSE
+    diffraction = int_type == InteractionType.DIFFRACTION
+    no_more = ~mi.UInt(InteractionType.DIFFUSE + InteractionType.DIFFRACTION)
+    loc_en_inter = dr.select(diffraction, loc_en_inter & no_more, loc_en_inter)
+    loc_en_inter = dr.select(diffuse, loc_en_inter & ~mi.UInt(InteractionType.DIFFRACTION), loc_en_inter)
+    chain = specular_chain & active & (specular | transmission | diffraction)
+    new_hashes = []
+    for i, h in enumerate(hashes):
+        plane_hash = plane_hashers[i](si.n, si.p)
+        edge_hash = edge_hashers[i](wedges.o, wedges.o + wedges.e_hat * wedges.length)
+        inter_hash = dr.select(int_type == InteractionType.SPECULAR, plane_hash, int_type)
+        inter_hash = dr.select(int_type == InteractionType.DIFFRACTION, edge_hash, inter_hash)
+        new_hashes.append(hash_fnv1a(inter_hash, h=h))
+    if waiting is not None:
+        chain = dr.select(waiting, specular_chain, chain)
+        new_hashes = [dr.select(waiting, h, new) for h, new in zip(hashes, new_hashes, strict=True)]
+    # Sample data of this depth (SampleData.insert writes only live rays).
+    fields = internals.sample_data_fields()(
+        dr.select(active, int_type, 0), dr.select(active, dr.reinterpret_array(mi.UInt, si.shape), 0),
+        dr.select(active, si.prim_index, 0), dr.select(active, si.p, mi.Point3f(0.0)), dr.select(active, s.pdf, 0.0))
+    return {"si": si, "normal": normal, "wedges": wedges, "k_world": s.wo, "active": active,
+            "loc_en_inter": loc_en_inter, "specular_chain": chain, "hashes": new_hashes, "diffuse": diffuse,
+            "diffraction": diffraction, "fields": fields}
+
+
 def _bounce(gen, mi_scene, shots: _Shots, state: dict, max_depth: int, flags, keep_state: bool) -> None:
     """The recorded bounces of the static scene (:func:`_shoot`): Sionna's inner loop without
     the targets, one wavefront per depth, appending one record per depth to ``shots.depths``
@@ -282,49 +330,21 @@ def _bounce(gen, mi_scene, shots: _Shots, state: dict, max_depth: int, flags, ke
     dr, mi = _jit()
     from caviar_plugins.radio import sionna_internals as internals
 
-    InteractionType, _, _, hash_fnv1a, _ = internals.ray_utilities()
-    sample_fields = internals.sample_data_fields()
-    plane_hashers, edge_hashers = internals.hashers(gen)
     sampler = internals.sampler(gen)
-    _, _, _, diffraction_on, edge_diffraction_on = flags
+    diffraction_on = flags[3]
     n = shots.width
     ray, specular_chain, hashes = state["ray"], state["specular_chain"], state["hashes"]
     active, loc_en_inter = state["active"], state["loc_en_inter"]
     lane = dr.arange(mi.UInt, n)
     for depth in range(1, max_depth + 1):
-        si = mi_scene.ray_intersect(ray, coherent=True, ray_flags=mi.RayFlags.Minimal, active=active)
-        active &= si.is_valid()
-        sample1 = sampler.next_1d()
-        sample2 = sampler.next_2d()
-        sample2_diffraction = sampler.next_2d()
-        s, normal, wedges = internals.sample_radio_material(gen, si, ray.o, ray.d, sample1, sample2,
-                                                            sample2_diffraction, loc_en_inter, diffraction_on,
-                                                            edge_diffraction_on, active)
-        k_world = s.wo
-        int_type = dr.select(active, s.sampled_component, InteractionType.NONE)
-        active &= int_type != InteractionType.NONE
-        specular = int_type == InteractionType.SPECULAR
-        transmission = int_type == InteractionType.REFRACTION
-        diffuse = int_type == InteractionType.DIFFUSE
-        diffraction = int_type == InteractionType.DIFFRACTION
-        loc_en_inter[diffraction] &= ~mi.UInt(InteractionType.DIFFUSE + InteractionType.DIFFRACTION)
-        loc_en_inter[diffuse] &= ~mi.UInt(InteractionType.DIFFRACTION)
-        specular_chain = specular_chain & active & (specular | transmission | diffraction)
-        # Sample data of this depth (SampleData.insert writes only live rays).
-        fields = sample_fields(
-            dr.select(active, int_type, 0), dr.select(active, dr.reinterpret_array(mi.UInt, si.shape), 0),
-            dr.select(active, si.prim_index, 0), dr.select(active, si.p, mi.Point3f(0.0)),
-            dr.select(active, s.pdf, 0.0))
-        dr.scatter(shots.samples, fields, dr.opaque(mi.UInt, (depth - 1) * n) + lane)
+        x = _interact(gen, mi_scene, sampler, ray, active, loc_en_inter, specular_chain, hashes, flags)
+        si, normal, active, loc_en_inter = x["si"], x["normal"], x["active"], x["loc_en_inter"]
+        specular_chain, hashes, diffuse = x["specular_chain"], x["hashes"], x["diffuse"]
+        k_world = x["k_world"]
+        dr.scatter(shots.samples, x["fields"], dr.opaque(mi.UInt, (depth - 1) * n) + lane)
         if diffraction_on:
-            shots.wedges = dr.select(diffraction, wedges, shots.wedges)
-            shots.diffraction_depth = dr.select(diffraction, depth, shots.diffraction_depth)
-        for i in range(len(hashes)):
-            plane_hash = plane_hashers[i](si.n, si.p)
-            edge_hash = edge_hashers[i](wedges.o, wedges.o + wedges.e_hat * wedges.length)
-            inter_hash = dr.select(int_type == InteractionType.SPECULAR, plane_hash, int_type)
-            inter_hash = dr.select(int_type == InteractionType.DIFFRACTION, edge_hash, inter_hash)
-            hashes[i] = hash_fnv1a(inter_hash, h=hashes[i])
+            shots.wedges = dr.select(x["diffraction"], x["wedges"], shots.wedges)
+            shots.diffraction_depth = dr.select(x["diffraction"], depth, shots.diffraction_depth)
         recorded = dr.copy(active)
         hit_p, chain_here = si.p, specular_chain
         ray = si.spawn_ray(d=k_world)
@@ -361,11 +381,7 @@ def _bounce_in_one_loop(gen, mi_scene, shots: _Shots, state: dict, max_depth: in
     dr, mi = _jit()
     from caviar_plugins.radio import sionna_internals as internals
 
-    InteractionType, _, _, hash_fnv1a, _ = internals.ray_utilities()
-    sample_fields = internals.sample_data_fields()
-    plane_hashers, edge_hashers = internals.hashers(gen)
     sampler = internals.sampler(gen)
-    _, _, _, diffraction_on, edge_diffraction_on = flags
     n = shots.width
     width = dr.opaque(mi.UInt, n)
     lane = dr.arange(mi.UInt, n)
@@ -383,43 +399,16 @@ def _bounce_in_one_loop(gen, mi_scene, shots: _Shots, state: dict, max_depth: in
     def body(depth, ray, specular_chain, hashes, active, loc_en_inter, touched, wedges_kept, ddepth, sampler_):
         waiting = start > depth
         before = active
-        active = active & ~waiting
-        si = mi_scene.ray_intersect(ray, coherent=True, ray_flags=mi.RayFlags.Minimal, active=active)
-        active &= si.is_valid()
-        sample1 = sampler_.next_1d()
-        sample2 = sampler_.next_2d()
-        sample2_diffraction = sampler_.next_2d()
-        s, normal, wedges = internals.sample_radio_material(gen, si, ray.o, ray.d, sample1, sample2,
-                                                            sample2_diffraction, loc_en_inter, diffraction_on,
-                                                            edge_diffraction_on, active)
-        k_world = s.wo
-        int_type = dr.select(active, s.sampled_component, InteractionType.NONE)
-        active &= int_type != InteractionType.NONE
-        specular = int_type == InteractionType.SPECULAR
-        transmission = int_type == InteractionType.REFRACTION
-        diffuse = int_type == InteractionType.DIFFUSE
-        diffraction = int_type == InteractionType.DIFFRACTION
-        loc_en_inter = dr.select(diffraction, loc_en_inter & ~mi.UInt(InteractionType.DIFFUSE
-                                                                      + InteractionType.DIFFRACTION), loc_en_inter)
-        loc_en_inter = dr.select(diffuse, loc_en_inter & ~mi.UInt(InteractionType.DIFFRACTION), loc_en_inter)
-        specular_chain = dr.select(waiting, specular_chain, specular_chain & active & (specular | transmission |
-                                                                                     diffraction))
+        x = _interact(gen, mi_scene, sampler_, ray, active & ~waiting, loc_en_inter, specular_chain, hashes, flags,
+                      waiting)
+        si, normal, active, loc_en_inter = x["si"], x["normal"], x["active"], x["loc_en_inter"]
+        specular_chain, hashes, diffuse = x["specular_chain"], x["hashes"], x["diffuse"]
+        k_world = x["k_world"]
         at = (depth - 1) * width + lane
-        fields = sample_fields(
-            dr.select(active, int_type, 0), dr.select(active, dr.reinterpret_array(mi.UInt, si.shape), 0),
-            dr.select(active, si.prim_index, 0), dr.select(active, si.p, mi.Point3f(0.0)),
-            dr.select(active, s.pdf, 0.0))
-        dr.scatter(shots.samples, fields, at, ~waiting)
+        dr.scatter(shots.samples, x["fields"], at, ~waiting)
         if with_wedges:
-            wedges_kept = dr.select(diffraction, wedges, wedges_kept)
-            ddepth = dr.select(diffraction, depth, ddepth)
-        hashes = list(hashes)
-        for i in range(len(hashes)):
-            plane_hash = plane_hashers[i](si.n, si.p)
-            edge_hash = edge_hashers[i](wedges.o, wedges.o + wedges.e_hat * wedges.length)
-            inter_hash = dr.select(int_type == InteractionType.SPECULAR, plane_hash, int_type)
-            inter_hash = dr.select(int_type == InteractionType.DIFFRACTION, edge_hash, inter_hash)
-            hashes[i] = dr.select(waiting, hashes[i], hash_fnv1a(inter_hash, h=hashes[i]))
+            wedges_kept = dr.select(x["diffraction"], x["wedges"], wedges_kept)
+            ddepth = dr.select(x["diffraction"], depth, ddepth)
         if touch_shapes is not None:
             touched |= active & _on_shapes(touch_shapes, si)
         recorded = active & touched
