@@ -155,8 +155,10 @@ class ShootCache:
             aimed = np.concatenate([np.zeros((0, 3))] + [
                 aim_at(source, centre, radius, n) for (centre, radius), n in zip(spheres, counts, strict=True)
                 if n > 0])
+            present = boxes[[n > 0 for n in counts]]
+            reach = (present[:, 0].min(axis=0) - 0.01, present[:, 1].max(axis=0) + 0.01) if len(present) else None
             more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed,
-                                     _shape_table(self.scene, moving), aimed)
+                                     _shape_table(self.scene, moving), aimed, reach)
             if more is not None:
                 _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
         self.paths_counter_per_source = counter
@@ -449,8 +451,17 @@ def _bounce_in_one_loop(gen, mi_scene, shots: _Shots, state: dict, max_depth: in
         shots.depths.append(record)
 
 
+def _slab_hit(o, d, lo, hi):
+    """Whether each ray (origin ``o``, direction ``d``) meets the box [``lo``, ``hi``] ahead of it."""
+    dr, mi = _jit()
+    low, high = (dr.opaque(mi.Point3f, [float(x) for x in c]) for c in (lo, hi))
+    inv = mi.Vector3f(1.0) / d
+    t0, t1 = (low - o) * inv, (high - o) * inv
+    return dr.min(dr.maximum(t0, t1)) >= dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0)
+
+
 def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: int, flags, seed: int, movers,
-                      aimed: np.ndarray) -> _Shots | None:
+                      aimed: np.ndarray, reach=None) -> _Shots | None:
     """The rays that meet a moving object, bounced in the scene as it is now and connected
     from their first hit on one (one bounce loop for all, each ray setting off at its own
     depth):
@@ -466,13 +477,20 @@ def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: in
     InteractionType, WedgeGeometry, _, _, _ = internals.ray_utilities()
     sample_fields = internals.sample_data_fields()
     specular_on, _, refraction_on, diffraction_on, _ = flags
-    # Recorded rays whose next segment now meets a moving object first (one ray cast each).
+    # Recorded rays whose next segment now meets a moving object first: those headed into the
+    # box that holds every object in the scene (``reach``; None: all parked) are cast again.
     picked = []  # (depth, indices into the record)
     for d, rec in enumerate(shots.depths[: max_depth - 1], start=1):
-        if dr.width(rec["lane"]) == 0 or "o" not in rec:
+        if reach is None or dr.width(rec["lane"]) == 0 or "o" not in rec:
             continue
-        si = mi_scene.ray_intersect(mi.Ray3f(rec["o"], rec["d"]), coherent=False, ray_flags=mi.RayFlags.Minimal)
-        pick = np.flatnonzero(np.asarray(_on_shapes(movers, si), dtype=bool))
+        near = dr.compress(_slab_hit(rec["o"], rec["d"], *reach))
+        if dr.width(near) == 0:
+            continue
+        si = mi_scene.ray_intersect(mi.Ray3f(dr.gather(mi.Point3f, rec["o"], near),
+                                             dr.gather(mi.Vector3f, rec["d"], near)),
+                                    coherent=False, ray_flags=mi.RayFlags.Minimal)
+        on = np.asarray(_on_shapes(movers, si), dtype=bool)
+        pick = np.asarray(near, dtype=np.int64)[on]
         if len(pick):
             picked.append((d, pick))
     a = len(aimed)
