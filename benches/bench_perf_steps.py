@@ -502,7 +502,7 @@ def runs(args, work: pathlib.Path, absolute: dict, ratios: dict, reasons: dict) 
     else:
         reasons["main_job"] = "skipped in this run (--skip main)"
     if "traffic" not in args.skip:
-        absolute["traffic50_step"] = bench_traffic_step(work, args.traffic_steps)
+        absolute["traffic50_step"] = bench_traffic_step(work, args.traffic_steps, reps=args.traffic_reps)
         ratios["traffic50_step"] = absolute["traffic50_step"]["ratio"]
     else:
         reasons["traffic50_step"] = "skipped in this run (--skip traffic)"
@@ -528,6 +528,7 @@ def main() -> None:
     ap.add_argument("--skip", nargs="*", default=[],
                     choices=["vision", "solve", "sar1", "sar10", "moving", "main", "traffic"])
     ap.add_argument("--traffic-steps", type=int, default=30, help="steps of the osm-traffic runs")
+    ap.add_argument("--traffic-reps", type=int, default=4, help="osm-traffic runs per variant, in turn")
     ap.add_argument("--moving-positions", type=int, default=30, help="positions of the moving-body solve")
     ap.add_argument("--merge", action="store_true",
                     help="keep the items of docs/results/perf-steps.json that this run skips")
