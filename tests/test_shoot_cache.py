@@ -91,6 +91,21 @@ def test_without_cache_moving_bodies_moving_uav_bodies_run_sionnas_loop_every_st
     assert cached.shoot_cache.connects == 0 and cached.shoot_cache.shoots == 0
 
 
+def keeps_sionnas_links(got, ref, where) -> tuple[int, int]:
+    """Asserts that each cached link keeps what Sionna's loop found: the line-of-sight flag,
+    at least its paths, its path gain or more (0.05 dB); returns how many links have more
+    paths and how many the same best pair."""
+    more = same_pair = 0
+    for key in ref:
+        x, y = got[key], ref[key]
+        assert x.los == y.los, (where, key)
+        assert x.n_paths >= y.n_paths, (where, key, x.n_paths, y.n_paths)
+        assert 10 * np.log10(x.path_gain / y.path_gain) > -0.05, (where, key)
+        more += x.n_paths > y.n_paths
+        same_pair += x.best_pair == y.best_pair
+    return more, same_pair
+
+
 def test_moving_uav_bodies_are_served_from_the_cache_and_keep_sionnas_paths():
     """Bodies moving with two UAVs along the SAR route: every solve after the first two is
     served from the cache, and each link keeps what Sionna's loop (run every step, the body
@@ -105,15 +120,8 @@ def test_moving_uav_bodies_are_served_from_the_cache_and_keep_sionnas_paths():
         pos = {"a": ROUTE.at(t), "b": ROUTE.at(t + 150.0)}
         cached.place(pos)
         plain.place(pos)
-        got, ref = cached.solve(), plain.solve()
-        for key in pos:
-            x, y = got[key], ref[key]
-            assert x.los == y.los, (t, key)
-            assert x.n_paths >= y.n_paths, (t, key, x.n_paths, y.n_paths)
-            assert 10 * np.log10(x.path_gain / y.path_gain) > -0.05, (t, key)
-            more += x.n_paths > y.n_paths
-            same_pair += x.best_pair == y.best_pair
-            links += 1
+        more_here, same_here = keeps_sionnas_links(cached.solve(), plain.solve(), t)
+        more, same_pair, links = more + more_here, same_pair + same_here, links + len(pos)
     assert cached.shoot_cache.connects == len(times) - 1 and cached.shoot_cache.shoots == 1
     assert plain.shoot_cache.connects == 0
     assert more >= 1 and same_pair >= links - 2, (more, same_pair, links)
@@ -209,7 +217,7 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
 
     cached, cached_pool = with_pool()
     plain, plain_pool = with_pool(cache_moving_bodies=False)
-    more, same_pair, links = 0, 0, 0
+    same_pair, links = 0, 0
     for k in range(5):
         pos = {"a": ROUTE.at(10.0 * k), "b": ROUTE.at(150.0 + 10.0 * k)}
         cars = [Body(f"car{i}", "vehicle", (*(p[:2] + [6.0 * i - 3.0 + 2.0 * k, 4.0]), 0.0), 0.1, (4.5, 1.8, 1.5))
@@ -217,15 +225,8 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
         for radio, pool in ((cached, cached_pool), (plain, plain_pool)):
             pool.update(cars)
             radio.place(pos)
-        got, ref = cached.solve(force=True), plain.solve(force=True)
-        for key in pos:
-            x, y = got[key], ref[key]
-            assert x.los == y.los, (k, key)
-            assert x.n_paths >= y.n_paths, (k, key, x.n_paths, y.n_paths)
-            assert 10 * np.log10(x.path_gain / y.path_gain) > -0.05, (k, key)
-            more += x.n_paths > y.n_paths
-            same_pair += x.best_pair == y.best_pair
-            links += 1
+        _, same_here = keeps_sionnas_links(cached.solve(force=True), plain.solve(force=True), k)
+        same_pair, links = same_pair + same_here, links + len(pos)
     assert cached.shoot_cache.connects == 4 and cached.shoot_cache.shoots == 1
     assert plain.shoot_cache.connects == 0
     assert same_pair >= links - 1, (same_pair, links)
