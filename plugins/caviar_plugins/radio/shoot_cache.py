@@ -325,6 +325,15 @@ def _interact(gen, mi_scene, sampler, ray, active, loc_en_inter, specular_chain,
             "diffraction": diffraction, "fields": fields}
 
 
+def _record(lane, index, p, n, diffuse, specular_chain, hashes) -> dict[str, Any]:
+    """A depth's record of the rays ``lane`` (what :func:`_connect` reads), gathered at
+    ``index`` from arrays of hit points, normals, diffuse flags, chain flags and hashes."""
+    dr, mi = _jit()
+    return {"lane": lane, "p": dr.gather(mi.Point3f, p, index), "n": dr.gather(mi.Normal3f, n, index),
+            "diffuse": dr.gather(mi.Bool, diffuse, index), "specular_chain": dr.gather(mi.Bool, specular_chain, index),
+            "hashes": [dr.gather(mi.UInt64, h, index) for h in hashes]}
+
+
 def _bounce(gen, mi_scene, shots: _Shots, state: dict, max_depth: int, flags, keep_state: bool) -> None:
     """The recorded bounces of the static scene (:func:`_shoot`): Sionna's inner loop without
     the targets, one wavefront per depth, appending one record per depth to ``shots.depths``
@@ -347,21 +356,17 @@ def _bounce(gen, mi_scene, shots: _Shots, state: dict, max_depth: int, flags, ke
         if diffraction_on:
             shots.wedges = dr.select(x["diffraction"], x["wedges"], shots.wedges)
             shots.diffraction_depth = dr.select(x["diffraction"], depth, shots.diffraction_depth)
-        recorded = dr.copy(active)
         hit_p, chain_here = si.p, specular_chain
         ray = si.spawn_ray(d=k_world)
         specular_chain = specular_chain | diffuse
         sampler.schedule_state()
         # Everything of this depth in one kernel: a gather from an array not yet evaluated
         # would trace and run the intersection and the material sampling again for it.
-        depth_state = [recorded, hit_p, normal, diffuse, chain_here, hashes, shots.samples, ray, specular_chain,
-                       active, loc_en_inter, shots.wedges, shots.diffraction_depth]
+        depth_state = [hit_p, normal, diffuse, chain_here, hashes, shots.samples, ray, specular_chain, active,
+                       loc_en_inter, shots.wedges, shots.diffraction_depth]
         dr.eval(*[x for x in depth_state if x is not None])
-        alive = dr.compress(recorded)
-        record = {"lane": alive, "p": dr.gather(mi.Point3f, hit_p, alive), "n": dr.gather(mi.Normal3f, normal, alive),
-                  "diffuse": dr.gather(mi.Bool, diffuse, alive),
-                  "specular_chain": dr.gather(mi.Bool, chain_here, alive),
-                  "hashes": [dr.gather(mi.UInt64, h, alive) for h in hashes]}
+        alive = dr.compress(active)
+        record = _record(alive, alive, hit_p, normal, diffuse, chain_here, hashes)
         if keep_state:  # where each live ray goes next, and its state: for rays that now meet a moving object
             record.update({"o": dr.gather(mi.Point3f, ray.o, alive), "d": dr.gather(mi.Vector3f, ray.d, alive),
                            "chain_next": dr.gather(mi.Bool, specular_chain, alive),
@@ -378,8 +383,10 @@ def _bounce_in_one_loop(gen, mi_scene, shots: _Shots, state: dict, max_depth: in
     """:func:`_bounce` (without ``keep_state``) as one Dr.Jit symbolic loop: its body is
     traced once per solve instead of once per depth (the tracing of Sionna's material and
     wedge sampling, not the rays, is what a few thousand rays cost), and each depth's
-    record is written to flat buffers (depth-major) that are compressed afterwards. The same
-    operations in the same order as :func:`_bounce`: the same rays, hits and records."""
+    record is written to flat buffers (depth-major) that are compressed afterwards. Each
+    depth is :func:`_interact`, as in :func:`_bounce`; besides, a ray waits until its
+    ``start`` depth, and with ``touch_shapes`` (:func:`_shape_table`) it is recorded only from
+    its first hit on one of those shapes on."""
     dr, mi = _jit()
     from caviar_plugins.radio import sionna_internals as internals
 
@@ -441,11 +448,8 @@ def _bounce_in_one_loop(gen, mi_scene, shots: _Shots, state: dict, max_depth: in
             shots.depths.append({"lane": mi.UInt()})
             continue
         alive = _array(mi.UInt, rays.astype(np.uint32))
-        at = dr.opaque(mi.UInt, (depth - 1) * n) + alive
-        record = {"lane": alive, "p": dr.gather(mi.Point3f, out["p"], at), "n": dr.gather(mi.Normal3f, out["n"], at),
-                  "diffuse": dr.gather(mi.Bool, out["diffuse"], at),
-                  "specular_chain": dr.gather(mi.Bool, out["specular_chain"], at),
-                  "hashes": [dr.gather(mi.UInt64, h, at) for h in out["hashes"]]}
+        record = _record(alive, dr.opaque(mi.UInt, (depth - 1) * n) + alive, out["p"], out["n"], out["diffuse"],
+                         out["specular_chain"], out["hashes"])
         dr.eval(record)
         _group_chains(record)
         shots.depths.append(record)
