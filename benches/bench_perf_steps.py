@@ -116,6 +116,15 @@ def bench_vision(reps: int) -> dict:
     return out
 
 
+def accuracy_summary(errors: dict[str, list], same: dict[str, list]) -> dict:
+    """Per label (old, new, other_seed): the path-gain error's median and max (dB) against the
+    reference, and the share of links whose best pair is the reference's (%)."""
+    accuracy: dict = {f"{label}_path_gain_error_db_{stat}": float(f(errors[label]))
+                      for label in errors for stat, f in (("median", np.median), ("max", np.max))}
+    accuracy.update({f"{label}_same_best_pair_pct": 100 * float(np.mean(same[label])) for label in errors})
+    return accuracy
+
+
 def bench_solve(n_rx: int, samples: int, reps: int) -> dict:
     """One solve of a static scene (``uav_mesh = false``): Sionna's PathSolver + CFR as
     today's RadioScene.solve called them, against RadioScene.solve with the shoot cache;
@@ -174,9 +183,7 @@ def bench_solve(n_rx: int, samples: int, reps: int) -> dict:
             for label, h in zip(labels, (old_h[i], links[key].h, seed_h[i]), strict=True):
                 errors[label].append(abs(10 * np.log10(np.mean(np.abs(h) ** 2) / ref_gain)))
                 same[label].append(int(np.argmax(radio_gains(radio, h)) == ref_best))
-    accuracy: dict = {f"{label}_path_gain_error_db_{stat}": float(f(errors[label]))
-                      for label in labels for stat, f in (("median", np.median), ("max", np.max))}
-    accuracy.update({f"{label}_same_best_pair_pct": 100 * float(np.mean(same[label])) for label in labels})
+    accuracy = accuracy_summary(errors, same)
     accuracy["links"] = len(errors["new"])
     accuracy["reference"] = ("Sionna's loop with max_num_paths_per_src = 8e6 (8x the specular-chain table: fewer "
                              "hash collisions); other_seed = the same on solver seed + 1: the Monte Carlo noise")
@@ -242,9 +249,7 @@ def bench_moving_body(samples: int, positions: int) -> dict:
             same[label].append(int(np.argmax(radio_gains(new, h[label])) == ref_best))
     # The first solves compile kernels and record the bounces: steady state from the fifth on.
     old_s, new_s = (float(np.median(times[k][4:])) for k in ("old", "new"))
-    accuracy: dict = {f"{label}_path_gain_error_db_{stat}": float(f(errors[label]))
-                      for label in labels for stat, f in (("median", np.median), ("max", np.max))}
-    accuracy.update({f"{label}_same_best_pair_pct": 100 * float(np.mean(same[label])) for label in labels})
+    accuracy = accuracy_summary(errors, same)
     accuracy["links"] = positions
     res = {"old_s": old_s, "new_s": new_s, "ratio": new_s / old_s, "samples": samples,
            "served_from_cache": new.shoot_cache.connects if new.shoot_cache else 0, "solves": positions,
@@ -411,9 +416,7 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
                 gain = np.mean(np.abs(h[label][i]) ** 2)
                 errors[label].append(abs(10 * np.log10(max(gain, 1e-30) / ref_gain)))
                 same[label].append(int(np.argmax(radio_gains(radio, h[label][i])) == ref_best))
-    accuracy: dict = {f"{label}_path_gain_error_db_{stat}": float(f(errors[label]))
-                      for label in labels for stat, f in (("median", np.median), ("max", np.max))}
-    accuracy.update({f"{label}_same_best_pair_pct": 100 * float(np.mean(same[label])) for label in labels})
+    accuracy = accuracy_summary(errors, same)
     accuracy["links"] = len(errors["new"])
     accuracy["served_from_cache"] = radio.shoot_cache.connects if radio.shoot_cache else 0
     res["accuracy"] = accuracy
