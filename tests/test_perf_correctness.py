@@ -177,3 +177,102 @@ def test_lookahead_runs_are_deterministic_and_solve_once_per_forecast(tmp_path):
     plain = lookahead_run(tmp_path, "plain", False)
     np.testing.assert_allclose(a.topic("communications.throughput")["throughput"].to_numpy(),
                                plain.topic("communications.throughput")["throughput"].to_numpy(), rtol=1e-4)
+
+
+# --- A hovering UAV: the same image, the same detections, no geometry update ------
+
+def _plugin(cls, params, tmp_path):
+    from caviar.plugin import Context
+
+    plugin = cls()
+    plugin.setup(Context(name=cls.__name__.lower(), params=params, seed=1, ts=0.5, steps=None, every=1, offset=0,
+                         run_dir=tmp_path, config_dir=tmp_path))
+    return plugin
+
+
+def _positions(p) -> list:
+    from caviar.plugin import Message
+    from caviar_plugins.schema import POSITIONS
+
+    return [Message(POSITIONS, {"UE_type": "UAV", "UE_Id": ue, "position": {"x": q[0], "y": q[1], "z": q[2]}})
+            for ue, q in p.items()]
+
+
+def test_a_uav_that_did_not_move_gets_its_last_image_without_a_render(visual, tmp_path):
+    from caviar.plugin import Inbox
+    from caviar_plugins.vision.camera import Camera
+
+    a, b = views(visual, 2, seed=3)
+    # Two UAVs: one hovers, then moves and comes back; the other moves every step.
+    route = [{"u1": a, "u2": b}, {"u1": a, "u2": b + 1}, {"u1": a + [0.5, 0, 0], "u2": b + 2},
+             {"u1": a + [0.5, 0, 0], "u2": b + 3}, {"u1": a, "u2": b + 4}]
+    images = {}
+    rendered = {}
+    for still in (True, False):
+        cam = _plugin(Camera, Camera.Params(still_frames=still), tmp_path)
+        real, count = cam.visual.render_many, []
+
+        def counting(positions, chunk=64, real=real, count=count):
+            count.append(len(positions))
+            return real(positions, chunk)
+
+        cam.visual.render_many = counting
+        images[still] = [dict(cam.step(0.5 * i, Inbox(_positions(p)))) for i, p in enumerate(route)]
+        rendered[still] = count
+    for got, ref in zip(images[True], images[False], strict=True):
+        assert got.keys() == ref.keys() == {"3D.camera.u1", "3D.camera.u2"}
+        for topic in got:
+            np.testing.assert_array_equal(got[topic], ref[topic])
+    # u1 is rendered at a (step 0), a + 0.5 (step 2) and a again (step 4: it moved away in between).
+    assert rendered[True] == [2, 1, 2, 1, 2]
+    assert rendered[False] == [2, 2, 2, 2, 2]
+
+
+def test_an_image_seen_before_gets_its_detections_without_the_model(visual, model, tmp_path):
+    from caviar.plugin import Inbox, Message
+    from caviar_plugins.schema import per_ue
+
+    path = tmp_path / "model.pkl"
+    model.save(path)
+    clean = visual.render(views(visual, 1, seed=1)[0])
+    rng = np.random.default_rng(2)
+    lossy = [packet_loss(clean, 0.25, rng) for _ in range(3)]
+    # A hovering UAV's frames: whole, damaged, whole again...; the memo holds 2 images.
+    frames = [clean, lossy[0], clean, clean, lossy[1], lossy[2], clean, lossy[0]]
+    found, calls = {}, {}
+    for keep in (2, 0):
+        det = _plugin(detector.PersonDetector,
+                      detector.PersonDetector.Params(model=str(path), seen_images=keep, workers=1), tmp_path)
+        real, count = det.detector.detect_many, []
+
+        def counting(images, pool=None, chunks=0, real=real, count=count):
+            count.append(len(images))
+            return real(images, pool, chunks)
+
+        det.detector.detect_many = counting
+        found[keep] = [list(det.step(0.5 * i, Inbox(_positions({"u": [0.0, 0.0, 9.0]}) +
+                                                    [Message(per_ue("ai.images", "u"), im)])))
+                       for i, im in enumerate(frames)]
+        calls[keep] = sum(count)
+        assert len(det.seen.get("u", {})) == keep
+    assert found[2] == found[0]
+    assert sum(m[0][1]["count"] for m in found[0]) > 0, "nothing detected: the test shows nothing"
+    # Model runs with a memo of 2: clean, lossy0, (clean, clean seen), lossy1, lossy2 (evicts
+    # clean), clean, lossy0 (evicted by lossy2 then clean) = 6 of 8.
+    assert (calls[2], calls[0]) == (6, 8)
+    with pytest.raises(ValueError, match="seen_images"):
+        _plugin(detector.PersonDetector, detector.PersonDetector.Params(model=str(path), seen_images=-1), tmp_path)
+
+
+def test_a_body_that_did_not_move_leaves_the_geometry_alone(monkeypatch):
+    from sionna.rt.scene_object import SceneObject
+
+    radio = RadioScene(RadioConfig(**{**FAST, "uav_mesh": True}), seed=1)
+    moves = []
+    prop = SceneObject.position
+    monkeypatch.setattr(SceneObject, "position", property(prop.fget, lambda obj, v: (moves.append(list(v)),
+                                                                                      prop.fset(obj, v))))
+    for p in (P0, P0, P1, P1, P0):
+        radio.place({"u": p})
+    assert moves == [P0.tolist(), P1.tolist(), P0.tolist()]
+    np.testing.assert_allclose(np.array(radio.bodies["u"].position).ravel(), P0)

@@ -333,7 +333,7 @@ class Camera(caviar.Plugin):
 
     subscribe = [POSITIONS]
     publishes = (every_ue(CAMERA), f"{every_ue(CAMERA)}.{FILE}")
-    stateless = True  # each step's images from that step's positions: a resumed run needs only setup
+    stateless = True  # each step's images from that step's positions (the last ones kept are a shortcut)
 
     @dataclasses.dataclass
     class Params(VisualConfig):
@@ -341,21 +341,35 @@ class Camera(caviar.Plugin):
         batch: bool = True
         """Render all UAVs of a step in one wavefront of rays (:meth:`VisualScene.render_many`,
         the same images); ``false``: one Mitsuba render per UAV, as before issue #18."""
+        still_frames: bool = True
+        """A UAV where it was at its last image gets that image again without a render
+        (the scene is static and the renderer seeded: it is the same image, bit for bit;
+        a hovering UAV costs nothing); ``false``: every image rendered."""
 
     def setup(self, ctx):
         self.ctx = ctx
         p = ctx.params
         cfg = VisualConfig(**{f.name: getattr(p, f.name) for f in dataclasses.fields(VisualConfig)})
         self.visual = VisualScene(cfg, seed=ctx.seed, base_dir=ctx.config_dir)
+        self.last: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # UE -> (position, image) of its last image
 
     def step(self, t, inbox):
         latest = {}
         for m in inbox.on(POSITIONS):
             latest[m.data["UE_Id"]] = read_position(m.data)
-        if self.ctx.params.batch:
-            images = [im for im, _ in self.visual.render_many(list(latest.values()))] if latest else []
+        p = self.ctx.params
+        seen = {ue: self.last[ue][1] for ue, pos in latest.items()
+                if p.still_frames and ue in self.last and np.array_equal(self.last[ue][0], pos)}
+        todo = [ue for ue in latest if ue not in seen]
+        if p.batch:
+            rendered = [im for im, _ in self.visual.render_many([latest[ue] for ue in todo])] if todo else []
         else:
-            images = [self.visual.render(pos) for pos in latest.values()]
+            rendered = [self.visual.render(latest[ue]) for ue in todo]
+        for ue, image in zip(todo, rendered, strict=True):
+            seen[ue] = image
+            if p.still_frames:
+                self.last[ue] = (latest[ue], image)
+        images = [seen[ue] for ue in latest]
         for ue, image in zip(latest, images, strict=True):
             yield per_ue(CAMERA, ue), image
             if self.ctx.params.save:
