@@ -259,33 +259,50 @@ def bench_moving_body(samples: int, positions: int) -> dict:
     return res
 
 
-def bench_main_job(work: pathlib.Path) -> dict:
-    """The README's main job (the SAR blueprint, to the end of its mission) with the UAV body
-    traced by Sionna's loop every step (``cache_moving_bodies = false``) and on the shoot cache
-    (the default), one after the other; wall time from run.json, solves served from the
-    recorded progress."""
+ISSUE_24_FILED_AT = "ef1d136"
+"""The last commit before issue #24's work: "today's" main job of the issue's target."""
+
+
+def bench_main_job(work: pathlib.Path, old_rev: str = ISSUE_24_FILED_AT) -> dict:
+    """The README's main job (the SAR blueprint, to the end of its mission), old then new,
+    whole wall time:
+
+    * ``old``: the plugins as they were at ``old_rev`` (a git worktree of that commit put
+      first on ``PYTHONPATH``; the Rust core is this checkout's): every solve with the UAV
+      body runs Sionna's loop, and a hovering UAV is rendered, detected and placed anew;
+    * ``new``: this checkout.
+
+    Also per module: the wall time of the steps where the UAV moved and of those where it
+    hovered. Links are compared where the UAV was at the same place."""
+    import os
     import subprocess
     import sys
 
     import caviar
 
     exe = pathlib.Path(sys.executable).parent / "caviar-core"
-    res: dict = {}
+    old_tree = work / f"tree-{old_rev}"
+    if not old_tree.exists():
+        subprocess.run(["git", "worktree", "add", "--detach", str(old_tree), old_rev], check=True)
+    res: dict = {"old_rev": old_rev}
     logs = {}
-    for label, value in (("old", "false"), ("new", "true")):
+    for label, tree in (("old", old_tree), ("new", pathlib.Path.cwd())):
         out = work / f"main-job-{label}"
+        env = {**os.environ, "PYTHONPATH": str(tree / "plugins")} if label == "old" else None
         t0 = time.perf_counter()
-        subprocess.run([str(exe), "run", "blueprints/sar/config.toml", "--quiet", "--out", str(out),
-                        "--set", f"modules.comm.params.cache_moving_bodies={value}"], check=True)
+        subprocess.run([str(exe), "run", str(tree / "blueprints/sar/config.toml"), "--quiet", "--out", str(out)],
+                       check=True, env=env)
         wall = time.perf_counter() - t0
         log = caviar.load_run(out)
         status = log.status
         comm = log.timings.filter(log.timings["module"] == "comm")["wall_s"].to_numpy()
         res[label] = {"wall_s": wall, "run_wall_s": float(status["wall_s"]), "steps": int(status["steps_done"]),
                       "virtual_s": float(status["virtual_time_s"]), "comm_s_per_step_median": float(np.median(comm)),
-                      "comm_share_pct": 100 * float(comm.sum()) / float(status["wall_s"])}
+                      "comm_share_pct": 100 * float(comm.sum()) / float(status["wall_s"]),
+                      "modules_s": module_times(log)}
         logs[label] = log
         print(f"main job {label}: {res[label]}", flush=True)
+    subprocess.run(["git", "worktree", "remove", "--force", str(old_tree)], check=False)
     res["ratio"] = res["new"]["wall_s"] / res["old"]["wall_s"]
     # The two missions drift apart after the first rescue (hover times follow the throughput):
     # links are compared where the UAV was at the same place (to the millimetre), not by step.
@@ -295,6 +312,24 @@ def bench_main_job(work: pathlib.Path) -> dict:
     res["links_new"] = len(b)
     res["same_best_pair_pct"] = float(100 * np.mean(same)) if same else None
     return res
+
+
+def module_times(log) -> dict:
+    """Per module, the wall seconds of the steps in which the UAV moved and of those in
+    which it hovered (did not move since the step before)."""
+    import polars as pl
+
+    pos = log.topic("3D.mobility.positions").sort("step")
+    xyz = np.array([[r[c] for c in "xyz"] for r in pos["position"].to_list()])
+    moved = pl.DataFrame({"step": pos["step"],
+                          "moved": np.r_[True, np.any(np.diff(xyz, axis=0) != 0, axis=1)]})
+    t = log.timings.join(moved, on="step", how="left").with_columns(pl.col("moved").fill_null(True))
+    out = {}
+    for (module,), g in t.group_by("module"):
+        out[module] = {"moved_s": round(float(g.filter(pl.col("moved"))["wall_s"].sum()), 2),
+                       "hovered_s": round(float(g.filter(~pl.col("moved"))["wall_s"].sum()), 2)}
+    out["steps_moved"] = int(moved["moved"].sum())
+    return dict(sorted(out.items()))
 
 
 def links_by_place(log) -> dict:
@@ -500,7 +535,7 @@ def plot(results: dict, path: pathlib.Path) -> None:
 def runs(args, work: pathlib.Path, absolute: dict, ratios: dict, reasons: dict) -> None:
     """The items that run whole blueprints (main job, traffic, SAR), in ``work``."""
     if "main" not in args.skip:
-        absolute["main_job"] = bench_main_job(work)
+        absolute["main_job"] = bench_main_job(work, args.main_old_rev)
         ratios["main_job"] = absolute["main_job"]["ratio"]
     else:
         reasons["main_job"] = "skipped in this run (--skip main)"
@@ -532,6 +567,8 @@ def main() -> None:
                     choices=["vision", "solve", "sar1", "sar10", "moving", "main", "traffic"])
     ap.add_argument("--traffic-steps", type=int, default=30, help="steps of the osm-traffic runs")
     ap.add_argument("--traffic-reps", type=int, default=4, help="osm-traffic runs per variant, in turn")
+    ap.add_argument("--main-old-rev", default=ISSUE_24_FILED_AT,
+                    help="the commit whose plugins run the main job's old variant")
     ap.add_argument("--moving-positions", type=int, default=30, help="positions of the moving-body solve")
     ap.add_argument("--merge", action="store_true",
                     help="keep the items of docs/results/perf-steps.json that this run skips")
@@ -586,7 +623,9 @@ def main() -> None:
                         "specular-chain table.",
             "moving": "solve_moving_body: 1 UAV with its body along the SAR route, Sionna's loop every step vs "
                       "the shoot cache with the body on top (median of the solves after the fourth); "
-                      "main_job: the SAR blueprint to the end of its mission, whole wall time, old then new.",
+                      "main_job: the SAR blueprint to the end of its mission, whole wall time, old then new; old = the "
+                      f"plugins at {args.main_old_rev} (before issue #24), with this checkout's Rust core; "
+                      "modules_s: each module's seconds in the steps where the UAV moved and where it hovered.",
             "traffic": "traffic50_step: the osm-traffic blueprint (about 50 vehicles and 20 persons moving, 6 "
                        "receivers, 1e5 samples) with shoot_cache = false (Sionna's loop every step, today's link) "
                        "and with the default (the pools' boxes as moving objects of the shoot cache), runs in "

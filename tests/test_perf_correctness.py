@@ -52,6 +52,26 @@ def test_vectorised_detector_finds_what_the_per_image_detector_finds(visual, mod
     assert sum(len(d) for d in single) > 0, "nothing detected: the test shows nothing"
 
 
+def test_the_forest_walked_tree_by_tree_gives_predict_probas_bits(visual, model):
+    rng = np.random.default_rng(3)
+    images = [packet_loss(im, rate, rng) for (im, _), rate in
+              zip(visual.render_many(views(visual, 4, seed=2)), (0.0, 0.01, 0.25, 0.5), strict=True)]
+    x = np.concatenate([detector.features(im) for im in images])
+    np.testing.assert_array_equal(model.person_probability(x), model.forest.predict_proba(x)[:, 1])
+    assert 0 < np.mean(model.person_probability(x) >= 0.5) < 0.5, "no person pixel: the test shows nothing"
+    # A forest that predicts on several threads is left to scikit-learn (its sum's order varies).
+    model.forest.n_jobs = 2
+    try:
+        calls = []
+        real = model.forest.predict_proba
+        model.forest.predict_proba = lambda rows: calls.append(len(rows)) or real(rows)
+        model.person_probability(x[:10])
+        assert calls == [10]
+    finally:
+        model.forest.n_jobs = 1
+        del model.forest.predict_proba
+
+
 def test_unique_rows_is_exact_even_with_hash_collisions(monkeypatch):
     rng = np.random.default_rng(0)
     words = rng.integers(0, 4, size=(5000, 3)).astype(np.uint64)
