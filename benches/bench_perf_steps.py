@@ -286,23 +286,26 @@ def bench_main_job(work: pathlib.Path, old_rev: str = ISSUE_24_FILED_AT) -> dict
         subprocess.run(["git", "worktree", "add", "--detach", str(old_tree), old_rev], check=True)
     res: dict = {"old_rev": old_rev}
     logs = {}
-    for label, tree in (("old", old_tree), ("new", pathlib.Path.cwd())):
-        out = work / f"main-job-{label}"
-        env = {**os.environ, "PYTHONPATH": str(tree / "plugins")} if label == "old" else None
-        t0 = time.perf_counter()
-        subprocess.run([str(exe), "run", str(tree / "blueprints/sar/config.toml"), "--quiet", "--out", str(out)],
-                       check=True, env=env)
-        wall = time.perf_counter() - t0
-        log = caviar.load_run(out)
-        status = log.status
-        comm = log.timings.filter(log.timings["module"] == "comm")["wall_s"].to_numpy()
-        res[label] = {"wall_s": wall, "run_wall_s": float(status["wall_s"]), "steps": int(status["steps_done"]),
-                      "virtual_s": float(status["virtual_time_s"]), "comm_s_per_step_median": float(np.median(comm)),
-                      "comm_share_pct": 100 * float(comm.sum()) / float(status["wall_s"]),
-                      "modules_s": module_times(log)}
-        logs[label] = log
-        print(f"main job {label}: {res[label]}", flush=True)
-    subprocess.run(["git", "worktree", "remove", "--force", str(old_tree)], check=False)
+    try:  # (the worktree is removed even when a run fails)
+        for label, tree in (("old", old_tree), ("new", pathlib.Path.cwd())):
+            out = work / f"main-job-{label}"
+            env = {**os.environ, "PYTHONPATH": str(tree / "plugins")} if label == "old" else None
+            t0 = time.perf_counter()
+            subprocess.run([str(exe), "run", str(tree / "blueprints/sar/config.toml"), "--quiet", "--out", str(out)],
+                           check=True, env=env)
+            wall = time.perf_counter() - t0
+            log = caviar.load_run(out)
+            status = log.status
+            comm = log.timings.filter(log.timings["module"] == "comm")["wall_s"].to_numpy()
+            res[label] = {"wall_s": wall, "run_wall_s": float(status["wall_s"]), "steps": int(status["steps_done"]),
+                          "virtual_s": float(status["virtual_time_s"]),
+                          "comm_s_per_step_median": float(np.median(comm)),
+                          "comm_share_pct": 100 * float(comm.sum()) / float(status["wall_s"]),
+                          "modules_s": module_times(log)}
+            logs[label] = log
+            print(f"main job {label}: {res[label]}", flush=True)
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(old_tree)], check=False)
     res["ratio"] = res["new"]["wall_s"] / res["old"]["wall_s"]
     # The two missions drift apart after the first rescue (hover times follow the throughput):
     # links are compared where the UAV was at the same place (to the millimetre), not by step.

@@ -236,7 +236,6 @@ class RadioScene:
         # paths, so a step in which no UAV moved (hovering) reuses the last solve.
         self._placed: tuple = ()
         self._where: dict[str, np.ndarray] = {}  # receiver key -> its position (antenna offset added)
-        self._body_at: dict[str, np.ndarray] = {}  # UAV key -> where place() last put its body
         self._solved: tuple[tuple, dict] | None = None
         self.solves = 0
         """Solves that traced (not those that reused the last one)."""
@@ -341,17 +340,17 @@ class RadioScene:
         offset = np.asarray(self.cfg.antenna_offset, dtype=float)
         for key, pos in positions.items():
             pos = np.asarray(pos, dtype=float)
+            moved = key not in self._where or not np.array_equal(self._where[key], pos + offset)
             if key not in self.receivers:
                 rx = self.rt.Receiver(f"rx-{key}", position=(pos + offset).tolist(),
                                       orientation=list(self.cfg.rx_orientation))
                 self.scene.add(rx)
                 self.receivers[key] = rx
-            elif not np.array_equal(self._where[key], pos + offset):
+            elif moved:
                 self.receivers[key].position = (pos + offset).tolist()
-            self._where[key] = pos + offset
-            if key in self.bodies and (key not in self._body_at or not np.array_equal(self._body_at[key], pos)):
+            if moved and key in self.bodies:  # (a body is where its receiver is, less the antenna offset)
                 self.bodies[key].position = pos.tolist()
-                self._body_at[key] = pos
+            self._where[key] = pos + offset
         self._placed = tuple((k, tuple(np.asarray(p, dtype=float))) for k, p in positions.items())
 
     def snapshot(self) -> dict[str, Any]:

@@ -358,19 +358,19 @@ class Camera(caviar.Plugin):
         for m in inbox.on(POSITIONS):
             latest[m.data["UE_Id"]] = read_position(m.data)
         p = self.ctx.params
-        seen = {ue: self.last[ue][1] for ue, pos in latest.items()
-                if p.still_frames and ue in self.last and np.array_equal(self.last[ue][0], pos)}
-        todo = [ue for ue in latest if ue not in seen]
+        images = {ue: self.last[ue][1] for ue, pos in latest.items()
+                  if p.still_frames and ue in self.last and np.array_equal(self.last[ue][0], pos)}
+        todo = [ue for ue in latest if ue not in images]
         if p.batch:
             rendered = [im for im, _ in self.visual.render_many([latest[ue] for ue in todo])] if todo else []
         else:
             rendered = [self.visual.render(latest[ue]) for ue in todo]
         for ue, image in zip(todo, rendered, strict=True):
-            seen[ue] = image
+            images[ue] = image
             if p.still_frames:
                 self.last[ue] = (latest[ue], image)
-        images = [seen[ue] for ue in latest]
-        for ue, image in zip(latest, images, strict=True):
+        for ue in latest:
+            image = images[ue]
             yield per_ue(CAMERA, ue), image
             if self.ctx.params.save:
                 path = self.ctx.artifact_dir / f"{ue}-{self.ctx.step:06d}.png"

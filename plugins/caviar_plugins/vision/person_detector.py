@@ -26,7 +26,7 @@ import math
 import os
 import pathlib
 import pickle
-from collections import OrderedDict
+from collections import OrderedDict, defaultdict
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -502,7 +502,8 @@ class PersonDetector(caviar.Plugin):
         else:
             self.detector = PixelDetector.load(ctx.resolve(p.model))
         self.positions: dict[str, np.ndarray] = {}
-        self.seen: dict[str, OrderedDict[bytes, list]] = {}  # UE -> image digest -> detections, oldest first
+        # UE -> image digest -> detections, oldest first
+        self.seen: defaultdict[str, OrderedDict[bytes, list]] = defaultdict(OrderedDict)
         self.workers = p.workers or os.cpu_count() or 1
         self.pool = ThreadPoolExecutor(self.workers, thread_name_prefix="detector") if self.workers > 1 else None
 
@@ -523,9 +524,7 @@ class PersonDetector(caviar.Plugin):
         images = list(inbox.on(every_ue(IMAGES)))
         keep = self.ctx.params.seen_images
         keys = [_digest(m.data) if keep else b"" for m in images]
-        none: OrderedDict[bytes, list] = OrderedDict()
-        known = [self.seen.get(ue_of(m.topic), none).get(k) if keep else None
-                 for m, k in zip(images, keys, strict=True)]
+        known = [self.seen[ue_of(m.topic)].get(k) if keep else None for m, k in zip(images, keys, strict=True)]
         todo = [m for m, found in zip(images, known, strict=True) if found is None]
         if self.ctx.params.batch and todo:  # one image too: its distinct feature rows only
             fresh = self.detector.detect_many([m.data for m in todo], pool=self.pool, chunks=2 * self.workers)
@@ -538,7 +537,7 @@ class PersonDetector(caviar.Plugin):
             if found is None:
                 found = next(new)
                 if keep:
-                    memo = self.seen.setdefault(ue_of(m.topic), OrderedDict())
+                    memo = self.seen[ue_of(m.topic)]
                     memo[key] = found
                     while len(memo) > keep:
                         memo.popitem(last=False)
