@@ -348,12 +348,16 @@ def links_by_place(log) -> dict:
 TRAFFIC = pathlib.Path("blueprints/osm-traffic/config.toml")
 
 
-def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int = 2) -> dict:
+def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int = 2,
+                       old_rev: str = ISSUE_24_FILED_AT) -> dict:
     """The osm-traffic blueprint (about 50 vehicles and 20 persons from SUMO moving through
     the Helsinki scene, 5 connected cars and a UAV as receivers, 1e5 samples) for ``steps``
-    steps, in three variants, each run ``reps`` times in turn (old, new, floor, old, ...):
+    steps, in four variants, each run ``reps`` times in turn (old, loop, new, floor, old, ...):
 
-    * ``old``: ``shoot_cache = false``, Sionna's loop every step (today's link until #24);
+    * ``old``: the plugins as they were at ``old_rev`` (before #24; a git worktree of that
+      commit first on ``PYTHONPATH``, this checkout's Rust core): Sionna's loop every step;
+    * ``loop``: this checkout with ``shoot_cache = false``: Sionna's loop every step, with
+      the link's other per-step work as it is now;
     * ``new``: the default, the shoot cache with the pools' boxes as moving objects;
     * ``floor``: the shoot cache without the traffic boxes (``scatterers = false``; the UAV's
       body still moves): what serving six receivers from recorded bounces costs, about the
@@ -369,6 +373,7 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
     old path) and Sionna's loop on the next seed (the Monte Carlo noise) are compared, per
     connected receiver, with Sionna's loop with an 8x larger specular-chain table on the same
     geometry."""
+    import os
     import subprocess
     import sys
 
@@ -381,32 +386,43 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
     from caviar_plugins.traffic.link import SionnaTrafficLink, SionnaTrafficLinkParams
 
     exe = pathlib.Path(sys.executable).parent / "caviar-core"
-    variants = {"old": ["modules.comm.params.shoot_cache=false"], "new": [],
+    old_tree = work / f"tree-{old_rev}"
+    if not old_tree.exists():
+        subprocess.run(["git", "worktree", "add", "--detach", str(old_tree), old_rev], check=True)
+    variants = {"old": [], "loop": ["modules.comm.params.shoot_cache=false"], "new": [],
                 "floor": ["modules.comm.params.scatterers=false"]}
     per_step: dict[str, list] = {k: [] for k in variants}
     comm: dict[str, list] = {k: [] for k in variants}
-    res: dict = {"steps": steps, "reps": reps}
+    res: dict = {"steps": steps, "reps": reps, "old_rev": old_rev}
     log = None
-    for rep in range(reps):
-        for label, sets in variants.items():
-            out = work / f"traffic-{label}-{rep}"
-            subprocess.run([str(exe), "run", str(TRAFFIC), "--quiet", "--out", str(out), "--set",
-                            f"episode.steps={steps}", *(x for kv in sets for x in ("--set", kv))], check=True)
-            run = caviar.load_run(out)
-            t = run.timings.filter(pl.col("step") >= skip)
-            per_step[label] += t.group_by("step").agg(pl.col("wall_s").sum())["wall_s"].to_list()
-            comm[label] += t.filter(pl.col("module") == "comm")["wall_s"].to_list()
-            res.setdefault(label, {"runs_wall_s": [], "sumo_step_s": []})
-            res[label]["runs_wall_s"].append(float(run.status["wall_s"]))
-            res[label]["sumo_step_s"].append(float(np.median(t.filter(pl.col("module") == "traffic")["wall_s"])))
-            if label == "new":
-                log = run
-                statuses = run.topic(caviar.STATUS_TOPIC)
-                res[label]["status"] = statuses["value"].to_list()[-1] if len(statuses) else None
+    try:  # (the worktree is removed even when a run fails)
+        for rep in range(reps):
+            for label, sets in variants.items():
+                out = work / f"traffic-{label}-{rep}"
+                tree = old_tree if label == "old" else pathlib.Path.cwd()
+                env = {**os.environ, "PYTHONPATH": str(tree / "plugins")} if label == "old" else None
+                subprocess.run([str(exe), "run", str(tree / TRAFFIC), "--quiet", "--out", str(out), "--set",
+                                f"episode.steps={steps}", *(x for kv in sets for x in ("--set", kv))],
+                               check=True, env=env)
+                run = caviar.load_run(out)
+                t = run.timings.filter(pl.col("step") >= skip)
+                per_step[label] += t.group_by("step").agg(pl.col("wall_s").sum())["wall_s"].to_list()
+                comm[label] += t.filter(pl.col("module") == "comm")["wall_s"].to_list()
+                res.setdefault(label, {"runs_wall_s": [], "sumo_step_s": []})
+                res[label]["runs_wall_s"].append(float(run.status["wall_s"]))
+                res[label]["sumo_step_s"].append(float(np.median(t.filter(pl.col("module") == "traffic")["wall_s"])))
+                if label == "new":
+                    log = run
+                    statuses = run.topic(caviar.STATUS_TOPIC)
+                    res[label]["status"] = statuses["value"].to_list()[-1] if len(statuses) else None
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(old_tree)], check=False)
     for label in variants:
         res[label].update(step_s_median=float(np.median(per_step[label])),
                           comm_s_median=float(np.median(comm[label])))
     res["ratio"] = res["new"]["step_s_median"] / res["old"]["step_s_median"]
+    res["loop_ratio"] = res["loop"]["step_s_median"] / res["old"]["step_s_median"]
+    res["new_over_loop"] = res["new"]["step_s_median"] / res["loop"]["step_s_median"]
     res["floor_ratio"] = res["floor"]["step_s_median"] / res["old"]["step_s_median"]
     res["target_ratio"] = 0.35
     assert log is not None

@@ -235,6 +235,46 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
     assert all(cached._rays_at(obj) == 512 for obj in cached_pool.objects() if not cached_pool.parked(obj))
 
 
+def test_the_box_prefilter_finds_every_recorded_ray_that_now_meets_a_moving_object_first():
+    """Each solve casts again, in the whole scene, only the recorded rays that meet a moving
+    object's bounding box (a scene of boxes): the rays it finds on a moving object are
+    exactly those that intersecting every recorded ray with the whole scene (the surface
+    interaction, as before the prefilter) finds there first."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from caviar_plugins.radio.scatterers import Body, ScattererPool
+    from caviar_plugins.radio.shoot_cache import _boxes_scene, _met_by_movers, _on_shapes, _shape_table
+
+    radio = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True, rays_per_moving_object=64), seed=5)
+    metal = radio.rt.ITURadioMaterial("car-metal", "metal", thickness=0.01)
+    pool = ScattererPool(radio.scene, {"vehicle": 3}, {"vehicle": metal}, prefix="cars")
+    radio.add_moving_objects(pool.objects(), away=pool.parked)
+    for k in range(2):  # the second solve records the bounces (with where each ray goes next)
+        pos = {"a": ROUTE.at(10.0 * k), "b": ROUTE.at(150.0 + 10.0 * k)}
+        pool.update([Body(f"bus-{key}", "vehicle", (*(p[:2] + [3.0 + k, 2.0]), 0.0), 0.3, (12.0, 2.5, 4.0))
+                     for key, p in pos.items()])
+        radio.place(pos)
+        radio.solve(force=True)
+    shots = radio.shoot_cache._shots
+    moving = radio.moving_objects()
+    present = [o for o in moving if radio._rays_at(o) != 0]
+    assert len(present) == 4  # two buses, two UAV bodies (the third bus's box is parked)
+    boxes = np.array([[np.array(o.mi_mesh.bbox().min), np.array(o.mi_mesh.bbox().max)] for o in present])
+    table = _shape_table(radio.scene, moving)
+    max_depth = SETTINGS["max_depth"]
+    mi_scene = radio.scene.mi_scene
+    got = {d: pick.tolist() for d, pick in _met_by_movers(mi_scene, shots, max_depth, table, _boxes_scene(boxes))}
+    every = {}
+    for d, rec in enumerate(shots.depths[: max_depth - 1], start=1):
+        assert dr.width(rec["lane"]) > 1000  # (most rays are not near any moving object)
+        si = mi_scene.ray_intersect(mi.Ray3f(rec["o"], rec["d"]))
+        on = np.flatnonzero(np.asarray(_on_shapes(table, si), dtype=bool))
+        if len(on):
+            every[d] = on.tolist()
+    assert got == every and sum(map(len, every.values())) >= 5, every
+
+
 def test_a_negative_ray_count_for_moving_objects_is_refused_by_name():
     with pytest.raises(ValueError, match=r"rays_per_moving_object: expected >= 0 .*got -1"):
         RadioConfig(rays_per_moving_object=-1)

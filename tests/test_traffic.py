@@ -142,6 +142,32 @@ def test_the_pool_moves_boxes_without_scene_edits_and_reuses_them(tmp_path):
     assert pool.capacity["vehicle"] == 4 and len(edits) == 1
 
 
+def test_the_uav_and_traffic_pools_move_in_one_scene_update(tmp_path):
+    """Both pools' boxes are written, then the scene is updated once (one acceleration-
+    structure rebuild per step, not one per pool); unmoved boxes update nothing."""
+    from caviar_plugins.radio.scatterers import Body, box_vertices, update_pools
+
+    plugin = radio_plugin(tmp_path, vehicle_pool=2, person_pool=1)
+    plugin._new_uav_pool({"uav": 1})
+    scene = plugin.radio.scene
+    params = scene.mi_scene_params
+    updates = []
+    update = params.update
+    params.update = lambda *a, **kw: (updates.append(1), update(*a, **kw))[1]
+    uav = Body("uav1", "uav", (0.0, 0.0, 20.0), 0.0, (2.0, 2.0, 2.0), (5.0, 0.0, 0.0))
+    car = Body("car", "vehicle", (10.0, 5.0, 0.0), 0.4, (4.5, 1.8, 1.5), (3.0, 1.0, 0.0))
+    assert update_pools([(plugin.uav_pool, [uav]), (plugin.pool, [car])]) == [1, 1] and updates == [1]
+    for pool, body in ((plugin.uav_pool, uav), (plugin.pool, car)):
+        mesh = pool.slot_of(body.key).mi_mesh
+        verts = np.array(params[mesh.id() + ".vertex_positions"]).reshape(-1, 3)
+        np.testing.assert_allclose(verts, box_vertices(body.center, body.yaw, body.size), atol=1e-4)
+        np.testing.assert_allclose(np.array(pool.slot_of(body.key).velocity).ravel(), body.velocity)
+    assert update_pools([(plugin.uav_pool, [uav]), (plugin.pool, [car])]) == [0, 0] and updates == [1]
+    other = radio_plugin(tmp_path)
+    with pytest.raises(ValueError, match="different scenes"):
+        update_pools([(plugin.pool, [car]), (other.pool, [])])
+
+
 def radio_plugin(tmp_path, **kw):
     from caviar_plugins.traffic.link import SionnaTrafficLink, SionnaTrafficLinkParams
 

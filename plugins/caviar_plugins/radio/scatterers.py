@@ -156,8 +156,11 @@ class ScattererPool:
         """Shows exactly ``bodies`` (others parked); returns how many boxes changed.
         A group with more bodies than boxes raises :class:`PoolFull`, or with ``grow``
         gets twice the boxes it needs (one scene edit, one recompile)."""
-        t0 = time.perf_counter()
-        wanted = self._assign(bodies, grow)
+        return update_pools([(self, bodies)], grow)[0]
+
+    def _stage(self, wanted: dict[tuple[str, int], tuple]) -> int:
+        """Writes the vertices of the boxes whose state changed into the scene's parameters
+        (without updating the scene); returns how many changed."""
         params = self.scene.mi_scene_params
         changed = 0
         for group, objs in self.slots.items():
@@ -167,11 +170,6 @@ class ScattererPool:
                     self.state[(group, i)] = state
                     self._show(params, group, i, obj, state)
                     changed += 1
-        if changed:
-            params.update()  # one acceleration-structure rebuild for all boxes
-            self.scene.scene_geometry_updated()
-        self.last_update_s = time.perf_counter() - t0
-        self.last_changed = changed
         return changed
 
     def _assign(self, bodies: list[Body], grow: bool) -> dict[tuple[str, int], tuple]:
@@ -223,3 +221,23 @@ class ScattererPool:
             return None
         group, i = self.used[key]
         return self.slots[group][i]
+
+
+def update_pools(updates: list[tuple[ScattererPool, list[Body]]], grow: bool = False) -> list[int]:
+    """:meth:`ScattererPool.update` for several pools of one scene, with one update of the
+    scene (one acceleration-structure rebuild, about 20 ms in the osm-city scene) for all
+    of them. Every pool is assigned (and grown, which edits the scene) before any vertex is
+    written. Returns how many boxes of each pool changed."""
+    t0 = time.perf_counter()
+    if len({id(pool.scene) for pool, _ in updates}) > 1:
+        raise ValueError("update_pools: the pools belong to different scenes")
+    wanted = [pool._assign(bodies, grow) for pool, bodies in updates]
+    changed = [pool._stage(w) for (pool, _), w in zip(updates, wanted, strict=True)]
+    if any(changed):
+        scene = updates[0][0].scene
+        scene.mi_scene_params.update()
+        scene.scene_geometry_updated()
+    elapsed = time.perf_counter() - t0
+    for (pool, _), n in zip(updates, changed, strict=True):
+        pool.last_update_s, pool.last_changed = elapsed, n
+    return changed

@@ -156,9 +156,9 @@ class ShootCache:
                 aim_at(source, centre, radius, n) for (centre, radius), n in zip(spheres, counts, strict=True)
                 if n > 0])
             present = boxes[[n > 0 for n in counts]]
-            reach = (present[:, 0].min(axis=0) - 0.01, present[:, 1].max(axis=0) + 0.01) if len(present) else None
             more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed,
-                                     _shape_table(self.scene, moving), aimed, reach)
+                                     _shape_table(self.scene, moving), aimed,
+                                     _boxes_scene(present) if len(present) else None)
             if more is not None:
                 _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
         self.paths_counter_per_source = counter
@@ -186,7 +186,8 @@ def _shape_table(scene, objects) -> Any:
 
 
 def _on_shapes(table, si) -> Any:
-    """Whether each hit of ``si`` lies on a shape that ``table`` (:func:`_shape_table`) marks."""
+    """Whether each hit of ``si`` (a surface or preliminary intersection) lies on a shape that
+    ``table`` (:func:`_shape_table`) marks."""
     dr, mi = _jit()
     ids = dr.minimum(dr.reinterpret_array(mi.UInt32, si.shape), dr.width(table) - 1)
     return si.is_valid() & dr.gather(mi.Bool, table, ids, si.is_valid())
@@ -455,17 +456,62 @@ def _bounce_in_one_loop(gen, mi_scene, shots: _Shots, state: dict, max_depth: in
         shots.depths.append(record)
 
 
-def _slab_hit(o, d, lo, hi):
-    """Whether each ray (origin ``o``, direction ``d``) meets the box [``lo``, ``hi``] ahead of it."""
+BOX_MARGIN_M = 0.01
+"""How much the boxes of :func:`_boxes_scene` stand out of the objects' bounding boxes."""
+
+# Corners of the unit cube (corner i: x from bit 0, y from bit 1, z from bit 2) and its 12
+# triangles, outward.
+_CORNERS = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=float)
+_CUBE_FACES = np.array([(0, 2, 3), (0, 3, 1), (4, 5, 7), (4, 7, 6), (0, 1, 5), (0, 5, 4), (2, 6, 7), (2, 7, 3),
+                        (0, 4, 6), (0, 6, 2), (1, 3, 7), (1, 7, 5)], dtype=np.uint32)
+
+
+def _boxes_scene(boxes: np.ndarray) -> Any:
+    """A Mitsuba scene of nothing but ``boxes`` ((m, 2, 3): each object's bounding box, grown
+    by :data:`BOX_MARGIN_M`), one mesh: a ray that meets none of them meets none of the
+    objects, and testing a few ten thousand rays against it costs well under a millisecond
+    (a ray test in the whole scene, tens of milliseconds)."""
     dr, mi = _jit()
-    low, high = (dr.opaque(mi.Point3f, [float(x) for x in c]) for c in (lo, hi))
-    inv = mi.Vector3f(1.0) / d
-    t0, t1 = (low - o) * inv, (high - o) * inv
-    return dr.min(dr.maximum(t0, t1)) >= dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0)
+    lo = boxes[:, 0] - BOX_MARGIN_M
+    hi = boxes[:, 1] + BOX_MARGIN_M
+    vertices = lo[:, None, :] + _CORNERS[None] * (hi - lo)[:, None, :]  # (m, 8, 3)
+    faces = _CUBE_FACES[None] + (8 * np.arange(len(boxes), dtype=np.uint32))[:, None, None]
+    mesh = mi.Mesh("moving-object-boxes", vertex_count=8 * len(boxes), face_count=12 * len(boxes),
+                   has_vertex_normals=False, has_vertex_texcoords=False)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(vertices.astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(faces.ravel())
+    params.update()
+    return mi.load_dict({"type": "scene", "boxes": mesh})
+
+
+def _met_by_movers(mi_scene, shots: _Shots, max_depth: int, movers, near) -> list[tuple[int, np.ndarray]]:
+    """The recorded rays whose next segment now meets a moving object first, as (depth, indices
+    into that depth's record): those that meet one of the objects' boxes (``near``,
+    :func:`_boxes_scene`; None: all parked, none) are cast again in the whole scene, and kept
+    where the first shape hit is one of ``movers`` (:func:`_shape_table`)."""
+    dr, mi = _jit()
+    picked = []
+    for d, rec in enumerate(shots.depths[: max_depth - 1], start=1):
+        if near is None or dr.width(rec["lane"]) == 0 or "o" not in rec:
+            continue
+        ahead = dr.compress(near.ray_test(mi.Ray3f(rec["o"], rec["d"])))
+        if dr.width(ahead) == 0:
+            continue
+        # (Which shape is hit first is all that is needed: the preliminary intersection,
+        # without the surface interaction's call into every shape of the scene, about 8 ms.)
+        hit = mi_scene.ray_intersect_preliminary(mi.Ray3f(dr.gather(mi.Point3f, rec["o"], ahead),
+                                                          dr.gather(mi.Vector3f, rec["d"], ahead)),
+                                                 coherent=False)
+        on = np.asarray(_on_shapes(movers, hit), dtype=bool)
+        pick = np.asarray(ahead, dtype=np.int64)[on]
+        if len(pick):
+            picked.append((d, pick))
+    return picked
 
 
 def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: int, flags, seed: int, movers,
-                      aimed: np.ndarray, reach=None) -> _Shots | None:
+                      aimed: np.ndarray, near=None) -> _Shots | None:
     """The rays that meet a moving object, bounced in the scene as it is now and connected
     from their first hit on one (one bounce loop for all, each ray setting off at its own
     depth):
@@ -481,22 +527,7 @@ def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: in
     InteractionType, WedgeGeometry, _, _, _ = internals.ray_utilities()
     sample_fields = internals.sample_data_fields()
     specular_on, _, refraction_on, diffraction_on, _ = flags
-    # Recorded rays whose next segment now meets a moving object first: those headed into the
-    # box that holds every object in the scene (``reach``; None: all parked) are cast again.
-    picked = []  # (depth, indices into the record)
-    for d, rec in enumerate(shots.depths[: max_depth - 1], start=1):
-        if reach is None or dr.width(rec["lane"]) == 0 or "o" not in rec:
-            continue
-        near = dr.compress(_slab_hit(rec["o"], rec["d"], *reach))
-        if dr.width(near) == 0:
-            continue
-        si = mi_scene.ray_intersect(mi.Ray3f(dr.gather(mi.Point3f, rec["o"], near),
-                                             dr.gather(mi.Vector3f, rec["d"], near)),
-                                    coherent=False, ray_flags=mi.RayFlags.Minimal)
-        on = np.asarray(_on_shapes(movers, si), dtype=bool)
-        pick = np.asarray(near, dtype=np.int64)[on]
-        if len(pick):
-            picked.append((d, pick))
+    picked = _met_by_movers(mi_scene, shots, max_depth, movers, near)
     a = len(aimed)
     used = a + sum(len(pick) for _, pick in picked)
     if used == 0:  # every moving object parked, none met: no paths by way of them

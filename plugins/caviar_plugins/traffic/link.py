@@ -34,7 +34,7 @@ import numpy as np
 import caviar
 from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.link_report import LINK_TOPICS, line_of_sight_paths, link_messages
-from caviar_plugins.radio.scatterers import Body, ScattererPool
+from caviar_plugins.radio.scatterers import Body, ScattererPool, update_pools
 from caviar_plugins.radio.scene import RadioScene
 from caviar_plugins.radio.sionna_link import SionnaLinkParams
 from caviar_plugins.schema import BEAM_SELECTION, POSITIONS, STATE, read_position
@@ -225,10 +225,10 @@ class SionnaTrafficLink(caviar.Plugin):
             # UAV bodies: a pool of their own the first time UAVs are seen (their receivers
             # are new then too, so this edit costs no extra recompile later).
             self._new_uav_pool({"uav": len(uav)})
-        if self.uav_pool is not None:
-            self.uav_pool.update(uav, grow=True)
         before = self.pool.capacity
-        self.pool.update(others, grow=True)
+        # Both pools' boxes in one scene update (one acceleration-structure rebuild).
+        update_pools([*([(self.uav_pool, uav)] if self.uav_pool is not None else []), (self.pool, others)],
+                     grow=True)
         self._declare_movers()  # (again after a pool grew: the new boxes move too)
         for group, n in self.pool.capacity.items():
             if n > before.get(group, 0):
@@ -308,10 +308,14 @@ class SionnaTrafficLink(caviar.Plugin):
         d = rx - tx
         dist = np.linalg.norm(d, axis=1)
         u = d / np.maximum(dist, 1e-9)[:, None]
-        ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.full(len(keys), v)) for v in tx)),
-                       mi.Vector3f(*(mi.Float(u[:, j]) for j in range(3))))
-        ray.maxt = mi.Float(np.maximum(dist - 0.05, 0.0))  # type: ignore[assignment]
-        si = self.radio.scene.mi_scene.ray_intersect(ray)
+        # (Arrays from Python lists: Dr.Jit copies them into memory of its own, whereas a numpy
+        # array's memory is taken as it is, and a kernel is compiled anew for each alignment.)
+        ray = mi.Ray3f(mi.Point3f(*(mi.Float([float(v)] * len(keys)) for v in tx)),
+                       mi.Vector3f(*(mi.Float(u[:, j].tolist()) for j in range(3))))
+        ray.maxt = mi.Float(np.maximum(dist - 0.05, 0.0).tolist())  # type: ignore[assignment]
+        # Which shape is hit is all that is needed: the preliminary intersection (without the
+        # surface interaction's call into every shape of the scene, about 8 ms).
+        si = self.radio.scene.mi_scene.ray_intersect_preliminary(ray)
         hit = np.array(si.is_valid())
         ids = np.array(dr.reinterpret_array(mi.UInt32, si.shape))
         names = {}
