@@ -559,7 +559,8 @@ def runs(args, work: pathlib.Path, absolute: dict, ratios: dict, reasons: dict) 
     else:
         reasons["main_job"] = "skipped in this run (--skip main)"
     if "traffic" not in args.skip:
-        absolute["traffic50_step"] = bench_traffic_step(work, args.traffic_steps, reps=args.traffic_reps)
+        absolute["traffic50_step"] = bench_traffic_step(work, args.traffic_steps, reps=args.traffic_reps,
+                                                         old_rev=args.main_old_rev)
         ratios["traffic50_step"] = absolute["traffic50_step"]["ratio"]
     else:
         reasons["traffic50_step"] = "skipped in this run (--skip traffic)"
@@ -646,11 +647,12 @@ def main() -> None:
                       f"plugins at {args.main_old_rev} (before issue #24), with this checkout's Rust core; "
                       "modules_s: each module's seconds in the steps where the UAV moved and where it hovered.",
             "traffic": "traffic50_step: the osm-traffic blueprint (about 50 vehicles and 20 persons moving, 6 "
-                       "receivers, 1e5 samples) with shoot_cache = false (Sionna's loop every step, today's link) "
-                       "and with the default (the pools' boxes as moving objects of the shoot cache), runs in "
-                       "turn; a step = the sum of its modules' wall times, median after the first ten (the "
-                       "vehicles depart over the first 10 s). floor: the shoot cache without the traffic boxes (the "
-                       "UAV's body still moving). "
+                       f"receivers, 1e5 samples); old = the plugins at {args.main_old_rev} (before #24: Sionna's "
+                       "loop every step), loop = this checkout with shoot_cache = false (Sionna's loop, the "
+                       "link's other work as now), new = the default (the pools' boxes as moving objects of the "
+                       "shoot cache), runs in turn; a step = the sum of its modules' wall times, median after the "
+                       "first ten (the vehicles depart over the first 10 s). floor: the shoot cache without the "
+                       "traffic boxes (the UAV's body still moving). "
                        "accuracy: the new run's positions replayed into the link, each connected receiver "
                        "against Sionna's loop with an 8x table on the same geometry.",
         },

@@ -287,6 +287,34 @@ def test_a_user_supplied_onnx_model_detects_like_the_original(tmp_path, trained,
         detector.PixelDetector.load(tmp_path / "bad.onnx")
 
 
+def test_the_detector_plugin_loads_an_onnx_file_once_whichever_kind_it_is(tmp_path, trained, monkeypatch):
+    """An ONNX pixel classifier and an ONNX YOLO model, given to the detector plugin by path:
+    each file is loaded into onnxruntime once, and the plugin tells them apart by their input
+    (features (N, 10) or images (N, 3, H, W))."""
+    import onnxruntime as ort
+
+    from caviar.plugin import Context
+    from caviar_plugins.vision.yolo import BUILTIN_YOLO
+
+    model, _ = trained
+    pixel = tmp_path / "detector.onnx"
+    detector.export_onnx(model, pixel)
+    loads = []
+    session = ort.InferenceSession
+    monkeypatch.setattr(ort, "InferenceSession",
+                        lambda path, *a, **kw: (loads.append(path), session(path, *a, **kw))[1])
+    kinds = {}
+    for path in (pixel, BUILTIN_YOLO):
+        plugin = detector.PersonDetector()
+        plugin.setup(Context(name="detector", params=detector.PersonDetector.Params(model=str(path)), seed=1, ts=1.0,
+                             steps=None, every=1, offset=0, run_dir=tmp_path, config_dir=tmp_path))
+        kinds[path.name] = type(plugin.detector).__name__, type(getattr(plugin.detector, "forest", None)).__name__
+        plugin.teardown()
+    assert loads == [str(pixel), str(BUILTIN_YOLO)]
+    assert kinds == {"detector.onnx": ("PixelDetector", "OnnxPixelModel"), BUILTIN_YOLO.name: ("YoloPersonDetector",
+                                                                                               "NoneType")}
+
+
 def test_detector_threads_find_the_same_people_as_one_thread(tmp_path, trained, visual):
     """Three UAVs over three targets: the detector's images of a step are classified side
     by side, and the recorded detections are those of one thread."""

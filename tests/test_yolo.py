@@ -176,6 +176,36 @@ def test_the_builtin_yolo_finds_persons_in_held_out_frames(frames):
     assert yolo["0.25"]["ap50"] >= 0.35, yolo
 
 
+def test_the_pixel_classifiers_boxes_are_its_regions_extents(frames):
+    """The pixel classifier scored as a box detector: each detection's box is its region's
+    extent and its score the region's mean probability, as found over the whole image; the
+    detections the SAR loop publishes (no boxes) are the same regions."""
+    from scipy.ndimage import label
+
+    from caviar_plugins.vision.yolo_eval import pixel_boxes
+
+    out, _ = frames
+    images, _ = held_out_frames(out)
+    model = detector.builtin_model()
+    regions_seen = 0
+    for image in images[:12]:
+        mask, prob = model.mask(image)
+        regions, n = label(mask)
+        expected = []
+        for k in range(1, n + 1):
+            rows, cols = np.nonzero(regions == k)
+            if len(rows) >= model.min_pixels:
+                expected.append(([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], prob[rows, cols].mean()))
+        boxes, scores = pixel_boxes(model, image)
+        np.testing.assert_array_equal(boxes, np.array([b for b, _ in expected], dtype=float).reshape(-1, 4))
+        np.testing.assert_allclose(scores, [sc for _, sc in expected], rtol=1e-12)
+        plain = model.detect(image)
+        assert [d.box for d in plain] == [None] * len(expected)
+        assert [d.score for d in plain] == scores.tolist()
+        regions_seen += len(expected)
+    assert regions_seen >= 5
+
+
 def test_the_sar_loop_with_yolo_rescues_the_person_in_view(tmp_path):
     from caviar_plugins.vision.camera import default_targets
 

@@ -47,6 +47,16 @@ def mitsuba():
     return mi
 
 
+def shape_ids(scene) -> tuple[np.ndarray, list[str]]:
+    """Each shape's registry id (its pointer as an integer, as a ``shape_index`` AOV or a hit's
+    ``shape`` gives it) and its name, in the scene's order."""
+    import drjit as dr
+
+    mi = mitsuba()
+    ids = np.array(dr.reinterpret_array(mi.UInt32, scene.shapes_dr()), dtype=np.int64)
+    return ids, [sh.id() for sh in scene.shapes()]
+
+
 def default_targets(count: int = 5, offset_m: float = 3.0) -> list[list[float]]:
     """The paper's 5 rescue targets: evenly along the scene-frame route, 3 m to its side."""
     path = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
@@ -136,12 +146,9 @@ class VisualScene:
                                  .scale([size * 1.3, size, size])}
                 colours[f"rock{j}"] = (0.45, 0.42, 0.38)
         self.scene = mi.load_dict(d)
-        # The shape_index AOV holds each shape's registry id (its pointer as an integer):
-        # a lookup table turns ids into colours and person indices.
-        import drjit as dr
-
-        names = [sh.id() for sh in self.scene.shapes()]
-        ids = np.array(dr.reinterpret_array(mi.UInt32, self.scene.shapes_dr()), dtype=np.int64)
+        # The shape_index AOV holds each shape's registry id: a lookup table turns ids into
+        # colours and person indices.
+        ids, names = shape_ids(self.scene)
         size = int(ids.max()) + 1
         self.palette = np.tile(np.array(SKY, dtype=np.float32), (size, 1))
         self.person_of_id = np.full(size, -1)

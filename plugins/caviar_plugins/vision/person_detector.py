@@ -112,7 +112,7 @@ class Detection:
     """Pixels of the region (pixel classifier) or of the box (YOLO)."""
     score: float
     box: tuple[float, float, float, float] | None = None
-    """x0, y0, x1, y1 in image pixels (YOLO), or None."""
+    """x0, y0, x1, y1 in image pixels (YOLO; the pixel classifier when asked), or None."""
 
 
 class PixelDetector:
@@ -149,11 +149,13 @@ class PixelDetector:
         missing = binary_dilation(np.all(image == 0, axis=2), iterations=2)
         return (prob >= self.threshold) & ~missing, prob
 
-    def detect(self, image: np.ndarray) -> list[Detection]:
+    def detect(self, image: np.ndarray, boxes: bool = False) -> list[Detection]:
+        """The person regions of ``image``; with ``boxes``, each with its bounding box (x0, y0,
+        x1, y1, pixel edges), as a box detector gives them."""
         mask, prob = self.mask(image)
-        return self._regions(mask, prob)
+        return self._regions(mask, prob, boxes)
 
-    def _regions(self, mask: np.ndarray, prob: np.ndarray) -> list[Detection]:
+    def _regions(self, mask: np.ndarray, prob: np.ndarray, boxes: bool = False) -> list[Detection]:
         from scipy.ndimage import find_objects, label
 
         regions, n = label(mask)
@@ -166,8 +168,9 @@ class PixelDetector:
             rows, cols = np.nonzero(regions[box] == k)
             if len(rows) >= self.min_pixels:
                 rows, cols = rows + box[0].start, cols + box[1].start
+                edges = (float(box[1].start), float(box[0].start), float(box[1].stop), float(box[0].stop))
                 out.append(Detection(float(rows.mean()), float(cols.mean()), int(len(rows)),
-                                     float(prob[rows, cols].mean())))
+                                     float(prob[rows, cols].mean()), edges if boxes else None))
         return out
 
     def detect_many(self, images: list[np.ndarray], pool: ThreadPoolExecutor | None = None,
@@ -249,15 +252,10 @@ class OnnxPixelModel:
     caviar_plugins.vision.train_detector --export-onnx PATH`` writes the project's detector
     in this form."""
 
-    def __init__(self, path):
-        try:
-            import onnxruntime as ort
-        except ImportError:
-            raise ValueError(f"{path}: ONNX models need onnxruntime (pip install 'caviar-plugins[onnx]')") from None
-        try:
-            self.session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own exception types
-            raise ValueError(f"{path}: cannot load the ONNX model: {e}") from None
+    def __init__(self, path, session=None):
+        from caviar_plugins.vision.yolo import onnx_session
+
+        self.session = session if session is not None else onnx_session(path)
         inputs = self.session.get_inputs()
         width = inputs[0].shape[-1] if len(inputs) == 1 and inputs[0].shape else None
         if len(inputs) != 1 or (isinstance(width, int) and width != 10) or len(inputs[0].shape or ()) != 2:
@@ -421,21 +419,6 @@ class YoloPersonDetector:
         return [self._detections(found) for found in self.model.detect_many(images)]
 
 
-def is_image_model(path: pathlib.Path) -> bool:
-    """Whether an ONNX file takes images (N, 3, H, W): a YOLO detector, not a pixel classifier."""
-    if not pathlib.Path(path).is_file():
-        raise ValueError(f"{path}: no such ONNX model file")
-    try:
-        import onnxruntime as ort
-    except ImportError:
-        raise ValueError(f"{path}: ONNX models need onnxruntime (pip install 'caviar-plugins[onnx]')") from None
-    try:
-        inputs = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).get_inputs()
-    except Exception as e:
-        raise ValueError(f"{path}: cannot load the ONNX model: {e}") from None
-    return len(inputs) == 1 and len(inputs[0].shape) == 4
-
-
 class PersonDetector(caviar.Plugin):
     """Detects people in received images (``ai.images.<UE_Id>``, or camera images
     directly) and publishes ``ai.detections`` with each detection's estimated
@@ -493,12 +476,16 @@ class PersonDetector(caviar.Plugin):
         self.detector: PixelDetector | YoloPersonDetector
         if p.model in BUILTIN:
             self.detector = builtin_model(BUILTIN[p.model])
-        elif p.model == "yolo" or (p.model.endswith(".onnx") and is_image_model(ctx.resolve(p.model))):
-            from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx
+        elif p.model == "yolo" or p.model.endswith(".onnx"):
+            from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx, onnx_session, takes_images
 
             path = BUILTIN_YOLO if p.model == "yolo" else ctx.resolve(p.model)
-            self.detector = YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class,
-                                                        threads=p.workers))
+            session = onnx_session(path, p.workers)  # loaded once, whichever kind of model it is
+            if takes_images(session):
+                self.detector = YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class,
+                                                            session=session))
+            else:
+                self.detector = PixelDetector(OnnxPixelModel(path, session))
         else:
             self.detector = PixelDetector.load(ctx.resolve(p.model))
         self.positions: dict[str, np.ndarray] = {}

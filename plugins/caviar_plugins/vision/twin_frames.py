@@ -44,7 +44,7 @@ import numpy as np
 
 from caviar_plugins.assets import DATA
 from caviar_plugins.mobility.waypoints import read_waypoints
-from caviar_plugins.vision.camera import _scene_meshes, mitsuba
+from caviar_plugins.vision.camera import _scene_meshes, mitsuba, shape_ids
 from caviar_plugins.vision.image_link import packet_loss
 
 SPLIT_SEEDS = {"train": 101, "val": 202, "test": 303}
@@ -145,8 +145,6 @@ class TwinFrames:
         self.cfg = cfg
         self.rng = rng = np.random.default_rng(seed)
         mi = self.mi = mitsuba()
-        import drjit as dr
-
         base: dict = {"type": "scene"}
         colours = _scene_meshes("central_park", None, base)
         self._static = mi.load_dict(base)
@@ -210,8 +208,7 @@ class TwinFrames:
                     colours[sid] = _clothes(rng)
                 kinds[sid] = "thing"
         self.scene = mi.load_dict(d)
-        names = [sh.id() for sh in self.scene.shapes()]
-        ids = np.array(dr.reinterpret_array(mi.UInt32, self.scene.shapes_dr()), dtype=np.int64)
+        ids, names = shape_ids(self.scene)
         size = int(ids.max()) + 1
         self.palette = np.zeros((size, 3), dtype=np.float64)
         self.person_of_id = np.full(size, -1)

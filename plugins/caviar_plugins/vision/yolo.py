@@ -75,30 +75,44 @@ def nms(boxes: np.ndarray, scores: np.ndarray, threshold: float) -> np.ndarray:
     return np.array(keep, dtype=np.int64)
 
 
+def onnx_session(path, threads: int = 0, what: str = "ONNX model"):
+    """An onnxruntime session (CPU) of the ONNX file at ``path``; a clear error naming the file
+    when it is missing, cannot be loaded or onnxruntime is not installed."""
+    path = pathlib.Path(path)
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        raise ValueError(f"{path}: ONNX models need onnxruntime (pip install 'caviar-plugins[onnx]')") from None
+    if not path.is_file():
+        raise ValueError(f"{path}: no such {what} file")
+    options = ort.SessionOptions()
+    if threads:
+        options.intra_op_num_threads = threads
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own exception types
+        raise ValueError(f"{path}: cannot load the ONNX model: {e}") from None
+
+
+def takes_images(session) -> bool:
+    """Whether an ONNX session's model takes images (N, 3, H, W): a detector such as YOLO,
+    not a pixel classifier."""
+    inputs = session.get_inputs()
+    return len(inputs) == 1 and len(inputs[0].shape) == 4
+
+
 class YoloOnnx:
-    """A YOLO detector in an ONNX file (layouts in the module's text)."""
+    """A YOLO detector in an ONNX file (layouts in the module's text); ``session``: the file
+    already loaded (:func:`onnx_session`)."""
 
     def __init__(self, path, confidence: float = 0.25, iou_threshold: float = 0.45, person_class: int = 0,
-                 imgsz: tuple[int, int] | None = None, threads: int = 0):
+                 imgsz: tuple[int, int] | None = None, threads: int = 0, session=None):
         path = pathlib.Path(path)
         if person_class < 0:
             raise ValueError(f"{path}: person_class = {person_class}: expected a class index (0 or more)")
         if not 0.0 <= confidence <= 1.0:
             raise ValueError(f"{path}: confidence = {confidence}: expected a score between 0 and 1")
-        try:
-            import onnxruntime as ort
-        except ImportError:
-            raise ValueError(f"{path}: YOLO ONNX models need onnxruntime (pip install 'caviar-plugins[onnx]')") \
-                from None
-        if not path.is_file():
-            raise ValueError(f"{path}: no such YOLO ONNX file")
-        options = ort.SessionOptions()
-        if threads:
-            options.intra_op_num_threads = threads
-        try:
-            self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own exception types
-            raise ValueError(f"{path}: cannot load the ONNX model: {e}") from None
+        self.session = session if session is not None else onnx_session(path, threads, "YOLO ONNX")
         inputs = self.session.get_inputs()
         if len(inputs) != 1 or len(inputs[0].shape) != 4 or inputs[0].shape[1] not in (3, "3", None) and \
                 not isinstance(inputs[0].shape[1], str):

@@ -58,20 +58,9 @@ def camera_frames(count: int = 120, seed: int = 1235) -> tuple[list[np.ndarray],
 
 def pixel_boxes(detector, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pixel classifier's detections as boxes (its regions' bounding boxes) and scores."""
-    from scipy.ndimage import find_objects, label
-
-    mask, prob = detector.mask(image)
-    regions, _ = label(mask)
-    boxes, scores = [], []
-    for k, box in enumerate(find_objects(regions), start=1):
-        if box is None:
-            continue
-        inside = regions[box] == k
-        if inside.sum() < detector.min_pixels:
-            continue
-        boxes.append([box[1].start, box[0].start, box[1].stop, box[0].stop])
-        scores.append(float(prob[box][inside].mean()))
-    return np.array(boxes, dtype=float).reshape(-1, 4), np.array(scores, dtype=float)
+    found = detector.detect(image, boxes=True)
+    return (np.array([d.box for d in found], dtype=float).reshape(-1, 4),
+            np.array([d.score for d in found], dtype=float))
 
 
 def evaluate(detect, images: list[np.ndarray], truths: list[np.ndarray], levels=LOSS_LEVELS,
