@@ -280,25 +280,43 @@ def test_a_negative_ray_count_for_moving_objects_is_refused_by_name():
         RadioConfig(rays_per_moving_object=-1)
 
 
-def test_rays_as_dense_as_sionnas_are_as_many_as_its_own_rays_that_meet_the_sphere():
-    """``as_dense_as`` against a count of Sionna's own rays (its Fibonacci directions from
-    the source) that fall in the cone holding each sphere; a source inside a sphere is capped."""
-    import mitsuba as mi
-    import sionna.rt  # noqa: F401  (sets Mitsuba's variant)
+def test_sionnas_own_first_rays_that_meet_a_moving_body_are_those_a_slab_test_finds():
+    """With ``rays_per_moving_object = 0`` no rays are aimed: the rays of Sionna's own
+    Fibonacci lattice from the transmitter whose first hit is now a moving body go on from
+    it. In free space the ones found are those that an independent ray-box (slab) test in
+    float64 finds on the body's box, up to a centimetre at its edges; and the solve finds the
+    reflection off the body's top that Sionna's loop finds."""
+    from caviar_plugins.radio.shoot_cache import _boxes_scene, _first_rays_met, _shape_table
 
-    from caviar_plugins.radio import sionna_internals as internals
-    from caviar_plugins.radio.shoot_cache import MAX_DENSE_RAYS, as_dense_as
+    tx = np.array([0.0, 0.0, 30.0])
+    settings = dict(scene="empty", tx_position=tx.tolist(), tx_array=[1, 1], rx_array=[1, 1], pattern="iso",
+                    max_depth=2, threads=1, uav_mesh=True, diffraction=False, rays_per_moving_object=0)
+    radio = RadioScene(RadioConfig(**settings, samples_per_src=100_000), seed=2)
+    for x in (18.0, 20.0):  # the second solve records the bounces
+        uav = np.array([x, 0.0, 10.0])
+        radio.place({"u": uav})
+        got = radio.solve()["u"]
+    assert radio.shoot_cache.connects == 1
+    body = radio.bodies["u"]
+    lo, hi = np.array(body.mi_mesh.bbox().min, dtype=float), np.array(body.mi_mesh.bbox().max, dtype=float)
+    shots = radio.shoot_cache._shots
+    found = _first_rays_met(radio.scene.mi_scene, shots, tx, _shape_table(radio.scene, [body]),
+                            _boxes_scene(np.array([[lo, hi]])))
+    lattice = np.array(shots.k_tx, dtype=float).reshape(3, -1).T
 
-    _, _, fibonacci_lattice, _, spawn_ray_from_sources = internals.ray_utilities()
-    n, source = 100_000, np.array([0.0, 0.0, 30.0])
-    ray = spawn_ray_from_sources(fibonacci_lattice, n, mi.Point3f(*(float(x) for x in source)))
-    d = np.array(ray.d).T  # (n, 3) unit directions
-    assert d.shape == (n, 3)
-    for centre, radius in (((50.0, 0.0, 1.0), 2.5), ((0.0, 120.0, 1.5), 2.5), ((30.0, -30.0, 30.0), 1.7)):
-        axis = np.array(centre) - source
-        dist = np.linalg.norm(axis)
-        inside = d @ (axis / dist) >= np.sqrt(1 - (radius / dist) ** 2)
-        count = int(inside.sum())
-        assert count > 5
-        assert abs(as_dense_as(n, source, np.array(centre), radius) - count) <= 0.05 * count + 3, (centre, count)
-    assert as_dense_as(n, source, source + [0.5, 0.0, 0.0], 2.0) == min(n, MAX_DENSE_RAYS)
+    def slab(d, lo, hi):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0, t1 = (lo - tx) / d, (hi - tx) / d
+        near, far = np.nanmax(np.minimum(t0, t1), axis=1), np.nanmin(np.maximum(t0, t1), axis=1)
+        return (far >= near) & (far > 0)
+
+    inner = lattice[slab(lattice, lo + 0.01, hi - 0.01)]
+    assert len(inner) >= 50
+    assert slab(found, lo - 0.01, hi + 0.01).all()  # nothing off the box
+    assert len(found) >= len(inner)  # and every ray well inside it
+    assert {tuple(np.round(d, 6)) for d in inner} <= {tuple(np.round(d, 6)) for d in found}
+    plain = RadioScene(RadioConfig(**settings, samples_per_src=100_000, cache_moving_bodies=False), seed=2)
+    plain.place({"u": uav})
+    ref = plain.solve()["u"]
+    assert got.n_paths == ref.n_paths == 2  # the line of sight and the top's reflection
+    assert abs(10 * np.log10(got.path_gain / ref.path_gain)) < 0.01

@@ -125,9 +125,9 @@ class RadioConfig:
     rays_per_moving_object: int = 4096
     """Rays aimed from the transmitter at each moving object's bounding sphere per solve
     (with ``cache_moving_bodies``): 4096 put them about 5 cm apart on a 2 m UAV body, where
-    Sionna's 1e6 rays over the whole sphere are about 1.3 m apart at 200 m. 0: as many as
-    fall on the sphere of ``samples_per_src`` rays spread over all directions (as dense as
-    Sionna's loop; a car 50 m away gets about 60 of 1e5)."""
+    Sionna's 1e6 rays over the whole sphere are about 1.3 m apart at 200 m. 0: none aimed;
+    Sionna's own rays from the transmitter that now meet the object first go on from it (the
+    rays of Sionna's loop, with the same seed: a car 50 m away gets about 60 of 1e5)."""
     threads: int = 0
     """Dr.Jit CPU threads; 0 = all cores. On CPU the solver's parallel sums differ in the
     last float bits from run to run; ``threads = 1`` makes runs bit-identical (measured
@@ -145,7 +145,7 @@ class RadioConfig:
         if self.max_depth < 0 or self.samples_per_src < 1:
             raise ValueError("max_depth must be >= 0 and samples_per_src >= 1")
         if self.rays_per_moving_object < 0:
-            raise ValueError(f"rays_per_moving_object: expected >= 0 (0: as dense as Sionna's rays), got "
+            raise ValueError(f"rays_per_moving_object: expected >= 0 (0: Sionna's own rays), got "
                              f"{self.rays_per_moving_object}")
         if self.max_num_paths_per_src < 1:
             raise ValueError(f"max_num_paths_per_src: expected >= 1, got {self.max_num_paths_per_src}")

@@ -78,9 +78,9 @@ class ShootCache:
     solve's visibility tests (and the image method after it) run in the scene with them where
     they are, so the paths they block are dropped; the paths by way of them come from rays
     aimed at each (``rays_for(obj)`` of them, :data:`RAYS_PER_MOVING_OBJECT` without it; None:
-    as many as fall on it of the solve's rays spread over all directions, :func:`as_dense_as`;
-    0: none, for an object parked out of the scene) and from the recorded rays that now meet
-    one (see :func:`_by_way_of_movers`).
+    Sionna's own rays from the source that now meet it first, :func:`_first_rays_met`; 0: none,
+    for an object parked out of the scene) and from the recorded rays that now meet one after
+    a bounce (see :func:`_by_way_of_movers`).
     """
 
     def __init__(self, generator: Any, fingerprint: Callable[[], Hashable],
@@ -150,15 +150,18 @@ class ShootCache:
             source = np.array(dr.ravel(src_positions).numpy(), dtype=float)[:3]
             asked = [self.rays_for(o) if self.rays_for is not None else self.rays_per_moving_object for o in moving]
             spheres = [(box.mean(axis=0), np.linalg.norm(box[1] - box[0]) / 2) for box in boxes]
-            counts = [as_dense_as(samples_per_src, source, *sphere) if n is None else n
-                      for n, sphere in zip(asked, spheres, strict=True)]
             aimed = np.concatenate([np.zeros((0, 3))] + [
-                aim_at(source, centre, radius, n) for (centre, radius), n in zip(spheres, counts, strict=True)
-                if n > 0])
-            present = boxes[[n > 0 for n in counts]]
+                aim_at(source, centre, radius, n) for (centre, radius), n in zip(spheres, asked, strict=True)
+                if n is not None and n > 0])
+            # Objects given no count (None): Sionna's own first rays (the recorded ones from the
+            # source) that now meet one of them first.
+            own = [i for i, n in enumerate(asked) if n is None]
+            first = _first_rays_met(mi_scene, shots, source, _shape_table(self.scene, [moving[i] for i in own]),
+                                    _boxes_scene(boxes[own])) if own else np.zeros((0, 3))
+            present = boxes[[n is None or n > 0 for n in asked]]
             more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed,
                                      _shape_table(self.scene, moving), aimed,
-                                     _boxes_scene(present) if len(present) else None)
+                                     _boxes_scene(present) if len(present) else None, first)
             if more is not None:
                 _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
         self.paths_counter_per_source = counter
@@ -191,21 +194,6 @@ def _on_shapes(table, si) -> Any:
     dr, mi = _jit()
     ids = dr.minimum(dr.reinterpret_array(mi.UInt32, si.shape), dr.width(table) - 1)
     return si.is_valid() & dr.gather(mi.Bool, table, ids, si.is_valid())
-
-
-MAX_DENSE_RAYS = 16 * RAYS_PER_MOVING_OBJECT
-"""At most this many rays for one object by :func:`as_dense_as` (a transmitter inside or
-next to an object's bounding sphere would otherwise send it a whole solve's rays)."""
-
-
-def as_dense_as(samples_per_src: int, source: np.ndarray, center: np.ndarray, radius: float) -> int:
-    """How many of ``samples_per_src`` rays spread evenly over the sphere of directions fall
-    in the cone from ``source`` that holds the sphere of ``radius`` about ``center``
-    (rounded up, at most :data:`MAX_DENSE_RAYS`): rays aimed at it this many are as dense
-    as Sionna's."""
-    dist = float(np.linalg.norm(np.asarray(center, dtype=float) - np.asarray(source, dtype=float)))
-    cos_half = np.sqrt(1 - (radius / dist) ** 2) if dist > radius else -1.0
-    return min(int(np.ceil(samples_per_src * (1 - cos_half) / 2)), MAX_DENSE_RAYS)
 
 
 def aim_at(source: np.ndarray, center: np.ndarray, radius: float, count: int) -> np.ndarray:
@@ -510,14 +498,31 @@ def _met_by_movers(mi_scene, shots: _Shots, max_depth: int, movers, near) -> lis
     return picked
 
 
+def _first_rays_met(mi_scene, shots: _Shots, source: np.ndarray, table, near) -> np.ndarray:
+    """The directions (m, 3) of the recorded rays from the source (Sionna's Fibonacci lattice,
+    ``shots.k_tx``) whose first hit is now on a shape that ``table`` marks: those that meet one
+    of the boxes of ``near`` (:func:`_boxes_scene`) are cast again in the whole scene."""
+    dr, mi = _jit()
+    origin = mi.Point3f(*(float(x) for x in source))
+    ahead = dr.compress(near.ray_test(mi.Ray3f(origin, shots.k_tx)))
+    if dr.width(ahead) == 0:
+        return np.zeros((0, 3))
+    d = dr.gather(mi.Vector3f, shots.k_tx, ahead)
+    on = np.asarray(_on_shapes(table, mi_scene.ray_intersect_preliminary(mi.Ray3f(origin, d), coherent=False)),
+                    dtype=bool)
+    return np.array(d, dtype=float).reshape(3, -1).T[on]
+
+
 def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: int, flags, seed: int, movers,
-                      aimed: np.ndarray, near=None) -> _Shots | None:
+                      aimed: np.ndarray, near=None, first: np.ndarray | None = None) -> _Shots | None:
     """The rays that meet a moving object, bounced in the scene as it is now and connected
     from their first hit on one (one bounce loop for all, each ray setting off at its own
     depth):
 
     * ``aimed`` rays from the source at the objects (depth 1), for the paths that meet one
       first, with the diffuse branch off (their density is not Sionna's);
+    * ``first``: Sionna's own rays from the source (directions) that meet one first
+      (:func:`_first_rays_met`), with every interaction Sionna's loop enables;
     * the rays of the recorded bounces that now meet one after a bounce on the static scene
       (Sionna's loop, run now, would send them onto it): each goes on from the depth at which
       it meets it, with the interactions it had before."""
@@ -526,9 +531,10 @@ def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: in
 
     InteractionType, WedgeGeometry, _, _, _ = internals.ray_utilities()
     sample_fields = internals.sample_data_fields()
-    specular_on, _, refraction_on, diffraction_on, _ = flags
+    specular_on, diffuse_on, refraction_on, diffraction_on, _ = flags
     picked = _met_by_movers(mi_scene, shots, max_depth, movers, near)
-    a = len(aimed)
+    first = np.zeros((0, 3)) if first is None else first
+    a = len(aimed) + len(first)
     used = a + sum(len(pick) for _, pick in picked)
     if used == 0:  # every moving object parked, none met: no paths by way of them
         return None
@@ -541,10 +547,12 @@ def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: in
     enabled = sum(int(kind) for on, kind in ((specular_on, InteractionType.SPECULAR),
                                              (refraction_on, InteractionType.REFRACTION),
                                              (diffraction_on, InteractionType.DIFFRACTION)) if on)
+    all_enabled = enabled | (int(InteractionType.DIFFUSE) if diffuse_on else 0)
     origin = np.repeat(np.array(dr.ravel(src_positions).numpy(), dtype=np.float32)[None, :3], a, axis=0)
-    o, d_, k_tx = [origin], [aimed.astype(np.float32)], [aimed.astype(np.float32)]
-    chain, loc, h0, h1 = [np.ones(a, bool)], [np.full(a, enabled, np.uint32)], [np.zeros(a, np.uint64)], \
-        [np.zeros(a, np.uint64)]
+    start_dirs = np.concatenate([aimed, first]).astype(np.float32)
+    o, d_, k_tx = [origin], [start_dirs], [start_dirs]
+    chain, h0, h1 = [np.ones(a, bool)], [np.zeros(a, np.uint64)], [np.zeros(a, np.uint64)]
+    loc = [np.r_[np.full(len(aimed), enabled, np.uint32), np.full(len(first), all_enabled, np.uint32)]]
     start, src = [np.ones(a, np.uint32)], [np.zeros(a, np.uint32)]
     wedges = WedgeGeometry.build_with_size(k) if shots.wedges is not None else None
     diffraction_depth = dr.zeros(mi.UInt, k)

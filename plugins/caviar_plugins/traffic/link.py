@@ -70,9 +70,9 @@ class SionnaTrafficLinkParams(SionnaLinkParams):
     """Vehicles and persons as boxes in the scene (false: receivers only)."""
     rays_per_moving_object: int = 0
     """With the shoot cache (``cache_moving_bodies``), the rays aimed at each box per solve;
-    0 (here the default): as dense as the solve's ``samples_per_src`` rays spread over all
-    directions, so that the paths by way of vehicles are found as often as Sionna's loop
-    finds them (a car 50 m away gets about 60 of 1e5)."""
+    0 (here the default): none aimed, Sionna's own rays from the transmitter that now meet a
+    box first go on from it, so that the paths by way of vehicles are those of Sionna's loop
+    (a car 50 m away gets about 60 of 1e5)."""
 
     def __post_init__(self):
         super().__post_init__()
