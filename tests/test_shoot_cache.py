@@ -275,6 +275,40 @@ def test_the_box_prefilter_finds_every_recorded_ray_that_now_meets_a_moving_obje
     assert got == every and sum(map(len, every.values())) >= 5, every
 
 
+def test_the_one_loop_bounce_records_what_the_per_depth_bounce_records():
+    """The moving objects' rays bounce in one Dr.Jit symbolic loop (``_bounce_in_one_loop``),
+    the recorded static bounces one wavefront per depth (``_bounce``). From the same first
+    rays (Sionna's lattice, its sampler seeded alike) both keep the same rays alive at each
+    depth, with the same chain groups, diffuse rays, hashes and diffracting depths, hit points,
+    normals and sample data, bit for bit (threads = 1)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from caviar_plugins.radio.shoot_cache import _bounce, _bounce_in_one_loop, _first_rays
+
+    radio = scene(True, samples_per_src=4000, max_depth=3)
+    c = radio.cfg
+    gen = radio.shoot_cache.generator  # (Sionna's own generator, which the cache stands in for)
+    source = radio.scene.sources(True, False)[0]
+    flags = (c.specular_reflection, c.diffuse_reflection, c.refraction, c.diffraction, False)
+    mi_scene = radio.scene.mi_scene
+    per_depth, state = _first_rays(gen, source, c.samples_per_src, c.max_depth, flags, radio.seed)
+    _bounce(gen, mi_scene, per_depth, state, c.max_depth, flags, keep_state=False)
+    one, state = _first_rays(gen, source, c.samples_per_src, c.max_depth, flags, radio.seed)
+    state["touched"] = dr.full(mi.Bool, True, one.width)
+    _bounce_in_one_loop(gen, mi_scene, one, state, c.max_depth, flags, None, start=dr.full(mi.UInt, 1, one.width))
+    assert len(per_depth.depths) == len(one.depths) == c.max_depth
+    for a, b in zip(per_depth.depths, one.depths, strict=True):
+        assert len(np.asarray(a["lane"])) > 100 and np.array_equal(np.asarray(a["lane"]), np.asarray(b["lane"]))
+        for key in ("grouped", "starts", "sizes", "diffuse_rays", "h0", "h1"):
+            assert np.array_equal(a[key], b[key]), key
+        assert np.array_equal(np.array(a["p"]), np.array(b["p"])) and np.array_equal(np.array(a["n"]), np.array(b["n"]))
+    assert len(per_depth.depths[0]["diffuse_rays"]) > 0 and len(per_depth.depths[0]["grouped"]) > 0
+    for field in ("interaction_type", "shape", "primitive", "vertex", "prob"):
+        assert np.array_equal(np.array(getattr(per_depth.samples, field)), np.array(getattr(one.samples, field))), field
+    assert np.array_equal(np.asarray(per_depth.diffraction_depth), np.asarray(one.diffraction_depth))
+
+
 def test_a_negative_ray_count_for_moving_objects_is_refused_by_name():
     with pytest.raises(ValueError, match=r"rays_per_moving_object: expected >= 0 .*got -1"):
         RadioConfig(rays_per_moving_object=-1)

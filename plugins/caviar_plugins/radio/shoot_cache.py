@@ -237,6 +237,15 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
 
     ``keep_state``: each depth's record also keeps what a ray needs to go on from there
     (:func:`_by_way_of_movers`)."""
+    shots, state = _first_rays(gen, src_positions, samples_per_src, max_depth, flags, seed)
+    shots.keeps_state = keep_state
+    _bounce(gen, mi_scene, shots, state, max_depth, flags, keep_state=keep_state)
+    return shots
+
+
+def _first_rays(gen, src_positions, samples_per_src: int, max_depth: int, flags, seed: int) -> tuple[_Shots, dict]:
+    """The shots of :func:`_shoot` before any bounce, and the rays' state as Sionna's loop
+    starts it (its Fibonacci lattice from each source, its sampler seeded)."""
     dr, mi = _jit()
     from caviar_plugins.radio import sionna_internals as internals
 
@@ -250,7 +259,6 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
     shots.samples = dr.zeros(internals.sample_data_fields(), n * max(1, max_depth))
     shots.src_indices = internals.source_index_per_sample(num_sources, samples_per_src)
     ray = spawn_ray_from_sources(fibonacci_lattice, samples_per_src, src_positions)
-    shots.keeps_state = keep_state
     shots.k_tx = dr.copy(ray.d)
     enabled = 0
     for on, kind in ((specular_on, InteractionType.SPECULAR), (diffuse_on, InteractionType.DIFFUSE),
@@ -262,8 +270,7 @@ def _shoot(gen, mi_scene, src_positions, samples_per_src: int, max_depth: int, f
     state = {"ray": ray, "specular_chain": dr.full(mi.Bool, True, n),
              "hashes": [dr.zeros(mi.UInt64, n) for _ in internals.hashers(gen)[0]],
              "active": dr.full(mi.Mask, True, n), "loc_en_inter": dr.full(mi.UInt, enabled, n)}
-    _bounce(gen, mi_scene, shots, state, max_depth, flags, keep_state=keep_state)
-    return shots
+    return shots, state
 
 
 def _interact(gen, mi_scene, sampler, ray, active, loc_en_inter, specular_chain, hashes, flags, waiting=None):
