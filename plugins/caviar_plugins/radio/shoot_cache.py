@@ -153,15 +153,16 @@ class ShootCache:
             aimed = np.concatenate([np.zeros((0, 3))] + [
                 aim_at(source, centre, radius, n) for (centre, radius), n in zip(spheres, asked, strict=True)
                 if n is not None and n > 0])
-            # Objects given no count (None): Sionna's own first rays (the recorded ones from the
-            # source) that now meet one of them first.
-            own = [i for i, n in enumerate(asked) if n is None]
-            first = _first_rays_met(mi_scene, shots, source, _shape_table(self.scene, [moving[i] for i in own]),
-                                    _boxes_scene(boxes[own])) if own else np.zeros((0, 3))
             present = boxes[[n is None or n > 0 for n in asked]]
+            near = _boxes_scene(present) if len(present) else None
+            # Objects given no count (None): Sionna's own first rays (the recorded ones from the
+            # source) that now meet one of them first (the boxes of all present objects
+            # prefilter them; the shape table keeps those on these objects).
+            own = [obj for obj, n in zip(moving, asked, strict=True) if n is None]
+            first = _first_rays_met(mi_scene, shots, source, _shape_table(self.scene, own), near) if own \
+                else np.zeros((0, 3))
             more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed,
-                                     _shape_table(self.scene, moving), aimed,
-                                     _boxes_scene(present) if len(present) else None, first)
+                                     _shape_table(self.scene, moving), aimed, near, first)
             if more is not None:
                 _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
         self.paths_counter_per_source = counter
@@ -508,7 +509,8 @@ def _met_by_movers(mi_scene, shots: _Shots, max_depth: int, movers, near) -> lis
 def _first_rays_met(mi_scene, shots: _Shots, source: np.ndarray, table, near) -> np.ndarray:
     """The directions (m, 3) of the recorded rays from the source (Sionna's Fibonacci lattice,
     ``shots.k_tx``) whose first hit is now on a shape that ``table`` marks: those that meet one
-    of the boxes of ``near`` (:func:`_boxes_scene`) are cast again in the whole scene."""
+    of the boxes of ``near`` (:func:`_boxes_scene`, boxes around those shapes and maybe
+    others) are cast again in the whole scene."""
     dr, mi = _jit()
     origin = mi.Point3f(*(float(x) for x in source))
     ahead = dr.compress(near.ray_test(mi.Ray3f(origin, shots.k_tx)))
