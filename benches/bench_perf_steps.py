@@ -22,6 +22,7 @@ Writes docs/results/perf-steps.json and docs/results/perf-steps.png.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import pathlib
@@ -263,6 +264,22 @@ ISSUE_24_FILED_AT = "ef1d136"
 """The last commit before issue #24's work: "today's" main job of the issue's target."""
 
 
+@contextlib.contextmanager
+def plugins_at(work: pathlib.Path, rev: str):
+    """A git worktree of ``rev`` under ``work`` (removed afterwards, even when a run fails) and
+    the environment that runs its plugins: the tree's ``plugins`` first on ``PYTHONPATH``, with
+    this checkout's Rust core. Yields (tree, env)."""
+    import subprocess
+
+    tree = work / f"tree-{rev}"
+    if not tree.exists():
+        subprocess.run(["git", "worktree", "add", "--detach", str(tree), rev], check=True)
+    try:
+        yield tree, {**os.environ, "PYTHONPATH": str(tree / "plugins")}
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(tree)], check=False)
+
+
 def bench_main_job(work: pathlib.Path, old_rev: str = ISSUE_24_FILED_AT) -> dict:
     """The README's main job (the SAR blueprint, to the end of its mission), old then new,
     whole wall time:
@@ -274,22 +291,17 @@ def bench_main_job(work: pathlib.Path, old_rev: str = ISSUE_24_FILED_AT) -> dict
 
     Also per module: the wall time of the steps where the UAV moved and of those where it
     hovered. Links are compared where the UAV was at the same place."""
-    import os
     import subprocess
     import sys
 
     import caviar
 
     exe = pathlib.Path(sys.executable).parent / "caviar-core"
-    old_tree = work / f"tree-{old_rev}"
-    if not old_tree.exists():
-        subprocess.run(["git", "worktree", "add", "--detach", str(old_tree), old_rev], check=True)
     res: dict = {"old_rev": old_rev}
     logs = {}
-    try:  # (the worktree is removed even when a run fails)
-        for label, tree in (("old", old_tree), ("new", pathlib.Path.cwd())):
+    with plugins_at(work, old_rev) as (old_tree, old_env):
+        for label, tree, env in (("old", old_tree, old_env), ("new", pathlib.Path.cwd(), None)):
             out = work / f"main-job-{label}"
-            env = {**os.environ, "PYTHONPATH": str(tree / "plugins")} if label == "old" else None
             t0 = time.perf_counter()
             subprocess.run([str(exe), "run", str(tree / "blueprints/sar/config.toml"), "--quiet", "--out", str(out)],
                            check=True, env=env)
@@ -304,8 +316,6 @@ def bench_main_job(work: pathlib.Path, old_rev: str = ISSUE_24_FILED_AT) -> dict
                           "modules_s": module_times(log)}
             logs[label] = log
             print(f"main job {label}: {res[label]}", flush=True)
-    finally:
-        subprocess.run(["git", "worktree", "remove", "--force", str(old_tree)], check=False)
     res["ratio"] = res["new"]["wall_s"] / res["old"]["wall_s"]
     # The two missions drift apart after the first rescue (hover times follow the throughput):
     # links are compared where the UAV was at the same place (to the millimetre), not by step.
@@ -373,7 +383,6 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
     old path) and Sionna's loop on the next seed (the Monte Carlo noise) are compared, per
     connected receiver, with Sionna's loop with an 8x larger specular-chain table on the same
     geometry."""
-    import os
     import subprocess
     import sys
 
@@ -386,21 +395,17 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
     from caviar_plugins.traffic.link import SionnaTrafficLink, SionnaTrafficLinkParams
 
     exe = pathlib.Path(sys.executable).parent / "caviar-core"
-    old_tree = work / f"tree-{old_rev}"
-    if not old_tree.exists():
-        subprocess.run(["git", "worktree", "add", "--detach", str(old_tree), old_rev], check=True)
     variants = {"old": [], "loop": ["modules.comm.params.shoot_cache=false"], "new": [],
                 "floor": ["modules.comm.params.scatterers=false"]}
     per_step: dict[str, list] = {k: [] for k in variants}
     comm: dict[str, list] = {k: [] for k in variants}
     res: dict = {"steps": steps, "reps": reps, "old_rev": old_rev}
     log = None
-    try:  # (the worktree is removed even when a run fails)
+    with plugins_at(work, old_rev) as (old_tree, old_env):
         for rep in range(reps):
             for label, sets in variants.items():
                 out = work / f"traffic-{label}-{rep}"
-                tree = old_tree if label == "old" else pathlib.Path.cwd()
-                env = {**os.environ, "PYTHONPATH": str(tree / "plugins")} if label == "old" else None
+                tree, env = (old_tree, old_env) if label == "old" else (pathlib.Path.cwd(), None)
                 subprocess.run([str(exe), "run", str(tree / TRAFFIC), "--quiet", "--out", str(out), "--set",
                                 f"episode.steps={steps}", *(x for kv in sets for x in ("--set", kv))],
                                check=True, env=env)
@@ -415,8 +420,6 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
                     log = run
                     statuses = run.topic(caviar.STATUS_TOPIC)
                     res[label]["status"] = statuses["value"].to_list()[-1] if len(statuses) else None
-    finally:
-        subprocess.run(["git", "worktree", "remove", "--force", str(old_tree)], check=False)
     for label in variants:
         res[label].update(step_s_median=float(np.median(per_step[label])),
                           comm_s_median=float(np.median(comm[label])))
