@@ -475,19 +475,42 @@ function updateInfo(step) {
 function esc(s) { return String(s).replace(/[&<>"']/g, (c) => ({ '&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;' }[c])); }
 
 let frameLoading = false;
+const frameFailures = new Map(); // topic@step -> failed loads
+function currentFrame() { if (S.index >= 0) updateFrame(S.steps[S.index]); }
+// A frame loads off-screen and replaces the shown one once decoded: the panel never shows
+// a half-loaded or broken image, and the frame it shows is always the step it names. A
+// frame the server could not give keeps the last one and is asked again, a few times; a
+// step reached while a frame loads gets its own once that one is done.
 function updateFrame(step) {
-  const img = $('frame');
   const topic = S.frameTopic;
   if (!topic) return;
   const steps = S.frames.get(topic) || [];
   const i = lastIndexAtOrBefore(steps, step);
   const fs = i >= 0 ? steps[i] : null;
   if (fs === S.frameShown || frameLoading) return;
-  if (fs === null) { img.removeAttribute('src'); $('framenote').textContent = `${topic}: no frame yet`; S.frameShown = null; return; }
+  if (fs === null) { $('frame').removeAttribute('src'); $('framenote').textContent = `${topic}: no frame yet`; S.frameShown = null; return; }
+  const key = `${topic}@${fs}`;
+  if ((frameFailures.get(key) || 0) >= 3) return;
   frameLoading = true;
-  img.onload = () => { frameLoading = false; S.frameShown = fs; $('framenote').textContent = `${topic} · step ${fs}`; };
-  img.onerror = () => { frameLoading = false; $('framenote').textContent = `${topic}: frame of step ${fs} unavailable`; };
-  img.src = `/api/frame?topic=${encodeURIComponent(topic)}&step=${fs}`;
+  const next = new Image();
+  next.id = 'frame';
+  next.alt = '';
+  next.onload = () => {
+    frameLoading = false;
+    if (topic !== S.frameTopic) return;
+    $('frame').replaceWith(next);
+    S.frameShown = fs;
+    $('framenote').textContent = `${topic} · step ${fs}`;
+    currentFrame(); // the step moved on while this one loaded
+  };
+  next.onerror = () => {
+    frameLoading = false;
+    frameFailures.set(key, (frameFailures.get(key) || 0) + 1);
+    $('frame').classList.add('stale'); // the last frame stays, dimmed, under a note saying so
+    $('framenote').textContent = `${topic}: frame of step ${fs} unavailable`;
+    setTimeout(currentFrame, 300);
+  };
+  next.src = `/api/frame?topic=${encodeURIComponent(topic)}&step=${fs}`;
 }
 
 // ---------------------------------------------------------------- plots
@@ -543,6 +566,7 @@ function rebuildSeries() {
     const topics = [...S.frames.keys()].sort((a, b) => (frameRank(a) - frameRank(b)) || a.localeCompare(b));
     S.frameTopic = topics[0];
     $('framenote').textContent = S.frameTopic;
+    currentFrame(); // the step was shown before its frames' topic was known
   }
   S.seriesDirty = false;
 }

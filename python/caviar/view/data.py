@@ -20,7 +20,7 @@ import os
 import pathlib
 import threading
 import time as _time
-from typing import Any
+from typing import IO, Any
 
 import tomllib
 
@@ -348,7 +348,6 @@ class RunData:
         """The image on ``topic`` at the latest step <= ``step`` as (step, uint8 H×W×{1,3,4}),
         or None."""
         import numpy as np
-        import polars as pl
 
         with self._lock:
             steps = self.frames.get(topic)
@@ -359,12 +358,8 @@ class RunData:
                 return None
             s = max(cands)
             f = steps[s]
-        # The part is gone when the recorder merged it into a chunk, or the run finished
-        # and compacted its parts: look in the table's files as they are now.
-        where = [f] if f.is_file() else self.run.table_files("messages")
-        df = pl.scan_parquet(where).filter((pl.col("step") == s) & (pl.col("topic") == topic)).select(
-            "data", "meta").collect()
-        if df.is_empty():
+        df = self._frame_rows(topic, s, f)
+        if df is None or df.is_empty():
             return None
         data, meta = df.row(-1)
         info = json.loads(meta) if meta else {}
@@ -380,6 +375,32 @@ class RunData:
             hi = a.max() if a.size and a.max() > 1.0 else 1.0
             arr = (np.clip(a / hi, 0, 1) * 255 + 0.5).astype(np.uint8)
         return s, arr
+
+    frame_read_tries = 5
+    """Listings of a frame's files before it is given up: a file can vanish between being
+    listed and being opened (the recorder merged its parts, or compacted the finished run)."""
+
+    def _frame_rows(self, topic: str, step: int, part: pathlib.Path):
+        """The rows of ``topic`` at ``step`` (data, meta), read from the file that held
+        them when indexed or, once that is gone, from the table's files as they are now.
+        The files are opened first and read through their handles, so a file removed
+        after that is still read whole; one removed between listing and opening is
+        listed again. None when every try met a file that went away."""
+        import contextlib
+
+        import polars as pl
+
+        for attempt in range(self.frame_read_tries):
+            with contextlib.ExitStack() as stack:
+                try:
+                    where = [part] if part.is_file() else self.run.table_files("messages")
+                    handles: list[IO[bytes]] = [stack.enter_context(open(f, "rb")) for f in where]
+                except OSError:  # FileNotFoundError included: list again
+                    _time.sleep(0.002 * (attempt + 1))
+                    continue
+                return pl.scan_parquet(handles).filter(
+                    (pl.col("step") == step) & (pl.col("topic") == topic)).select("data", "meta").collect()
+        return None
 
 
 def png_bytes(arr) -> bytes:
