@@ -354,3 +354,37 @@ def test_sionnas_own_first_rays_that_meet_a_moving_body_are_those_a_slab_test_fi
     ref = plain.solve()["u"]
     assert got.n_paths == ref.n_paths == 2  # the line of sight and the top's reflection
     assert abs(10 * np.log10(got.path_gain / ref.path_gain)) < 0.01
+
+
+def test_targets_behind_a_reflecting_plane_go_untested_and_the_paths_stay(monkeypatch):
+    """A specular chain whose last interaction is a reflection cannot reach a target on the
+    far side of that plane, so the cache does not test the target's visibility there. The
+    links are those found with every pair tested, and about half the tests are gone."""
+    from caviar_plugins.radio import shoot_cache
+
+    tested = []
+    visibility = shoot_cache._visibility
+
+    def counting(mi_scene, rec, tgt, rays, targets):
+        tested.append(len(rays))
+        return visibility(mi_scene, rec, tgt, rays, targets)
+
+    monkeypatch.setattr(shoot_cache, "_visibility", counting)
+    radio = scene(True)
+    for shift in (0.0, 0.0):  # Sionna's loop, then the recording
+        solve(radio, shift)
+    counts = {}
+    for shift in (1.0, 2.5):
+        links = {}
+        for cull in (False, True):
+            radio.shoot_cache.cull_behind = cull
+            tested.clear()
+            radio.place({k: p + [shift, 0.0, 0.0] for k, p in RECEIVERS.items()})
+            links[cull] = radio.solve(force=True)
+            counts.setdefault(cull, []).append(sum(tested))
+        assert_same_links(links[True], links[False])
+        for key, link in links[True].items():
+            assert link.n_paths == links[False][key].n_paths > 0, key
+    assert radio.shoot_cache.connects == 4
+    saved = 1 - sum(counts[True]) / sum(counts[False])
+    assert 0.2 < saved < 0.9, counts

@@ -42,6 +42,7 @@ step costs nothing extra.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Hashable, Sequence
 from typing import Any
 
@@ -92,6 +93,8 @@ class ShootCache:
         self.scene = scene
         self.rays_per_moving_object = RAYS_PER_MOVING_OBJECT
         self.rays_for = rays_for
+        self.cull_behind = True
+        """Whether targets behind a reflecting plane go untested (:func:`_behind_reflections`)."""
         self._seen: Hashable | None = None
         self._key: Hashable | None = None
         self._shots: _Shots | None = None
@@ -142,7 +145,7 @@ class ShootCache:
         counter = dr.zeros(mi.UInt, num_sources)
         if los:
             internals.add_line_of_sight(self.generator, mi_scene, src_positions, tgt_positions, paths, counter)
-        _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
+        _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src, self.cull_behind)
         if moving:
             # Paths by way of the moving objects (see _by_way_of_movers).
             boxes = np.array([[np.array(o.mi_mesh.bbox().min), np.array(o.mi_mesh.bbox().max)] for o in moving],
@@ -164,7 +167,7 @@ class ShootCache:
             more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed,
                                      _shape_table(self.scene, moving), aimed, near, first)
             if more is not None:
-                _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src)
+                _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src, self.cull_behind)
         self.paths_counter_per_source = counter
         self.connects += 1
         return paths
@@ -689,11 +692,47 @@ def _visibility(mi_scene, rec: dict, tgt_positions, rays, targets):
     return np.asarray(visible, dtype=bool), np.asarray(side, dtype=bool), direction
 
 
-def _first_visible(mi_scene, rec: dict, tgt_positions, num_targets: int):
+BEHIND_COS = -1e-3
+"""A target is behind a reflecting surface when the cosine between the surface's normal
+(towards the incident side) and the direction to the target is below this: about 0.06°
+beyond the plane, so that rounding never decides."""
+
+
+def _behind_reflections(shots: _Shots, depth: int, rec: dict, tgt_positions, rays):
+    """For each of ``rays`` (indices into a depth's record) and each target: whether the
+    ray's interaction there is a specular reflection and the target lies behind the
+    reflecting plane, (rays, targets) bool; None when none of ``rays`` reflects. No
+    specular path ends on that reflection with that target (the image method finds no
+    reflection point between a target and its mirror image on the same side), so such a
+    pair need not be tested for visibility: with 10 targets, 98 % of those tests see
+    nothing, and about half of them are behind. Refraction, diffraction and diffuse
+    ends are never culled."""
+    import numpy as np
+
+    from caviar_plugins.radio import sionna_internals as internals
+
+    dr, mi = _jit()
+    InteractionType = internals.ray_utilities()[0]
+    j = _array(mi.UInt, rays.astype(np.uint32))
+    kinds = shots.samples.interaction_type
+    index = dr.opaque(mi.UInt, (depth - 1) * shots.width) + dr.gather(mi.UInt, rec["lane"], j)
+    reflects = np.asarray(dr.gather(type(kinds), kinds, index)) == int(InteractionType.SPECULAR)
+    if not reflects.any():
+        return None
+    p = np.asarray(dr.gather(mi.Point3f, rec["p"], j))  # (3, rays)
+    n = np.asarray(dr.gather(mi.Normal3f, rec["n"], j))
+    d = np.asarray(tgt_positions)[:, None, :] - p[:, :, None]  # (3, rays, targets)
+    cos = np.einsum("ir,irt->rt", n, d) / np.maximum(np.sqrt(np.einsum("irt,irt->rt", d, d)), 1e-12)
+    return reflects[:, None] & (cos < BEHIND_COS)
+
+
+def _first_visible(mi_scene, rec: dict, tgt_positions, num_targets: int, behind: Callable | None = None):
     """For every (target, chain) pair of a depth, the first ray of the chain's group (in
     ray order) whose hit point the target sees, or -1. Tested in rounds that double the
     rays tried per unresolved pair (1, 2, 4, ...): a chain seen by its first ray costs
-    one test instead of one per ray."""
+    one test instead of one per ray. ``behind(rays)`` (optional, :func:`_behind_reflections`)
+    names the (ray, target) pairs that cannot end a path: asked for each group's first ray,
+    it rules out the group for that target, without a test."""
     import numpy as np
 
     grouped, starts, sizes = rec["grouped"], rec["starts"], rec["sizes"]
@@ -703,6 +742,12 @@ def _first_visible(mi_scene, rec: dict, tgt_positions, num_targets: int):
     first = np.full(g * num_targets, -1, dtype=np.int64)
     tried = np.zeros(g * num_targets, dtype=np.int64)
     todo = np.arange(g * num_targets)
+    if behind is not None and g:
+        # A group's rays share the chain, hence its last plane: which side of that plane
+        # a target is on is the same for each, so the group's first ray decides.
+        cut = behind(grouped[starts])  # (groups, targets)
+        if cut is not None:
+            todo = todo[~cut.T.reshape(-1)]  # pairs are target-major
     r = 0
     while len(todo):
         count = np.minimum(1 << r, sizes[pair_group[todo]] - tried[todo])
@@ -721,7 +766,8 @@ def _first_visible(mi_scene, rec: dict, tgt_positions, num_targets: int):
     return first, pair_target
 
 
-def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src: int) -> None:
+def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src: int,
+             cull_behind: bool = True) -> None:
     """Sionna's inner loop over targets, depth by depth, with exact deduplication:
     specular chains are grouped by hash, and a (chain, target) pair is stored from the
     first ray of the chain that sees the target, in ray order. Sionna's rule for its two
@@ -735,7 +781,8 @@ def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_pat
     for depth, rec in enumerate(shots.depths, start=1):
         if dr.width(rec["lane"]) == 0:  # (aimed rays: none has touched a moving object yet)
             continue
-        first, pair_target = _first_visible(mi_scene, rec, tgt_positions, num_targets)
+        behind = functools.partial(_behind_reflections, shots, depth, rec, tgt_positions) if cull_behind else None
+        first, pair_target = _first_visible(mi_scene, rec, tgt_positions, num_targets, behind)
         hit = first >= 0
         rays, targets = first[hit], pair_target[hit]
         order = np.lexsort((rays, targets))
