@@ -504,20 +504,31 @@ def bench_sar(n: int, duration: float, samples: int, forecast: int, work: pathli
     from caviar.report import summary
 
     res: dict = {"uavs": n, "virtual_s": duration, "lookahead_steps": forecast}
+    from caviar_plugins.radio.shoot_cache import ShootCache
+
     logs = {}
-    for label, new in (("old", False), ("new", True)):
+    # new_without_cull: the new path testing every target at every reflection, as Sionna
+    # does (ShootCache.cull_behind = False): what the cull of targets behind a plane saves.
+    for label, new in (("old", False), ("new", True), ("new_without_cull", True)):
         cfg = work / f"sar-{n}-{label}.toml"
         cfg.write_text(sar_config(n, duration, samples, new, forecast))
         run = work / f"run-{n}-{label}"
         if run.exists():
             shutil.rmtree(run)
-        logs[label] = caviar.Simulation.from_toml(cfg, out=run).run()
+        ShootCache.cull_behind = label != "new_without_cull"
+        try:
+            logs[label] = caviar.Simulation.from_toml(cfg, out=run).run()
+        finally:
+            ShootCache.cull_behind = True
         s = summary(run)
         m = s["modules"]
         res[label] = {"wall_s": s["wall_s"], "tp_tv": s["wall_s"] / s["virtual_time_s"],
                       **{f"{k}_s_per_step": m[k]["wall_s_per_step"] for k in ("comm", "camera", "detector")}}
         print(f"SAR {n} UAV(s) {label}: T_p/T_v = {res[label]['tp_tv']:.2f} {res[label]}", flush=True)
     res["ratio"] = res["new"]["tp_tv"] / res["old"]["tp_tv"]
+    res["cull_ratio"] = res["new"]["tp_tv"] / res["new_without_cull"]["tp_tv"]
+    res["cull_same_links"] = bool(logs["new"].topic("communications.link").sort(["step", "UE_Id"])["best_pair"].equals(
+        logs["new_without_cull"].topic("communications.link").sort(["step", "UE_Id"])["best_pair"]))
     # Accuracy of the new run's links against the old run's (every step traced, UAV bodies on).
     a, b = (logs[k].topic("communications.link").sort(["step", "UE_Id"]) for k in ("old", "new"))
     thr_a, thr_b = a["best_throughput"].to_numpy(), b["best_throughput"].to_numpy()

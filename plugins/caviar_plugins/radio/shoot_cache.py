@@ -17,7 +17,9 @@ targets. A UAV flying through a static city changes only the targets.
 * **connect** (every solve): per depth, the visibility of each target from the live
   rays' hit points (Sionna's test), the specular-chain deduplication and the storing of
   paths, as in Sionna's inner loop but over the live rays only (Sionna's loop runs every
-  ray of a packet until the last one dies).
+  ray of a packet until the last one dies). A target behind the plane of a chain's last
+  reflection is not tested: no specular path ends there (:func:`_behind_reflections`);
+  Sionna tests it and the image method drops the candidate.
 
 Deduplication is exact here. Sionna marks a specular chain as seen in a table of
 max(``max_num_paths_per_src``, 1e6) counters indexed by hash modulo its size, and a
@@ -84,6 +86,10 @@ class ShootCache:
     a bounce (see :func:`_by_way_of_movers`).
     """
 
+    cull_behind = True
+    """Whether targets behind a chain's last reflecting plane go untested
+    (:func:`_behind_reflections`); False tests them as Sionna does, for comparison."""
+
     def __init__(self, generator: Any, fingerprint: Callable[[], Hashable],
                  movers: Callable[[], Sequence[Any]] | None = None, scene: Any = None,
                  rays_for: Callable[[Any], int | None] | None = None):
@@ -93,8 +99,6 @@ class ShootCache:
         self.scene = scene
         self.rays_per_moving_object = RAYS_PER_MOVING_OBJECT
         self.rays_for = rays_for
-        self.cull_behind = True
-        """Whether targets behind a reflecting plane go untested (:func:`_behind_reflections`)."""
         self._seen: Hashable | None = None
         self._key: Hashable | None = None
         self._shots: _Shots | None = None
