@@ -710,7 +710,14 @@ def _behind_reflections(shots: _Shots, depth: int, rec: dict, tgt_positions, ray
     reflection point between a target and its mirror image on the same side), so such a
     pair need not be tested for visibility: with 10 targets, 98 % of those tests see
     nothing, and about half of them are behind. Refraction, diffraction and diffuse
-    ends are never culled."""
+    ends are never culled, nor chains with a diffraction before the reflection.
+
+    The side is the one the recorded ray came from. That is exact at the first bounce
+    (the wave comes from the transmitter); later, the image method moves the previous
+    vertex within its triangle, which stays on that side unless the triangle crosses the
+    reflecting plane: meshes whose faces meet but do not cross (buildings on the ground)
+    keep it. Checked against unculled solves in tests/test_shoot_cache.py and on the
+    10-UAV SAR route (benches/bench_perf_steps.py: ``cull_same_links``)."""
     import numpy as np
 
     from caviar_plugins.radio import sionna_internals as internals
@@ -721,6 +728,13 @@ def _behind_reflections(shots: _Shots, depth: int, rec: dict, tgt_positions, ray
     kinds = shots.samples.interaction_type
     index = dr.opaque(mi.UInt, (depth - 1) * shots.width) + dr.gather(mi.UInt, rec["lane"], j)
     reflects = np.asarray(dr.gather(type(kinds), kinds, index)) == int(InteractionType.SPECULAR)
+    if shots.diffraction_depth is not None:
+        # After a diffraction the path's previous vertex is a point of an edge, which the
+        # image method moves along it: the edge may lie in the reflecting plane or cross
+        # it, so the side the wave comes from is not the recorded one (seen on the SAR
+        # route: a diffraction-reflection path lost). Such chains are always tested.
+        diffracted = np.asarray(dr.gather(mi.UInt, shots.diffraction_depth, dr.gather(mi.UInt, rec["lane"], j)))
+        reflects &= ~((diffracted > 0) & (diffracted < depth))
     if not reflects.any():
         return None
     p = np.asarray(dr.gather(mi.Point3f, rec["p"], j))  # (3, rays)
