@@ -504,10 +504,9 @@ def bench_sar(n: int, duration: float, samples: int, forecast: int, work: pathli
 
     import caviar
     from caviar.report import summary
-
-    res: dict = {"uavs": n, "virtual_s": duration, "lookahead_steps": forecast}
     from caviar_plugins.radio.shoot_cache import ShootCache
 
+    res: dict = {"uavs": n, "virtual_s": duration, "lookahead_steps": forecast}
     logs = {}
     # new_without_cull: the new path testing every target at every reflection, as Sionna
     # does (ShootCache.cull_behind = False): what the cull of targets behind a plane saves.

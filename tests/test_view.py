@@ -36,6 +36,18 @@ def run_caviar(*args, env=None, **kw):
     return subprocess.Popen([sys.executable, "-m", "caviar.cli", *map(str, args)], env=env, **kw)
 
 
+def run_with_plugins(tmp_path, plugins: dict[str, str], config: str, out):
+    """`caviar-core run` of ``config`` (TOML, dedented) in ``tmp_path``, with the plugin
+    modules ``plugins`` (name -> source) written there and importable; output piped."""
+    for name, source in plugins.items():
+        (tmp_path / f"{name}.py").write_text(source)
+    cfg = tmp_path / "config.toml"
+    cfg.write_text(textwrap.dedent(config))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    return run_caviar("run", cfg, "--out", out, "-q", env=env, cwd=tmp_path,
+                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
 @pytest.fixture(scope="module")
 def qs_run(tmp_path_factory):
     """The quickstart, recorded (1,525 steps, one UAV)."""
@@ -196,8 +208,8 @@ class Link(caviar.Plugin):
 
 
 def test_live_run_newest_step_appears_within_2_s(browser, tmp_path):
-    (tmp_path / "view_live_plugins.py").write_text(LIVE_PLUGINS)
-    (tmp_path / "live.toml").write_text(textwrap.dedent("""
+    out = tmp_path / "live-run"
+    proc = run_with_plugins(tmp_path, {"view_live_plugins": LIVE_PLUGINS}, """
         [episode]
         ts = 0.5
         steps = 30
@@ -210,11 +222,7 @@ def test_live_run_newest_step_appears_within_2_s(browser, tmp_path):
         stage = "communications"
         plugin = "view_live_plugins:Link"
         params = { tx_position = [-154.0, 64.0, 120.0] }
-    """))
-    out = tmp_path / "live-run"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
-    proc = run_caviar("run", tmp_path / "live.toml", "--out", out, "-q", env=env, cwd=tmp_path,
-                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    """, out)
     srv = None
     try:
         deadline = time.monotonic() + 60
@@ -622,8 +630,8 @@ class Camera(caviar.Plugin):
 
 
 def test_a_frame_the_server_cannot_give_leaves_the_last_one_dimmed_and_said(browser, tmp_path):
-    (tmp_path / "bad_frame_plugins.py").write_text(BAD_FRAME_PLUGINS)
-    (tmp_path / "frames.toml").write_text(textwrap.dedent("""
+    out = tmp_path / "run"
+    p = run_with_plugins(tmp_path, {"bad_frame_plugins": BAD_FRAME_PLUGINS}, """
         [episode]
         ts = 0.5
         steps = 6
@@ -632,11 +640,7 @@ def test_a_frame_the_server_cannot_give_leaves_the_last_one_dimmed_and_said(brow
         [modules.camera]
         stage = "camera"
         plugin = "bad_frame_plugins:Camera"
-    """))
-    out = tmp_path / "run"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
-    p = run_caviar("run", tmp_path / "frames.toml", "--out", out, "-q", env=env, cwd=tmp_path,
-                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    """, out)
     assert p.wait(timeout=60) == 0, p.stdout.read()
     srv = start_server(out, pending=False)
     try:

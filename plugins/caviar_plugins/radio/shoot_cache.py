@@ -717,7 +717,7 @@ def _behind_reflections(shots: _Shots, depth: int, rec: dict, tgt_positions, ray
     vertex within its triangle, which stays on that side unless the triangle crosses the
     reflecting plane: meshes whose faces meet but do not cross (buildings on the ground)
     keep it. Checked against unculled solves in tests/test_shoot_cache.py and on the
-    10-UAV SAR route (benches/bench_perf_steps.py: ``cull_same_links``)."""
+    10-UAV SAR route (benches/bench_perf_steps.py: ``cull_vs_without``)."""
     import numpy as np
 
     from caviar_plugins.radio import sionna_internals as internals
@@ -725,15 +725,16 @@ def _behind_reflections(shots: _Shots, depth: int, rec: dict, tgt_positions, ray
     dr, mi = _jit()
     InteractionType = internals.ray_utilities()[0]
     j = _array(mi.UInt, rays.astype(np.uint32))
+    lane = dr.gather(mi.UInt, rec["lane"], j)
     kinds = shots.samples.interaction_type
-    index = dr.opaque(mi.UInt, (depth - 1) * shots.width) + dr.gather(mi.UInt, rec["lane"], j)
+    index = dr.opaque(mi.UInt, (depth - 1) * shots.width) + lane
     reflects = np.asarray(dr.gather(type(kinds), kinds, index)) == int(InteractionType.SPECULAR)
     if shots.diffraction_depth is not None:
         # After a diffraction the path's previous vertex is a point of an edge, which the
         # image method moves along it: the edge may lie in the reflecting plane or cross
         # it, so the side the wave comes from is not the recorded one (seen on the SAR
         # route: a diffraction-reflection path lost). Such chains are always tested.
-        diffracted = np.asarray(dr.gather(mi.UInt, shots.diffraction_depth, dr.gather(mi.UInt, rec["lane"], j)))
+        diffracted = np.asarray(dr.gather(mi.UInt, shots.diffraction_depth, lane))
         reflects &= ~((diffracted > 0) & (diffracted < depth))
     if not reflects.any():
         return None
