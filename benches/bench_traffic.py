@@ -116,12 +116,6 @@ def run(n: int, steps: int, seed: int = 0) -> dict:
            "steady_largest_compiled_ops": max(r["largest_compiled_ops"] for r in steady),
            "paths": [r["paths"] for r in rows],
            "steps": [{k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()} for r in rows]}
-    if n:
-        objs = [pool.slot_of(f"v{i}") for i in range(n)]
-        t0 = time.perf_counter()
-        for i, o in enumerate(objs):
-            o.position = [float(xy[i, 0]) + 1.0, float(xy[i, 1]), 0.75]
-        out["sionna_position_setter_s"] = round(time.perf_counter() - t0, 3)
     return out
 
 
@@ -153,9 +147,7 @@ def main(argv=None) -> int:
               f"({100 * r['update_share']:.1f} %) + solve {r['solve_s']:.3f} s; first step {r['first_step_s']:.2f} s; "
               f"compiled in steady steps: {r['steady_kernels_compiled']} kernels, {r['steady_compile_ms']} ms, "
               f"largest {r['steady_largest_compiled_ops']} ops (first step: {r['first_step_compile_ms']} ms, "
-              f"largest {r['first_step_largest_compiled_ops']} ops); paths {r['paths']}"
-              + (f"; Sionna position setter for all {n}: {r['sionna_position_setter_s']:.2f} s"
-                 if n else ""), flush=True)
+              f"largest {r['first_step_largest_compiled_ops']} ops); paths {r['paths']}", flush=True)
     import mitsuba
     import sionna.rt
 

@@ -212,7 +212,7 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
         radio = RadioScene(RadioConfig(**SETTINGS, uav_mesh=False, rays_per_moving_object=512, **kw), seed=5)
         metal = radio.rt.ITURadioMaterial("car-metal", "metal", thickness=0.01)
         pool = ScattererPool(radio.scene, {"vehicle": 4}, {"vehicle": metal}, prefix="cars")
-        radio.add_moving_objects(pool.objects(), away=pool.parked)
+        radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
         return radio, pool
 
     cached, cached_pool = with_pool()
@@ -230,9 +230,10 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
     assert cached.shoot_cache.connects == 4 and cached.shoot_cache.shoots == 1
     assert plain.shoot_cache.connects == 0
     assert same_pair >= links - 1, (same_pair, links)
-    parked = [obj for obj in cached_pool.objects() if cached_pool.parked(obj)]
-    assert len(parked) == 2 and all(cached._rays_at(obj) == 0 for obj in parked)
-    assert all(cached._rays_at(obj) == 512 for obj in cached_pool.objects() if not cached_pool.parked(obj))
+    (mesh,) = cached_pool.objects()  # the four boxes, one mesh: two show cars, two are parked
+    assert len(cached._boxes_of(mesh)) == 2 and cached._rays_at(mesh) == 512  # 512 at each car
+    cached_pool.update([])
+    assert cached_pool.parked(mesh) and cached._rays_at(mesh) == 0 and len(cached._boxes_of(mesh)) == 0
 
 
 def test_the_box_prefilter_finds_every_recorded_ray_that_now_meets_a_moving_object_first():
@@ -249,7 +250,7 @@ def test_the_box_prefilter_finds_every_recorded_ray_that_now_meets_a_moving_obje
     radio = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True, rays_per_moving_object=64), seed=5)
     metal = radio.rt.ITURadioMaterial("car-metal", "metal", thickness=0.01)
     pool = ScattererPool(radio.scene, {"vehicle": 3}, {"vehicle": metal}, prefix="cars")
-    radio.add_moving_objects(pool.objects(), away=pool.parked)
+    radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
     for k in range(2):  # the second solve records the bounces (with where each ray goes next)
         pos = {"a": ROUTE.at(10.0 * k), "b": ROUTE.at(150.0 + 10.0 * k)}
         pool.update([Body(f"bus-{key}", "vehicle", (*(p[:2] + [3.0 + k, 2.0]), 0.0), 0.3, (12.0, 2.5, 4.0))
@@ -259,8 +260,8 @@ def test_the_box_prefilter_finds_every_recorded_ray_that_now_meets_a_moving_obje
     shots = radio.shoot_cache._shots
     moving = radio.moving_objects()
     present = [o for o in moving if radio._rays_at(o) != 0]
-    assert len(present) == 4  # two buses, two UAV bodies (the third bus's box is parked)
-    boxes = np.array([[np.array(o.mi_mesh.bbox().min), np.array(o.mi_mesh.bbox().max)] for o in present])
+    boxes = np.concatenate([radio._boxes_of(o) for o in present])
+    assert len(boxes) == 4  # two buses, two UAV bodies (the third bus's box is parked)
     table = _shape_table(radio.scene, moving)
     max_depth = SETTINGS["max_depth"]
     mi_scene = radio.scene.mi_scene

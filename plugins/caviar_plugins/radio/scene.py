@@ -221,7 +221,7 @@ class RadioScene:
             if cfg.shoot_cache:
                 self.shoot_cache = ShootCache(internals.candidate_generator(self.solver), self.geometry_fingerprint,
                                               movers=self.moving_objects, scene=self.scene,
-                                              rays_for=self._rays_at)
+                                              rays_for=self._rays_at, boxes_of=self._boxes_of)
                 internals.replace_candidate_generator(self.solver, self.shoot_cache)
         if cfg.codebook == "flat-dft":
             self.w_tx = flat_dft_codebook(s.tx_array.num_ant)
@@ -231,7 +231,8 @@ class RadioScene:
             self.w_rx = dft_codebook(np.array(s.rx_array.positions(s.wavelength)))
         self.receivers: dict[str, Any] = {}
         self.bodies: dict[str, Any] = {}
-        self._movers: dict[int, tuple[Any, Callable[[Any], bool] | None]] = {}  # id -> (object, is it away?)
+        # id -> (object, is it away?, its bodies' bounds)
+        self._movers: dict[int, tuple[Any, Callable[[Any], bool] | None, Callable[[Any], Any] | None]] = {}
         # The scene is static and the solver seeded: the same positions give the same
         # paths, so a step in which no UAV moved (hovering) reuses the last solve.
         self._placed: tuple = ()
@@ -259,24 +260,39 @@ class RadioScene:
         the geometry fingerprint leaves them out."""
         if not self.cfg.cache_moving_bodies:
             return []
-        return list(self.bodies.values()) + [obj for obj, _ in self._movers.values()]
+        # (An object since removed from the scene, a pool's mesh replaced by a larger one, is left out.)
+        return list(self.bodies.values()) + [entry[0] for entry in self._movers.values()
+                                             if self.scene.objects.get(entry[0].name) is entry[0]]
 
-    def add_moving_objects(self, objects: Sequence[Any], away: Callable[[Any], bool] | None = None) -> None:
+    def add_moving_objects(self, objects: Sequence[Any], away: Callable[[Any], bool] | None = None,
+                           boxes: Callable[[Any], np.ndarray] | None = None) -> None:
         """Declares scene objects that a caller moves from solve to solve (vehicles,
         persons): with ``cache_moving_bodies`` the shoot cache keeps serving solves while
         they move, as it does for UAV bodies; without it, their moves make every solve a new
         geometry. ``away(obj)`` says whether an object is out of the scene for now (parked):
-        no rays are aimed at it. Declaring an object again does nothing."""
+        no rays are aimed at it. ``boxes(obj)`` (an object made of separate bodies, as a
+        :class:`~caviar_plugins.radio.scatterers.ScattererPool`'s mesh) gives the bounds
+        (m, 2, 3) of each of its bodies, which the shoot cache then treats one by one;
+        without it, the object's bounding box. Declaring an object again does nothing."""
         for obj in objects:
-            self._movers.setdefault(id(obj), (obj, away))
+            self._movers.setdefault(id(obj), (obj, away, boxes))
 
     def _rays_at(self, obj: Any) -> int | None:
-        """Rays the shoot cache aims at a moving object (None: as dense as Sionna's)."""
+        """Rays the shoot cache aims at each body of a moving object (None: as dense as
+        Sionna's)."""
         entry = self._movers.get(id(obj))
         away = entry[1] if entry is not None else None
         if away is not None and away(obj):
             return 0
         return self.cfg.rays_per_moving_object or None
+
+    def _boxes_of(self, obj: Any) -> np.ndarray:
+        """The bounds (m, 2, 3) of a moving object's bodies (see :meth:`add_moving_objects`)."""
+        entry = self._movers.get(id(obj))
+        if entry is not None and entry[2] is not None:
+            return np.asarray(entry[2](obj), dtype=float).reshape(-1, 2, 3)
+        box = obj.mi_mesh.bbox()
+        return np.array([[np.array(box.min), np.array(box.max)]], dtype=float)
 
     def geometry_fingerprint(self) -> tuple:
         """What the rays' bounces depend on besides the transmitters and the solver's

@@ -83,7 +83,9 @@ class ShootCache:
     aimed at each (``rays_for(obj)`` of them, :data:`RAYS_PER_MOVING_OBJECT` without it; None:
     Sionna's own rays from the source that now meet it first, :func:`_first_rays_met`; 0: none,
     for an object parked out of the scene) and from the recorded rays that now meet one after
-    a bounce (see :func:`_by_way_of_movers`).
+    a bounce (see :func:`_by_way_of_movers`). ``boxes_of(obj)`` (optional) gives the bounds
+    (m, 2, 3) of an object's separate bodies (a pool of boxes in one mesh), each then aimed at
+    and prefiltered on its own; without it, the object's bounding box.
     """
 
     cull_behind = True
@@ -92,8 +94,10 @@ class ShootCache:
 
     def __init__(self, generator: Any, fingerprint: Callable[[], Hashable],
                  movers: Callable[[], Sequence[Any]] | None = None, scene: Any = None,
-                 rays_for: Callable[[Any], int | None] | None = None):
+                 rays_for: Callable[[Any], int | None] | None = None,
+                 boxes_of: Callable[[Any], np.ndarray] | None = None):
         self.generator = generator
+        self.boxes_of = boxes_of
         self.fingerprint = fingerprint
         self.movers = movers
         self.scene = scene
@@ -152,10 +156,13 @@ class ShootCache:
         _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src, self.cull_behind)
         if moving:
             # Paths by way of the moving objects (see _by_way_of_movers).
-            boxes = np.array([[np.array(o.mi_mesh.bbox().min), np.array(o.mi_mesh.bbox().max)] for o in moving],
-                             dtype=float).reshape(-1, 2, 3)
+            per_object = [self.boxes_of(o) if self.boxes_of is not None else _bounding_box(o) for o in moving]
+            boxes = np.concatenate([np.zeros((0, 2, 3))] + [np.asarray(b, dtype=float).reshape(-1, 2, 3)
+                                                            for b in per_object])
             source = np.array(dr.ravel(src_positions).numpy(), dtype=float)[:3]
-            asked = [self.rays_for(o) if self.rays_for is not None else self.rays_per_moving_object for o in moving]
+            asked_per_object = [self.rays_for(o) if self.rays_for is not None else self.rays_per_moving_object
+                                for o in moving]
+            asked = [n for n, b in zip(asked_per_object, per_object, strict=True) for _ in range(len(b))]
             spheres = [(box.mean(axis=0), np.linalg.norm(box[1] - box[0]) / 2) for box in boxes]
             aimed = np.concatenate([np.zeros((0, 3))] + [
                 aim_at(source, centre, radius, n) for (centre, radius), n in zip(spheres, asked, strict=True)
@@ -165,7 +172,7 @@ class ShootCache:
             # Objects given no count (None): Sionna's own first rays (the recorded ones from the
             # source) that now meet one of them first (the boxes of all present objects
             # prefilter them; the shape table keeps those on these objects).
-            own = [obj for obj, n in zip(moving, asked, strict=True) if n is None]
+            own = [obj for obj, n in zip(moving, asked_per_object, strict=True) if n is None]
             first = _first_rays_met(mi_scene, shots, source, _shape_table(self.scene, own), near) if own \
                 else np.zeros((0, 3))
             more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed,
@@ -175,6 +182,12 @@ class ShootCache:
         self.paths_counter_per_source = counter
         self.connects += 1
         return paths
+
+
+def _bounding_box(obj) -> np.ndarray:
+    """A scene object's bounding box as bounds (1, 2, 3)."""
+    box = obj.mi_mesh.bbox()
+    return np.array([[np.array(box.min), np.array(box.max)]], dtype=float)
 
 
 RAYS_PER_MOVING_OBJECT = 4096

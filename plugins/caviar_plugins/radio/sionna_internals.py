@@ -26,6 +26,8 @@ import inspect
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
+import numpy as np
+
 from caviar_plugins.radio.scene import configure_drjit
 
 TESTED_VERSION = (2, 2)
@@ -152,6 +154,20 @@ def watch_candidate_counter(solver: Any, on_counter: Callable[[Any], None]) -> N
             return _method(*args, **kwargs)
 
         setattr(generator, name, spy)
+
+
+def set_doppler(paths: Any, doppler) -> None:
+    """Replaces the Doppler shifts (Hz) of Sionna's ``Paths`` (its private ``_doppler``, of
+    the shape ``paths.doppler`` has): for velocities Sionna cannot see (boxes of one mesh
+    moving each with its own, :class:`~caviar_plugins.radio.scatterers.ScattererPool`)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if not hasattr(paths, "_doppler"):
+        raise SionnaInternalsError("sionna-rt's Paths has no _doppler: the moving boxes' Doppler shifts cannot be "
+                                   f"added (checked against sionna-rt {'.'.join(map(str, TESTED_VERSION))})")
+    doppler = np.asarray(doppler, dtype=np.float32)
+    paths._doppler = dr.reshape(mi.TensorXf, mi.Float(doppler.ravel().tolist()), doppler.shape)
 
 
 # --- the generator's parts (the shoot cache) -------------------------------------------------

@@ -34,7 +34,7 @@ import numpy as np
 import caviar
 from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.link_report import LINK_TOPICS, line_of_sight_paths, link_messages
-from caviar_plugins.radio.scatterers import Body, ScattererPool, update_pools
+from caviar_plugins.radio.scatterers import Body, ScattererPool, box_doppler_hz, update_pools
 from caviar_plugins.radio.scene import RadioScene
 from caviar_plugins.radio.sionna_link import SionnaLinkParams
 from caviar_plugins.schema import BEAM_SELECTION, POSITIONS, STATE, read_position
@@ -198,6 +198,7 @@ class SionnaTrafficLink(caviar.Plugin):
         for slot, rx in self.radio.receivers.items():
             rx.velocity = self.rx_vel[slot].tolist()
         links = self.radio.solve(force=True)  # the scatterers moved: never reuse the last solve
+        self._add_box_doppler()
         extra_info = self._paths_info()
         blockers = self._blockers()
         n_pairs = self.radio.w_rx.shape[1] * self.radio.n_tx_beams
@@ -238,7 +239,7 @@ class SionnaTrafficLink(caviar.Plugin):
     def _declare_movers(self) -> None:
         for pool in (self.pool, self.uav_pool):
             if pool is not None:
-                self.radio.add_moving_objects(pool.objects(), away=pool.parked)
+                self.radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
 
     def _new_uav_pool(self, capacity: dict[str, int]) -> None:
         rt = self.radio.rt
@@ -273,6 +274,24 @@ class SionnaTrafficLink(caviar.Plugin):
         self.radio.restore(state["scene"])
         for slot, rx in self.radio.receivers.items():
             rx.velocity = self.rx_vel[slot].tolist()
+
+    def _add_box_doppler(self) -> None:
+        """Adds the Doppler shift of the moving boxes to the last paths (the pools' meshes
+        have no velocity of their own in Sionna: see :class:`ScattererPool`)."""
+        from caviar_plugins.radio import sionna_internals as internals
+
+        pools = [pool for pool in (self.pool, self.uav_pool) if pool is not None and pool.used]
+        paths = self.radio.last_paths
+        if not pools or paths is None:
+            return
+        targets = np.array([self.radio.receivers[k].position for k in self.radio.receivers], dtype=float)
+        targets = targets.reshape(len(self.radio.receivers), 3)
+        extra = box_doppler_hz(pools, np.array(paths.interactions), np.array(paths.objects),
+                               np.array(paths.primitives), np.array(paths.vertices),
+                               np.asarray(self.radio.cfg.tx_position, dtype=float)[None, :], targets,
+                               float(np.asarray(self.radio.scene.wavelength).ravel()[0]))
+        doppler = np.array(paths.doppler)
+        internals.set_doppler(paths, doppler + extra.reshape(doppler.shape))
 
     def _paths_info(self) -> dict[str, dict]:
         """Doppler of the strongest and of the line-of-sight path of each receiver."""
@@ -318,13 +337,14 @@ class SionnaTrafficLink(caviar.Plugin):
         si = self.radio.scene.mi_scene.ray_intersect_preliminary(ray)
         hit = np.array(si.is_valid())
         ids = np.array(dr.reinterpret_array(mi.UInt32, si.shape))
-        names = {}
-        for pool in (self.pool, self.uav_pool):
-            if pool is None:
-                continue
-            for key, (group, slot) in pool.used.items():
-                names[int(pool.slots[group][slot].object_id)] = key
-        return {k: (names.get(int(ids[i]), "scene") if hit[i] else None) for i, k in enumerate(keys)}
+        prims = np.array(si.prim_index)
+        pools = [pool for pool in (self.pool, self.uav_pool) if pool is not None]
+
+        def name(i: int) -> str:
+            ues = (pool.key_at(ids[i], prims[i]) for pool in pools)
+            return next((ue for ue in ues if ue is not None), "scene")
+
+        return {k: (name(i) if hit[i] else None) for i, k in enumerate(keys)}
 
 
 __all__ = ["SionnaTrafficLink", "SionnaTrafficLinkParams"]
