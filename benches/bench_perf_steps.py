@@ -626,6 +626,9 @@ def main() -> None:
     if args.merge and (OUT / "perf-steps.json").exists():
         old = json.loads((OUT / "perf-steps.json").read_text())
         ratios.update({k: v for k, v in old["ratios"].items() if v is not None})
+        for item in old["absolute"].values():  # each kept item names the machine it was measured on
+            if isinstance(item, dict) and "ratio" in item:
+                item.setdefault("machine", old.get("machine"))
         absolute.update(old["absolute"])
     if "vision" not in args.skip:
         for k in ("camera_50uav", "detector_50uav"):  # a merged earlier measurement stays on record
@@ -649,11 +652,17 @@ def main() -> None:
         reasons["solve_moving_body"] = "skipped in this run (--skip moving)"
     with tempfile.TemporaryDirectory(prefix="perf-steps-") as tmp:
         runs(args, pathlib.Path(tmp), absolute, ratios, reasons)
+    here = machine()
+    for item in absolute.values():  # this run's items (the kept ones name theirs already)
+        if isinstance(item, dict) and "ratio" in item:
+            item.setdefault("machine", here)
     results = {
-        "ratios": ratios, "absolute": absolute, "machine": machine(),
+        "ratios": ratios, "absolute": absolute, "machine": here,
         "missing": {k: reasons.get(k, "not measured") for k, v in ratios.items() if v is None},
         "notes": {
             "ratios": "new time / old time, measured in the same run (interleaved for camera, detector, solve).",
+            "machine": "the machine of this run; each item's own \"machine\" says where it was measured (with "
+                       "--merge, items of earlier runs are kept).",
             "sar": f"The sar60_* items ran {args.sar_duration:g} s of virtual time at Ts = 0.5 s, "
                    f"{args.samples:.0e} samples per source; the first step's kernel compilation is included in "
                    "both runs. Ratio of T_p/T_v (wall / virtual time). The old runs trace every step with the "
