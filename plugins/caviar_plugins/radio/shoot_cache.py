@@ -113,6 +113,8 @@ class ShootCache:
         """Shoot phases recorded (geometry changes that came back)."""
         self.connects = 0
         """Solves served from a recorded shoot phase."""
+        self.visibility_tests = 0
+        """Visibility tests (a ray from a hit point to a target) made by the solves served."""
 
     @property
     def has_seen_geometry(self) -> bool:
@@ -153,7 +155,8 @@ class ShootCache:
         counter = dr.zeros(mi.UInt, num_sources)
         if los:
             internals.add_line_of_sight(self.generator, mi_scene, src_positions, tgt_positions, paths, counter)
-        _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src, self.cull_behind)
+        self.visibility_tests += _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src,
+                                          self.cull_behind)
         if moving:
             # Paths by way of the moving objects (see _by_way_of_movers).
             per_object = [self.boxes_of(o) if self.boxes_of is not None else _bounding_box(o) for o in moving]
@@ -178,7 +181,8 @@ class ShootCache:
             more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed,
                                      _shape_table(self.scene, moving), aimed, near, first)
             if more is not None:
-                _connect(more, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src, self.cull_behind)
+                self.visibility_tests += _connect(more, mi_scene, tgt_positions, paths, counter,
+                                                  max_num_paths_per_src, self.cull_behind)
         self.paths_counter_per_source = counter
         self.connects += 1
         return paths
@@ -758,15 +762,15 @@ def _behind_reflections(shots: _Shots, depth: int, rec: dict, tgt_positions, ray
     return reflects[:, None] & (cos < BEHIND_COS)
 
 
-def _first_visible(mi_scene, rec: dict, tgt_positions, num_targets: int, behind: Callable | None = None):
+def _first_visible(mi_scene, rec: dict, tgt_positions, num_targets: int,
+                   behind: Callable | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """For every (target, chain) pair of a depth, the first ray of the chain's group (in
-    ray order) whose hit point the target sees, or -1. Tested in rounds that double the
+    ray order) whose hit point the target sees, or -1; with the pairs' targets and the
+    number of visibility tests made. Tested in rounds that double the
     rays tried per unresolved pair (1, 2, 4, ...): a chain seen by its first ray costs
     one test instead of one per ray. ``behind(rays)`` (optional, :func:`_behind_reflections`)
     names the (ray, target) pairs that cannot end a path: asked for each group's first ray,
     it rules out the group for that target, without a test."""
-    import numpy as np
-
     grouped, starts, sizes = rec["grouped"], rec["starts"], rec["sizes"]
     g = len(starts)
     pair_group = np.tile(np.arange(g), num_targets)
@@ -780,10 +784,11 @@ def _first_visible(mi_scene, rec: dict, tgt_positions, num_targets: int, behind:
         cut = behind(grouped[starts])  # (groups, targets)
         if cut is not None:
             todo = todo[~cut.T.reshape(-1)]  # pairs are target-major
-    r = 0
+    r = made = 0
     while len(todo):
         count = np.minimum(1 << r, sizes[pair_group[todo]] - tried[todo])
         flat = np.repeat(todo, count)
+        made += len(flat)
         offset = np.arange(len(flat)) - np.repeat(np.cumsum(count) - count, count)
         pos = tried[flat] + offset
         visible, _, _ = _visibility(mi_scene, rec, tgt_positions, grouped[starts[pair_group[flat]] + pos],
@@ -795,26 +800,26 @@ def _first_visible(mi_scene, rec: dict, tgt_positions, num_targets: int, behind:
         tried[todo] += count
         todo = todo[~found & (tried[todo] < sizes[pair_group[todo]])]
         r += 1
-    return first, pair_target
+    return first, pair_target, made
 
 
 def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src: int,
-             cull_behind: bool = True) -> None:
+             cull_behind: bool = True) -> int:
     """Sionna's inner loop over targets, depth by depth, with exact deduplication:
     specular chains are grouped by hash, and a (chain, target) pair is stored from the
     first ray of the chain that sees the target, in ray order. Sionna's rule for its two
     hashes (round, floor) is kept: a chain is new if neither hash was stored before for
-    that target. No table, so no collisions."""
-    import numpy as np
-
+    that target. No table, so no collisions. Returns the visibility tests made."""
     dr, mi = _jit()
     num_targets = dr.shape(tgt_positions)[1]
     mix = np.uint64(0x9E3779B97F4A7C15)
+    made = 0
     for depth, rec in enumerate(shots.depths, start=1):
         if dr.width(rec["lane"]) == 0:  # (aimed rays: none has touched a moving object yet)
             continue
         behind = functools.partial(_behind_reflections, shots, depth, rec, tgt_positions) if cull_behind else None
-        first, pair_target = _first_visible(mi_scene, rec, tgt_positions, num_targets, behind)
+        first, pair_target, tests = _first_visible(mi_scene, rec, tgt_positions, num_targets, behind)
+        made += tests
         hit = first >= 0
         rays, targets = first[hit], pair_target[hit]
         order = np.lexsort((rays, targets))
@@ -834,6 +839,7 @@ def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_pat
         d_rays = np.tile(diffuse, num_targets)
         d_targets = np.repeat(np.arange(num_targets), len(diffuse))
         if len(d_rays):
+            made += len(d_rays)
             visible, side, _ = _visibility(mi_scene, rec, tgt_positions, d_rays, d_targets)
             keep = visible & side
             d_rays, d_targets = d_rays[keep], d_targets[keep]
@@ -858,3 +864,4 @@ def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_pat
                         k_tx, -direction, store)
         paths.schedule()
         dr.eval(counter)
+    return made
