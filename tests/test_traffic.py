@@ -270,7 +270,9 @@ def test_a_moving_box_shifts_the_doppler_of_its_reflection_as_the_geometry_and_s
     side = 5.0 - 1.8 / 2  # the side of car1 facing the line: the plane y = 4.1
     image = rx + [0.0, 2 * (side - rx[1]), 0.0]
     point = tx + (image - tx) * (side - tx[1]) / (image[1] - tx[1])  # where tx-image crosses the plane
-    cars = {"car1": ((point[0], 5.0), (8.0, -6.0)), "car2": ((-60.0, -50.0), (0.0, 20.0))}
+    # car2 first: car1 takes the mesh's second box (triangles 12-23), so its velocity is found
+    # by the box a triangle belongs to, not by the mesh.
+    cars = {"car2": ((-60.0, -50.0), (0.0, 20.0)), "car1": ((point[0], 5.0), (8.0, -6.0))}
     msgs = [ue]
     for key, ((x, y), (vx, vy)) in cars.items():
         car = position_payload(key, (x, y, 0.0), "car")
@@ -280,6 +282,7 @@ def test_a_moving_box_shifts_the_doppler_of_its_reflection_as_the_geometry_and_s
     step(plugin, 0.0, msgs)
     radio = plugin.radio
     assert len(plugin.pool.objects()) == 2  # both cars in one mesh (and the persons' mesh)
+    assert plugin.pool.used["car1"] == ("vehicle", 1)
 
     def dopplers(paths):
         valid = np.array(paths.valid).ravel().astype(bool)

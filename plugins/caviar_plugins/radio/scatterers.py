@@ -9,8 +9,10 @@ acceleration structure is rebuilt once (one ``params.update()``): the scene is n
 reloaded and, since the number of shapes and vertices does not change, the path solver's
 kernels are reused.
 
-Each box also carries its velocity, so paths reflected by a moving vehicle get its
-Doppler shift (:func:`box_doppler_hz`).
+Each box also carries its velocity. Sionna RT gives an object one velocity, so the meshes
+have none: whoever solves adds the boxes' Doppler shifts to the paths with
+:func:`box_doppler_hz` (``sionna-traffic-link`` does after every solve); a bare
+``RadioScene.solve`` gives paths off the boxes no Doppler of their own.
 
 Nothing of caviar here: :class:`ScattererPool` takes a ``sionna.rt.Scene``.
 """
@@ -121,6 +123,8 @@ class ScattererPool:
         added, removed = [], []
         for group, n in more.items():
             if n <= 0:
+                self.sizes.setdefault(group, 0)  # (a group with no boxes yet: PoolFull, or grown, later)
+                self.free.setdefault(group, [])
                 continue
             start = self.sizes.get(group, 0)
             size = start + n
@@ -198,7 +202,7 @@ class ScattererPool:
                     self.state[(group, i)] = state
                     self.velocities[group][i] = (0.0, 0.0, 0.0) if state is None else state[3]
                     here += 1
-            if here or every:
+            if (here or every) and group in self.meshes:
                 # (From a Python list: Dr.Jit copies it into memory of its own; a numpy array's memory
                 # is taken as it is, and its alignment varies: about 10 % of the update, measured.)
                 params[self.meshes[group].mi_mesh.id() + ".vertex_positions"] = self.mi.Float(
@@ -279,9 +283,10 @@ class ScattererPool:
         out = np.zeros((*np.shape(object_ids), 3))
         for group, obj in self.meshes.items():
             on = np.asarray(object_ids) == int(obj.object_id)
+            slot = np.asarray(primitives).astype(np.int64) // len(BOX_FACES)
+            on &= slot < self.sizes[group]  # (a primitive beyond the boxes: none of them)
             if on.any():
-                slot = np.minimum(np.asarray(primitives)[on] // len(BOX_FACES), self.sizes[group] - 1)
-                out[on] = self.velocities[group][slot.astype(np.int64)]
+                out[on] = self.velocities[group][slot[on]]
         return out
 
 

@@ -123,7 +123,7 @@ class RadioConfig:
     solve runs Sionna's loop. ``sionna-traffic-link`` treats its vehicles and persons the
     same way."""
     rays_per_moving_object: int = 4096
-    """Rays aimed from the transmitter at each moving object's bounding sphere per solve
+    """Rays aimed from the transmitter at each moving body's bounding sphere per solve
     (with ``cache_moving_bodies``): 4096 put them about 5 cm apart on a 2 m UAV body, where
     Sionna's 1e6 rays over the whole sphere are about 1.3 m apart at 200 m. 0: none aimed;
     Sionna's own rays from the transmitter that now meet the object first go on from it (the
@@ -274,6 +274,8 @@ class RadioScene:
         :class:`~caviar_plugins.radio.scatterers.ScattererPool`'s mesh) gives the bounds
         (m, 2, 3) of each of its bodies, which the shoot cache then treats one by one;
         without it, the object's bounding box. Declaring an object again does nothing."""
+        for key in [k for k, entry in self._movers.items() if self.scene.objects.get(entry[0].name) is not entry[0]]:
+            del self._movers[key]  # (objects since removed from the scene: a pool's mesh replaced by a larger one)
         for obj in objects:
             self._movers.setdefault(id(obj), (obj, away, boxes))
 

@@ -195,7 +195,7 @@ def _bounding_box(obj) -> np.ndarray:
 
 
 RAYS_PER_MOVING_OBJECT = 4096
-"""Rays aimed at each moving object's bounding sphere per solve (about 5 cm apart on a
+"""Rays aimed at each moving body's bounding sphere per solve (about 5 cm apart on a
 2 m UAV body, against about 1.3 m for 3e5 rays over the whole sphere at 200 m)."""
 PAD_RAYS = 1024
 """The rays by way of moving objects come in multiples of this (see :func:`_by_way_of_movers`)."""

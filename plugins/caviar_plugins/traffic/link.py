@@ -284,11 +284,10 @@ class SionnaTrafficLink(caviar.Plugin):
         paths = self.radio.last_paths
         if not pools or paths is None:
             return
-        targets = np.array([self.radio.receivers[k].position for k in self.radio.receivers], dtype=float)
-        targets = targets.reshape(len(self.radio.receivers), 3)
         extra = box_doppler_hz(pools, np.array(paths.interactions), np.array(paths.objects),
                                np.array(paths.primitives), np.array(paths.vertices),
-                               np.asarray(self.radio.cfg.tx_position, dtype=float)[None, :], targets,
+                               np.array(paths.sources, dtype=float).reshape(3, -1).T,
+                               np.array(paths.targets, dtype=float).reshape(3, -1).T,
                                float(np.asarray(self.radio.scene.wavelength).ravel()[0]))
         doppler = np.array(paths.doppler)
         internals.set_doppler(paths, doppler + extra.reshape(doppler.shape))
