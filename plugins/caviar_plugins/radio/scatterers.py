@@ -281,10 +281,10 @@ class ScattererPool:
         """The velocity (..., 3) of the box each hit (object id, triangle) is on; zero for hits
         on anything else."""
         out = np.zeros((*np.shape(object_ids), 3))
+        slot = np.asarray(primitives).astype(np.int64) // len(BOX_FACES)
         for group, obj in self.meshes.items():
-            on = np.asarray(object_ids) == int(obj.object_id)
-            slot = np.asarray(primitives).astype(np.int64) // len(BOX_FACES)
-            on &= slot < self.sizes[group]  # (a primitive beyond the boxes: none of them)
+            # (a primitive beyond the boxes: none of them)
+            on = (np.asarray(object_ids) == int(obj.object_id)) & (slot < self.sizes[group])
             if on.any():
                 out[on] = self.velocities[group][slot[on]]
         return out

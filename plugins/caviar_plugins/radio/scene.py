@@ -24,7 +24,7 @@ from caviar_plugins.assets import SCENES
 from caviar_plugins.radio.beams import beam_gains, dft_codebook, flat_dft_codebook
 from caviar_plugins.radio.link_report import line_of_sight_paths
 from caviar_plugins.radio.path_data import PathData, receiver_paths
-from caviar_plugins.radio.shoot_cache import ShootCache
+from caviar_plugins.radio.shoot_cache import ShootCache, bounding_box
 
 CODEBOOKS = ("kronecker", "flat-dft")
 UAV_BODY = SCENES / "central_park" / "meshes" / "Cube.ply"  # a 2 m cube
@@ -260,9 +260,12 @@ class RadioScene:
         the geometry fingerprint leaves them out."""
         if not self.cfg.cache_moving_bodies:
             return []
-        # (An object since removed from the scene, a pool's mesh replaced by a larger one, is left out.)
-        return list(self.bodies.values()) + [entry[0] for entry in self._movers.values()
-                                             if self.scene.objects.get(entry[0].name) is entry[0]]
+        return list(self.bodies.values()) + [entry[0] for entry in self._movers.values() if self._in_scene(entry[0])]
+
+    def _in_scene(self, obj: Any) -> bool:
+        """Whether a declared moving object is still in the scene (not, e.g., a pool's mesh
+        since replaced by a larger one)."""
+        return self.scene.objects.get(obj.name) is obj
 
     def add_moving_objects(self, objects: Sequence[Any], away: Callable[[Any], bool] | None = None,
                            boxes: Callable[[Any], np.ndarray] | None = None) -> None:
@@ -274,8 +277,8 @@ class RadioScene:
         :class:`~caviar_plugins.radio.scatterers.ScattererPool`'s mesh) gives the bounds
         (m, 2, 3) of each of its bodies, which the shoot cache then treats one by one;
         without it, the object's bounding box. Declaring an object again does nothing."""
-        for key in [k for k, entry in self._movers.items() if self.scene.objects.get(entry[0].name) is not entry[0]]:
-            del self._movers[key]  # (objects since removed from the scene: a pool's mesh replaced by a larger one)
+        for key in [k for k, entry in self._movers.items() if not self._in_scene(entry[0])]:
+            del self._movers[key]
         for obj in objects:
             self._movers.setdefault(id(obj), (obj, away, boxes))
 
@@ -293,8 +296,7 @@ class RadioScene:
         entry = self._movers.get(id(obj))
         if entry is not None and entry[2] is not None:
             return np.asarray(entry[2](obj), dtype=float).reshape(-1, 2, 3)
-        box = obj.mi_mesh.bbox()
-        return np.array([[np.array(box.min), np.array(box.max)]], dtype=float)
+        return bounding_box(obj)
 
     def geometry_fingerprint(self) -> tuple:
         """What the rays' bounces depend on besides the transmitters and the solver's

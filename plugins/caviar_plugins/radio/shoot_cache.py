@@ -159,7 +159,7 @@ class ShootCache:
                                           self.cull_behind)
         if moving:
             # Paths by way of the moving objects (see _by_way_of_movers).
-            per_object = [self.boxes_of(o) if self.boxes_of is not None else _bounding_box(o) for o in moving]
+            per_object = [self.boxes_of(o) if self.boxes_of is not None else bounding_box(o) for o in moving]
             boxes = np.concatenate([np.zeros((0, 2, 3))] + [np.asarray(b, dtype=float).reshape(-1, 2, 3)
                                                             for b in per_object])
             source = np.array(dr.ravel(src_positions).numpy(), dtype=float)[:3]
@@ -188,7 +188,7 @@ class ShootCache:
         return paths
 
 
-def _bounding_box(obj) -> np.ndarray:
+def bounding_box(obj) -> np.ndarray:
     """A scene object's bounding box as bounds (1, 2, 3)."""
     box = obj.mi_mesh.bbox()
     return np.array([[np.array(box.min), np.array(box.max)]], dtype=float)

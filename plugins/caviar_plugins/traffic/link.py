@@ -236,10 +236,13 @@ class SionnaTrafficLink(caviar.Plugin):
                 print(f"{self.ctx.name}: {group} pool grown from {before.get(group, 0)} to {n} boxes (one scene "
                       f"edit and recompile); set {group}_pool >= {n} to avoid it", file=sys.stderr)
 
+    def _pools(self) -> list[ScattererPool]:
+        """The traffic pool and, once UAVs were seen, theirs."""
+        return [pool for pool in (self.pool, self.uav_pool) if pool is not None]
+
     def _declare_movers(self) -> None:
-        for pool in (self.pool, self.uav_pool):
-            if pool is not None:
-                self.radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
+        for pool in self._pools():
+            self.radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
 
     def _new_uav_pool(self, capacity: dict[str, int]) -> None:
         rt = self.radio.rt
@@ -280,7 +283,7 @@ class SionnaTrafficLink(caviar.Plugin):
         have no velocity of their own in Sionna: see :class:`ScattererPool`)."""
         from caviar_plugins.radio import sionna_internals as internals
 
-        pools = [pool for pool in (self.pool, self.uav_pool) if pool is not None and pool.used]
+        pools = [pool for pool in self._pools() if pool.used]
         paths = self.radio.last_paths
         if not pools or paths is None:
             return
@@ -337,7 +340,7 @@ class SionnaTrafficLink(caviar.Plugin):
         hit = np.array(si.is_valid())
         ids = np.array(dr.reinterpret_array(mi.UInt32, si.shape))
         prims = np.array(si.prim_index)
-        pools = [pool for pool in (self.pool, self.uav_pool) if pool is not None]
+        pools = self._pools()
 
         def name(i: int) -> str:
             ues = (pool.key_at(ids[i], prims[i]) for pool in pools)
