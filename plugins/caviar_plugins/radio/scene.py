@@ -118,7 +118,7 @@ class RadioConfig:
     they are (the paths they block are dropped); the paths by way of a body come from rays
     aimed at it from the transmitter and from the recorded rays that now meet it after a
     bounce, bounced on in the scene as it is (:mod:`~caviar_plugins.radio.shoot_cache`).
-    Not re-checked: the earlier segments of a diffuse path (a body in them). Measured
+    A diffuse path whose earlier segments now meet a body is dropped. Measured
     against Sionna's loop in the README. ``false``: a moved body is a new geometry, and the
     solve runs Sionna's loop. ``sionna-traffic-link`` treats its vehicles and persons the
     same way."""

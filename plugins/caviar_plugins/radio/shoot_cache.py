@@ -155,10 +155,10 @@ class ShootCache:
         counter = dr.zeros(mi.UInt, num_sources)
         if los:
             internals.add_line_of_sight(self.generator, mi_scene, src_positions, tgt_positions, paths, counter)
-        self.visibility_tests += _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src,
-                                          self.cull_behind)
-        if moving:
-            # Paths by way of the moving objects (see _by_way_of_movers).
+        if not moving:
+            self.visibility_tests += _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src,
+                                              self.cull_behind)
+        else:
             per_object = [self.boxes_of(o) if self.boxes_of is not None else bounding_box(o) for o in moving]
             boxes = np.concatenate([np.zeros((0, 2, 3))] + [np.asarray(b, dtype=float).reshape(-1, 2, 3)
                                                             for b in per_object])
@@ -178,8 +178,16 @@ class ShootCache:
             own = [obj for obj, n in zip(moving, asked_per_object, strict=True) if n is None]
             first = _first_rays_met(mi_scene, shots, source, _shape_table(self.scene, own), near) if own \
                 else np.zeros((0, 3))
+            table = _shape_table(self.scene, moving)
+            picked = _met_by_movers(mi_scene, shots, max_depth, table, near)
+            # A diffuse path is not refined by the image method: one whose earlier segments
+            # now meet a moving object is dropped here (specular chains are re-checked there).
+            blocked = _blocked_from(mi_scene, shots, source, table, near, picked)
+            self.visibility_tests += _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src,
+                                              self.cull_behind, blocked)
+            # Paths by way of the moving objects (see _by_way_of_movers).
             more = _by_way_of_movers(self.generator, mi_scene, shots, src_positions, max_depth, flags, seed,
-                                     _shape_table(self.scene, moving), aimed, near, first)
+                                     table, aimed, near, first, picked)
             if more is not None:
                 self.visibility_tests += _connect(more, mi_scene, tgt_positions, paths, counter,
                                                   max_num_paths_per_src, self.cull_behind)
@@ -546,8 +554,40 @@ def _first_rays_met(mi_scene, shots: _Shots, source: np.ndarray, table, near) ->
     return np.array(d, dtype=float).reshape(3, -1).T[on]
 
 
+NOT_BLOCKED = np.iinfo(np.int32).max
+
+
+def _blocked_from(mi_scene, shots: _Shots, source: np.ndarray, movers, near,
+                  picked: list[tuple[int, np.ndarray]]) -> np.ndarray | None:
+    """Per lane of the recorded bounces, the first segment that now meets a moving object
+    first (segment 0: source to first hit; segment d: the hit at depth d to the next), or
+    :data:`NOT_BLOCKED`; None when no recorded ray ends a diffuse path or no object is near.
+    Segments d >= 1 come from :func:`_met_by_movers` (``picked``); segment 0 is tested here
+    for the lanes that end a diffuse path somewhere, like :func:`_first_rays_met`."""
+    dr, mi = _jit()
+    diffuse_lanes = [np.asarray(rec["lane"], dtype=np.int64)[rec["diffuse_rays"]] for rec in shots.depths
+                     if dr.width(rec["lane"]) and len(rec["diffuse_rays"])]
+    if near is None or not diffuse_lanes:
+        return None
+    blocked = np.full(shots.width, NOT_BLOCKED, dtype=np.int64)
+    for d, pick in reversed(picked):  # the earliest segment wins
+        rec = shots.depths[d - 1]
+        blocked[np.asarray(rec["lane"], dtype=np.int64)[pick]] = d
+    lanes = np.unique(np.concatenate(diffuse_lanes))
+    origin = mi.Point3f(*(float(x) for x in source))
+    k = dr.gather(mi.Vector3f, shots.k_tx, _array(mi.UInt, lanes.astype(np.uint32)))
+    ahead = np.asarray(near.ray_test(mi.Ray3f(origin, k)), dtype=bool)
+    if ahead.any():
+        d0 = dr.gather(mi.Vector3f, k, _array(mi.UInt, np.flatnonzero(ahead).astype(np.uint32)))
+        on = np.asarray(_on_shapes(movers, mi_scene.ray_intersect_preliminary(mi.Ray3f(origin, d0), coherent=False)),
+                        dtype=bool)
+        blocked[lanes[ahead][on]] = 0
+    return blocked
+
+
 def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: int, flags, seed: int, movers,
-                      aimed: np.ndarray, near=None, first: np.ndarray | None = None) -> _Shots | None:
+                      aimed: np.ndarray, near=None, first: np.ndarray | None = None,
+                      picked: list[tuple[int, np.ndarray]] | None = None) -> _Shots | None:
     """The rays that meet a moving object, bounced in the scene as it is now and connected
     from their first hit on one (one bounce loop for all, each ray setting off at its own
     depth):
@@ -558,14 +598,16 @@ def _by_way_of_movers(gen, mi_scene, shots: _Shots, src_positions, max_depth: in
       (:func:`_first_rays_met`), with every interaction Sionna's loop enables;
     * the rays of the recorded bounces that now meet one after a bounce on the static scene
       (Sionna's loop, run now, would send them onto it): each goes on from the depth at which
-      it meets it, with the interactions it had before."""
+      it meets it, with the interactions it had before (``picked``: :func:`_met_by_movers`'s
+      answer, when the caller has it)."""
     dr, mi = _jit()
     from caviar_plugins.radio import sionna_internals as internals
 
     InteractionType, WedgeGeometry, _, _, _ = internals.ray_utilities()
     sample_fields = internals.sample_data_fields()
     specular_on, diffuse_on, refraction_on, diffraction_on, _ = flags
-    picked = _met_by_movers(mi_scene, shots, max_depth, movers, near)
+    if picked is None:
+        picked = _met_by_movers(mi_scene, shots, max_depth, movers, near)
     first = np.zeros((0, 3)) if first is None else first
     a = len(aimed) + len(first)
     used = a + sum(len(pick) for _, pick in picked)
@@ -804,12 +846,14 @@ def _first_visible(mi_scene, rec: dict, tgt_positions, num_targets: int,
 
 
 def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src: int,
-             cull_behind: bool = True) -> int:
+             cull_behind: bool = True, blocked: np.ndarray | None = None) -> int:
     """Sionna's inner loop over targets, depth by depth, with exact deduplication:
     specular chains are grouped by hash, and a (chain, target) pair is stored from the
     first ray of the chain that sees the target, in ray order. Sionna's rule for its two
     hashes (round, floor) is kept: a chain is new if neither hash was stored before for
-    that target. No table, so no collisions. Returns the visibility tests made."""
+    that target. No table, so no collisions. ``blocked`` (:func:`_blocked_from`): a diffuse
+    ray at depth d whose lane has a segment before d blocked ends no path. Returns the
+    visibility tests made."""
     dr, mi = _jit()
     num_targets = dr.shape(tgt_positions)[1]
     mix = np.uint64(0x9E3779B97F4A7C15)
@@ -836,6 +880,8 @@ def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_pat
         chain_rays, chain_targets = rays[new1], targets[new1]
         # Diffuse rays: every one the target sees on its side ends a valid path.
         diffuse = rec["diffuse_rays"]
+        if blocked is not None and len(diffuse):
+            diffuse = diffuse[blocked[np.asarray(rec["lane"], dtype=np.int64)[diffuse]] >= depth]
         d_rays = np.tile(diffuse, num_targets)
         d_targets = np.repeat(np.arange(num_targets), len(diffuse))
         if len(d_rays):
