@@ -180,9 +180,14 @@ class ShootCache:
                 else np.zeros((0, 3))
             table = _shape_table(self.scene, moving)
             picked = _met_by_movers(mi_scene, shots, max_depth, table, near)
-            # A diffuse path is not refined by the image method: one whose earlier segments
-            # now meet a moving object is dropped here (specular chains are re-checked there).
+            # Sionna's image method re-checks the segments of specular chains, not of diffuse
+            # paths: a diffuse path whose earlier segments now meet a moving object is dropped
+            # here. And a ray goes on from the first moving object it meets only: a recorded
+            # ray blocked before a later meeting is not continued from there.
             blocked = _blocked_from(mi_scene, shots, source, table, near, picked)
+            if blocked is not None:
+                picked = [(d, pick[blocked[shots.depths[d - 1]["lanes"][pick]] == d]) for d, pick in picked]
+                picked = [(d, pick) for d, pick in picked if len(pick)]
             self.visibility_tests += _connect(shots, mi_scene, tgt_positions, paths, counter, max_num_paths_per_src,
                                               self.cull_behind, blocked)
             # Paths by way of the moving objects (see _by_way_of_movers).
@@ -561,19 +566,22 @@ def _blocked_from(mi_scene, shots: _Shots, source: np.ndarray, movers, near,
                   picked: list[tuple[int, np.ndarray]]) -> np.ndarray | None:
     """Per lane of the recorded bounces, the first segment that now meets a moving object
     first (segment 0: source to first hit; segment d: the hit at depth d to the next), or
-    :data:`NOT_BLOCKED`; None when no recorded ray ends a diffuse path or no object is near.
-    Segments d >= 1 come from :func:`_met_by_movers` (``picked``); segment 0 is tested here
-    for the lanes that end a diffuse path somewhere, like :func:`_first_rays_met`."""
+    :data:`NOT_BLOCKED`, for the lanes that end a diffuse path or meet a moving object
+    after a bounce (``picked``, from :func:`_met_by_movers`); None when there are none or no
+    object is near. Segments d >= 1 come from ``picked``; segment 0 is tested here, like
+    :func:`_first_rays_met`."""
     dr, mi = _jit()
-    diffuse_lanes = [np.asarray(rec["lane"], dtype=np.int64)[rec["diffuse_rays"]] for rec in shots.depths
-                     if dr.width(rec["lane"]) and len(rec["diffuse_rays"])]
-    if near is None or not diffuse_lanes:
+    if near is None:
+        return None
+    asked = [rec["lanes"][rec["diffuse_rays"]] for rec in shots.depths
+             if dr.width(rec["lane"]) and len(rec["diffuse_rays"])]
+    asked += [shots.depths[d - 1]["lanes"][pick] for d, pick in picked]
+    if not asked:
         return None
     blocked = np.full(shots.width, NOT_BLOCKED, dtype=np.int64)
     for d, pick in reversed(picked):  # the earliest segment wins
-        rec = shots.depths[d - 1]
-        blocked[np.asarray(rec["lane"], dtype=np.int64)[pick]] = d
-    lanes = np.unique(np.concatenate(diffuse_lanes))
+        blocked[shots.depths[d - 1]["lanes"][pick]] = d
+    lanes = np.unique(np.concatenate(asked))
     origin = mi.Point3f(*(float(x) for x in source))
     k = dr.gather(mi.Vector3f, shots.k_tx, _array(mi.UInt, lanes.astype(np.uint32)))
     ahead = np.asarray(near.ray_test(mi.Ray3f(origin, k)), dtype=bool)
@@ -699,6 +707,7 @@ def _group_chains(record: dict) -> None:
     record["sizes"] = np.diff(np.r_[starts, len(grouped)])
     record["diffuse_rays"] = np.flatnonzero(np.asarray(record["diffuse"], dtype=bool))
     record["h0"], record["h1"] = h0, np.asarray(record["hashes"][1]).astype(np.uint64)
+    record["lanes"] = np.asarray(record["lane"], dtype=np.int64)  # (numpy, for _blocked_from and _connect)
     for key in ("diffuse", "specular_chain", "hashes"):  # grouped above: not needed any more
         del record[key]
 
@@ -881,7 +890,7 @@ def _connect(shots: _Shots, mi_scene, tgt_positions, paths, counter, max_num_pat
         # Diffuse rays: every one the target sees on its side ends a valid path.
         diffuse = rec["diffuse_rays"]
         if blocked is not None and len(diffuse):
-            diffuse = diffuse[blocked[np.asarray(rec["lane"], dtype=np.int64)[diffuse]] >= depth]
+            diffuse = diffuse[blocked[rec["lanes"][diffuse]] >= depth]
         d_rays = np.tile(diffuse, num_targets)
         d_targets = np.repeat(np.arange(num_targets), len(diffuse))
         if len(d_rays):
