@@ -20,9 +20,8 @@ import sys
 
 import numpy as np
 
-from caviar_plugins.beam_selection.dataset import load
 from caviar_plugins.beam_selection.knn import NearForestFarPrevious
-from caviar_plugins.beam_selection.paper_topk import hits
+from caviar_plugins.beam_selection.paper_topk import hits, samples
 
 GRID = np.arange(256) / 256
 RADII_M = (0.25, 0.5, 1.0, 2.0)
@@ -75,29 +74,19 @@ def fit_sweep(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return _fits[key]
 
 
-def flight(run: str) -> dict[str, np.ndarray]:
-    """A flight's steps with paths, with the two previous sweeps and positions."""
-    d = load(run)
-    o = np.argsort(d["time"])
-    g, pos, keep = d["gains"][o].reshape(len(o), -1), d["position"][o], d["n_paths"][o] > 0
-    z, zp = np.zeros_like(g[:1]), pos[:1]
-    return {"position": pos[keep], "gains": g[keep], "best_pair": d["best_pair"][o][keep],
-            "previous_gains": np.r_[z, g[:-1]][keep], "g2": np.r_[z, z, g[:-2]][keep],
-            "p1": np.r_[zp, pos[:-1]][keep], "p2": np.r_[zp, zp, pos[:-2]][keep]}
-
-
 def track(s: dict[str, np.ndarray], mode: int, rx_too: bool) -> np.ndarray:
     """Predicted pairs: mode 0 (s = 0), 1 (s = 1), 2 (s = displacement ratio); the previous best
     pair where fewer than two previous sweeps exist."""
     out = np.argmax(s["previous_gains"], axis=1)
     for i in range(len(out)):
-        g1, g2 = s["previous_gains"][i], s["g2"][i]
+        g1, g2 = s["previous_gains"][i], s["previous2_gains"][i]
         if g1.max() <= 0 or g2.max() <= 0:
             continue
         (t1, r1), (t2, r2) = fit_sweep(g1), fit_sweep(g2)
         scale = float(mode)
         if mode == 2:
-            d0, d1 = s["position"][i] - s["p1"][i], s["p1"][i] - s["p2"][i]
+            p0, p1, p2 = s["position"][i], s["previous_position"][i], s["previous2_position"][i]
+            d0, d1 = p0 - p1, p1 - p2
             scale = float(np.clip(d0 @ d1 / (d1 @ d1), 0, 3)) if d1 @ d1 > 1e-9 else 0.0
         tx = pattern(t1 + scale * wrap(t1 - t2), TX)
         if rx_too:
@@ -115,7 +104,7 @@ CANDIDATES = {"today: previous best pair": None, "T0 (s = 0)": (0, True), "T1 (s
 
 
 def main(runs: list[str]) -> None:
-    parts = [flight(r) for r in runs]
+    parts = [samples(r) for r in runs]
     top1 = {c: {r: [] for r in RADII_M} for c in CANDIDATES}
     far = {c: {r: 0 for r in RADII_M} for c in CANDIDATES}
     alone = {c: [] for c in CANDIDATES}

@@ -36,16 +36,21 @@ PAPER_TOPK = {1: (70.49, 38.58), 2: (80.93, 51.18), 3: (83.55, 55.11), 4: (85.11
 
 def samples(run: str) -> dict[str, np.ndarray]:
     """A run's steps with paths, in time order, with each step's previous best pair
-    (-1 for the first step of the flight)."""
+    (-1 for the first step of the flight), the gains of the previous two steps (zeros
+    before the flight's start) and their positions (the first position before it)."""
     d = load(run)
     order = np.argsort(d["time"])
     d = {k: v[order] for k, v in d.items()}
     gains = d["gains"].reshape(len(d["gains"]), -1)
     keep = gains.max(axis=1) > 0 if "n_paths" not in d else d["n_paths"] > 0
     prev = np.r_[-1, d["best_pair"][:-1]]
-    prev_gains = np.r_[np.zeros_like(gains[:1]), gains[:-1]]
+    none, start = np.zeros_like(gains[:1]), d["position"][:1]
+    prev_gains, prev2_gains = np.r_[none, gains[:-1]], np.r_[none, none, gains[:-2]]
+    prev_pos, prev2_pos = np.r_[start, d["position"][:-1]], np.r_[start, start, d["position"][:-2]]
     return {"position": d["position"][keep], "best_pair": d["best_pair"][keep], "gains": gains[keep],
-            "previous": prev[keep], "previous_gains": prev_gains[keep], "all_steps": np.array(len(order))}
+            "previous": prev[keep], "previous_gains": prev_gains[keep], "previous2_gains": prev2_gains[keep],
+            "previous_position": prev_pos[keep], "previous2_position": prev2_pos[keep],
+            "all_steps": np.array(len(order))}
 
 
 def hits(pred: np.ndarray, gains: np.ndarray, ks=K_VALUES) -> dict[int, float]:

@@ -543,20 +543,35 @@ def _met_by_movers(mi_scene, shots: _Shots, max_depth: int, movers, near) -> lis
     return picked
 
 
-def _first_rays_met(mi_scene, shots: _Shots, source: np.ndarray, table, near) -> np.ndarray:
-    """The directions (m, 3) of the recorded rays from the source (Sionna's Fibonacci lattice,
-    ``shots.k_tx``) whose first hit is now on a shape that ``table`` marks: those that meet one
-    of the boxes of ``near`` (:func:`_boxes_scene`, boxes around those shapes and maybe
-    others) are cast again in the whole scene."""
+def _source_lanes_met(mi_scene, shots: _Shots, source: np.ndarray, table, near,
+                      lanes: np.ndarray | None = None) -> np.ndarray:
+    """The lanes (of ``lanes``; None: all) whose recorded ray from the source (Sionna's
+    Fibonacci lattice, ``shots.k_tx``) now hits a shape that ``table`` marks first: those that
+    meet one of the boxes of ``near`` (:func:`_boxes_scene`, boxes around those shapes and
+    maybe others) are cast again in the whole scene."""
     dr, mi = _jit()
     origin = mi.Point3f(*(float(x) for x in source))
-    ahead = dr.compress(near.ray_test(mi.Ray3f(origin, shots.k_tx)))
-    if dr.width(ahead) == 0:
-        return np.zeros((0, 3))
-    d = dr.gather(mi.Vector3f, shots.k_tx, ahead)
+    if lanes is None:
+        lanes = np.arange(shots.width, dtype=np.int64)
+        k = shots.k_tx
+    else:
+        k = dr.gather(mi.Vector3f, shots.k_tx, _array(mi.UInt, lanes.astype(np.uint32)))
+    ahead = np.flatnonzero(np.asarray(near.ray_test(mi.Ray3f(origin, k)), dtype=bool))
+    if len(ahead) == 0:
+        return np.zeros(0, dtype=np.int64)
+    d = dr.gather(mi.Vector3f, k, _array(mi.UInt, ahead.astype(np.uint32)))
     on = np.asarray(_on_shapes(table, mi_scene.ray_intersect_preliminary(mi.Ray3f(origin, d), coherent=False)),
                     dtype=bool)
-    return np.array(d, dtype=float).reshape(3, -1).T[on]
+    return lanes[ahead[on]]
+
+
+def _first_rays_met(mi_scene, shots: _Shots, source: np.ndarray, table, near) -> np.ndarray:
+    """The directions (m, 3) of the recorded rays from the source whose first hit is now on a
+    shape that ``table`` marks (:func:`_source_lanes_met`)."""
+    dr, mi = _jit()
+    lanes = _source_lanes_met(mi_scene, shots, source, table, near)
+    d = dr.gather(mi.Vector3f, shots.k_tx, _array(mi.UInt, lanes.astype(np.uint32)))
+    return np.array(d, dtype=float).reshape(3, -1).T
 
 
 NOT_BLOCKED = np.iinfo(np.int32).max
@@ -568,9 +583,9 @@ def _blocked_from(mi_scene, shots: _Shots, source: np.ndarray, movers, near,
     first (segment 0: source to first hit; segment d: the hit at depth d to the next), or
     :data:`NOT_BLOCKED`, for the lanes that end a diffuse path or meet a moving object
     after a bounce (``picked``, from :func:`_met_by_movers`); None when there are none or no
-    object is near. Segments d >= 1 come from ``picked``; segment 0 is tested here, like
-    :func:`_first_rays_met`."""
-    dr, mi = _jit()
+    object is near. Segments d >= 1 come from ``picked``; segment 0 from
+    :func:`_source_lanes_met`."""
+    dr, _ = _jit()
     if near is None:
         return None
     asked = [rec["lanes"][rec["diffuse_rays"]] for rec in shots.depths
@@ -581,15 +596,7 @@ def _blocked_from(mi_scene, shots: _Shots, source: np.ndarray, movers, near,
     blocked = np.full(shots.width, NOT_BLOCKED, dtype=np.int64)
     for d, pick in reversed(picked):  # the earliest segment wins
         blocked[shots.depths[d - 1]["lanes"][pick]] = d
-    lanes = np.unique(np.concatenate(asked))
-    origin = mi.Point3f(*(float(x) for x in source))
-    k = dr.gather(mi.Vector3f, shots.k_tx, _array(mi.UInt, lanes.astype(np.uint32)))
-    ahead = np.asarray(near.ray_test(mi.Ray3f(origin, k)), dtype=bool)
-    if ahead.any():
-        d0 = dr.gather(mi.Vector3f, k, _array(mi.UInt, np.flatnonzero(ahead).astype(np.uint32)))
-        on = np.asarray(_on_shapes(movers, mi_scene.ray_intersect_preliminary(mi.Ray3f(origin, d0), coherent=False)),
-                        dtype=bool)
-        blocked[lanes[ahead][on]] = 0
+    blocked[_source_lanes_met(mi_scene, shots, source, movers, near, np.unique(np.concatenate(asked)))] = 0
     return blocked
 
 
