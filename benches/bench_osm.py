@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-from caviar_plugins.radio import configure_drjit
+from caviar_plugins.rt import configure_drjit
 
 configure_drjit()
 

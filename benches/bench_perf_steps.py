@@ -37,7 +37,7 @@ import numpy as np
 
 from caviar_plugins import DATA
 from caviar_plugins.mobility import Path, read_waypoints
-from caviar_plugins.radio import configure_drjit
+from caviar_plugins.rt import configure_drjit
 
 configure_drjit()
 
@@ -281,7 +281,7 @@ def plugins_at(work: pathlib.Path, rev: str):
 
 
 def bench_main_job(work: pathlib.Path, old_rev: str = ISSUE_24_FILED_AT) -> dict:
-    """The README's main job (the SAR blueprint, to the end of its mission), old then new,
+    """The main job (the SAR blueprint, to the end of its mission), old then new,
     whole wall time:
 
     * ``old``: the plugins as they were at ``old_rev`` (a git worktree of that commit put
@@ -504,7 +504,7 @@ def bench_sar(n: int, duration: float, samples: int, forecast: int, work: pathli
 
     import caviar
     from caviar.report import summary
-    from caviar_plugins.radio.shoot_cache import ShootCache
+    from caviar_plugins.rt.shoot_cache import ShootCache
 
     res: dict = {"uavs": n, "virtual_s": duration, "lookahead_steps": forecast}
     logs = {}

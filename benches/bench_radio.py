@@ -32,7 +32,9 @@ import numpy as np
 import caviar
 from caviar_plugins import DATA
 from caviar_plugins.mobility import Path, read_waypoints
-from caviar_plugins.radio import LinkBudget, RadioConfig, RadioScene, configure_drjit, scene_path
+from caviar_plugins.radio import LinkBudget, RadioConfig, RadioScene
+from caviar_plugins.rt import configure_drjit
+from caviar_plugins.rt.scene import scene_path
 from caviar_plugins.schema import POSITIONS, position_payload
 
 configure_drjit()  # before Sionna RT, Mitsuba or Dr.Jit are imported (none of the above imports them)

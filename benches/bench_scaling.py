@@ -79,7 +79,7 @@ plugin = "person-detector"
 
 
 def table(summaries: list[dict]) -> str:
-    """The README's Markdown table; GPU columns where the runs recorded them."""
+    """The Markdown table of docs/measured/performance.md; GPU columns where the runs recorded them."""
     gpu = summaries[0]["modules"]["comm"].get("max_gpu_mem_mib") is not None
     head = ("| UAVs | wall clock (s) | × 1 UAV | ray tracing (ms/step) | camera (ms/step) | detector (ms/step) | "
             "engine (ms/step) | engine share | max RSS (MiB) |")

@@ -64,8 +64,8 @@ def compiled(dr) -> tuple[int, float, int]:
 def run(n: int, steps: int, seed: int = 0) -> dict:
     import drjit as dr
 
-    from caviar_plugins.radio.scatterers import Body, ScattererPool
     from caviar_plugins.radio.scene import RadioConfig, RadioScene
+    from caviar_plugins.rt.scatterers import Body, ScattererPool
 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
@@ -138,7 +138,7 @@ def main(argv=None) -> int:
             subprocess.run([sys.executable, __file__, "--steps", str(args.steps), "--counts", args.cold,
                             "--out", str(out)], env=dict(os.environ, HOME=home), check=True)
             cold = json.loads(out.read_text())["results"]
-    from caviar_plugins.radio.scene import configure_drjit
+    from caviar_plugins.rt import configure_drjit
 
     configure_drjit()
     results = []

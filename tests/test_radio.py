@@ -195,8 +195,8 @@ def test_los_flag_agrees_with_an_independent_visibility_test():
 def test_a_step_without_movement_reuses_the_last_solve():
     radio = free_space()
     calls = []
-    solver = radio.solver
-    radio.solver = lambda *a, **k: calls.append(1) or solver(*a, **k)
+    solver = radio.tracer.solver
+    radio.tracer.solver = lambda *a, **k: calls.append(1) or solver(*a, **k)
     pos = {"uav1": np.array([30.0, 5.0, 10.0]), "uav2": np.array([-40.0, 5.0, 10.0])}
     radio.place(pos)
     first = radio.solve()

@@ -206,7 +206,7 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
     first two is served from the cache, and each link keeps what Sionna's loop (run every
     step, the cars a new geometry) finds: the line-of-sight flag, at least its paths, its
     path gain or more, the best pair; a parked box gets no rays."""
-    from caviar_plugins.radio.scatterers import Body, ScattererPool
+    from caviar_plugins.rt.scatterers import Body, ScattererPool
 
     def with_pool(**kw):
         radio = RadioScene(RadioConfig(**SETTINGS, uav_mesh=False, rays_per_moving_object=512, **kw), seed=5)
@@ -231,9 +231,9 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
     assert plain.shoot_cache.connects == 0
     assert same_pair >= links - 1, (same_pair, links)
     (mesh,) = cached_pool.objects()  # the four boxes, one mesh: two show cars, two are parked
-    assert len(cached._boxes_of(mesh)) == 2 and cached._rays_at(mesh) == 512  # 512 at each car
+    assert len(cached.movers.boxes_of(mesh)) == 2 and cached.movers.rays_at(mesh) == 512  # 512 at each car
     cached_pool.update([])
-    assert cached_pool.parked(mesh) and cached._rays_at(mesh) == 0 and len(cached._boxes_of(mesh)) == 0
+    assert cached_pool.parked(mesh) and cached.movers.rays_at(mesh) == 0 and len(cached.movers.boxes_of(mesh)) == 0
 
 
 def test_the_box_prefilter_finds_every_recorded_ray_that_now_meets_a_moving_object_first():
@@ -241,11 +241,11 @@ def test_the_box_prefilter_finds_every_recorded_ray_that_now_meets_a_moving_obje
     object's bounding box (a scene of boxes): the rays it finds on a moving object are
     exactly those that intersecting every recorded ray with the whole scene (the surface
     interaction, as before the prefilter) finds there first."""
-    import drjit as dr
     import mitsuba as mi
 
-    from caviar_plugins.radio.scatterers import Body, ScattererPool
-    from caviar_plugins.radio.shoot_cache import _boxes_scene, _met_by_movers, _on_shapes, _shape_table
+    from caviar_plugins.rt.scatterers import Body, ScattererPool
+    from caviar_plugins.rt.scene import on_shapes, shape_table
+    from caviar_plugins.rt.shoot_cache.movers import boxes_scene, met_by_movers
 
     radio = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True, rays_per_moving_object=64), seed=5)
     metal = radio.rt.ITURadioMaterial("car-metal", "metal", thickness=0.01)
@@ -257,35 +257,35 @@ def test_the_box_prefilter_finds_every_recorded_ray_that_now_meets_a_moving_obje
                      for key, p in pos.items()])
         radio.place(pos)
         radio.solve(force=True)
-    shots = radio.shoot_cache._shots
+    shots = radio.shoot_cache.shots
     moving = radio.moving_objects()
-    present = [o for o in moving if radio._rays_at(o) != 0]
-    boxes = np.concatenate([radio._boxes_of(o) for o in present])
+    present = [o for o in moving if radio.movers.rays_at(o) != 0]
+    boxes = np.concatenate([radio.movers.boxes_of(o) for o in present])
     assert len(boxes) == 4  # two buses, two UAV bodies (the third bus's box is parked)
-    table = _shape_table(radio.scene, moving)
+    table = shape_table(radio.scene, moving)
     max_depth = SETTINGS["max_depth"]
     mi_scene = radio.scene.mi_scene
-    got = {d: pick.tolist() for d, pick in _met_by_movers(mi_scene, shots, max_depth, table, _boxes_scene(boxes))}
+    got = {d: pick.tolist() for d, pick in met_by_movers(mi_scene, shots, max_depth, table, boxes_scene(boxes))}
     every = {}
     for d, rec in enumerate(shots.depths[: max_depth - 1], start=1):
-        assert dr.width(rec["lane"]) > 1000  # (most rays are not near any moving object)
-        si = mi_scene.ray_intersect(mi.Ray3f(rec["o"], rec["d"]))
-        on = np.flatnonzero(np.asarray(_on_shapes(table, si), dtype=bool))
+        assert rec.size > 1000  # (most rays are not near any moving object)
+        si = mi_scene.ray_intersect(mi.Ray3f(rec.o, rec.d))
+        on = np.flatnonzero(np.asarray(on_shapes(table, si), dtype=bool))
         if len(on):
             every[d] = on.tolist()
     assert got == every and sum(map(len, every.values())) >= 5, every
 
 
 def test_the_one_loop_bounce_records_what_the_per_depth_bounce_records():
-    """The moving objects' rays bounce in one Dr.Jit symbolic loop (``_bounce_in_one_loop``),
-    the recorded static bounces one wavefront per depth (``_bounce``). From the same first
+    """The moving objects' rays bounce in one Dr.Jit symbolic loop (``bounce_in_one_loop``),
+    the recorded static bounces one wavefront per depth (``bounce``). From the same first
     rays (Sionna's lattice, its sampler seeded alike) both keep the same rays alive at each
     depth, with the same chain groups, diffuse rays, hashes and diffracting depths, hit points,
     normals and sample data, bit for bit (threads = 1)."""
     import drjit as dr
     import mitsuba as mi
 
-    from caviar_plugins.radio.shoot_cache import _bounce, _bounce_in_one_loop, _first_rays
+    from caviar_plugins.rt.shoot_cache.shoot import bounce, bounce_in_one_loop, first_rays
 
     radio = scene(True, samples_per_src=4000, max_depth=3)
     c = radio.cfg
@@ -293,18 +293,18 @@ def test_the_one_loop_bounce_records_what_the_per_depth_bounce_records():
     source = radio.scene.sources(True, False)[0]
     flags = (c.specular_reflection, c.diffuse_reflection, c.refraction, c.diffraction, False)
     mi_scene = radio.scene.mi_scene
-    per_depth, state = _first_rays(gen, source, c.samples_per_src, c.max_depth, flags, radio.seed)
-    _bounce(gen, mi_scene, per_depth, state, c.max_depth, flags, keep_state=False)
-    one, state = _first_rays(gen, source, c.samples_per_src, c.max_depth, flags, radio.seed)
-    state["touched"] = dr.full(mi.Bool, True, one.width)
-    _bounce_in_one_loop(gen, mi_scene, one, state, c.max_depth, flags, None, start=dr.full(mi.UInt, 1, one.width))
+    per_depth, state = first_rays(gen, source, c.samples_per_src, c.max_depth, flags, radio.seed)
+    bounce(gen, mi_scene, per_depth, state, c.max_depth, flags, keep_state=False)
+    one, state = first_rays(gen, source, c.samples_per_src, c.max_depth, flags, radio.seed)
+    state.touched = dr.full(mi.Bool, True, one.width)
+    bounce_in_one_loop(gen, mi_scene, one, state, c.max_depth, flags, None, start=dr.full(mi.UInt, 1, one.width))
     assert len(per_depth.depths) == len(one.depths) == c.max_depth
     for a, b in zip(per_depth.depths, one.depths, strict=True):
-        assert len(np.asarray(a["lane"])) > 100 and np.array_equal(np.asarray(a["lane"]), np.asarray(b["lane"]))
-        for key in ("grouped", "starts", "sizes", "diffuse_rays", "h0", "h1"):
-            assert np.array_equal(a[key], b[key]), key
-        assert np.array_equal(np.array(a["p"]), np.array(b["p"])) and np.array_equal(np.array(a["n"]), np.array(b["n"]))
-    assert len(per_depth.depths[0]["diffuse_rays"]) > 0 and len(per_depth.depths[0]["grouped"]) > 0
+        assert len(np.asarray(a.lane)) > 100 and np.array_equal(np.asarray(a.lane), np.asarray(b.lane))
+        for key in ("lanes", "grouped", "starts", "sizes", "diffuse_rays", "h0", "h1"):
+            assert np.array_equal(getattr(a, key), getattr(b, key)), key
+        assert np.array_equal(np.array(a.p), np.array(b.p)) and np.array_equal(np.array(a.n), np.array(b.n))
+    assert len(per_depth.depths[0].diffuse_rays) > 0 and len(per_depth.depths[0].grouped) > 0
     for field in ("interaction_type", "shape", "primitive", "vertex", "prob"):
         assert np.array_equal(np.array(getattr(per_depth.samples, field)), np.array(getattr(one.samples, field))), field
     assert np.array_equal(np.asarray(per_depth.diffraction_depth), np.asarray(one.diffraction_depth))
@@ -321,7 +321,8 @@ def test_sionnas_own_first_rays_that_meet_a_moving_body_are_those_a_slab_test_fi
     it. In free space the ones found are those that an independent ray-box (slab) test in
     float64 finds on the body's box, up to a centimetre at its edges; and the solve finds the
     reflection off the body's top that Sionna's loop finds."""
-    from caviar_plugins.radio.shoot_cache import _boxes_scene, _first_rays_met, _shape_table
+    from caviar_plugins.rt.scene import shape_table
+    from caviar_plugins.rt.shoot_cache.movers import boxes_scene, first_rays_met
 
     tx = np.array([0.0, 0.0, 30.0])
     settings = dict(scene="empty", tx_position=tx.tolist(), tx_array=[1, 1], rx_array=[1, 1], pattern="iso",
@@ -334,9 +335,9 @@ def test_sionnas_own_first_rays_that_meet_a_moving_body_are_those_a_slab_test_fi
     assert radio.shoot_cache.connects == 1
     body = radio.bodies["u"]
     lo, hi = np.array(body.mi_mesh.bbox().min, dtype=float), np.array(body.mi_mesh.bbox().max, dtype=float)
-    shots = radio.shoot_cache._shots
-    found = _first_rays_met(radio.scene.mi_scene, shots, tx, _shape_table(radio.scene, [body]),
-                            _boxes_scene(np.array([[lo, hi]])))
+    shots = radio.shoot_cache.shots
+    found = first_rays_met(radio.scene.mi_scene, shots, tx, shape_table(radio.scene, [body]),
+                           boxes_scene(np.array([[lo, hi]])))
     lattice = np.array(shots.k_tx, dtype=float).reshape(3, -1).T
 
     def slab(d, lo, hi):
@@ -361,16 +362,16 @@ def test_targets_behind_a_reflecting_plane_go_untested_and_the_paths_stay(monkey
     """A specular chain whose last interaction is a reflection cannot reach a target on the
     far side of that plane, so the cache does not test the target's visibility there. The
     links are those found with every pair tested, and about half the tests are gone."""
-    from caviar_plugins.radio import shoot_cache
+    from caviar_plugins.rt.shoot_cache import connect
 
     tested = []
-    visibility = shoot_cache._visibility
+    visibility = connect.visibility
 
     def counting(mi_scene, rec, tgt, rays, targets):
         tested.append(len(rays))
         return visibility(mi_scene, rec, tgt, rays, targets)
 
-    monkeypatch.setattr(shoot_cache, "_visibility", counting)
+    monkeypatch.setattr(connect, "visibility", counting)
     radio = RadioScene(RadioConfig(samples_per_src=1_000_000, uav_mesh=False, threads=1), seed=0)
     # 30 receivers along the SAR route, as look-ahead places 10 UAVs: there, a path that
     # diffracts and then reflects on a face of the diffracting edge is lost if the side is
@@ -426,7 +427,7 @@ def test_a_diffuse_path_whose_earlier_segment_meets_a_moving_object_is_dropped()
     transmitter: without it about 26 diffuse paths per receiver pass where it will be; with
     it, neither the cache nor Sionna's loop keeps any path through it (a slab test on each
     path's segments), and the cache's diffuse paths number Sionna's within 5 %."""
-    from caviar_plugins.radio.scatterers import Body, ScattererPool
+    from caviar_plugins.rt.scatterers import Body, ScattererPool
 
     def with_pool(**kw):
         radio = scene(True, uav_mesh=False, rays_per_moving_object=512, **kw)

@@ -119,7 +119,7 @@ def test_bad_input_is_a_clear_error_naming_the_file(tmp_path, grid, cli):
 
 
 def test_the_pool_moves_boxes_without_scene_edits_and_reuses_them(tmp_path):
-    from caviar_plugins.radio.scatterers import Body, PoolFull, ScattererPool, box_vertices
+    from caviar_plugins.rt.scatterers import Body, PoolFull, ScattererPool, box_vertices
 
     plugin = radio_plugin(tmp_path, vehicle_pool=2, person_pool=1)
     pool, scene = plugin.pool, plugin.radio.scene
@@ -155,7 +155,7 @@ def test_the_pool_moves_boxes_without_scene_edits_and_reuses_them(tmp_path):
 def test_the_uav_and_traffic_pools_move_in_one_scene_update(tmp_path):
     """Both pools' boxes are written, then the scene is updated once (one acceleration-
     structure rebuild per step, not one per pool); unmoved boxes update nothing."""
-    from caviar_plugins.radio.scatterers import Body, box_vertices, update_pools
+    from caviar_plugins.rt.scatterers import Body, box_vertices, update_pools
 
     plugin = radio_plugin(tmp_path, vehicle_pool=2, person_pool=1)
     plugin._new_uav_pool({"uav": 1})

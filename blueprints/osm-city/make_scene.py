@@ -73,7 +73,7 @@ def main() -> int:
 
 
 def check(route: np.ndarray) -> None:
-    from caviar_plugins.radio import configure_drjit
+    from caviar_plugins.rt import configure_drjit
 
     configure_drjit()
     import mitsuba as mi

@@ -69,6 +69,7 @@ def nr_prbs(bandwidth_hz: float, scs_hz: float) -> int | None:
 
 class RadioNetwork(caviar.Plugin):
     subscribe = [POSITIONS, ARRIVED]
+    optional = (ARRIVED,)  # (UEs that leave: SUMO's arrivals, when traffic runs)
     publishes = (THROUGHPUT, NETWORK_UE, NETWORK_EVENTS, NETWORK_CELLS, NETWORK_RADIO_MAP, VIEW_RADIO_MAP)
 
     @dataclasses.dataclass

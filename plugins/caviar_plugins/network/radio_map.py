@@ -20,7 +20,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from caviar_plugins.network.cells import Cell, rsrp_dbm, rx_power_dbm, sinr_db
-from caviar_plugins.radio.scene import configure_drjit, scene_path
+from caviar_plugins.rt.drjit_setup import configure_drjit
+from caviar_plugins.rt.scene import load_scene
 
 NO_SIGNAL_DB = -250.0
 SINR_RANGE_DB = (-10.0, 40.0)
@@ -54,8 +55,7 @@ def best_server_map(cells: Sequence[Cell], settings: RadioMapSettings, scene: st
     import mitsuba as mi
     import sionna.rt as rt
 
-    path = scene_path(scene, base_dir)
-    s = rt.load_scene(str(path)) if path else rt.load_scene()
+    s = load_scene(scene, base_dir)
     s.frequency = cells[0].carrier_hz
     s.tx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="tr38901", polarization="V")
     s.rx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")

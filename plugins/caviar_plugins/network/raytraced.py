@@ -35,7 +35,8 @@ import numpy as np
 
 from caviar_plugins.network.cells import Cell, pattern_gain_db
 from caviar_plugins.radio.link_budget import SPEED_OF_LIGHT
-from caviar_plugins.radio.scene import configure_drjit, scene_path
+from caviar_plugins.rt.drjit_setup import configure_drjit, set_thread_count
+from caviar_plugins.rt.scene import load_scene
 
 NO_PATH_DB = -250.0
 """The gain of a cell no traced path connects to a UE: far below any noise floor."""
@@ -59,6 +60,13 @@ class TraceSettings:
     threads: int = 0
     """Dr.Jit CPU threads; 0 = all cores. As sionna-link's ``threads``: ``1`` makes the
     traces bit-identical from run to run (the parallel sums differ in the last bits)."""
+    shoot_cache: bool = True
+    """The shoot cache of :class:`~caviar_plugins.rt.solver.PathTracer`, as sionna-link's: it
+    serves a trace whose scene and sites are those of the last one from the recorded bounces.
+    It covers one source per solve: with more than one site, Sionna's own loop runs."""
+    max_num_paths_per_src: int = 1_000_000
+    """Sionna's candidate-path buffer per site; a trace that overflows it warns with the
+    number of candidates dropped."""
 
     def __post_init__(self):
         if self.max_depth < 0:
@@ -73,6 +81,8 @@ class TraceSettings:
             raise ValueError(f"raytracing.paths_per_link: expected >= 1, got {self.paths_per_link}")
         if self.threads < 0:
             raise ValueError(f"raytracing.threads: expected 0 (all cores) or more, got {self.threads}")
+        if self.max_num_paths_per_src < 1:
+            raise ValueError(f"raytracing.max_num_paths_per_src: expected >= 1, got {self.max_num_paths_per_src}")
 
 
 @dataclasses.dataclass
@@ -112,20 +122,20 @@ class TracedChannels:
 
 
 class SiteTracer:
-    """The network's sites in a Sionna RT scene; :meth:`gains_db` traces the UEs."""
+    """The network's sites in a Sionna RT scene; :meth:`gains_db` traces the UEs. A client of
+    :mod:`caviar_plugins.rt`: the scene from :func:`~caviar_plugins.rt.scene.load_scene`, the
+    solves by a :class:`~caviar_plugins.rt.solver.PathTracer` (shoot cache, path-buffer watch)."""
 
     def __init__(self, settings: TraceSettings, cells: Sequence[Cell], seed: int = 0,
                  base_dir: pathlib.Path | None = None):
         configure_drjit()
         import sionna.rt as rt
 
-        if settings.threads > 0:
-            import drjit as dr
+        from caviar_plugins.rt.solver import PathTracer
 
-            dr.set_thread_count(settings.threads)
+        set_thread_count(settings.threads)
         self.rt, self.s, self.cells, self.seed = rt, settings, list(cells), int(seed) % (2**31)
-        path = scene_path(settings.scene, base_dir)
-        self.scene = rt.load_scene(str(path)) if path else rt.load_scene()
+        self.scene = load_scene(settings.scene, base_dir)
         carriers = {c.carrier_hz for c in cells}
         if len(carriers) > 1:
             raise ValueError("raytracing: every cell must share one carrier (one solve per carrier is not "
@@ -139,7 +149,8 @@ class SiteTracer:
                 self.sites.append(c.site)
                 self.scene.add(rt.Transmitter(f"site-{c.site}", position=list(c.position)))
         self.site_of = np.array([self.sites.index(c.site) for c in self.cells])
-        self.solver = rt.PathSolver()
+        self.tracer = PathTracer(self.scene, shoot_cache=settings.shoot_cache,
+                                 max_num_paths_per_src=settings.max_num_paths_per_src)
         self.receivers: list[str] = []
 
     def _place(self, ues: np.ndarray) -> None:
@@ -170,9 +181,9 @@ class SiteTracer:
                                   np.zeros((0, n_cell)))
         self._place(ues)
         s = self.s
-        paths = self.solver(self.scene, max_depth=s.max_depth, samples_per_src=s.samples_per_src,
-                            synthetic_array=True, los=True, specular_reflection=True, diffuse_reflection=False,
-                            refraction=False, diffraction=s.diffraction, seed=self.seed)
+        paths = self.tracer.solve(max_depth=s.max_depth, samples_per_src=s.samples_per_src, synthetic_array=True,
+                                  los=True, specular_reflection=True, diffuse_reflection=False, refraction=False,
+                                  diffraction=s.diffraction, seed=self.seed)
         a_re, a_im = (np.array(x) for x in paths.a)  # [rx, rx_ant, tx, tx_ant, paths]
         a = (a_re + 1j * a_im)[:, 0, :, 0, :]  # [rx, tx, paths]
         shape = a.shape

@@ -216,7 +216,7 @@ def rt_params(settings: dict[str, Any]) -> dict[str, Any]:
 def _scene_files(settings: dict[str, Any], folder: pathlib.Path) -> None:
     """The run's Sionna scene (its static geometry: no UAV bodies) as DeepMIMO's Sionna
     exporter writes it: materials, vertices, objects and faces."""
-    from caviar_plugins.radio.scene import configure_drjit
+    from caviar_plugins.rt import configure_drjit
 
     configure_drjit()
     import sionna.rt as rt

@@ -37,6 +37,8 @@ from typing import Any
 
 import numpy as np
 
+from caviar_plugins.rt import sionna_adapter as adapter
+
 NUMEROLOGIES = (15e3, 30e3, 60e3, 120e3)
 NR_RANGES_HZ = ((410e6, 7.125e9), (24.25e9, 71e9))
 """NR frequency ranges (FR1, FR2), where the BLER tables (NR LDPC, NR MCS tables) apply."""
@@ -193,9 +195,8 @@ class LinkLevel:
         harq = torch.full((d, capacity), -1, dtype=torch.int32)
         rate_last = torch.zeros(d, c, capacity)
         if old:
-            olla._offset[:, :old] = self.olla._offset
-            olla._sinr_eff_db_last[:, :old] = self.olla._sinr_eff_db_last
-            pf._rate_achieved_past[:, :, :old] = self.pf._rate_achieved_past
+            adapter.grow_link_adaptation(olla, self.olla, old)
+            adapter.grow_scheduler(pf, self.pf, old)
             harq[:, :old], rate_last[:, :, :old] = self.harq, self.rate_last
         self.olla, self.pf, self.harq, self.rate_last = olla, pf, harq, rate_last
 
@@ -243,15 +244,15 @@ class LinkLevel:
     def moved(self, u: int, new_cell: int) -> None:
         """UE column ``u`` now belongs to ``new_cell``: a fresh PF history there."""
         if self._sys is not None:
-            self.pf._rate_achieved_past[:, new_cell, u] = 1.0
+            adapter.reset_scheduler_history(self.pf, u, new_cell)
             self.rate_last[:, :, u] = 0.0
 
     def released(self, u: int) -> None:
         """Column ``u`` is free again (its UE left): its state goes back to new."""
         if self._sys is not None:
-            self.pf._rate_achieved_past[:, :, u] = 1.0
+            adapter.reset_scheduler_history(self.pf, u)
             self.rate_last[:, :, u] = 0.0
-            self.olla._offset[:, u] = 0.0
+            adapter.reset_link_adaptation(self.olla, u)
             self.harq[:, u] = -1
 
     def run(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:

@@ -2,19 +2,15 @@
 between steps only receivers and UAV meshes move.
 
 This module knows nothing of caviar: :class:`RadioScene` is what the communications
-plugin and the benchmarks call.
-
-Sionna RT 2.x runs on Dr.Jit. Without a GPU it uses the LLVM backend, which needs
-libLLVM >= 16 (Debian: ``libllvm19``); :func:`configure_drjit` points Dr.Jit at it.
+plugin and the benchmarks call. It is a client of :mod:`caviar_plugins.rt`: the scene and
+its moving objects (:mod:`~caviar_plugins.rt.scene`), and the path solver with the shoot
+cache and the path-buffer watch (:class:`~caviar_plugins.rt.solver.PathTracer`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import glob
-import os
 import pathlib
-import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -24,41 +20,11 @@ from caviar_plugins.assets import SCENES
 from caviar_plugins.radio.beams import beam_gains, dft_codebook, flat_dft_codebook
 from caviar_plugins.radio.link_report import line_of_sight_paths
 from caviar_plugins.radio.path_data import PathData, receiver_paths
-from caviar_plugins.radio.shoot_cache import ShootCache, bounding_box
+from caviar_plugins.rt.drjit_setup import configure_drjit, set_thread_count
+from caviar_plugins.rt.scene import MovingObjects, load_scene
 
 CODEBOOKS = ("kronecker", "flat-dft")
 UAV_BODY = SCENES / "central_park" / "meshes" / "Cube.ply"  # a 2 m cube
-
-
-def configure_drjit() -> None:
-    """Sets DRJIT_LIBLLVM_PATH to the newest libLLVM >= 16 found, unless already set.
-    Must run before sionna/mitsuba/drjit are imported."""
-    if os.environ.get("DRJIT_LIBLLVM_PATH"):
-        return
-    candidates = []
-    for path in glob.glob("/usr/lib/*-linux-gnu/libLLVM.so.*") + glob.glob("/usr/lib/*-linux-gnu/libLLVM-*.so"):
-        digits = "".join(ch if ch.isdigit() else " " for ch in os.path.basename(path)).split()
-        if digits and int(digits[0]) >= 16:
-            candidates.append((int(digits[0]), path))
-    if candidates:
-        os.environ["DRJIT_LIBLLVM_PATH"] = max(candidates)[1]
-
-
-def scene_path(name: str, base: pathlib.Path | None = None) -> pathlib.Path | None:
-    """A shipped scene by name (``central_park``), or a path to a Mitsuba XML file.
-    ``empty`` gives None: free space."""
-    if name == "empty":
-        return None
-    shipped = SCENES / name / f"{name}.xml"
-    if shipped.exists():
-        return shipped
-    p = pathlib.Path(name)
-    if not p.is_absolute() and base is not None:
-        p = base / p
-    if not p.exists():
-        known = ", ".join(sorted(d.name for d in SCENES.iterdir() if d.is_dir()))
-        raise FileNotFoundError(f"scene '{name}': neither a shipped scene ({known}, empty) nor an existing file")
-    return p
 
 
 @dataclasses.dataclass
@@ -104,7 +70,7 @@ class RadioConfig:
     shoot_cache: bool = True
     """Keep the rays' bounces of a solve and, while the geometry stays the same (objects,
     materials, frequency, transmitters), trace only the receivers' visibility tests in
-    later solves (:mod:`~caviar_plugins.radio.shoot_cache`): the paths of Sionna's loop
+    later solves (:mod:`~caviar_plugins.rt.shoot_cache`): the paths of Sionna's loop
     (without the specular chains its hash table drops), 0.08x its time for 1 receiver,
     0.36x for 10 (1e6 samples, 2 cores). UAV bodies and the objects of
     :meth:`RadioScene.add_moving_objects` (vehicles) move on top of it
@@ -117,10 +83,10 @@ class RadioConfig:
     move. Each solve's visibility tests and Sionna's image method run with the bodies where
     they are (the paths they block are dropped); the paths by way of a body come from rays
     aimed at it from the transmitter and from the recorded rays that now meet it after a
-    bounce, bounced on in the scene as it is (:mod:`~caviar_plugins.radio.shoot_cache`).
+    bounce, bounced on in the scene as it is (:mod:`~caviar_plugins.rt.shoot_cache`).
     A diffuse path whose earlier segments now meet a body is dropped. Measured
-    against Sionna's loop in the README. ``false``: a moved body is a new geometry, and the
-    solve runs Sionna's loop. ``sionna-traffic-link`` treats its vehicles and persons the
+    against Sionna's loop in docs/measured/performance.md. ``false``: a moved body is a
+    new geometry, and the solve runs Sionna's loop. ``sionna-traffic-link`` treats its vehicles and persons the
     same way."""
     rays_per_moving_object: int = 4096
     """Rays aimed from the transmitter at each moving body's bounding sphere per solve
@@ -191,38 +157,22 @@ class RadioScene:
         configure_drjit()
         import sionna.rt as rt
 
-        if cfg.threads > 0:
-            import drjit as dr
+        from caviar_plugins.rt.solver import PathTracer
 
-            dr.set_thread_count(cfg.threads)
-
+        set_thread_count(cfg.threads)
         self.rt = rt
         self.cfg = cfg
         self.seed = int(seed) % (2**31)
-        path = scene_path(cfg.scene, base_dir)
-        self.scene = rt.load_scene(str(path)) if path else rt.load_scene()
+        self.scene = load_scene(cfg.scene, base_dir)
         s = self.scene
         s.frequency = cfg.frequency_hz
         s.tx_array = self._array(cfg.tx_array)
         s.rx_array = self._array(cfg.rx_array)
         s.add(rt.Transmitter("tx", position=cfg.tx_position, orientation=cfg.tx_orientation))
-        self.solver = rt.PathSolver()
-        from caviar_plugins.radio import sionna_internals as internals
-
-        self._path_counter = None
-        self.shoot_cache: ShootCache | None = None
-        if internals.PROBLEM is not None:
-            # Sionna's own loop, unwatched: correct, slower, and an overflowing path buffer goes unreported.
-            warnings.warn(f"{internals.PROBLEM}: Sionna's own shoot-and-bounce runs"
-                          f"{' (shoot_cache = true ignored)' if cfg.shoot_cache else ''}, and candidates dropped "
-                          "for lack of path buffer are not reported", RuntimeWarning, stacklevel=2)
-        else:
-            internals.watch_candidate_counter(self.solver, self._saw_candidate_counter)
-            if cfg.shoot_cache:
-                self.shoot_cache = ShootCache(internals.candidate_generator(self.solver), self.geometry_fingerprint,
-                                              movers=self.moving_objects, scene=self.scene,
-                                              rays_for=self._rays_at, boxes_of=self._boxes_of)
-                internals.replace_candidate_generator(self.solver, self.shoot_cache)
+        self.movers = MovingObjects(s, enabled=cfg.cache_moving_bodies, rays_per_object=cfg.rays_per_moving_object)
+        """The UAV bodies (``movers.bodies``) and the objects of :meth:`add_moving_objects`."""
+        self.tracer = PathTracer(s, shoot_cache=cfg.shoot_cache, movers=self.movers,
+                                 max_num_paths_per_src=cfg.max_num_paths_per_src)
         if cfg.codebook == "flat-dft":
             self.w_tx = flat_dft_codebook(s.tx_array.num_ant)
             self.w_rx = flat_dft_codebook(s.rx_array.num_ant)
@@ -230,9 +180,7 @@ class RadioScene:
             self.w_tx = dft_codebook(np.array(s.tx_array.positions(s.wavelength)))
             self.w_rx = dft_codebook(np.array(s.rx_array.positions(s.wavelength)))
         self.receivers: dict[str, Any] = {}
-        self.bodies: dict[str, Any] = {}
-        # id -> (object, is it away?, its bodies' bounds)
-        self._movers: dict[int, tuple[Any, Callable[[Any], bool] | None, Callable[[Any], Any] | None]] = {}
+        self.bodies = self.movers.bodies
         # The scene is static and the solver seeded: the same positions give the same
         # paths, so a step in which no UAV moved (hovering) reuses the last solve.
         self._placed: tuple = ()
@@ -240,32 +188,27 @@ class RadioScene:
         self._solved: tuple[tuple, dict] | None = None
         self.solves = 0
         """Solves that traced (not those that reused the last one)."""
-        self.last_paths: Any = None
-        """Sionna's ``Paths`` of the last solve that traced (amplitudes, delays, Doppler shifts...)."""
         self._body_template = s.objects.get("Cube")
         self._bodies_on = cfg.uav_mesh
         self.keep_paths = False
         """Attach every receiver's :class:`~caviar_plugins.radio.path_data.PathData` to its
         :class:`Link` (costs the paths' interactions and vertices on each solve)."""
 
-    def _saw_candidate_counter(self, counter) -> None:
-        """Keeps the per-source candidate counter of Sionna's shoot-and-bounce (incremented
-        for every candidate *before* the ``max_num_paths_per_src`` cap): after a solve, a
-        count above the cap is the number of candidates dropped (NVlabs/sionna#1172)."""
-        self._path_counter = counter
+    @property
+    def shoot_cache(self):
+        """The path tracer's shoot cache (None: Sionna's own loop)."""
+        return self.tracer.shoot_cache
+
+    @property
+    def last_paths(self) -> Any:
+        """Sionna's ``Paths`` of the last solve that traced (amplitudes, delays, Doppler shifts...)."""
+        return self.tracer.last_paths
 
     def moving_objects(self) -> list[Any]:
         """The objects the shoot cache handles on top of its recorded bounces (the UAV
         bodies and the objects of :meth:`add_moving_objects`, with ``cache_moving_bodies``);
         the geometry fingerprint leaves them out."""
-        if not self.cfg.cache_moving_bodies:
-            return []
-        return list(self.bodies.values()) + [entry[0] for entry in self._movers.values() if self._in_scene(entry[0])]
-
-    def _in_scene(self, obj: Any) -> bool:
-        """Whether a declared moving object is still in the scene (not, e.g., a pool's mesh
-        since replaced by a larger one)."""
-        return self.scene.objects.get(obj.name) is obj
+        return self.movers.present()
 
     def add_moving_objects(self, objects: Sequence[Any], away: Callable[[Any], bool] | None = None,
                            boxes: Callable[[Any], np.ndarray] | None = None) -> None:
@@ -274,72 +217,23 @@ class RadioScene:
         they move, as it does for UAV bodies; without it, their moves make every solve a new
         geometry. ``away(obj)`` says whether an object is out of the scene for now (parked):
         no rays are aimed at it. ``boxes(obj)`` (an object made of separate bodies, as a
-        :class:`~caviar_plugins.radio.scatterers.ScattererPool`'s mesh) gives the bounds
+        :class:`~caviar_plugins.rt.scatterers.ScattererPool`'s mesh) gives the bounds
         (m, 2, 3) of each of its bodies, which the shoot cache then treats one by one;
         without it, the object's bounding box. Declaring an object again does nothing."""
-        for key in [k for k, entry in self._movers.items() if not self._in_scene(entry[0])]:
-            del self._movers[key]
-        for obj in objects:
-            self._movers.setdefault(id(obj), (obj, away, boxes))
-
-    def _rays_at(self, obj: Any) -> int | None:
-        """Rays the shoot cache aims at each body of a moving object (None: as dense as
-        Sionna's)."""
-        entry = self._movers.get(id(obj))
-        away = entry[1] if entry is not None else None
-        if away is not None and away(obj):
-            return 0
-        return self.cfg.rays_per_moving_object or None
-
-    def _boxes_of(self, obj: Any) -> np.ndarray:
-        """The bounds (m, 2, 3) of a moving object's bodies (see :meth:`add_moving_objects`)."""
-        entry = self._movers.get(id(obj))
-        if entry is not None and entry[2] is not None:
-            return np.asarray(entry[2](obj), dtype=float).reshape(-1, 2, 3)
-        return bounding_box(obj)
+        self.movers.declare(objects, away, boxes)
 
     def geometry_fingerprint(self) -> tuple:
-        """What the rays' bounces depend on besides the transmitters and the solver's
-        settings: every object's name, position, orientation, scale and material (but the
-        :meth:`moving_objects`), every material's parameters and the frequency (the shoot
-        cache's key)."""
-        moving = {id(obj) for obj in self.moving_objects()}
-        objects = tuple((name, *(tuple(np.asarray(getattr(obj, a), dtype=float).ravel().tolist())
-                                 for a in ("position", "orientation", "scaling")), obj.radio_material.name)
-                        for name, obj in self.scene.objects.items() if id(obj) not in moving)
-        materials = []
-        for name, mat in self.scene.radio_materials.items():
-            values: list[Any] = []
-            for a in ("relative_permittivity", "conductivity", "scattering_coefficient", "xpd_coefficient",
-                      "thickness"):
-                v = getattr(mat, a, None)
-                values.append(None if v is None else tuple(np.asarray(v, dtype=float).ravel().tolist()))
-            pattern = getattr(mat, "scattering_pattern", None)
-            values.append(type(pattern).__name__)
-            for a in ("alpha_r", "alpha_i", "lambda_"):
-                v = getattr(pattern, a, None)
-                if v is not None:
-                    values.append(tuple(np.asarray(v, dtype=float).ravel().tolist()))
-            materials.append((name, type(mat).__name__, *values))
-        return objects, tuple(materials), float(np.asarray(self.scene.frequency).ravel()[0])
+        """The shoot cache's key (:meth:`caviar_plugins.rt.scene.MovingObjects.fingerprint`)."""
+        return self.movers.fingerprint()
 
     def cache_status(self) -> str | None:
         """One line on what share of the solves the shoot cache served (None without it or
         before the first solve), for ``caviar.status``."""
-        cache = self.shoot_cache
-        if cache is None or not self.solves:
-            return None
-        return f"shoot cache {100 * cache.connects / self.solves:.0f} % of {self.solves} solves"
+        return self.tracer.cache_status(self.solves)
 
     def paths_dropped(self) -> int:
         """Candidates the last solve dropped for lack of buffer (0: none)."""
-        counter = self._path_counter
-        if self.shoot_cache is not None and self.shoot_cache.paths_counter_per_source is not None:
-            counter = self.shoot_cache.paths_counter_per_source
-        if counter is None:
-            return 0
-        counts = np.array(counter, dtype=np.int64).reshape(-1)
-        return int(np.maximum(counts - self.cfg.max_num_paths_per_src, 0).sum())
+        return self.tracer.paths_dropped()
 
     def _array(self, shape):
         return self.rt.PlanarArray(num_rows=shape[0], num_cols=shape[1], vertical_spacing=self.cfg.spacing,
@@ -441,16 +335,11 @@ class RadioScene:
             return self._solved[1]
         c = self.cfg
         self.solves += 1
-        paths = self.last_paths = self.solver(self.scene, max_depth=c.max_depth, samples_per_src=c.samples_per_src,
-                            synthetic_array=True, los=c.los, specular_reflection=c.specular_reflection,
-                            diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
-                            diffraction=c.diffraction, seed=self.seed,
-                            max_num_paths_per_src=c.max_num_paths_per_src)
-        dropped = self.paths_dropped()
-        if dropped:
-            warnings.warn(f"Sionna's path buffer overflowed: {dropped} candidate paths dropped "
-                          f"(max_num_paths_per_src = {c.max_num_paths_per_src}); raise it", RuntimeWarning,
-                          stacklevel=2)
+        paths = self.tracer.solve(max_depth=c.max_depth, samples_per_src=c.samples_per_src, synthetic_array=True,
+                                  los=c.los, specular_reflection=c.specular_reflection,
+                                  diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
+                                  diffraction=c.diffraction, seed=self.seed)
+        dropped = self.tracer.dropped
         # The channel at the carrier: Σ a·exp(−j2π f_c τ). paths.a lacks the carrier phase;
         # cfr() takes it from cir() and adds exp(−j2π f τ) for baseband offsets f: f = 0 here.
         cfr = paths.cfr(frequencies=np.array([0.0]), normalize_delays=False, out_type="numpy")

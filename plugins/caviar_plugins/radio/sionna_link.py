@@ -28,7 +28,8 @@ from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.radio.link_report import LINK_TOPICS, link_messages
 from caviar_plugins.radio.prediction import Forecaster, prediction_payload
-from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene, scene_path
+from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene
+from caviar_plugins.rt.scene import scene_path
 from caviar_plugins.schema import (
     BEAM_SELECTION,
     FORECAST,
@@ -147,6 +148,7 @@ class SionnaLinkParams(RadioConfig):
 
 class SionnaLink(caviar.Plugin):
     subscribe = [POSITIONS, BEAM_SELECTION, FORECAST]
+    optional = (BEAM_SELECTION, FORECAST)  # (without them: the best pair, no look-ahead)
     publishes = (*LINK_TOPICS, STATE, PREDICTION, every_ue(PATHS), caviar.STATUS_TOPIC)
     Params = SionnaLinkParams
 

@@ -3,7 +3,7 @@
 Every vehicle and person on ``3D.mobility.positions`` that carries ``dimensions`` (as
 ``sumo-traffic`` publishes them) is a box of its size in the ray-traced scene — ITU metal
 for vehicles, ITU concrete for pedestrians by default — borrowed from a pool of boxes
-added once at setup (:class:`~caviar_plugins.radio.scatterers.ScattererPool`): boxes move
+added once at setup (:class:`~caviar_plugins.rt.scatterers.ScattererPool`): boxes move
 every step without reloading the scene or recompiling the solver.
 
 Receivers, one per UE, as in ``sionna-link``:
@@ -34,9 +34,9 @@ import numpy as np
 import caviar
 from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.link_report import LINK_TOPICS, line_of_sight_paths, link_messages
-from caviar_plugins.radio.scatterers import Body, ScattererPool, box_doppler_hz, update_pools
 from caviar_plugins.radio.scene import RadioScene
 from caviar_plugins.radio.sionna_link import SionnaLinkParams
+from caviar_plugins.rt.scatterers import Body, ScattererPool, box_doppler_hz, update_pools
 from caviar_plugins.schema import BEAM_SELECTION, POSITIONS, STATE, read_position
 
 PARKED_RX_Z = -500.0
@@ -88,6 +88,7 @@ class SionnaTrafficLinkParams(SionnaLinkParams):
 
 class SionnaTrafficLink(caviar.Plugin):
     subscribe = [POSITIONS, BEAM_SELECTION]
+    optional = (BEAM_SELECTION,)  # (without it: the best pair)
     publishes = (*LINK_TOPICS, STATE, caviar.STATUS_TOPIC)
     Params = SionnaTrafficLinkParams
 
@@ -281,7 +282,7 @@ class SionnaTrafficLink(caviar.Plugin):
     def _add_box_doppler(self) -> None:
         """Adds the Doppler shift of the moving boxes to the last paths (the pools' meshes
         have no velocity of their own in Sionna: see :class:`ScattererPool`)."""
-        from caviar_plugins.radio import sionna_internals as internals
+        from caviar_plugins.rt import sionna_adapter as adapter
 
         pools = [pool for pool in self._pools() if pool.used]
         paths = self.radio.last_paths
@@ -293,7 +294,7 @@ class SionnaTrafficLink(caviar.Plugin):
                                np.array(paths.targets, dtype=float).reshape(3, -1).T,
                                float(np.asarray(self.radio.scene.wavelength).ravel()[0]))
         doppler = np.array(paths.doppler)
-        internals.set_doppler(paths, doppler + extra.reshape(doppler.shape))
+        adapter.set_doppler(paths, doppler + extra.reshape(doppler.shape))
 
     def _paths_info(self) -> dict[str, dict]:
         """Doppler of the strongest and of the line-of-sight path of each receiver."""
@@ -320,8 +321,7 @@ class SionnaTrafficLink(caviar.Plugin):
 
     def _blockers(self) -> dict[str, str | None]:
         """What the straight line from the transmitter to each receiver hits first."""
-        import drjit as dr
-        import mitsuba as mi
+        from caviar_plugins.rt.scene import first_hits
 
         keys = list(self.radio.receivers)
         tx = np.asarray(self.radio.cfg.tx_position, dtype=float)
@@ -329,17 +329,8 @@ class SionnaTrafficLink(caviar.Plugin):
         d = rx - tx
         dist = np.linalg.norm(d, axis=1)
         u = d / np.maximum(dist, 1e-9)[:, None]
-        # (Arrays from Python lists: Dr.Jit copies them into memory of its own, whereas a numpy
-        # array's memory is taken as it is, and a kernel is compiled anew for each alignment.)
-        ray = mi.Ray3f(mi.Point3f(*(mi.Float([float(v)] * len(keys)) for v in tx)),
-                       mi.Vector3f(*(mi.Float(u[:, j].tolist()) for j in range(3))))
-        ray.maxt = mi.Float(np.maximum(dist - 0.05, 0.0).tolist())  # type: ignore[assignment]
-        # Which shape is hit is all that is needed: the preliminary intersection (without the
-        # surface interaction's call into every shape of the scene, about 8 ms).
-        si = self.radio.scene.mi_scene.ray_intersect_preliminary(ray)
-        hit = np.array(si.is_valid())
-        ids = np.array(dr.reinterpret_array(mi.UInt32, si.shape))
-        prims = np.array(si.prim_index)
+        hit, ids, prims = first_hits(self.radio.scene, np.repeat(tx[None], len(keys), axis=0), u,
+                                     np.maximum(dist - 0.05, 0.0))
         pools = self._pools()
 
         def name(i: int) -> str:

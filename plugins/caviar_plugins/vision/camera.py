@@ -25,26 +25,12 @@ import numpy as np
 import caviar
 from caviar_plugins.assets import DATA
 from caviar_plugins.mobility.waypoints import Path, read_waypoints
-from caviar_plugins.radio.scene import configure_drjit
+from caviar_plugins.rt.drjit_setup import mitsuba
 from caviar_plugins.schema import CAMERA, POSITIONS, every_ue, per_ue, read_position
 
 CLOTHES = [(0.95, 0.35, 0.05), (0.85, 0.08, 0.08), (0.95, 0.85, 0.1), (0.1, 0.25, 0.85), (0.55, 0.1, 0.6)]
 SKIN = (0.8, 0.6, 0.45)
 SKY = (0.6, 0.75, 0.95)
-
-
-def mitsuba():
-    """Mitsuba with a variant set: Sionna RT's if it is installed (it chooses its variant
-    on import, and only if none is set), else LLVM RGB."""
-    configure_drjit()
-    import mitsuba as mi
-
-    if mi.variant() is None:
-        try:
-            import sionna.rt  # noqa: F401
-        except ImportError:
-            mi.set_variant("llvm_ad_rgb")
-    return mi
 
 
 def shape_ids(scene) -> tuple[np.ndarray, list[str]]:
@@ -96,7 +82,7 @@ def _scene_meshes(scene: str, base_dir: pathlib.Path | None, d: dict) -> dict[st
     "DIR/scene.xml"``, e.g. built by ``caviar-core scene build``); the UAV's cube of the
     paper's scene is left out (the camera is on the UAV)."""
     from caviar_plugins.osm.mitsuba import scene_shapes
-    from caviar_plugins.radio.scene import scene_path
+    from caviar_plugins.rt.scene import scene_path
 
     path = scene_path(scene, base_dir)
     if path is None:  # "empty": free space over a ground plane
@@ -266,7 +252,8 @@ class VisualScene:
 
         c, mi, k = self.cfg, self.mi, self.cfg.supersample
         sun = np.array([-0.3, -0.2, 1.0]) / np.linalg.norm([-0.3, -0.2, 1.0])
-        lambert = dr.llvm.ad.Float64(0.45 + 0.55 * np.clip(normal @ sun, 0, 1))
+        f64 = mi.Float64  # (the active variant's: CUDA or LLVM)
+        lambert = f64(0.45 + 0.55 * np.clip(normal @ sun, 0, 1))
         shape = dr.minimum(shape_id, len(self.palette) - 1)
         w, h = c.width, c.height
         o = dr.arange(mi.UInt32, n * h * w)
@@ -280,9 +267,9 @@ class VisualScene:
             for j in range(k):
                 s = base + i * (w * k) + j
                 sid = dr.gather(mi.UInt32, shape, s)
-                lam = dr.gather(dr.llvm.ad.Float64, lambert, s)
+                lam = dr.gather(f64, lambert, s)
                 for ch in range(3):
-                    v = dr.llvm.ad.Float64(dr.gather(mi.Float, self._palette_dr[ch], sid)) * lam
+                    v = f64(dr.gather(mi.Float, self._palette_dr[ch], sid)) * lam
                     total[ch] = v if total[ch] is None else total[ch] + v
         labels_id = dr.gather(mi.UInt32, shape, base)
         dr.eval(total, labels_id)

@@ -44,7 +44,8 @@ import numpy as np
 
 from caviar_plugins.assets import DATA
 from caviar_plugins.mobility.waypoints import read_waypoints
-from caviar_plugins.vision.camera import _scene_meshes, mitsuba, shape_ids
+from caviar_plugins.rt.drjit_setup import mitsuba
+from caviar_plugins.vision.camera import _scene_meshes, shape_ids
 from caviar_plugins.vision.image_link import packet_loss
 
 SPLIT_SEEDS = {"train": 101, "val": 202, "test": 303}

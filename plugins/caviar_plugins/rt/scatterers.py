@@ -12,7 +12,7 @@ kernels are reused.
 Each box also carries its velocity. Sionna RT gives an object one velocity, so the meshes
 have none: whoever solves adds the boxes' Doppler shifts to the paths with
 :func:`box_doppler_hz` (``sionna-traffic-link`` does after every solve); a bare
-``RadioScene.solve`` gives paths off the boxes no Doppler of their own.
+``PathTracer.solve`` gives paths off the boxes no Doppler of their own.
 
 Nothing of caviar here: :class:`ScattererPool` takes a ``sionna.rt.Scene``.
 """
@@ -24,6 +24,8 @@ import time
 from typing import Any
 
 import numpy as np
+
+from caviar_plugins.rt.scene import geometry_changed, vertex_positions, write_vertex_positions
 
 PARK_Z = -1000.0
 PARK_SIZE = 0.01
@@ -163,8 +165,7 @@ class ScattererPool:
         self.free = {g: list(f) for g, f in snapshot["free"].items()}
         self.used = dict(snapshot["used"])
         self._stage(dict(snapshot["state"]), every=True)
-        self.scene.mi_scene_params.update()
-        self.scene.scene_geometry_updated()
+        geometry_changed(self.scene)
 
     @property
     def capacity(self) -> dict[str, int]:
@@ -192,7 +193,6 @@ class ScattererPool:
     def _stage(self, wanted: dict[tuple[str, int], tuple], every: bool = False) -> int:
         """Writes the vertices of each group with a box whose state changed into the scene's
         parameters (without updating the scene); returns how many boxes changed."""
-        params = self.scene.mi_scene_params
         changed = 0
         for group, n in self.sizes.items():
             here = 0
@@ -205,8 +205,7 @@ class ScattererPool:
             if (here or every) and group in self.meshes:
                 # (From a Python list: Dr.Jit copies it into memory of its own; a numpy array's memory
                 # is taken as it is, and its alignment varies: about 10 % of the update, measured.)
-                params[self.meshes[group].mi_mesh.id() + ".vertex_positions"] = self.mi.Float(
-                    self._vertices(group).ravel().tolist())
+                write_vertex_positions(self.scene, self.meshes[group], self._vertices(group).ravel().tolist())
             changed += here
         return changed
 
@@ -265,8 +264,7 @@ class ScattererPool:
         if key not in self.used:
             return None
         group, i = self.used[key]
-        mesh = self.meshes[group].mi_mesh
-        return np.array(self.scene.mi_scene_params[mesh.id() + ".vertex_positions"]).reshape(-1, 8, 3)[i]
+        return vertex_positions(self.scene, self.meshes[group]).reshape(-1, 8, 3)[i]
 
     def key_at(self, object_id: int, primitive: int) -> str | None:
         """Whose box the hit on object ``object_id``, triangle ``primitive`` is (None: not
@@ -340,9 +338,7 @@ def update_pools(updates: list[tuple[ScattererPool, list[Body]]], grow: bool = F
     wanted = [pool._assign(bodies, grow) for pool, bodies in updates]
     changed = [pool._stage(w) for (pool, _), w in zip(updates, wanted, strict=True)]
     if any(changed):
-        scene = updates[0][0].scene
-        scene.mi_scene_params.update()
-        scene.scene_geometry_updated()
+        geometry_changed(updates[0][0].scene)
     elapsed = time.perf_counter() - t0
     for (pool, _), n in zip(updates, changed, strict=True):
         pool.last_update_s, pool.last_changed = elapsed, n

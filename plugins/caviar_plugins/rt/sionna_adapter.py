@@ -1,34 +1,35 @@
-"""Every use of Sionna RT's private internals, in one place.
+"""Every use of Sionna RT's and Sionna SYS's private internals, in one place.
 
-The shoot cache (:mod:`caviar_plugins.radio.shoot_cache`) splits Sionna's candidate
-generator (``SBCandidateGenerator``) in two phases and the path-buffer watch of
-:class:`~caviar_plugins.radio.scene.RadioScene` reads its per-source candidate counter.
+**Sionna RT.** The shoot cache (:mod:`caviar_plugins.rt.shoot_cache`) splits Sionna's
+candidate generator (``SBCandidateGenerator``) in two phases and the path-buffer watch of
+:class:`~caviar_plugins.rt.solver.PathTracer` reads its per-source candidate counter.
 Both need names Sionna does not document: the solver's ``_candidate_generator``, the
 generator's ``_los``, ``_sampler``, ``_sample_radio_material`` and hashers, the path
-buffer and the sample-data fields, and the positional order of some arguments. Nothing
-else in this project touches them; this module does, and nothing else.
+buffer and the sample-data fields, and the positional order of some arguments; adding
+the moving boxes' Doppler shifts writes ``Paths._doppler``.
 
-Importing it checks that the installed sionna-rt is the minor version this code was
-written and tested for (:data:`TESTED_VERSION`) and that every name it uses exists with
-the arguments it passes. :data:`PROBLEM` is ``None`` when all is well, otherwise a
-sentence saying what is missing; :func:`require` raises :class:`SionnaInternalsError`
-with it. :class:`~caviar_plugins.radio.scene.RadioScene` then warns and runs Sionna's
+**Sionna SYS.** The radio network's link level grows its outer-loop link adaptation and
+proportional-fair scheduler to more UEs and resets a UE's column: their state tensors
+(``_offset``, ``_sinr_eff_db_last``, ``_rate_achieved_past``) have no public setter.
+
+Nothing else in this project touches a private name of Sionna (``tests/test_sionna_adapter.py``
+checks it with an allowlist). :func:`problem` checks, on first use, that the installed
+sionna-rt is the minor version this code was written and tested for
+(:data:`TESTED_VERSION`) and that every name it uses exists with the arguments it passes:
+``None`` when all is well, otherwise a sentence saying what is missing; :func:`require`
+raises :class:`SionnaInternalsError` with it. The path tracer then warns and runs Sionna's
 own loop (no shoot cache, no path-buffer overflow report): slower, never wrong.
-
-Import it only after :func:`~caviar_plugins.radio.scene.configure_drjit` (it imports
-Sionna RT, hence Dr.Jit).
 """
 
 from __future__ import annotations
 
-import contextlib
 import inspect
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from caviar_plugins.radio.scene import configure_drjit
+from caviar_plugins.rt.drjit_setup import configure_drjit
 
 TESTED_VERSION = (2, 2)
 """The sionna-rt minor version the shoot cache was checked against (tests/test_shoot_cache.py);
@@ -116,14 +117,26 @@ def _check() -> str | None:
     return None
 
 
-PROBLEM: str | None = _check()
-"""None when the installed Sionna RT has every internal used here; otherwise why not."""
+def problem() -> str | None:
+    """None when the installed Sionna RT has every internal used here; otherwise why not.
+    Checked once, on first use (it imports Sionna RT); kept as the module's ``PROBLEM``."""
+    found = globals()
+    if "PROBLEM" not in found:
+        found["PROBLEM"] = _check()
+    return found["PROBLEM"]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "PROBLEM":
+        return problem()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def require() -> None:
     """Raises :class:`SionnaInternalsError` naming what is missing, if anything is."""
-    if PROBLEM is not None:
-        raise SionnaInternalsError(PROBLEM)
+    found = problem()
+    if found is not None:
+        raise SionnaInternalsError(found)
 
 
 # --- the solver ------------------------------------------------------------------------------
@@ -159,7 +172,7 @@ def watch_candidate_counter(solver: Any, on_counter: Callable[[Any], None]) -> N
 def set_doppler(paths: Any, doppler) -> None:
     """Replaces the Doppler shifts (Hz) of Sionna's ``Paths`` (its private ``_doppler``, of
     the shape ``paths.doppler`` has): for velocities Sionna cannot see (boxes of one mesh
-    moving each with its own, :class:`~caviar_plugins.radio.scatterers.ScattererPool`)."""
+    moving each with its own, :class:`~caviar_plugins.rt.scatterers.ScattererPool`)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -219,33 +232,29 @@ def ray_utilities() -> tuple[Any, Any, Any, Any, Any]:
     return InteractionType, WedgeGeometry, fibonacci_lattice, hash_fnv1a, spawn_ray_from_sources
 
 
-# --- the scene's meshes ----------------------------------------------------------------------
+# --- Sionna SYS: the link level's state -------------------------------------------------------
 
-OUT_OF_THE_WAY_M = 1.0e4
-"""How far below the scene :func:`objects_out_of_the_way` moves objects."""
+def grow_link_adaptation(new: Any, old: Any, count: int) -> None:
+    """Copies the state of the first ``count`` UEs of an ``OuterLoopLinkAdaptation``
+    (``old``) into a larger one (``new``): its offsets and last effective SINRs."""
+    new._offset[:, :count] = old._offset
+    new._sinr_eff_db_last[:, :count] = old._sinr_eff_db_last
 
 
-@contextlib.contextmanager
-def objects_out_of_the_way(scene: Any, objects: Sequence[Any]) -> Iterator[None]:
-    """Moves ``objects`` (Sionna ``SceneObject``s of ``scene``) :data:`OUT_OF_THE_WAY_M`
-    below the scene while the block runs, in one scene update, and then puts their vertex
-    buffers back bit for bit (another update): the geometry afterwards is exactly the one
-    before. Uses the scene's Mitsuba parameters (``mi_scene_params``) and the meshes' ids."""
-    if not objects:
-        yield
-        return
-    import drjit as dr
-    import mitsuba as mi
+def grow_scheduler(new: Any, old: Any, count: int) -> None:
+    """Copies the achieved-rate history of the first ``count`` UEs of a
+    ``PFSchedulerSUMIMO`` (``old``) into a larger one (``new``)."""
+    new._rate_achieved_past[:, :, :count] = old._rate_achieved_past
 
-    params = scene.mi_scene_params
-    keys = [obj._mi_mesh.id() + ".vertex_positions" for obj in objects]
-    saved = [dr.copy(params[k]) for k in keys]
-    for key, vertices in zip(keys, saved, strict=True):
-        params[key] = dr.ravel(dr.unravel(mi.Point3f, vertices) + mi.Point3f(0.0, 0.0, -OUT_OF_THE_WAY_M))
-    params.update()
-    try:
-        yield
-    finally:
-        for key, vertices in zip(keys, saved, strict=True):
-            params[key] = vertices
-        params.update()
+
+def reset_scheduler_history(pf: Any, ue: int, cell: int | None = None) -> None:
+    """A fresh proportional-fair history for UE column ``ue`` (in ``cell``; None: every cell)."""
+    if cell is None:
+        pf._rate_achieved_past[:, :, ue] = 1.0
+    else:
+        pf._rate_achieved_past[:, cell, ue] = 1.0
+
+
+def reset_link_adaptation(olla: Any, ue: int) -> None:
+    """UE column ``ue`` of an ``OuterLoopLinkAdaptation`` starts again with no offset."""
+    olla._offset[:, ue] = 0.0

@@ -1,0 +1,95 @@
+"""The path solver every ray-traced module uses: Sionna RT's ``PathSolver`` with the shoot
+cache (:mod:`~caviar_plugins.rt.shoot_cache`) standing in for its candidate generator, and a
+watch on its path buffer (NVlabs/sionna#1172: candidates beyond ``max_num_paths_per_src``
+are dropped silently; :class:`PathTracer` counts them and warns).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+
+from caviar_plugins.rt import sionna_adapter as adapter
+from caviar_plugins.rt.scene import MovingObjects
+from caviar_plugins.rt.shoot_cache import ShootCache
+
+DEFAULT_MAX_PATHS_PER_SOURCE = 1_000_000
+"""Sionna's own default for ``max_num_paths_per_src``."""
+
+
+class PathTracer:
+    """Sionna's ``PathSolver`` for ``scene``, with the shoot cache (``shoot_cache``) and the
+    path-buffer watch. ``movers`` (optional) are the objects that move on top of the
+    cache's recorded bounces; without it every moved object is a new geometry.
+
+    Where the installed Sionna RT lacks an internal the cache or the watch use
+    (:func:`~caviar_plugins.rt.sionna_adapter.problem`), it warns once and runs Sionna's own
+    loop, unwatched: correct, slower."""
+
+    def __init__(self, scene: Any, shoot_cache: bool = True, movers: MovingObjects | None = None,
+                 max_num_paths_per_src: int = DEFAULT_MAX_PATHS_PER_SOURCE):
+        import sionna.rt as rt
+
+        if max_num_paths_per_src < 1:
+            raise ValueError(f"max_num_paths_per_src: expected >= 1, got {max_num_paths_per_src}")
+        self.scene = scene
+        self.movers = movers if movers is not None else MovingObjects(scene, enabled=False)
+        self.max_num_paths_per_src = max_num_paths_per_src
+        self.solver = rt.PathSolver()
+        self.shoot_cache: ShootCache | None = None
+        self.last_paths: Any = None
+        """Sionna's ``Paths`` of the last solve."""
+        self.dropped = 0
+        """Candidates the last solve dropped for lack of path buffer."""
+        self._counter: Any = None
+        problem = adapter.problem()
+        if problem is not None:
+            warnings.warn(f"{problem}: Sionna's own shoot-and-bounce runs"
+                          f"{' (shoot_cache = true ignored)' if shoot_cache else ''}, and candidates dropped "
+                          "for lack of path buffer are not reported", RuntimeWarning, stacklevel=3)
+            return
+        adapter.watch_candidate_counter(self.solver, self._saw_counter)
+        if shoot_cache:
+            movers_ = self.movers
+            self.shoot_cache = ShootCache(adapter.candidate_generator(self.solver), movers_.fingerprint,
+                                          movers=movers_.present, scene=scene, rays_for=movers_.rays_at,
+                                          boxes_of=movers_.boxes_of)
+            adapter.replace_candidate_generator(self.solver, self.shoot_cache)
+
+    def _saw_counter(self, counter) -> None:
+        """Keeps the per-source candidate counter of Sionna's shoot-and-bounce (incremented
+        for every candidate *before* the cap)."""
+        self._counter = counter
+
+    def paths_dropped(self) -> int:
+        """Candidates the last solve dropped for lack of buffer (0: none)."""
+        counter = self._counter
+        if self.shoot_cache is not None and self.shoot_cache.paths_counter_per_source is not None:
+            counter = self.shoot_cache.paths_counter_per_source
+        if counter is None:
+            return 0
+        counts = np.array(counter, dtype=np.int64).reshape(-1)
+        return int(np.maximum(counts - self.max_num_paths_per_src, 0).sum())
+
+    def solve(self, **options: Any) -> Any:
+        """One solve of every source toward every receiver of the scene: Sionna's
+        ``PathSolver`` keywords (``max_depth``, ``samples_per_src``, ``synthetic_array``,
+        the interaction flags, ``seed``...). Warns when the path buffer overflowed
+        (:attr:`dropped` says by how much). Returns Sionna's ``Paths``."""
+        paths = self.last_paths = self.solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src,
+                                              **options)
+        self.dropped = self.paths_dropped()
+        if self.dropped:
+            warnings.warn(f"Sionna's path buffer overflowed: {self.dropped} candidate paths dropped "
+                          f"(max_num_paths_per_src = {self.max_num_paths_per_src}); raise it", RuntimeWarning,
+                          stacklevel=3)
+        return paths
+
+    def cache_status(self, solves: int) -> str | None:
+        """One line on what share of ``solves`` the shoot cache served (None without it or
+        before the first solve)."""
+        if self.shoot_cache is None or not solves:
+            return None
+        return f"shoot cache {100 * self.shoot_cache.connects / solves:.0f} % of {solves} solves"
