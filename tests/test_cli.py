@@ -241,3 +241,14 @@ def test_a_modules_status_line_is_shown_with_the_progress_and_recorded(tmp_path,
                                           '"sample_plugins:Status"\nparams = { bad_at = 2 }'))
     bad = cli("run", "exp.toml", "--out", "bad", check=1)
     assert "reserved for the core" in bad.stderr and "caviar.status" in bad.stderr, bad.stderr
+
+
+@pytest.mark.parametrize("config", sorted((ROOT / "blueprints").glob("*/*.toml")),
+                         ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_every_shipped_blueprint_validates_without_a_wiring_warning(cli, config):
+    """Topics a blueprint records for analysis are declared (``output.analysis``) and a
+    plugin's optional inputs (``Plugin.optional``) are not warned about: a shipped blueprint
+    says nothing but ok. Wiring mistakes still warn (tests/test_boundary.py)."""
+    p = cli("validate", config, check=0)
+    assert ": ok (" in p.stdout
+    assert "warning" not in p.stderr, p.stderr

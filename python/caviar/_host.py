@@ -249,8 +249,9 @@ def declared_publishes(cls: type[Plugin]) -> list[str]:
 
 
 def load_plugin(name: str, spec: str, params_json: str,
-                config_dir: str) -> tuple[Hosted, list[str], list[str]]:
-    """The hosted plugin, its default subscriptions and what it declares publishing."""
+                config_dir: str) -> tuple[Hosted, list[str], list[str], list[str]]:
+    """The hosted plugin, its default subscriptions, what it declares publishing and which
+    of its default subscriptions are optional inputs."""
     cls = resolve_plugin(spec)
     params = check_params(cls, json.loads(params_json))
     plugin_cls = cls
@@ -261,5 +262,10 @@ def load_plugin(name: str, spec: str, params_json: str,
         fields = [f.name for f in dataclasses.fields(schema)] if dataclasses.is_dataclass(schema) else params
         raise _keyed(e, fields) from None
     publishes = declared_publishes(cls)
+    optional = list(cls.optional)
+    if any(o not in cls.subscribe for o in optional):
+        stray = next(o for o in optional if o not in cls.subscribe)
+        raise ConfigError(f"{cls.__name__}.optional: {stray!r} is not one of its subscribe patterns "
+                          f"{list(cls.subscribe)}", "plugin")
     plugin = cls()
-    return Hosted(name, plugin, params), list(cls.subscribe), publishes
+    return Hosted(name, plugin, params), list(cls.subscribe), publishes, optional

@@ -203,6 +203,11 @@ class Plugin:
     publish anything). ``caviar-core validate`` warns about subscriptions that no
     module publishes and publications that no module subscribes to."""
 
+    optional: ClassVar[tuple[str, ...]] = ()
+    """Default subscriptions the plugin works without (optional inputs, each one of
+    ``subscribe``): ``validate`` does not warn when no module publishes them. A
+    subscription the configuration writes itself still warns."""
+
     Params: ClassVar[type | None] = None
     """A dataclass describing ``[modules.NAME.params]``: unknown keys, missing
     values and wrong types become configuration errors naming the key."""

@@ -61,6 +61,8 @@ struct Wiring {
     subscribe: Vec<String>,
     /// The subscriptions are the plugin's defaults (the table has no `subscribe`).
     default_subs: bool,
+    /// Default subscriptions the plugin works without.
+    optional: Vec<String>,
     /// `None`: not declared (the module may publish anything).
     publishes: Option<Vec<String>>,
 }
@@ -72,13 +74,18 @@ fn wiring(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuilt) -> Vec<Wir
     let mut out = Vec::new();
     for (name, m) in &cfg.config.modules {
         let spec = specs.iter().find(|s| s.name == *name);
-        let (defaults, publishes) = match spec {
-            Some(s) => (s.module.default_subscriptions(), s.module.publishes()),
-            None => (Vec::new(), unbuilt(name)),
+        let (defaults, publishes, optional) = match spec {
+            Some(s) => (
+                s.module.default_subscriptions(),
+                s.module.publishes(),
+                s.module.optional_subscriptions(),
+            ),
+            None => (Vec::new(), unbuilt(name), Vec::new()),
         };
         out.push(Wiring {
             name: name.clone(),
             default_subs: m.subscribe.is_none(),
+            optional,
             subscribe: m.subscribe.clone().unwrap_or(defaults),
             publishes,
         });
@@ -96,7 +103,10 @@ fn patterns(texts: &[String]) -> Vec<Pattern> {
 ///
 /// * a subscription that no module declares publishing (only when every module
 ///   declared what it publishes: one that did not may publish anything);
-/// * a declared publication that no module subscribes to.
+/// * a declared publication that no module subscribes to, unless `output.analysis`
+///   declares it recorded for analysis;
+/// * an `output.analysis` pattern that matches no declared publication (only when every
+///   module declared what it publishes).
 pub fn wiring_warnings(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuilt) -> Vec<String> {
     let modules = wiring(cfg, specs, unbuilt);
     let mut warnings = Vec::new();
@@ -114,7 +124,8 @@ pub fn wiring_warnings(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuil
             break;
         }
         for sub in patterns(&m.subscribe) {
-            if sub.as_str() == END_TOPIC || published.iter().any(|p| p.overlaps(&sub)) {
+            let optional = m.default_subs && m.optional.iter().any(|o| o == sub.as_str());
+            if optional || sub.as_str() == END_TOPIC || published.iter().any(|p| p.overlaps(&sub)) {
                 continue;
             }
             let default = if m.default_subs {
@@ -130,10 +141,12 @@ pub fn wiring_warnings(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuil
         }
     }
     let exclude = patterns(&cfg.config.output.exclude);
+    let analysis = patterns(&cfg.config.output.analysis);
     for m in &modules {
         for topic in patterns(m.publishes.as_deref().unwrap_or_default()) {
             let reserved = topic.as_str().starts_with("caviar.");
-            if reserved || subscribed.iter().any(|s| s.overlaps(&topic)) {
+            let read = subscribed.iter().any(|s| s.overlaps(&topic));
+            if reserved || read || analysis.iter().any(|a| a.overlaps(&topic)) {
                 continue;
             }
             let excluded = validate_topic(topic.as_str()).is_ok()
@@ -153,6 +166,17 @@ pub fn wiring_warnings(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuil
             );
         }
     }
+    for a in analysis.iter().filter(|_| all_declared) {
+        if !published.iter().any(|p| p.overlaps(a)) {
+            warnings.push(
+                cfg.error_at(
+                    "output.analysis",
+                    format!("'{a}' — no module publishes it"),
+                )
+                .to_string(),
+            );
+        }
+    }
     warnings
 }
 
@@ -165,6 +189,7 @@ mod tests {
     struct Fake {
         subscribe: Vec<String>,
         publishes: Option<Vec<String>>,
+        optional: Vec<String>,
     }
 
     impl Module for Fake {
@@ -173,6 +198,9 @@ mod tests {
         }
         fn publishes(&self) -> Option<Vec<String>> {
             self.publishes.clone()
+        }
+        fn optional_subscriptions(&self) -> Vec<String> {
+            self.optional.clone()
         }
         fn step(
             &mut self,
@@ -197,6 +225,11 @@ mod tests {
             Ok(Some(AnyModule::local(Fake {
                 subscribe: strings(subs),
                 publishes: pubs.map(strings),
+                // (a default subscription named "opt.*" is an optional input)
+                optional: strings(subs)
+                    .into_iter()
+                    .filter(|s| s.starts_with("opt."))
+                    .collect(),
             })))
         })
         .unwrap();
@@ -223,6 +256,38 @@ mod tests {
             [
                 "config.toml:11: modules.b.subscribe: 'foo.bar' — no module publishes it",
                 "config.toml:5: modules.a: publishes 'baz' — no module subscribes to it (recorded only)",
+            ]
+        );
+    }
+
+    #[test]
+    fn an_optional_input_nobody_publishes_is_not_warned_about_unless_the_user_asked_for_it() {
+        let text = format!("{HEAD}[modules.a]\nstage = \"s\"\nplugin = \"x\"\n");
+        let w = warnings(&text, &[("a", &["opt.hover", "needed"], Some(&[]))]);
+        assert_eq!(
+            w,
+            ["config.toml:5: modules.a.subscribe: 'needed' (the plugin's default) — no module publishes it"]
+        );
+        let text = format!("{text}subscribe = [\"opt.hover\"]\n");
+        let w = warnings(&text, &[("a", &["opt.hover", "needed"], Some(&[]))]);
+        assert_eq!(
+            w,
+            ["config.toml:8: modules.a.subscribe: 'opt.hover' — no module publishes it"]
+        );
+    }
+
+    #[test]
+    fn topics_recorded_for_analysis_are_not_warned_about_and_a_stale_pattern_is() {
+        let text = format!(
+            "{HEAD}[output]\nanalysis = [\"report.*\", \"gone.>\"]\n\
+             [modules.a]\nstage = \"s\"\nplugin = \"x\"\n"
+        );
+        let w = warnings(&text, &[("a", &[], Some(&["report.x", "other"]))]);
+        assert_eq!(
+            w,
+            [
+                "config.toml:7: modules.a: publishes 'other' — no module subscribes to it (recorded only)",
+                "config.toml:6: output.analysis: 'gone.>' — no module publishes it",
             ]
         );
     }

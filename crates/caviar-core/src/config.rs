@@ -123,6 +123,11 @@ pub struct Output {
     /// Topic patterns that are routed but not recorded.
     #[serde(default)]
     pub exclude: Vec<String>,
+    /// Topic patterns published for the recording (for analysis after the run), not for
+    /// another module: a publication they match is not warned about as unread. A pattern
+    /// that matches no declared publication is warned about instead.
+    #[serde(default)]
+    pub analysis: Vec<String>,
     /// Wall-clock seconds between recorder flushes. 0 (default) flushes after every
     /// step, so a killed process loses at most the step in progress.
     #[serde(default)]
@@ -642,6 +647,9 @@ fn check_output(c: &LoadedConfig) -> Result<(), ConfigError> {
     }
     for p in &cfg.output.exclude {
         Pattern::new(p).map_err(|e| c.error_at("output.exclude", e.to_string()))?;
+    }
+    for p in &cfg.output.analysis {
+        Pattern::new(p).map_err(|e| c.error_at("output.analysis", e.to_string()))?;
     }
     if !(cfg.output.flush_interval.is_finite() && cfg.output.flush_interval >= 0.0) {
         return Err(c.error_at("output.flush_interval", "expected a number of seconds >= 0"));

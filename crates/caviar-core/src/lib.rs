@@ -9,11 +9,13 @@
 //! # Dependency order
 //!
 //! Each module uses only modules listed before it (none imports a module that
-//! imports it back: `tests/layering.rs` checks it from the sources); transports are
+//! imports it back: `tests/layering.rs` checks that from the sources; the order is
+//! kept by hand); transports are
 //! leaves behind [`transport::interface`], and only the registry in [`transport`]
 //! names one:
 //!
-//! 1. [`topic`], [`message`], [`metrics`], [`interrupt`] (the Ctrl-C flag): leaves
+//! 1. [`topic`], [`message`], [`metrics`], [`interrupt`] (the Ctrl-C flag), [`pacing`]
+//!    (wall-clock pacing of a live twin): leaves
 //! 2. [`module`] (message)
 //! 3. [`recorder`] (message, topic): the run directory's tables, written and read
 //! 4. [`config`] (topic): the experiment file; `[transport]` kept as written

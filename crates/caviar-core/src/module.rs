@@ -126,6 +126,12 @@ pub trait Module: Send {
         None
     }
 
+    /// Default subscriptions the module works without (optional inputs): `validate`
+    /// does not warn when no module publishes them.
+    fn optional_subscriptions(&self) -> Vec<String> {
+        Vec::new()
+    }
+
     fn setup(&mut self, _ctx: &SetupContext) -> Result<(), ModuleError> {
         Ok(())
     }
@@ -190,6 +196,11 @@ pub trait RemoteModule: Send {
         None
     }
 
+    /// As [`Module::optional_subscriptions`].
+    fn optional_subscriptions(&self) -> Vec<String> {
+        Vec::new()
+    }
+
     fn setup(&mut self, _ctx: &SetupContext) -> Result<(), ModuleError> {
         Ok(())
     }
@@ -250,6 +261,13 @@ impl AnyModule {
         match self {
             AnyModule::Local(m) => m.publishes(),
             AnyModule::Remote(m) => m.publishes(),
+        }
+    }
+
+    pub fn optional_subscriptions(&self) -> Vec<String> {
+        match self {
+            AnyModule::Local(m) => m.optional_subscriptions(),
+            AnyModule::Remote(m) => m.optional_subscriptions(),
         }
     }
 

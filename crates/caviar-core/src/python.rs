@@ -70,6 +70,7 @@ struct PyPlugin {
     subscriptions: Vec<String>,
     /// Empty: not declared.
     publishes: Vec<String>,
+    optional: Vec<String>,
 }
 
 impl Module for PyPlugin {
@@ -79,6 +80,10 @@ impl Module for PyPlugin {
 
     fn publishes(&self) -> Option<Vec<String>> {
         (!self.publishes.is_empty()).then(|| self.publishes.clone())
+    }
+
+    fn optional_subscriptions(&self) -> Vec<String> {
+        self.optional.clone()
     }
 
     fn setup(&mut self, ctx: &SetupContext) -> Result<(), ModuleError> {
@@ -236,7 +241,8 @@ impl PluginLoader for PyLoader {
             });
             match result {
                 Ok(tuple) => {
-                    let (hosted, subscriptions, publishes): (Py<PyAny>, Vec<String>, Vec<String>) =
+                    type Loaded = (Py<PyAny>, Vec<String>, Vec<String>, Vec<String>);
+                    let (hosted, subscriptions, publishes, optional): Loaded =
                         tuple.extract().map_err(|e| {
                             cfg.error_at(&format!("modules.{name}.plugin"), e.to_string())
                         })?;
@@ -244,6 +250,7 @@ impl PluginLoader for PyLoader {
                         hosted,
                         subscriptions,
                         publishes,
+                        optional,
                     }) as Box<dyn Module>)
                 }
                 Err(e) => {

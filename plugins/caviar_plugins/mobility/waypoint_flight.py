@@ -32,6 +32,7 @@ class WaypointFlight(caviar.Plugin):
     """
 
     subscribe = [HOVER]
+    optional = (HOVER,)  # (a mission that holds the UAV, when there is one)
     publishes = (POSITIONS, FORECAST, caviar.END_TOPIC)
 
     @dataclasses.dataclass

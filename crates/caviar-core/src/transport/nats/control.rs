@@ -32,6 +32,8 @@ pub struct LoadedPlugin {
     pub subscribe: Vec<String>,
     /// Topics it declares publishing (`None`: not declared).
     pub publishes: Option<Vec<String>>,
+    /// Default subscriptions it works without.
+    pub optional: Vec<String>,
 }
 
 /// The module description a worker receives in reply to its hello.
@@ -60,6 +62,8 @@ struct Loaded {
     /// Absent or empty: not declared.
     #[serde(default)]
     publishes: Option<Vec<String>>,
+    #[serde(default)]
+    optional: Vec<String>,
     #[serde(default)]
     error: Option<WireError>,
 }
@@ -231,6 +235,7 @@ impl Listener {
             let plugin = LoadedPlugin {
                 subscribe: l.subscribe,
                 publishes: l.publishes.filter(|p| !p.is_empty()),
+                optional: l.optional,
             };
             info.loaded = Some(l.error.map_or(Ok(plugin), Err));
         }

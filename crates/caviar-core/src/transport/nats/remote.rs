@@ -182,6 +182,10 @@ impl RemoteModule for WorkerModule {
         self.plugin.publishes.clone()
     }
 
+    fn optional_subscriptions(&self) -> Vec<String> {
+        self.plugin.optional.clone()
+    }
+
     fn setup(&mut self, ctx: &SetupContext) -> Result<(), ModuleError> {
         self.link.control.mark_started();
         let body = serde_json::json!({
