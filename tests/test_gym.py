@@ -146,6 +146,21 @@ def test_close_ends_the_episode_and_run_json_says_so(toy, tmp_path):
     env.close()  # twice is harmless
 
 
+def test_a_second_environment_on_the_same_out_goes_on_numbering_its_episodes(toy, tmp_path):
+    """The same script run twice with one ``out``: its episodes follow the earlier ones
+    (it stopped with "episode-0001 exists and is not empty")."""
+    for seed in (3, 4):
+        env = caviar.gym.make(toy, "guesser", toy_spec(), out=tmp_path / "runs")
+        try:
+            env.reset(seed=seed)
+            env.step(np.zeros(1, np.float32))
+        finally:
+            env.close()
+    runs = sorted((tmp_path / "runs").iterdir())
+    assert [r.name for r in runs] == ["episode-0001", "episode-0002"]
+    assert [caviar.load_run(r).status["seed"] for r in runs] == [3, 4]
+
+
 def test_bad_input_is_named(toy, tmp_path):
     with pytest.raises(caviar.ConfigError, match=r"agent 'nope' is not a module .*modules: target, guesser, judge"):
         caviar.gym.make(toy, "nope", toy_spec())

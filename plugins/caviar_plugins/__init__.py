@@ -1,19 +1,40 @@
 """Plugins of the CAVIAR co-simulation, by domain.
 
-* :mod:`~caviar_plugins.mobility`: flights (``waypoint-flight``, ``random-waypoint-flight``),
-  waypoints and coordinate frames.
-* :mod:`~caviar_plugins.radio`: communications (``sionna-link``, ``free-space-link``,
-  ``link-monitor``), the ray-traced radio scene, beams and the link budget.
-* :mod:`~caviar_plugins.vision`: ``camera``, ``image-link`` and ``person-detector``.
-* :mod:`~caviar_plugins.beam_selection`: ``beam-selector`` and ``beam-dataset``.
-* :mod:`~caviar_plugins.sar`: the search-and-rescue ``mission`` and its results table.
-* :mod:`~caviar_plugins.schema`: the topics and the position payload they share.
+Every plugin this package registers (entry points of group ``caviar.plugins``, the names a
+configuration's ``plugin = "..."`` gives), by subpackage:
+
+* :mod:`~caviar_plugins.mobility`: ``waypoint-flight`` (:class:`WaypointFlight`),
+  ``random-waypoint-flight`` (:class:`RandomWaypointFlight`); waypoints and coordinate frames.
+* :mod:`~caviar_plugins.radio`: ``sionna-link`` (:class:`SionnaLink`), ``free-space-link``
+  (:class:`FreeSpaceLink`), ``link-monitor`` (:class:`LinkMonitor`); the ray-traced radio
+  scene, beams, the link budget and the link level (Sionna SYS).
+* :mod:`~caviar_plugins.vision`: ``camera`` (:class:`Camera`), ``image-link``
+  (:class:`ImageLink`), ``person-detector`` (:class:`PersonDetector`).
+* :mod:`~caviar_plugins.beam_selection`: ``beam-selector`` (:class:`BeamSelector`),
+  ``beam-dataset`` (:class:`BeamDataset`).
+* :mod:`~caviar_plugins.sar`: ``mission`` (:class:`Mission`), the search-and-rescue mission,
+  and its results table.
+* :mod:`~caviar_plugins.traffic`: ``sumo-traffic`` (:class:`SumoTraffic`), SUMO in the loop,
+  and ``sionna-traffic-link`` (:class:`SionnaTrafficLink`), its vehicles as UEs and as moving
+  scatterers.
+* :mod:`~caviar_plugins.network`: ``radio-network`` (:class:`RadioNetwork`), cells,
+  interference, handover and scheduling.
+* :mod:`~caviar_plugins.live`: ``mavlink-telemetry`` (:class:`MavlinkTelemetry`), a real
+  vehicle's positions over MAVLink.
+
+Besides: :mod:`~caviar_plugins.rt`, ray tracing in one home (Sionna RT scene, path solver,
+shoot cache, the adapter to Sionna's internals); :mod:`~caviar_plugins.osm`, scenes from
+OpenStreetMap; :mod:`~caviar_plugins.schema`, the topics and the payloads they share.
 
 Each plugin is a :class:`caviar.Plugin` that declares what it ``publishes``; none of them
-knows how messages travel. Offline tools run with ``python -m``:
-``caviar_plugins.beam_selection.train_tree``, ``caviar_plugins.vision.train_detector``,
-``caviar_plugins.sar.results``.
+knows how messages travel. The four of SUMO, the network and MAVLink are imported on first
+use (``caviar_plugins.SumoTraffic``): their packages are optional extras. Offline tools run
+with ``python -m``: ``caviar_plugins.beam_selection.train_tree``,
+``caviar_plugins.vision.train_detector``, ``caviar_plugins.sar.results``.
 """
+
+import importlib
+from typing import Any
 
 from caviar_plugins import schema
 from caviar_plugins.assets import DATA, SCENES
@@ -23,5 +44,17 @@ from caviar_plugins.radio import FreeSpaceLink, LinkMonitor, SionnaLink
 from caviar_plugins.sar import Mission
 from caviar_plugins.vision import Camera, ImageLink, PersonDetector
 
+_ON_FIRST_USE = {"SumoTraffic": "caviar_plugins.traffic.plugin", "SionnaTrafficLink": "caviar_plugins.traffic.link",
+                 "RadioNetwork": "caviar_plugins.network.plugin",
+                 "MavlinkTelemetry": "caviar_plugins.live.mavlink_telemetry"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _ON_FIRST_USE:
+        return getattr(importlib.import_module(_ON_FIRST_USE[name]), name)
+    raise AttributeError(f"module 'caviar_plugins' has no attribute {name!r}")
+
+
 __all__ = ["DATA", "SCENES", "BeamDataset", "BeamSelector", "Camera", "FreeSpaceLink", "ImageLink", "LinkMonitor",
-           "Mission", "PersonDetector", "RandomWaypointFlight", "SionnaLink", "WaypointFlight", "schema"]
+           "MavlinkTelemetry", "Mission", "PersonDetector", "RadioNetwork", "RandomWaypointFlight", "SionnaLink",
+           "SionnaTrafficLink", "SumoTraffic", "WaypointFlight", "schema"]

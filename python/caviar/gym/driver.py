@@ -64,7 +64,9 @@ class EpisodeDriver:
         self.subscribe = list(subscribe)
         self.overrides = overrides
         self.out = out
-        self.episodes = 0
+        self.episodes = last_episode(out)
+        """Episodes started: numbering goes on from those ``out`` already holds (a script run
+        again with the same ``out`` adds episodes after them)."""
         self.run_dir: pathlib.Path | None = None
         self._events: queue.Queue = queue.Queue()
         self._socket_dir = pathlib.Path(tempfile.mkdtemp(prefix="caviar-gym-"))  # private (0700)
@@ -216,6 +218,12 @@ class EpisodeDriver:
                         self._events.put(message)
             except (EOFError, OSError):
                 conn.close()
+
+
+def last_episode(out: pathlib.Path) -> int:
+    """The highest number of the ``episode-NNNN`` run directories in ``out`` (0: none)."""
+    numbers = [int(p.name[len("episode-"):]) for p in out.glob("episode-*") if p.name[len("episode-"):].isdigit()]
+    return max(numbers, default=0)
 
 
 def default_out() -> pathlib.Path:
