@@ -34,7 +34,7 @@ fi
 log "Python packages"
 .venv/bin/pip install --quiet --upgrade pip maturin
 # Builds the Rust extension caviar._core (release) and installs caviar in editable mode.
-.venv/bin/pip install --quiet -e ".[test,ml]"
+.venv/bin/pip install --quiet -e ".[test,ml,docs]"
 .venv/bin/pip install --quiet -e "plugins[radio,onnx,osm,traffic,network,live]"
 # The `deepmimo` extra (caviar-core export deepmimo): deepmimo 4.x pins numpy<2.3, which would
 # downgrade numpy under sionna and torch; it runs on theirs (tests/test_deepmimo.py), so it is

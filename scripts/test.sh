@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Runs every check: lint and types (clippy, ruff, mypy), then the tests of the Rust core
+# Runs every check: lint and types (clippy, ruff, mypy), the documentation site (mkdocs, warnings
+# are errors), then the tests of the Rust core
 # (cargo test) and of the Python side (pytest, including the view in headless chromium).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,6 +13,9 @@ log "ruff"
 .venv/bin/ruff check python plugins tests benches blueprints examples
 log "mypy"
 .venv/bin/mypy
+log "docs (mkdocs build --strict)"
+# Warnings are errors (not --quiet: it hides them from --strict too); the site goes to a scratch folder.
+NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --site-dir "${TMPDIR:-/tmp}/caviar-site"
 log "cargo test"
 cargo test --workspace --locked
 log "pytest"
