@@ -308,6 +308,13 @@ def test_a_car_crossing_between_two_sites_hands_over_once_in_the_loop(tmp_path):
     ("subcarrier_spacing_hz = 15e3", "bler_target"),
     ("carrier_hz = 3.5e9", "carrier_hz"),
     ("bandwidth_hz = 20e6", "num_prb"),
+    # Nested tables are typed (HandoverSettings, TraceSettings): the host checks them
+    # recursively and names the whole key path.
+    ("time_to_trigger_s = 0.16", "handover.time_to_triger_s"),  # unknown key
+    ("hysteresis_db = 3.0", "handover.hysteresis_db"),  # its own check
+    ("offset_db = 0.0", "handover.offset_db"),  # wrong type
+    ("handover = {", "raytracing.max_depth"),
+    ("handover = {", "raytracing"),  # not a table
 ])
 def test_bad_network_input_names_the_key_before_anything_runs(tmp_path, capfd, edit, key):
     replacement = {
@@ -317,6 +324,11 @@ def test_bad_network_input_names_the_key_before_anything_runs(tmp_path, capfd, e
         "bler_target": "subcarrier_spacing_hz = 15e3\nbler_target = 1.5",
         "carrier_hz": "carrier_hz = 12e9",
         "num_prb": "bandwidth_hz = 21e6",
+        "handover.time_to_triger_s": "time_to_triger_s = 0.16",
+        "handover.hysteresis_db": "hysteresis_db = -1.0",
+        "handover.offset_db": 'offset_db = "high"',
+        "raytracing.max_depth": "raytracing = { max_depth = -1 }\nhandover = {",
+        "raytracing": 'raytracing = "ray-traced"\nhandover = {',
     }[key]
     cfg = tmp_path / "net.toml"
     text = NETWORK.replace(edit, replacement, 1)
@@ -325,7 +337,7 @@ def test_bad_network_input_names_the_key_before_anything_runs(tmp_path, capfd, e
     first = capfd.readouterr().err.splitlines()[0]
     assert f"modules.net.params.{key}" in first, first
     if key != "num_prb":  # the others are written in the file: their line is named
-        last = replacement.splitlines()[-1]
+        last = replacement.splitlines()[0 if key.startswith("raytracing") else -1]
         line = text[:text.rindex(last)].count("\n") + 1
         assert f"{cfg}:{line}: " in first, (line, first)
 

@@ -7,7 +7,7 @@ recorded runs (:func:`load_run`).
 
 from caviar._core import __version__
 from caviar.errors import ConfigError, RunError
-from caviar.plugin import Artifact, Context, Inbox, Message, Plugin
+from caviar.plugin import Artifact, Context, Inbox, Message, Plugin, apply_preset, given_keys
 from caviar.runlog import RunLog, RunStatus, load_run
 from caviar.simulation import Simulation
 from caviar.topics import matches
@@ -20,7 +20,8 @@ served): ``caviar-core run`` shows each module's latest beside its progress."""
 
 __all__ = [
     "Artifact", "ConfigError", "Context", "END_TOPIC", "Inbox", "Message", "Plugin", "RunError",
-    "RunLog", "RunStatus", "STATUS_TOPIC", "Simulation", "__version__", "inspect", "load_run", "matches",
+    "RunLog", "RunStatus", "STATUS_TOPIC", "Simulation", "__version__", "apply_preset", "given_keys", "inspect",
+    "load_run", "matches",
 ]
 
 

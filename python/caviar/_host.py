@@ -19,7 +19,7 @@ from typing import Any
 
 from caviar._core import RawMessage
 from caviar.errors import ConfigError
-from caviar.plugin import Context, Inbox, Message, PayloadKind, Plugin, encode
+from caviar.plugin import Context, Inbox, Message, PayloadKind, Plugin, building, encode
 from caviar.topics import matches
 
 OutgoingTuple = tuple[str, PayloadKind, "str | bytes", "str | None"]
@@ -96,6 +96,10 @@ def _type_name(hint: Any) -> str:
 
 def _mismatch(value: Any, hint: Any) -> str:
     """Why ``value`` is not a ``hint``: the first offending item of a list."""
+    table = _table_of(hint)
+    if table is not None:
+        keys = ", ".join(f.name for f in dataclasses.fields(table) if f.init)
+        return f"expected a table ({keys}), got {type(value).__name__} {value!r}"
     origin = typing.get_origin(hint)
     args = typing.get_args(hint)
     if origin in (list, typing.Sequence) and args and isinstance(value, list):
@@ -107,10 +111,11 @@ def _mismatch(value: Any, hint: Any) -> str:
     return f"expected {_type_name(hint)}, got {type(value).__name__} {value!r}"
 
 
-def _keyed(e: Exception, fields: typing.Iterable[str]) -> ConfigError:
+def _keyed(e: Exception, fields: typing.Iterable[str], path: str = "params") -> ConfigError:
     """A plugin's check failing as ``ValueError("speed: must be > 0")`` (or a ConfigError
-    with ``key="speed"``) becomes a ConfigError on ``params.speed``; a key inside a
-    parameter's tables and arrays (``sites.1.array``) names its full path."""
+    with ``key="speed"``) becomes a ConfigError on ``params.speed`` (``path.speed`` for a
+    nested table's check); a key inside a parameter's tables and arrays (``sites.1.array``)
+    names its full path."""
     message = getattr(e, "message", None) or str(e)
     key = getattr(e, "key", None)
     if key is None:
@@ -118,35 +123,60 @@ def _keyed(e: Exception, fields: typing.Iterable[str]) -> ConfigError:
         if sep and " " not in name and name.split(".")[0] in fields:
             key, message = name, rest
     if key is None:
-        return ConfigError(message, "params")
-    return ConfigError(message, key if key.startswith("params") else f"params.{key}")
+        return ConfigError(message, path)
+    return ConfigError(message, key if key.startswith("params") else f"{path}.{key}")
 
 
 def check_params(cls: type[Plugin], params: dict[str, Any]) -> Any:
-    """Builds the plugin's ``Params`` dataclass from the config table, or explains why not."""
+    """Builds the plugin's ``Params`` dataclass from the config table, or explains why not.
+    A field typed as a dataclass (or ``X | None``) is a table of its own, checked the same
+    way, recursively: an error names the whole key path (``params.handover.time_to_trigger_s``)."""
     schema = cls.Params
     if schema is None:
         return params
     if not dataclasses.is_dataclass(schema):
         raise TypeError(f"{cls.__name__}.Params must be a dataclass")
+    return _build(schema, params, "params", cls.__name__)
+
+
+def _table_of(hint: Any) -> Any:
+    """The dataclass a field's type hint names (``X`` or ``X | None``), else None."""
+    if dataclasses.is_dataclass(hint) and isinstance(hint, type):
+        return hint
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        tables = [h for h in typing.get_args(hint) if dataclasses.is_dataclass(h) and isinstance(h, type)]
+        return tables[0] if len(tables) == 1 else None
+    return None
+
+
+def _build(schema: Any, params: dict[str, Any], path: str, owner: str) -> Any:
+    """``schema(**params)`` with every key, type and nested table checked; errors name
+    ``path.key`` (``path`` is ``params`` or the key path of a nested table)."""
     hints = typing.get_type_hints(schema)
     fields = {f.name: f for f in dataclasses.fields(schema) if f.init}
+    values: dict[str, Any] = {}
     for key, value in params.items():
+        where = f"{path}.{key}"
         if key not in fields:
-            raise ConfigError(f"unknown parameter '{key}' of {cls.__name__}, expected one of: "
-                              f"{', '.join(fields) or 'none'}", f"params.{key}")
+            raise ConfigError(f"unknown parameter '{key}' of {owner}, expected one of: "
+                              f"{', '.join(fields) or 'none'}", where)
         hint = hints.get(key, Any)
+        table = _table_of(hint)
+        if table is not None and isinstance(value, dict):
+            values[key] = _build(table, value, where, f"{owner}.{key}")
+            continue
         if not _type_ok(value, hint):
-            raise ConfigError(_mismatch(value, hint), f"params.{key}")
+            raise ConfigError(_mismatch(value, hint), where)
+        values[key] = float(value) if hint is float else value
     missing = [n for n, f in fields.items() if n not in params
                and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
     if missing:
-        raise ConfigError(f"missing required parameter(s) of {cls.__name__}: {', '.join(missing)}", "params")
-    values = {k: (float(v) if hints.get(k) is float else v) for k, v in params.items()}
+        raise ConfigError(f"missing required parameter(s) of {owner}: {', '.join(missing)}", path)
     try:
-        return schema(**values)
+        with building(params):  # (what the configuration wrote: caviar.given_keys())
+            return schema(**values)
     except (TypeError, ValueError) as e:  # __post_init__ checks of the plugin
-        raise _keyed(e, fields) from None
+        raise _keyed(e, fields, path) from None
 
 
 class Hosted:

@@ -29,10 +29,13 @@ A plugin knows nothing of transports: the same class runs in-process or elsewher
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import json
 import math
 import pathlib
+import typing
 from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Iterator, Literal, Sequence, overload
 
 from caviar.topics import matches
@@ -189,6 +192,44 @@ class Context:
         d = self.run_dir / "artifacts" / self.name
         d.mkdir(parents=True, exist_ok=True)
         return d
+
+
+_GIVEN: contextvars.ContextVar[frozenset[str] | None] = contextvars.ContextVar("caviar_params_given", default=None)
+
+
+def given_keys() -> frozenset[str] | None:
+    """While the plugin host builds a ``Params`` dataclass (in its ``__post_init__``): the
+    keys the configuration wrote for that table; None when the dataclass is built in
+    Python code."""
+    return _GIVEN.get()
+
+
+@contextlib.contextmanager
+def building(keys: typing.Iterable[str]) -> typing.Iterator[None]:
+    """The plugin host's side of :func:`given_keys`."""
+    token = _GIVEN.set(frozenset(keys))
+    try:
+        yield
+    finally:
+        _GIVEN.reset(token)
+
+
+def apply_preset(params: Any, preset: typing.Mapping[str, Any], name: str) -> None:
+    """Sets the fields of a ``Params`` dataclass that a preset fixes (``protocol = "paper"``)
+    and refuses, naming the key, one that the configuration set to another value: a preset
+    never overrides what a user wrote. Built in Python code (no configuration), a field
+    that differs from both its default and the preset's value is refused likewise."""
+    given = given_keys()
+    defaults = {f.name: f.default if f.default is not dataclasses.MISSING else
+                (f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+                for f in dataclasses.fields(params)}
+    for key, value in preset.items():
+        current = getattr(params, key)
+        set_by_user = key in given if given is not None else current != defaults.get(key)
+        if set_by_user and current != value:
+            raise ValueError(f"{key}: {name} sets it to {value!r}; the configuration gives {current!r} "
+                             f"(remove the key, or choose another preset)")
+        setattr(params, key, list(value) if isinstance(value, list) else value)
 
 
 class Plugin:

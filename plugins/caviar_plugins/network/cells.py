@@ -29,7 +29,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from caviar_plugins.radio.link_budget import BOLTZMANN, SPEED_OF_LIGHT
+from caviar_plugins.constants import BOLTZMANN, SPEED_OF_LIGHT
 
 REFERENCE_TEMPERATURE_K = 290.0
 # TR 38.901 Table 7.3-1: the sector element pattern.

@@ -40,7 +40,7 @@ class HandoverSettings:
         for key in ("hysteresis_db", "time_to_trigger_s", "t310_s", "l3_filter_k"):
             v = getattr(self, key)
             if not v >= 0:
-                raise ValueError(f"handover.{key}: expected a number >= 0, got {v}")
+                raise ValueError(f"{key}: expected a number >= 0, got {v}")
 
 
 @dataclasses.dataclass

@@ -98,17 +98,19 @@ class RadioNetwork(caviar.Plugin):
         """Frequencies at which the ray-traced channel is evaluated, one per group of
         adjacent PRBs: the scheduler's unit and the EESM's inputs. The free-space channel
         is flat (one)."""
-        handover: dict = dataclasses.field(default_factory=dict)
+        handover: HandoverSettings = dataclasses.field(default_factory=HandoverSettings)
+        """A3 handover and cell selection: ``offset_db``, ``hysteresis_db``,
+        ``time_to_trigger_s``... (see :class:`~caviar_plugins.network.handover.HandoverSettings`)."""
         antenna_height_m: float = 1.5
         """A UE's antenna above the position it reports (SUMO reports the street)."""
         channel: str = "free-space"
         """``free-space`` (Friis along the straight line) or ``ray-traced`` (Sionna RT, every
         site in one solve, refreshed every ``raytracing.refresh_s``)."""
-        raytracing: dict = dataclasses.field(default_factory=dict)
+        raytracing: TraceSettings = dataclasses.field(default_factory=TraceSettings)
         """``scene`` (default ``empty``), ``max_depth``, ``samples_per_src``, ``diffraction``,
-        ``refresh_s``: see :class:`~caviar_plugins.network.raytraced.TraceSettings`."""
-        radio_map: dict = dataclasses.field(default_factory=dict)
-        """A best-server SINR map of ``raytracing.scene`` at setup (any key turns it on):
+        ``refresh_s``...: see :class:`~caviar_plugins.network.raytraced.TraceSettings`."""
+        radio_map: RadioMapSettings | None = None
+        """A best-server SINR map of ``raytracing.scene`` at setup (a table turns it on):
         ``cell_size_m``, ``height_m``, ``margin_m``, ``samples_per_tx``, ``max_depth`` (see
         :class:`~caviar_plugins.network.radio_map.RadioMapSettings`); written to
         ``radio-map.npz`` and ``radio-map.png`` and announced on ``network.radio_map``."""
@@ -130,27 +132,12 @@ class RadioNetwork(caviar.Plugin):
                                  f"fit in bandwidth_hz = {self.bandwidth_hz:g}")
             if self.channel not in CHANNELS:
                 raise ValueError(f"channel: expected one of {list(CHANNELS)}, got {self.channel!r}")
-            flat = self.channel == "free-space" or self.raytracing.get("evolve") == "hold"
+            flat = self.channel == "free-space" or self.raytracing.evolve == "hold"
             self.link = LinkSettings(num_prb=self.num_prb, subcarrier_spacing_hz=self.subcarrier_spacing_hz,
                                      bler_target=self.bler_target, mcs_table=self.mcs_table,
                                      scheduler=self.scheduler, link_model=self.link_model,
                                      harq_processes=self.harq_processes, subbands=1 if flat else self.subbands,
                                      compile=self.compile)
-            unknown = set(self.handover) - {f.name for f in dataclasses.fields(HandoverSettings)}
-            if unknown:
-                raise ValueError(f"handover.{sorted(unknown)[0]}: unknown key, expected one of "
-                                 f"{[f.name for f in dataclasses.fields(HandoverSettings)]}")
-            self.handover_settings = HandoverSettings(**{k: float(v) for k, v in self.handover.items()})
-            known = {f.name for f in dataclasses.fields(TraceSettings)}
-            unknown = set(self.raytracing) - known
-            if unknown:
-                raise ValueError(f"raytracing.{sorted(unknown)[0]}: unknown key, expected one of {sorted(known)}")
-            self.trace_settings = TraceSettings(**self.raytracing)
-            known = {f.name for f in dataclasses.fields(RadioMapSettings)}
-            unknown = set(self.radio_map) - known
-            if unknown:
-                raise ValueError(f"radio_map.{sorted(unknown)[0]}: unknown key, expected one of {sorted(known)}")
-            self.map_settings = RadioMapSettings(**self.radio_map) if self.radio_map else None
 
     def setup(self, ctx):
         self.ctx = ctx
@@ -164,22 +151,22 @@ class RadioNetwork(caviar.Plugin):
             raise caviar.ConfigError(f"a step of {ctx.ts * ctx.every:g} s is {self.slots} slots of {self.slot_s:g} s, "
                                      f"not whole groups of harq_processes = {p.harq_processes}",
                                      "params.harq_processes")
-        self.mm = MobilityManager(p.handover_settings, self.names)
+        self.mm = MobilityManager(p.handover, self.names)
         self.link = LinkLevel(p.link, len(self.cells), seed=ctx.seed)
         self.ues: dict[str, dict[str, Any]] = {}  # UE_Id -> {type, position, column}
         self.free: list[int] = []
         self.last_sinr: dict[str, float] = {}
         self.tracer = None
         if p.channel == "ray-traced":
-            self.tracer = SiteTracer(p.trace_settings, self.cells, seed=ctx.seed, base_dir=ctx.config_dir)
+            self.tracer = SiteTracer(p.raytracing, self.cells, seed=ctx.seed, base_dir=ctx.config_dir)
         self.map_files: list = []
         self.layer: dict | None = None
-        if p.map_settings is not None:
-            result = best_server_map(self.cells, p.map_settings, p.trace_settings.scene, p.num_prb,
+        if p.radio_map is not None:
+            result = best_server_map(self.cells, p.radio_map, p.raytracing.scene, p.num_prb,
                                      p.noise_figure_db, base_dir=ctx.config_dir, seed=ctx.seed)
             self.map_files = save(result, self.cells, ctx.run_dir)
             self.layer = layer_message(result, self.map_files[-1].relative_to(ctx.run_dir).as_posix(),
-                                       height_m=p.map_settings.height_m)
+                                       height_m=p.radio_map.height_m)
         self.frequencies = p.link.subband_frequencies_hz
         # One subband: the band's power averaged over 8 frequencies, not one point's fade.
         self.band_average = len(self.frequencies) == 1
@@ -211,7 +198,7 @@ class RadioNetwork(caviar.Plugin):
         ``raytracing.refresh_s`` (and when a UE appears) and evolve in between."""
         if self.tracer is None:
             return line_of_sight_gain_db(self.cells, pos)[..., None]
-        due = t - self.refreshed_at >= self.p.trace_settings.refresh_s - 1e-9
+        due = t - self.refreshed_at >= self.p.raytracing.refresh_s - 1e-9
         if due or any(u not in self.traced for u in ids):  # a new UE is traced (with all) at once
             self.channels = self.tracer.trace(pos)
             self.traced = {u: i for i, u in enumerate(ids)}
@@ -219,7 +206,7 @@ class RadioNetwork(caviar.Plugin):
                 self.refreshed_at = t
         assert self.channels is not None
         ch = self.channels.rows(np.array([self.traced[u] for u in ids]))
-        if self.p.trace_settings.evolve == "hold":
+        if self.p.raytracing.evolve == "hold":
             return ch.power_sum_db[..., None]
         gains = ch.gain_db(pos, self.frequencies)
         if self.band_average:

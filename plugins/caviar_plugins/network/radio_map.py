@@ -41,9 +41,9 @@ class RadioMapSettings:
     def __post_init__(self):
         for key in ("cell_size_m", "height_m", "samples_per_tx"):
             if not getattr(self, key) > 0:
-                raise ValueError(f"radio_map.{key}: expected a positive number, got {getattr(self, key)}")
+                raise ValueError(f"{key}: expected a positive number, got {getattr(self, key)}")
         if self.max_depth < 0 or self.margin_m < 0:
-            raise ValueError("radio_map: max_depth and margin_m must be >= 0")
+            raise ValueError(f"{'max_depth' if self.max_depth < 0 else 'margin_m'}: expected >= 0")
 
 
 def best_server_map(cells: Sequence[Cell], settings: RadioMapSettings, scene: str, num_prb: int,

@@ -33,8 +33,8 @@ from typing import Sequence
 
 import numpy as np
 
+from caviar_plugins.constants import SPEED_OF_LIGHT
 from caviar_plugins.network.cells import Cell, pattern_gain_db
-from caviar_plugins.radio.link_budget import SPEED_OF_LIGHT
 from caviar_plugins.rt.drjit_setup import configure_drjit, set_thread_count
 from caviar_plugins.rt.scene import load_scene
 
@@ -70,19 +70,19 @@ class TraceSettings:
 
     def __post_init__(self):
         if self.max_depth < 0:
-            raise ValueError(f"raytracing.max_depth: expected >= 0, got {self.max_depth}")
+            raise ValueError(f"max_depth: expected >= 0, got {self.max_depth}")
         if self.samples_per_src < 1:
-            raise ValueError(f"raytracing.samples_per_src: expected >= 1, got {self.samples_per_src}")
+            raise ValueError(f"samples_per_src: expected >= 1, got {self.samples_per_src}")
         if not self.refresh_s > 0:
-            raise ValueError(f"raytracing.refresh_s: expected a positive number of seconds, got {self.refresh_s}")
+            raise ValueError(f"refresh_s: expected a positive number of seconds, got {self.refresh_s}")
         if self.evolve not in EVOLUTIONS:
-            raise ValueError(f"raytracing.evolve: expected one of {list(EVOLUTIONS)}, got {self.evolve!r}")
+            raise ValueError(f"evolve: expected one of {list(EVOLUTIONS)}, got {self.evolve!r}")
         if self.paths_per_link < 1:
-            raise ValueError(f"raytracing.paths_per_link: expected >= 1, got {self.paths_per_link}")
+            raise ValueError(f"paths_per_link: expected >= 1, got {self.paths_per_link}")
         if self.threads < 0:
-            raise ValueError(f"raytracing.threads: expected 0 (all cores) or more, got {self.threads}")
+            raise ValueError(f"threads: expected 0 (all cores) or more, got {self.threads}")
         if self.max_num_paths_per_src < 1:
-            raise ValueError(f"raytracing.max_num_paths_per_src: expected >= 1, got {self.max_num_paths_per_src}")
+            raise ValueError(f"max_num_paths_per_src: expected >= 1, got {self.max_num_paths_per_src}")
 
 
 @dataclasses.dataclass

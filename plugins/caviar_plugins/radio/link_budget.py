@@ -11,8 +11,7 @@ import dataclasses
 
 import numpy as np
 
-BOLTZMANN = 1.380649e-23  # J/K
-SPEED_OF_LIGHT = 299_792_458.0  # m/s
+from caviar_plugins.constants import BOLTZMANN, SPEED_OF_LIGHT
 
 
 @dataclasses.dataclass(frozen=True)

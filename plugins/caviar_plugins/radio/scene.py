@@ -145,6 +145,14 @@ class Link:
         return int(np.argmax(self.gains))
 
 
+def radio_config(params: Any, **changes: Any) -> RadioConfig:
+    """The :class:`RadioConfig` part of a plugin's parameters (a dataclass that extends
+    it), with ``changes``: a new object, the parameters stay as the configuration gave them."""
+    names = {f.name for f in dataclasses.fields(RadioConfig)}
+    values = {f.name: getattr(params, f.name) for f in dataclasses.fields(params) if f.name in names}
+    return RadioConfig(**{**values, **changes})
+
+
 def normalize_channel(h: np.ndarray) -> np.ndarray:
     """H scaled to unit mean |H_mn|² (Sionna 0.15's ``cir_to_ofdm_channel(normalize=True)``
     for one frequency); an all-zero H stays zero."""

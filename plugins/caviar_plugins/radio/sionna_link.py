@@ -28,7 +28,7 @@ from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.radio.link_report import LINK_TOPICS, link_messages
 from caviar_plugins.radio.prediction import Forecaster, prediction_payload
-from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene
+from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene, radio_config
 from caviar_plugins.rt.scene import scene_path
 from caviar_plugins.schema import (
     BEAM_SELECTION,
@@ -44,12 +44,19 @@ from caviar_plugins.schema import (
 
 
 @dataclasses.dataclass
-class SionnaLinkParams(RadioConfig):
+class LinkBudgetParams:
+    """The link budget and channel publishing both ray-traced links (``sionna-link``,
+    ``sionna-traffic-link``) share."""
+
     bandwidth_hz: float = 40e6
     tx_power_w: float = 0.5
     interference_dbw: float = -130.0
     publish_channels: bool = True
     """Publish H and the beam gains as binary payloads."""
+
+
+@dataclasses.dataclass
+class SionnaLinkParams(LinkBudgetParams, RadioConfig):
     publish_paths: bool = False
     """Publish every UE's paths each step on ``communications.paths.<UE_Id>``: per path the
     coefficient at the array centres, delay, angles of departure and arrival, interaction
@@ -61,7 +68,8 @@ class SionnaLinkParams(RadioConfig):
     ``spacing``. ``paper``: the 2023 code's link (docs/paper-protocol.md): LOS path
     dropped, unit-energy H, no refraction or diffuse reflection, 5.714 λ spacing, the
     flat 64-point DFT, Rx 8.23 m below the UAV, R = 40 MHz · log2(1 + |g|²/3248.11).
-    It fixes those fields whatever they are set to."""
+    It sets those fields (:data:`caviar_plugins.protocol.PAPER_LINK`) and refuses a configuration that sets one
+    of them to another value."""
     lookahead: bool = False
     """Look-ahead ray tracing (:class:`~caviar_plugins.radio.scene.LookaheadTracer`):
     one solve traces each UE's current position and the next ``lookahead_steps``
@@ -110,18 +118,7 @@ class SionnaLinkParams(RadioConfig):
                 subcarrier_spacing_hz=self.subcarrier_spacing_hz, bler_target=self.bler_target,
                 harq_processes=self.harq_processes)
         if self.protocol == "paper":
-            self.spacing = paper.PAPER_SPACING
-            self.los = False
-            self.diffuse_reflection = False
-            self.refraction = False
-            self.specular_reflection = True
-            self.diffraction = True
-            self.codebook = "flat-dft"
-            self.normalize = True
-            self.antenna_offset = list(paper.PAPER_RX_OFFSET)
-            self.rx_orientation = list(paper.PAPER_RX_ORIENTATION)
-            self.uav_mesh = True
-            self.bandwidth_hz = paper.PAPER_BANDWIDTH_HZ
+            caviar.apply_preset(self, paper.PAPER_LINK, "protocol = 'paper'")
         super().__post_init__()
         if self.lookahead and self.uav_mesh:
             raise ValueError("lookahead = true needs uav_mesh = false (a solve places each UAV body at one "
@@ -141,10 +138,6 @@ class SionnaLinkParams(RadioConfig):
             raise ValueError("predict_horizons_s needs uav_mesh = false (a solve places each UAV body at one "
                              "position; predicted positions would see the bodies where the UAVs are now)")
 
-    def radio(self) -> RadioConfig:
-        names = {f.name for f in dataclasses.fields(RadioConfig)}
-        return RadioConfig(**{k: v for k, v in dataclasses.asdict(self).items() if k in names})
-
 
 class SionnaLink(caviar.Plugin):
     subscribe = [POSITIONS, BEAM_SELECTION, FORECAST]
@@ -155,7 +148,7 @@ class SionnaLink(caviar.Plugin):
     def setup(self, ctx):
         p = ctx.params
         self.p = p
-        self.radio = RadioScene(p.radio(), seed=ctx.seed, base_dir=ctx.config_dir)
+        self.radio = RadioScene(radio_config(p), seed=ctx.seed, base_dir=ctx.config_dir)
         self.radio.keep_paths = p.publish_paths
         self.path_settings = _path_settings(p, ctx) if p.publish_paths else {}
         self.budget = LinkBudget(bandwidth_hz=p.bandwidth_hz, tx_power_w=p.tx_power_w,
@@ -294,7 +287,7 @@ def _path_settings(p: SionnaLinkParams, ctx) -> dict:
     """What an exporter of the paths needs to know of the link: its ray-tracing settings,
     the scene's file (None: free space), the bandwidth and the versions."""
     scene = scene_path(p.scene, ctx.config_dir)
-    return {**dataclasses.asdict(p.radio()), "scene_file": None if scene is None else str(scene.resolve()),
+    return {**dataclasses.asdict(radio_config(p)), "scene_file": None if scene is None else str(scene.resolve()),
             "bandwidth_hz": p.bandwidth_hz, "protocol": p.protocol, "module": ctx.name, "plugin": "sionna-link",
             "sionna_rt": metadata.version("sionna-rt")}
 

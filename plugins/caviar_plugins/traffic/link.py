@@ -34,8 +34,8 @@ import numpy as np
 import caviar
 from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.link_report import LINK_TOPICS, line_of_sight_paths, link_messages
-from caviar_plugins.radio.scene import RadioScene
-from caviar_plugins.radio.sionna_link import SionnaLinkParams
+from caviar_plugins.radio.scene import RadioConfig, RadioScene, radio_config
+from caviar_plugins.radio.sionna_link import LinkBudgetParams
 from caviar_plugins.rt.scatterers import Body, ScattererPool, box_doppler_hz, update_pools
 from caviar_plugins.schema import BEAM_SELECTION, POSITIONS, STATE, read_position
 
@@ -46,7 +46,13 @@ ITU_TYPES = ("concrete", "brick", "plasterboard", "wood", "glass", "ceiling_boar
 
 
 @dataclasses.dataclass
-class SionnaTrafficLinkParams(SionnaLinkParams):
+class SionnaTrafficLinkParams(LinkBudgetParams, RadioConfig):
+    """The ray-traced link's parameters (:class:`~caviar_plugins.radio.scene.RadioConfig`,
+    the link budget) and the traffic's. Differences from ``sionna-link``: a UAV's body is a
+    box of a pool (``uav_mesh`` says whether UAVs get one; ``antenna_offset`` is the
+    antenna above that box's centre), and with ``scatterers`` the shoot cache serves solves
+    only with ``cache_moving_bodies`` (moving boxes on top of the recorded bounces)."""
+
     vehicle_pool: int = 64
     """Boxes for vehicles, made at setup: the most vehicles in the scene at once. More
     vehicles grow the pool (one scene edit and recompile, with a warning)."""
@@ -76,8 +82,6 @@ class SionnaTrafficLinkParams(SionnaLinkParams):
 
     def __post_init__(self):
         super().__post_init__()
-        if getattr(self, "protocol", "physical") != "physical":
-            raise ValueError(f"protocol: sionna-traffic-link has only the physical link, got {self.protocol!r}")
         for name in ("vehicle_material", "person_material"):
             if getattr(self, name) not in ITU_TYPES:
                 raise ValueError(f"{name}: expected an ITU-R P.2040 material ({', '.join(ITU_TYPES)}), "
@@ -96,14 +100,13 @@ class SionnaTrafficLink(caviar.Plugin):
         p = ctx.params
         self.p = p
         self.ctx = ctx
-        radio_cfg = p.radio()
-        self.uav_offset = np.asarray(radio_cfg.antenna_offset, dtype=float)
-        radio_cfg.antenna_offset = [0.0, 0.0, 0.0]  # receivers are placed at their antennas here
-        radio_cfg.uav_mesh = False  # UAV bodies are boxes of the pool
+        self.uav_offset = np.asarray(p.antenna_offset, dtype=float)
+        # Receivers are placed at their antennas here and UAV bodies are boxes of the pool.
         # The pools' boxes are the shoot cache's moving objects (cache_moving_bodies): the
         # bounces of the static scene are recorded once and the boxes handled on top of them.
         # Without cache_moving_bodies every step would be a new geometry: no cache then.
-        radio_cfg.shoot_cache = radio_cfg.shoot_cache and (radio_cfg.cache_moving_bodies or not p.scatterers)
+        radio_cfg = radio_config(p, antenna_offset=[0.0, 0.0, 0.0], uav_mesh=False,
+                                 shoot_cache=p.shoot_cache and (p.cache_moving_bodies or not p.scatterers))
         self.radio = RadioScene(radio_cfg, seed=ctx.seed, base_dir=ctx.config_dir)
         self.budget = LinkBudget(bandwidth_hz=p.bandwidth_hz, tx_power_w=p.tx_power_w,
                                  interference_dbw=p.interference_dbw)
