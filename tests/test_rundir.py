@@ -218,3 +218,25 @@ plugin = "sample_plugins:Counter"
     assert empty.messages.schema == full.messages.schema
     assert empty.timings.schema == full.timings.schema
     assert empty.topic("count").height == 0 and empty.decoded("count") == []
+
+
+def test_only_rundir_names_the_files_of_a_run_directory():
+    """One owner of the run-directory format in Python (issue #40, part 3): outside
+    ``caviar/rundir.py`` no code of ``python/`` or ``plugins/`` names ``run.json`` or
+    ``progress.json`` (docstrings and comments may); the view, the supervisor, the SAR
+    results and the exporters ask :class:`caviar.rundir.RunDir`."""
+    root = pathlib.Path(__file__).resolve().parents[1]
+    offenders = []
+    for base in (root / "python" / "caviar", root / "plugins" / "caviar_plugins"):
+        for path in sorted(base.rglob("*.py")):
+            if path.name == "rundir.py" and path.parent.name == "caviar":
+                continue
+            tree = ast.parse(path.read_text())
+            # Docstrings (of modules, classes, functions and attributes): strings standing alone.
+            docstrings = {id(node.value) for node in ast.walk(tree)
+                          if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant)}
+            for node in ast.walk(tree):
+                if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docstrings \
+                        and ("run.json" in node.value or "progress.json" in node.value):
+                    offenders.append(f"{path.relative_to(root)}:{node.lineno}: {node.value[:60]!r}")
+    assert not offenders, "\n".join(offenders)

@@ -175,6 +175,12 @@ def module_totals(run_dir: str | os.PathLike[str]) -> str:
     in order of first appearance with the core's own row last: what ``caviar-core
     inspect`` shows. ValueError when RUN_DIR has no timings."""
 
+def close_failed_run(run_dir: str | os.PathLike[str], message: str) -> str | None:
+    """Closes the run.json a dead process left ``running`` as ``failed`` with ``message``
+    followed by where it was (progress.json: the module started last and its step); returns
+    that place in words, or None when the run is not running. ValueError if run.json cannot
+    be read or written (naming the file)."""
+
 def run_status(run_dir: str | os.PathLike[str]) -> str:
     """run.json as JSON text, with what a reader concludes about a run left running:
     ``status`` ``abandoned`` when its process is gone (and ``abandoned``, in words),

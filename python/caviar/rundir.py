@@ -1,11 +1,14 @@
-"""A run directory, read: the one reader behind :func:`caviar.load_run`, ``caviar-core
-report`` and the browser view.
+"""A run directory, read: the one Python reader of what the core writes, behind
+:func:`caviar.load_run`, ``caviar-core report``, the browser view, the supervisor of
+``caviar-core run`` and the SAR results. No other Python module names the core's files
+(``tests/test_rundir.py`` checks it).
 
 Where things are is the core's knowledge, not this module's: the files holding a table
 come from :func:`caviar._core.table_files` (the compacted ``messages.parquet``, or the
 parts of a run in progress or killed), the status from :func:`caviar._core.run_status`
-(with what a reader concludes about a run left running) and the per-module totals from
-:func:`caviar._core.module_totals` (what ``caviar-core inspect`` prints).
+(with what a reader concludes about a run left running), the per-module totals from
+:func:`caviar._core.module_totals` (what ``caviar-core inspect`` prints), and closing a run
+whose process died from :func:`caviar._core.close_failed_run`.
 """
 
 from __future__ import annotations
@@ -13,11 +16,19 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+import sys
 from typing import Any, Sequence
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
 
 from caviar import _core
 
 TABLES = ("messages", "timings")
+STATUS_FILE = "run.json"
+CONFIG_FILE = "config.toml"
 
 
 class RunDir:
@@ -28,20 +39,62 @@ class RunDir:
 
     def exists(self) -> bool:
         """Whether it has a run.json (a run was started in it)."""
-        return (self.path / "run.json").is_file()
+        return (self.path / STATUS_FILE).is_file()
+
+    def require(self, hint: str = "") -> None:
+        """FileNotFoundError naming the directory unless a run was started in it; ``hint``
+        follows (what to give instead)."""
+        if not self.exists():
+            raise FileNotFoundError(f"{self.path}: not a run directory (no {STATUS_FILE}){hint}")
 
     def status(self) -> dict[str, Any]:
         """run.json, as :class:`caviar.RunStatus` describes it."""
-        if not self.exists():
-            raise FileNotFoundError(f"{self.path}: not a run directory (no run.json)")
+        self.require()
         return json.loads(_core.run_status(self.path))
 
+    def status_stamp(self) -> int | None:
+        """When run.json last changed (ns; None: there is none): a poller reads the status
+        again only when this moves."""
+        try:
+            return (self.path / STATUS_FILE).stat().st_mtime_ns
+        except OSError:
+            return None
+
+    def completed(self) -> bool:
+        """Whether the run in it finished as planned (status ``completed``)."""
+        try:
+            return self.status().get("status") == "completed"
+        except (OSError, ValueError):
+            return False
+
+    @property
+    def config_file(self) -> pathlib.Path:
+        """The configuration the run ran, as the core copied it (``--set`` applied)."""
+        return self.path / CONFIG_FILE
+
     def config_text(self) -> str:
-        path = self.path / "config.toml"
+        path = self.config_file
         try:
             return path.read_text()
         except UnicodeDecodeError as e:
             raise ValueError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+
+    def config(self) -> dict[str, Any]:
+        """The configuration, parsed ({} before the core wrote it); ValueError naming the
+        file when it cannot be read."""
+        if not self.config_file.is_file():
+            return {}
+        try:
+            return tomllib.loads(self.config_text())
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{self.config_file}: unreadable config ({e})") from None
+
+    def close_failed(self, message: str) -> str | None:
+        """Closes a run whose process died while it was ``running`` as ``failed`` with
+        ``message`` and where it was (the module and step ``progress.json`` names), as the
+        core does (:func:`caviar._core.close_failed_run`); that place in words, or None when
+        the run was not running."""
+        return _core.close_failed_run(self.path, message)
 
     def table_files(self, table: str) -> list[pathlib.Path]:
         """The Parquet files of ``table`` in order; FileNotFoundError when the run has

@@ -17,7 +17,6 @@ as before. ``CAVIAR_SUPERVISED=1`` in the environment runs the engine in this pr
 
 from __future__ import annotations
 
-import json
 import os
 import pathlib
 import signal
@@ -25,6 +24,8 @@ import subprocess
 import sys
 import tempfile
 from typing import Any
+
+from caviar.rundir import RunDir
 
 ENV_CHILD = "CAVIAR_SUPERVISED"
 ENV_RUN_DIR_FILE = "CAVIAR_RUN_DIR_FILE"
@@ -99,53 +100,20 @@ def run(argv: list[str]) -> int:
             for s, handler in previous.items():
                 signal.signal(s, handler)
         run_dir = pathlib.Path(note.read_text()) if note.exists() else None
-    if run_dir is None or _status(run_dir).get("status") != "running":
+    if run_dir is None or _status(run_dir).get("status") not in ("running", "abandoned"):
         if code < 0 and run_dir is None:
             print(f"error: caviar-core run {cause(code, before, oom_kills())} before its run began",
                   file=sys.stderr)
             return 1
         return code if code >= 0 else 1
     message = f"the process {cause(code, before, oom_kills())}"
-    where = close_failed(run_dir, message)
+    where = RunDir(run_dir).close_failed(message) or ""
     print(f"error: {run_dir}: the run ended abnormally: {message}{where}", file=sys.stderr)
     return 1
 
 
 def _status(run_dir: pathlib.Path) -> dict[str, Any]:
     try:
-        return json.loads((run_dir / "run.json").read_text())
+        return RunDir(run_dir).status()
     except (OSError, ValueError):
         return {}
-
-
-def close_failed(run_dir: pathlib.Path, message: str) -> str:
-    """Closes the run.json a dead process left ``running`` as ``failed`` with ``message``,
-    at the step and module ``progress.json`` names; returns where, in words."""
-    status = _status(run_dir)
-    try:
-        progress = json.loads((run_dir / "progress.json").read_text().strip("\x00 \n"))
-    except (OSError, ValueError):
-        progress = {}
-    step = progress.get("step")
-    modules = progress.get("modules") or []
-    module = modules[-1] if modules else None
-    if module is not None:
-        where = f", in module '{module}' at step {step}"
-    elif step is not None:
-        where = f", between stages of step {step}"
-    else:
-        where = ", before its first step"
-    done = max(int(status.get("steps_done") or 0), int(progress.get("steps_done") or 0))
-    status.update({
-        "status": "failed", "end_reason": "error", "steps_done": done,
-        "virtual_time_s": done * float(status.get("ts") or 0.0),
-    })
-    text = message[0].upper() + message[1:] + where
-    status["error"] = ({"module": module, "phase": "step", "step": step, "time": None, "message": text,
-                        "trace": None} if module is not None else {"message": text})
-    status.pop("pid", None)
-    status.pop("pid_start", None)
-    tmp = run_dir / "run.json.tmp"
-    tmp.write_text(json.dumps(status, indent=2) + "\n")
-    tmp.replace(run_dir / "run.json")
-    return where

@@ -436,6 +436,13 @@ fn main(py: Python<'_>, argv: Vec<String>) -> i32 {
     })
 }
 
+/// Closes the run.json a dead process left `running` as `failed` with `message`, at the
+/// step and module progress.json names; where, in words (None: not running).
+#[pyfunction]
+fn close_failed_run(run_dir: PathBuf, message: &str) -> PyResult<Option<String>> {
+    crate::status::RunStatus::close_failed(&run_dir, message).map_err(PyValueError::new_err)
+}
+
 /// run.json of RUN_DIR as JSON text, with what a reader concludes about a run left
 /// `running` (`abandoned` when its process is gone, the step and modules it was in).
 #[pyfunction]
@@ -492,6 +499,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(main, m)?)?;
     m.add_function(wrap_pyfunction!(inspect, m)?)?;
     m.add_function(wrap_pyfunction!(run_status, m)?)?;
+    m.add_function(wrap_pyfunction!(close_failed_run, m)?)?;
     m.add_function(wrap_pyfunction!(table_files, m)?)?;
     m.add_function(wrap_pyfunction!(module_totals, m)?)?;
     m.add_function(wrap_pyfunction!(matches, m)?)?;

@@ -278,6 +278,55 @@ impl RunStatus {
         serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))
     }
 
+    /// Closes the run.json that a dead process left `running` as `failed`, with
+    /// `message` (the cause, told by whoever saw the process end: "the process was
+    /// killed by SIGKILL") followed by where it was, from `progress.json`: the module
+    /// started last and its step. Returns that place in words (", in module 'x' at
+    /// step 3"), or `None` when the run is not `running` (it was closed: left as it is).
+    pub fn close_failed(run_dir: &Path, message: &str) -> Result<Option<String>, String> {
+        let mut status = Self::read(run_dir)?;
+        if status.status != RunState::Running {
+            return Ok(None);
+        }
+        let progress = read_progress(run_dir);
+        let step = progress.as_ref().map(|p| p.step);
+        let module = progress.as_ref().and_then(|p| p.modules.last().cloned());
+        let place = match (&module, step) {
+            (Some(m), Some(k)) => format!(", in module '{m}' at step {k}"),
+            (None, Some(k)) => format!(", between stages of step {k}"),
+            _ => ", before its first step".to_string(),
+        };
+        let mut text: String = message.to_string();
+        if let Some(first) = text.get(..1) {
+            text = first.to_uppercase() + &text[1..];
+        }
+        text.push_str(&place);
+        status.steps_done = status
+            .steps_done
+            .max(progress.as_ref().map_or(0, |p| p.steps_done));
+        status.virtual_time_s = status.steps_done as f64 * status.ts;
+        status.status = RunState::Failed;
+        status.end_reason = Some(EndReason::Error);
+        status.error = Some(match module {
+            Some(module) => RunErrorInfo::Module {
+                module,
+                phase: "step".into(),
+                step,
+                time: None,
+                message: text,
+                trace: None,
+            },
+            None => RunErrorInfo::Other { message: text },
+        });
+        status.last_step = step;
+        status.last_stage = progress.as_ref().map(|p| p.stage.clone());
+        status.last_modules = progress.map(|p| p.modules).unwrap_or_default();
+        status.pid = None;
+        status.pid_start = None;
+        status.write(run_dir)?;
+        Ok(Some(place))
+    }
+
     /// Writes `RUN_DIR/run.json` atomically (a temporary file renamed over it): a reader
     /// or a crash never sees half of it.
     pub fn write(&self, run_dir: &Path) -> Result<(), String> {
@@ -586,6 +635,42 @@ mod tests {
         let other: RunStatus =
             serde_json::from_str(r#"{"error": {"message": "disk full"}}"#).unwrap();
         assert_eq!(other.error.unwrap().message(), "disk full");
+    }
+
+    #[test]
+    fn a_run_left_running_is_closed_failed_where_progress_json_says() {
+        let dir = std::env::temp_dir().join(format!("caviar-close-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let s = RunStatus {
+            status: RunState::Running,
+            ts: 0.5,
+            steps_done: 2,
+            pid: Some(1),
+            ..Default::default()
+        };
+        s.write(&dir).unwrap();
+        // No progress.json yet: before its first step.
+        let place = RunStatus::close_failed(&dir, "the process was killed").unwrap();
+        assert_eq!(place.as_deref(), Some(", before its first step"));
+        s.write(&dir).unwrap();
+        std::fs::write(
+            dir.join(PROGRESS_FILE),
+            r#"{"steps_done": 4, "step": 4, "stage": "s", "modules": ["a", "b"]}   "#,
+        )
+        .unwrap();
+        let place = RunStatus::close_failed(&dir, "the process was killed by SIGKILL").unwrap();
+        assert_eq!(place.as_deref(), Some(", in module 'b' at step 4"));
+        let closed = RunStatus::read(&dir).unwrap();
+        assert_eq!(
+            (closed.status, closed.end_reason, closed.steps_done, closed.pid),
+            (RunState::Failed, Some(EndReason::Error), 4, None)
+        );
+        assert_eq!(closed.virtual_time_s, 2.0);
+        assert!(matches!(&closed.error, Some(RunErrorInfo::Module { module, step: Some(4), message, .. })
+            if module == "b" && message == "The process was killed by SIGKILL, in module 'b' at step 4"));
+        // Closed already: left as it is.
+        assert_eq!(RunStatus::close_failed(&dir, "again").unwrap(), None);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

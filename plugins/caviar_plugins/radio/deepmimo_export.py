@@ -75,9 +75,10 @@ def read_run_paths(run_dir: pathlib.Path, module: str | None = None) -> tuple[li
     import caviar
     from caviar.rundir import RunDir
 
-    if not RunDir(run_dir).exists():
-        raise ExportError(f"{run_dir}: not a run directory (no run.json); give the folder of a run of "
-                          "`caviar-core run`")
+    try:
+        RunDir(run_dir).require("; give the folder of a run of `caviar-core run`")
+    except FileNotFoundError as e:
+        raise ExportError(str(e)) from None
     try:
         log = caviar.load_run(run_dir)
         messages = log.decoded(every_ue(PATHS))

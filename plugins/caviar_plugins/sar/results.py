@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 import caviar
+from caviar.rundir import RunDir
 from caviar_plugins.schema import IMAGE_QUALITY, POSITIONS, RESCUE, RESULT, THROUGHPUT, read_position
 
 PAPER = {"random": (424.94, 3), "tree": (98.50, 5), "oracle": (75.53, 5)}
@@ -38,7 +39,7 @@ def run_all(config: pathlib.Path, tree: pathlib.Path, runs: pathlib.Path, method
     logs = {}
     for method in methods:
         out = runs / f"sar-{method}"
-        done = (out / "run.json").exists() and json.loads((out / "run.json").read_text())["status"] == "completed"
+        done = RunDir(out).completed()
         if reuse and done:
             print(f"reusing {out}", flush=True)
             logs[method] = caviar.load_run(out)
@@ -122,7 +123,7 @@ def write(rows: list[dict], logs: dict, out: pathlib.Path, note: str = "") -> No
     configs = out / "configs"
     configs.mkdir(exist_ok=True)
     for method, log in logs.items():
-        shutil.copy(log.path / "config.toml", configs / f"sar-{method}.toml")
+        shutil.copy(RunDir(log.path).config_file, configs / f"sar-{method}.toml")
     write_tables(rows, out, note)
     import matplotlib
 

@@ -22,8 +22,6 @@ import threading
 import time as _time
 from typing import IO, Any
 
-import tomllib
-
 from caviar.rundir import RunDir, read_parquet
 from caviar.view.contract import ViewContract, registered
 
@@ -110,37 +108,33 @@ class RunData:
             raise RunDirError(f"{p}: no such directory")
         if not p.is_dir():
             raise RunDirError(f"{p}: not a directory")
-        if not self.run.exists():
-            raise RunDirError(f"{p}: not a run directory (no run.json)")
+        try:
+            self.run.require()
+        except FileNotFoundError as e:
+            raise RunDirError(str(e)) from None
         try:
             self.run.table_files("messages")
         except FileNotFoundError as e:
             raise RunDirError(str(e)) from None
 
     def _read_status(self, strict: bool):
-        f = self.path / "run.json"
-        try:
-            mtime = f.stat().st_mtime_ns
-        except OSError:
-            return
-        if mtime == self._status_mtime:
+        stamp = self.run.status_stamp()
+        if stamp is None or stamp == self._status_mtime:
             return
         try:
-            status = json.loads(f.read_text())
-            if not isinstance(status, dict):
-                raise TypeError("not a JSON object")
-        except (OSError, ValueError, TypeError) as e:
+            status = self.run.status()  # (the core's reading: a run whose process died says so)
+        except (OSError, ValueError) as e:
             if strict:
-                raise RunDirError(f"{f}: unreadable run status ({e})") from None
+                raise RunDirError(f"{self.path}: unreadable run status ({e})") from None
             return  # being rewritten: next poll
-        self.status, self._status_mtime = status, mtime
+        self.status, self._status_mtime = status, stamp
         self.version += 1
-        if not self.config and (self.path / "config.toml").is_file():
+        if not self.config:
             try:
-                self.config = tomllib.loads((self.path / "config.toml").read_text())
-            except (OSError, ValueError) as e:
+                self.config = self.run.config()
+            except ValueError as e:
                 if strict:
-                    raise RunDirError(f"{self.path / 'config.toml'}: unreadable config ({e})") from None
+                    raise RunDirError(str(e)) from None
 
     @property
     def running(self) -> bool:
