@@ -94,6 +94,9 @@ class RadioNetwork(caviar.Plugin):
         """``torch.compile`` the link level (Sionna SYS): about 3x faster a step, after
         about 30 s of compilation at the first step (see
         :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
+        device: str = "auto"
+        """The torch device of the link level (Sionna SYS): ``auto`` (Sionna's choice, a GPU
+        where there is one), ``cpu``, ``cuda`` or ``cuda:N``."""
         subbands: int = 8
         """Frequencies at which the ray-traced channel is evaluated, one per group of
         adjacent PRBs: the scheduler's unit and the EESM's inputs. The free-space channel
@@ -137,7 +140,7 @@ class RadioNetwork(caviar.Plugin):
                                      bler_target=self.bler_target, mcs_table=self.mcs_table,
                                      scheduler=self.scheduler, link_model=self.link_model,
                                      harq_processes=self.harq_processes, subbands=1 if flat else self.subbands,
-                                     compile=self.compile)
+                                     compile=self.compile, device=self.device)
 
     def setup(self, ctx):
         self.ctx = ctx

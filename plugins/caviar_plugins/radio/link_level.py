@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from caviar_plugins.rt import sionna_adapter as adapter
+from caviar_plugins.torch_device import check_setting, resolve, to_numpy, to_torch
 
 NUMEROLOGIES = (15e3, 30e3, 60e3, 120e3)
 NR_RANGES_HZ = ((410e6, 7.125e9), (24.25e9, 71e9))
@@ -78,8 +79,13 @@ class LinkSettings:
     faster per call once compiled (about 30 s, once per process and UE capacity). The
     same MCS, effective SINR and BLER as eager; the HARQ outcomes are drawn from the
     compiled kernels' own random stream (deterministic for a seed, not eager's draws)."""
+    device: str = "auto"
+    """The torch device of the Sionna SYS blocks and every tensor they are given: ``auto``
+    (Sionna's choice, a GPU where there is one), ``cpu``, ``cuda`` or ``cuda:N``. numpy
+    enters and leaves only at the call's boundary (:mod:`caviar_plugins.torch_device`)."""
 
     def __post_init__(self):
+        check_setting(self.device)
         if self.num_prb < 1:
             raise ValueError(f"num_prb: expected at least 1 PRB, got {self.num_prb}")
         if not 0.0 < self.bler_target < 1.0:
@@ -166,9 +172,10 @@ class LinkLevel:
             sionna.phy.config.seed = seed
             self._sys = sionna.sys
             self._torch = __import__("torch")
-            self.phy = sionna.sys.PHYAbstraction()
-            self.eesm = sionna.sys.EESM()
-            self._prb_weights = self._torch.tensor(settings.subband_prbs, dtype=self._torch.float32)
+            self.device = resolve(settings.device)
+            self.phy = sionna.sys.PHYAbstraction(device=str(self.device))
+            self.eesm = sionna.sys.EESM(device=str(self.device))
+            self._prb_weights = to_torch(settings.subband_prbs, self.device, self._torch.float32)
         self._link = self._adapt_and_decode
         if settings.compile and settings.link_model == "sys":
             self._link = self._torch.compile(self._adapt_and_decode, dynamic=False)
@@ -188,12 +195,12 @@ class LinkLevel:
         torch = self._torch
         d, c = self.s.harq_processes, self.n_cell
         olla = self._sys.OuterLoopLinkAdaptation(self.phy, num_ut=capacity, bler_target=self.s.bler_target,
-                                                 batch_size=[d])
+                                                 batch_size=[d], device=str(self.device))
         # The PF metric is the same on every PRB of a subband, so Sionna's scheduler decides
         # on one resource per subband, standing for its PRBs.
-        pf = self._sys.PFSchedulerSUMIMO(capacity, self.s.subbands, 1, batch_size=[d, c])
-        harq = torch.full((d, capacity), -1, dtype=torch.int32)
-        rate_last = torch.zeros(d, c, capacity)
+        pf = self._sys.PFSchedulerSUMIMO(capacity, self.s.subbands, 1, batch_size=[d, c], device=str(self.device))
+        harq = torch.full((d, capacity), -1, dtype=torch.int32, device=self.device)
+        rate_last = torch.zeros(d, c, capacity, device=self.device)
         if old:
             adapter.grow_link_adaptation(olla, self.olla, old)
             adapter.grow_scheduler(pf, self.pf, old)
@@ -225,16 +232,16 @@ class LinkLevel:
         self._rng().set_state(state["rng"])
 
     def _rng(self):
-        """Sionna's torch generator on the CPU (``sionna.phy.config``), which the PHY
-        abstraction draws its block errors from."""
+        """Sionna's torch generator on the link level's device (``sionna.phy.config``), which
+        the PHY abstraction draws its block errors from."""
         import sionna.phy
 
-        return sionna.phy.config.torch_rng("cpu")
+        return sionna.phy.config.torch_rng(str(self.device))
 
     def table_bler(self, mcs: int, sinr_db: float, cb_size: int) -> float:
         """The BLER this link level uses for ``mcs`` at ``sinr_db`` and code-block size
         ``cb_size`` (Sionna's interpolated NR PDSCH table ``mcs_table``)."""
-        sinr = self._torch.tensor(10 ** (sinr_db / 10), dtype=self._torch.float32)
+        sinr = to_torch(10 ** (sinr_db / 10), self.device, self._torch.float32)
         return float(self.phy.get_bler(mcs, self.s.mcs_table, PDSCH, cb_size, sinr))
 
     def ensure(self, n_ue: int) -> None:
@@ -295,7 +302,7 @@ class LinkLevel:
         for u, c in enumerate(serving):
             if c >= 0:
                 member[c, u] = True
-        member_t = torch.from_numpy(member)
+        member_t = to_torch(member, self.device)
         re_per_prb = 12 * DATA_SYMBOLS_PER_SLOT
         acc = {k: np.zeros(n_ue) for k in ("bits", "sched", "prbs", "acks", "nacks", "tbler")}
         mcs_last = np.full(n_ue, -1)
@@ -306,7 +313,7 @@ class LinkLevel:
         for k in range(0, n_slots, d):
             block = np.nan_to_num(sinr_db[k:k + d], nan=-300.0).transpose(0, 2, 1)  # [D, S, n_ue]
             lin[:, :, :n_ue] = np.where(served, 10 ** (block / 10), 0.0)
-            lin_t = torch.tensor(lin, dtype=torch.float32)  # [D, S, cap]
+            lin_t = to_torch(lin, self.device, torch.float32)  # [D, S, cap]
             # Achievable rate per PRB of each UE in its own cell (bit/s/Hz); 0 elsewhere.
             rate = torch.log2(1 + lin_t)[:, None, :, :] * member_t[None, :, None, :]  # [D, C, S, cap]
             granted = self._schedule(rate, member, k)  # [D, C, S, cap] bool
@@ -321,19 +328,22 @@ class LinkLevel:
             self.harq = harq
             # The rate each cell achieved for each UE, for the PF history.
             self.rate_last = bits.to(torch.float32)[:, None, :] / self.s.slot_s * member_t
-            sched = (n_re.numpy() > 0)[:, :n_ue]
-            h = harq.numpy()[:, :n_ue]
-            acc["bits"] += bits.numpy()[:, :n_ue].sum(axis=0)
+            # (the step's results leave the device here, once each)
+            n_re_np, harq_np, bits_np, prbs_np, tbler_np, mcs_np, sinr_eff_np, active_np = (
+                to_numpy(t) for t in (n_re, harq, bits, prbs, tbler, mcs, sinr_eff, granted.any(dim=3).any(dim=2)))
+            sched = (n_re_np > 0)[:, :n_ue]
+            h = harq_np[:, :n_ue]
+            acc["bits"] += bits_np[:, :n_ue].sum(axis=0)
             acc["sched"] += sched.sum(axis=0)
-            acc["prbs"] += prbs.numpy()[:, :n_ue].sum(axis=0)
+            acc["prbs"] += prbs_np[:, :n_ue].sum(axis=0)
             acc["acks"] += (h == 1).sum(axis=0)
             acc["nacks"] += (h == 0).sum(axis=0)
-            acc["tbler"] += np.where(sched, tbler.numpy()[:, :n_ue], 0.0).sum(axis=0)
+            acc["tbler"] += np.where(sched, tbler_np[:, :n_ue], 0.0).sum(axis=0)
             for j in range(d):  # the last scheduled slot's MCS and effective SINR
-                mcs_last = np.where(sched[j], mcs.numpy()[j, :n_ue], mcs_last)
+                mcs_last = np.where(sched[j], mcs_np[j, :n_ue], mcs_last)
                 sinr_eff_last = np.where(
-                    sched[j], 10 * np.log10(np.maximum(sinr_eff.numpy()[j, :n_ue], 1e-30)), sinr_eff_last)
-            active[k:k + d] = granted.any(dim=3).any(dim=2).numpy()
+                    sched[j], 10 * np.log10(np.maximum(sinr_eff_np[j, :n_ue], 1e-30)), sinr_eff_last)
+            active[k:k + d] = active_np
         with np.errstate(invalid="ignore", divide="ignore"):
             tbler_mean = np.where(acc["sched"] > 0, acc["tbler"] / acc["sched"], np.nan)
         return SlotResults(acc["bits"], acc["sched"].astype(int), acc["prbs"].astype(int),
@@ -373,8 +383,8 @@ class LinkLevel:
         if self.s.scheduler == "proportional-fair":
             granted = self.pf(self.rate_last, rate[:, :, None, :, :])[:, :, 0, :, :, 0]  # [D, C, S, cap]
             # A cell without UEs: the argmax picked column 0, which is not its UE.
-            return granted & torch.from_numpy(member)[None, :, None, :]
-        granted = torch.zeros((d, n_cell, n_sub, cap), dtype=torch.bool)
+            return granted & to_torch(member, self.device)[None, :, None, :]
+        granted = torch.zeros((d, n_cell, n_sub, cap), dtype=torch.bool, device=self.device)
         for j in range(d):
             for c in range(n_cell):
                 ues = np.flatnonzero(member[c])
@@ -382,7 +392,7 @@ class LinkLevel:
                     continue
                 if self.s.scheduler == "max-rate":  # per subband, the UE with the best rate
                     best = torch.argmax(rate[j, c][:, ues], dim=1)
-                    granted[j, c, torch.arange(n_sub), torch.from_numpy(ues)[best]] = True
+                    granted[j, c, torch.arange(n_sub, device=self.device), to_torch(ues, self.device)[best]] = True
                 else:  # round-robin: one UE per slot, in turn
                     granted[j, c, :, int(ues[(first_slot + j) % ues.size])] = True
         return granted

@@ -92,6 +92,9 @@ class SionnaLinkParams(LinkBudgetParams, RadioConfig):
     harq_processes: int = 8
     """``sys``: slots per Sionna SYS call (see :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
     bler_target: float = 0.1
+    device: str = "auto"
+    """``sys``: the torch device of the link level (``auto``: Sionna's choice, a GPU where
+    there is one; ``cpu``, ``cuda``, ``cuda:N``)."""
     predict_horizons_s: list[float] = dataclasses.field(default_factory=list)
     """Seconds ahead at which to predict every UE's link each step (for example
     ``[0.5, 1.0, 2.0]``), on ``communications.prediction``: the forecast positions (the
@@ -116,7 +119,7 @@ class SionnaLinkParams(LinkBudgetParams, RadioConfig):
             self.link_settings = LinkSettings(
                 num_prb=int(self.bandwidth_hz // (12 * self.subcarrier_spacing_hz)),
                 subcarrier_spacing_hz=self.subcarrier_spacing_hz, bler_target=self.bler_target,
-                harq_processes=self.harq_processes)
+                harq_processes=self.harq_processes, device=self.device)
         if self.protocol == "paper":
             caviar.apply_preset(self, paper.PAPER_LINK, "protocol = 'paper'")
         super().__post_init__()

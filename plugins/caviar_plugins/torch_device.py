@@ -1,0 +1,134 @@
+"""PyTorch's device, chosen in one place, and the one crossing between numpy and torch.
+
+The radio network's link level (Sionna SYS, written in PyTorch) keeps its state and does its
+work on one device: :func:`resolve` turns a ``device`` setting into it (``auto``: Sionna's
+own choice, ``sionna.phy.config.device``, a GPU where there is one). numpy arrays enter
+torch and leave it only through :func:`to_torch` and :func:`to_numpy`: a tensor made from
+numpy elsewhere would sit on the CPU beside the others on the GPU, the mistake that stopped
+the network at its first slot on an H100 (issue #39). ``tests/test_torch_device.py`` runs the
+link level under :class:`DeviceGuard`, which fails any torch operation whose tensors are not
+all on the chosen device and any numpy crossing outside these two functions.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import inspect
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+_crossing = threading.local()
+
+
+def resolve(setting: str = "auto") -> Any:
+    """The ``torch.device`` of a setting: ``auto`` (Sionna's, ``sionna.phy.config.device``),
+    ``cpu``, ``cuda``, ``cuda:1``..."""
+    import torch
+
+    if setting == "auto":
+        import sionna.phy
+
+        return torch.device(sionna.phy.config.device)
+    try:
+        return torch.device(setting)
+    except RuntimeError as e:
+        raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {setting!r} ({e})") from None
+
+
+def check_setting(setting: str) -> str:
+    """``setting`` if it names a device (without importing torch), else a ValueError."""
+    kind = setting.split(":", 1)[0]
+    if kind not in ("auto", "cpu", "cuda") or (":" in setting and not setting.split(":", 1)[1].isdigit()):
+        raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {setting!r}")
+    return setting
+
+
+@contextlib.contextmanager
+def _crossing_here() -> Iterator[None]:
+    depth = getattr(_crossing, "depth", 0)
+    _crossing.depth = depth + 1
+    try:
+        yield
+    finally:
+        _crossing.depth = depth
+
+
+def crossing() -> bool:
+    """Whether the current thread is inside :func:`to_torch` or :func:`to_numpy`."""
+    return getattr(_crossing, "depth", 0) > 0
+
+
+def to_torch(values: Any, device: Any, dtype: Any = None) -> Any:
+    """A tensor of ``values`` (numpy or Python numbers) on ``device``."""
+    import torch
+
+    with _crossing_here():
+        return torch.as_tensor(np.asarray(values), dtype=dtype, device=device)
+
+
+def to_numpy(tensor: Any) -> np.ndarray:
+    """A tensor's values as numpy (copied to the host from a GPU)."""
+    with _crossing_here():
+        return tensor.detach().cpu().numpy()
+
+
+class DeviceGuard:
+    """A ``torch.overrides.TorchFunctionMode`` that fails, naming the operation, when a torch
+    operation's tensor operands are not all on ``device``, or a tensor is made from numpy
+    (``torch.tensor``, ``torch.from_numpy``, ``torch.as_tensor``) or read into numpy
+    (``Tensor.numpy``) outside :func:`to_torch` / :func:`to_numpy`. For tests, on any
+    machine: a CPU-only one catches the crossings that would put a tensor on the wrong device
+    of a GPU machine."""
+
+    MAKERS = ("tensor", "from_numpy", "as_tensor")
+
+    def __new__(cls, device: Any):
+        import torch
+        from torch.overrides import TorchFunctionMode
+
+        class Guard(TorchFunctionMode):
+            def __init__(self, device):
+                super().__init__()
+                self.device = torch.device(device)
+                self.operations = 0
+
+            def __torch_function__(self, func, types, args=(), kwargs=None):
+                kwargs = kwargs or {}
+                name = getattr(func, "__name__", str(func))
+                if not crossing() and _called_from_this_project():
+                    if func in (torch.tensor, torch.from_numpy, torch.as_tensor) and \
+                            any(isinstance(a, np.ndarray) for a in args):
+                        raise AssertionError(f"torch.{name} of a numpy array outside caviar_plugins.torch_device")
+                    if name == "numpy":
+                        raise AssertionError("Tensor.numpy() outside caviar_plugins.torch_device")
+                found = [a.device for a in _tensors(args, kwargs) if isinstance(a, torch.Tensor)]
+                if name not in ("to", "cpu", "cuda", "numpy") and any(d != self.device for d in found):
+                    raise AssertionError(f"torch {name}: operands on {sorted({str(d) for d in found})}, "
+                                         f"expected all on {self.device}")
+                self.operations += 1
+                return func(*args, **kwargs)
+
+        return Guard(device)
+
+
+def _called_from_this_project() -> bool:
+    """Whether the torch call being checked was made by this project's code or a test (not
+    by Sionna's or torch's own, which manage their devices themselves)."""
+    frame: Any = inspect.currentframe()
+    while frame is not None:
+        module = frame.f_globals.get("__name__", "")
+        if not (module.startswith("torch") or module == __name__):
+            return not module.startswith("sionna")
+        frame = frame.f_back
+    return False
+
+
+def _tensors(args, kwargs) -> Iterator[Any]:
+    for a in (*args, *kwargs.values()):
+        if isinstance(a, (list, tuple)):
+            yield from a
+        else:
+            yield a

@@ -1,0 +1,67 @@
+"""PyTorch on one device, chosen in one place (issue #39, part 1), caught on a CPU-only
+machine: the radio network's link level (Sionna SYS) runs its slots under a guard that
+fails any torch operation whose tensors are not all on the chosen device and any numpy
+crossing outside ``caviar_plugins.torch_device`` (the mistake that stopped the network at
+its first slot on an H100: a numpy-made CPU tensor beside Sionna's on ``cuda:0``)."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from caviar_plugins.radio.link_level import LinkLevel, LinkSettings  # noqa: E402
+from caviar_plugins.torch_device import DeviceGuard, check_setting, resolve, to_numpy, to_torch  # noqa: E402
+
+
+def slots(level: LinkLevel, n_ue: int, n_slots: int, subbands: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    sinr = rng.uniform(-5.0, 25.0, (n_slots, n_ue, subbands))
+    serving = np.arange(n_ue) % level.n_cell
+    return level.run(sinr, serving)
+
+
+@pytest.mark.parametrize("scheduler, subbands", [("proportional-fair", 4), ("round-robin", 1), ("max-rate", 2)])
+def test_the_link_level_keeps_every_tensor_on_its_device_and_crosses_numpy_in_one_place(scheduler, subbands):
+    settings = LinkSettings(num_prb=24, subcarrier_spacing_hz=30e3, scheduler=scheduler, harq_processes=2,
+                            subbands=subbands, device="cpu")
+    level = LinkLevel(settings, n_cell=3, seed=1, capacity=2)
+    assert level.device == torch.device("cpu")
+    with DeviceGuard("cpu") as guard:
+        first = slots(level, n_ue=3, n_slots=4, subbands=subbands)
+        level.moved(0, 1)
+        level.released(2)
+        grown = slots(level, n_ue=6, n_slots=4, subbands=subbands)  # more UEs than capacity: it grows
+        state = level.state()
+        level.restore(state)
+    assert guard.operations > 100
+    assert level.capacity >= 6 and first.decoded_bits.sum() > 0 and grown.decoded_bits.sum() > 0
+    # The same slots without the guard: the guard changes nothing.
+    again = LinkLevel(settings, n_cell=3, seed=1, capacity=2)
+    np.testing.assert_array_equal(slots(again, 3, 4, subbands).decoded_bits, first.decoded_bits)
+
+
+def test_the_guard_catches_a_numpy_made_tensor_and_a_second_device():
+    with pytest.raises(AssertionError, match="torch.tensor of a numpy array outside"):
+        with DeviceGuard("cpu"):
+            torch.tensor(np.zeros(3))
+    with pytest.raises(AssertionError, match=r"Tensor.numpy\(\) outside"):
+        with DeviceGuard("cpu"):
+            torch.zeros(3).numpy()
+    with pytest.raises(AssertionError, match=r"torch add: operands on \['cpu', 'meta'\], expected all on cpu"):
+        with DeviceGuard("cpu"):
+            torch.add(torch.zeros(3), torch.zeros(3, device="meta"))
+    with DeviceGuard("cpu"):  # the helpers are the way across
+        t = to_torch(np.arange(3.0), "cpu", torch.float32)
+        assert to_numpy(t * 2).tolist() == [0.0, 2.0, 4.0]
+
+
+def test_auto_is_sionnas_device_and_a_bad_setting_is_named():
+    import sionna.phy
+
+    assert resolve("auto") == torch.device(sionna.phy.config.device)
+    assert resolve("cpu") == torch.device("cpu")
+    for bad in ("gpu", "cuda:x", "tpu:0"):
+        with pytest.raises(ValueError, match=rf"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got '{bad}'"):
+            check_setting(bad)
+    with pytest.raises(ValueError, match="device: expected"):
+        LinkSettings(num_prb=24, device="gpu")
