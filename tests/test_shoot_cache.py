@@ -458,3 +458,21 @@ def test_a_diffuse_path_whose_earlier_segment_meets_a_moving_object_is_dropped()
                 assert cross_got == 0 and cross_ref == 0, (k, key, cross_got, cross_ref)
                 assert abs(diffuse_got - diffuse_ref) <= 0.05 * diffuse_ref, (k, key, diffuse_got, diffuse_ref)
     assert cached.shoot_cache.connects == 2 and plain.shoot_cache.connects == 0
+
+
+def test_the_default_turns_the_cache_on_for_the_cpu_and_off_on_cuda():
+    """``shoot_cache = "auto"`` (the default) chooses by Dr.Jit backend from measurements: on
+    for LLVM, where a cached solve is a fraction of Sionna's loop; off on CUDA, where it
+    measured slower (docs/tutorials/gpu-machine.md). A bad value is refused by its key."""
+    from caviar_plugins.network.raytraced import TraceSettings
+    from caviar_plugins.rt.solver import use_shoot_cache
+
+    assert RadioConfig().shoot_cache == "auto" and TraceSettings().shoot_cache == "auto"
+    assert use_shoot_cache("auto", "llvm_ad_mono_polarized") and use_shoot_cache("auto", "llvm_ad_rgb")
+    assert not use_shoot_cache("auto", "cuda_ad_mono_polarized") and not use_shoot_cache("auto", "cuda_ad_rgb")
+    assert use_shoot_cache(True, "cuda_ad_mono_polarized") and not use_shoot_cache(False, "llvm_ad_rgb")
+    assert use_shoot_cache("auto") is True  # this machine: LLVM
+    assert RadioScene(RadioConfig(scene="empty", samples_per_src=100, uav_mesh=False)).shoot_cache is not None
+    for bad in ("yes", 1, None):
+        with pytest.raises(ValueError, match=r'shoot_cache: expected true, false or "auto"'):
+            RadioConfig(shoot_cache=bad)

@@ -60,10 +60,11 @@ class TraceSettings:
     threads: int = 0
     """Dr.Jit CPU threads; 0 = all cores. As sionna-link's ``threads``: ``1`` makes the
     traces bit-identical from run to run (the parallel sums differ in the last bits)."""
-    shoot_cache: bool = True
+    shoot_cache: bool | str = "auto"
     """The shoot cache of :class:`~caviar_plugins.rt.solver.PathTracer`, as sionna-link's: it
     serves a trace whose scene and sites are those of the last one from the recorded bounces.
-    It covers one source per solve: with more than one site, Sionna's own loop runs."""
+    It covers one source per solve: with more than one site, Sionna's own loop runs.
+    ``"auto"``: on for the CPU, off on CUDA (:func:`~caviar_plugins.rt.solver.use_shoot_cache`)."""
     max_num_paths_per_src: int = 1_000_000
     """Sionna's candidate-path buffer per site; a trace that overflows it warns with the
     number of candidates dropped."""
@@ -83,6 +84,9 @@ class TraceSettings:
             raise ValueError(f"threads: expected 0 (all cores) or more, got {self.threads}")
         if self.max_num_paths_per_src < 1:
             raise ValueError(f"max_num_paths_per_src: expected >= 1, got {self.max_num_paths_per_src}")
+        from caviar_plugins.rt.solver import check_shoot_cache
+
+        check_shoot_cache(self.shoot_cache)
 
 
 @dataclasses.dataclass

@@ -67,7 +67,7 @@ class RadioConfig:
     """Sionna's candidate-path buffer per source (its default). Candidates beyond it are
     dropped silently by Sionna (NVlabs/sionna#1172); :meth:`RadioScene.solve` detects
     it, warns and reports the number dropped in :attr:`Link.paths_dropped`."""
-    shoot_cache: bool = True
+    shoot_cache: bool | str = "auto"
     """Keep the rays' bounces of a solve and, while the geometry stays the same (objects,
     materials, frequency, transmitters), trace only the receivers' visibility tests in
     later solves (:mod:`~caviar_plugins.rt.shoot_cache`): the paths of Sionna's loop
@@ -76,7 +76,8 @@ class RadioConfig:
     :meth:`RadioScene.add_moving_objects` (vehicles) move on top of it
     (``cache_moving_bodies``); other changes of the geometry, the first solve of a geometry
     and any solve with more than one source run Sionna's loop unchanged. ``false``: always
-    Sionna's loop."""
+    Sionna's loop. ``"auto"`` (default): on for Dr.Jit's LLVM backend (the CPU), off on CUDA,
+    where it measured slower than Sionna's loop (:func:`~caviar_plugins.rt.solver.use_shoot_cache`)."""
     cache_moving_bodies: bool = True
     """With ``shoot_cache`` and ``uav_mesh``: the UAV bodies are moving objects on top of
     the cached bounces of the static scene, so solves are served from the cache while they
@@ -115,6 +116,9 @@ class RadioConfig:
                              f"{self.rays_per_moving_object}")
         if self.max_num_paths_per_src < 1:
             raise ValueError(f"max_num_paths_per_src: expected >= 1, got {self.max_num_paths_per_src}")
+        from caviar_plugins.rt.solver import check_shoot_cache
+
+        check_shoot_cache(self.shoot_cache)
 
 
 @dataclasses.dataclass

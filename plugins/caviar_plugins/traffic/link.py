@@ -97,6 +97,8 @@ class SionnaTrafficLink(caviar.Plugin):
     Params = SionnaTrafficLinkParams
 
     def setup(self, ctx):
+        from caviar_plugins.rt.solver import use_shoot_cache
+
         p = ctx.params
         self.p = p
         self.ctx = ctx
@@ -105,8 +107,8 @@ class SionnaTrafficLink(caviar.Plugin):
         # The pools' boxes are the shoot cache's moving objects (cache_moving_bodies): the
         # bounces of the static scene are recorded once and the boxes handled on top of them.
         # Without cache_moving_bodies every step would be a new geometry: no cache then.
-        radio_cfg = radio_config(p, antenna_offset=[0.0, 0.0, 0.0], uav_mesh=False,
-                                 shoot_cache=p.shoot_cache and (p.cache_moving_bodies or not p.scatterers))
+        cached = use_shoot_cache(p.shoot_cache) and (p.cache_moving_bodies or not p.scatterers)
+        radio_cfg = radio_config(p, antenna_offset=[0.0, 0.0, 0.0], uav_mesh=False, shoot_cache=cached)
         self.radio = RadioScene(radio_cfg, seed=ctx.seed, base_dir=ctx.config_dir)
         self.budget = LinkBudget(bandwidth_hz=p.bandwidth_hz, tx_power_w=p.tx_power_w,
                                  interference_dbw=p.interference_dbw)
