@@ -169,11 +169,8 @@ pub fn wiring_warnings(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuil
     for a in analysis.iter().filter(|_| all_declared) {
         if !published.iter().any(|p| p.overlaps(a)) {
             warnings.push(
-                cfg.error_at(
-                    "output.analysis",
-                    format!("'{a}' — no module publishes it"),
-                )
-                .to_string(),
+                cfg.error_at("output.analysis", format!("'{a}' — no module publishes it"))
+                    .to_string(),
             );
         }
     }

@@ -87,8 +87,11 @@ fn imports(name: &str, text: &str, known: &BTreeSet<String>) -> BTreeSet<String>
                 break;
             }
         }
+        // `child::{A, B}` (a use list after one segment) names the child too.
+        let braced =
+            j + 2 < bytes.len() && bytes[j] == ':' && bytes[j + 1] == ':' && bytes[j + 2] == '{';
         i = j.max(i + 1);
-        if segs.len() < 2 {
+        if segs.len() < 2 && !braced {
             continue;
         }
         let base: Vec<String> = match segs[0].as_str() {
@@ -102,7 +105,9 @@ fn imports(name: &str, text: &str, known: &BTreeSet<String>) -> BTreeSet<String>
         } else {
             &segs[..]
         };
-        let mut best = None;
+        // `super::Item` names the parent module itself.
+        let mut best =
+            (segs[0] == "super" && known.contains(&base.join("::"))).then(|| base.join("::"));
         let mut path = base.clone();
         for s in rest {
             path.push(s.clone());
@@ -182,6 +187,18 @@ fn the_checker_finds_a_cycle() {
     g.get_mut("topic").unwrap().insert("run".into());
     let c = cycle(&g).expect("topic -> run -> … -> topic");
     assert_eq!(c.first(), c.last(), "{c:?}");
+}
+
+#[test]
+fn a_parent_named_by_super_and_a_use_list_of_a_child_count_as_imports() {
+    let known: BTreeSet<String> = ["a", "a::b", "a::c"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    let of = |name: &str, text: &str| imports(name, text, &known).into_iter().collect::<Vec<_>>();
+    assert_eq!(of("a::b", "use super::Thing;"), ["a"]);
+    assert_eq!(of("a::b", "use super::c::Thing;"), ["a::c"]);
+    assert_eq!(of("a", "pub use b::{One, Two};"), ["a::b"]);
 }
 
 #[test]
