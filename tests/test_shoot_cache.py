@@ -11,7 +11,7 @@ from caviar_plugins.radio import RadioConfig, RadioScene
 # Diffuse reflection only adds paths where a material scatters: give concrete a
 # scattering coefficient so that the diffuse branch (paths finalised in the loop) is
 # exercised along with specular chains, refraction and diffraction.
-SETTINGS = dict(samples_per_src=30_000, max_depth=4, threads=1)
+SETTINGS = dict(samples_per_src=30_000, max_depth=4, threads=1, shoot_cache=True)  # ("auto" is off on CUDA)
 ROUTE = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
 RECEIVERS = {"a": ROUTE.at(0.0), "b": ROUTE.at(60.0), "c": ROUTE.at(150.0)}  # the SAR flight
 
@@ -83,7 +83,7 @@ def test_a_changed_geometry_is_never_served_from_the_cache():
 
 def test_without_cache_moving_bodies_moving_uav_bodies_run_sionnas_loop_every_step():
     cached = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True, cache_moving_bodies=False), seed=5)
-    plain = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True, shoot_cache=False), seed=5)
+    plain = RadioScene(RadioConfig(**{**SETTINGS, "uav_mesh": True, "shoot_cache": False}), seed=5)
     for shift in (0.0, 2.5, 5.0):
         for radio in (cached, plain):
             radio.place({"u": RECEIVERS["a"] + [shift, 0.0, 0.0]})
@@ -135,9 +135,9 @@ def test_a_body_under_the_receiver_reflects_where_the_geometry_says():
     at the same power."""
     tx = np.array([0.0, 0.0, 30.0])
     settings = dict(scene="empty", tx_position=tx.tolist(), tx_array=[1, 1], rx_array=[1, 1], pattern="iso",
-                    max_depth=2, threads=1, uav_mesh=True, diffraction=False)
+                    max_depth=2, threads=1, uav_mesh=True, diffraction=False, shoot_cache=True)
     cached = RadioScene(RadioConfig(**settings, samples_per_src=10_000), seed=2)
-    dense = RadioScene(RadioConfig(**settings, samples_per_src=1_000_000, shoot_cache=False), seed=2)
+    dense = RadioScene(RadioConfig(**{**settings, "samples_per_src": 1_000_000, "shoot_cache": False}), seed=2)
     for x in (18.0, 19.0, 20.0):  # the body moves; the last solve is served from the cache
         uav = np.array([x, 0.0, 10.0])
         cached.place({"u": uav})
@@ -326,7 +326,8 @@ def test_sionnas_own_first_rays_that_meet_a_moving_body_are_those_a_slab_test_fi
 
     tx = np.array([0.0, 0.0, 30.0])
     settings = dict(scene="empty", tx_position=tx.tolist(), tx_array=[1, 1], rx_array=[1, 1], pattern="iso",
-                    max_depth=2, threads=1, uav_mesh=True, diffraction=False, rays_per_moving_object=0)
+                    max_depth=2, threads=1, uav_mesh=True, diffraction=False, rays_per_moving_object=0,
+                    shoot_cache=True)
     radio = RadioScene(RadioConfig(**settings, samples_per_src=100_000), seed=2)
     for x in (18.0, 20.0):  # the second solve records the bounces
         uav = np.array([x, 0.0, 10.0])
@@ -372,7 +373,7 @@ def test_targets_behind_a_reflecting_plane_go_untested_and_the_paths_stay(monkey
         return visibility(mi_scene, rec, tgt, rays, targets)
 
     monkeypatch.setattr(connect, "visibility", counting)
-    radio = RadioScene(RadioConfig(samples_per_src=1_000_000, uav_mesh=False, threads=1), seed=0)
+    radio = RadioScene(RadioConfig(samples_per_src=1_000_000, uav_mesh=False, threads=1, shoot_cache=True), seed=0)
     # 30 receivers along the SAR route, as look-ahead places 10 UAVs: there, a path that
     # diffracts and then reflects on a face of the diffracting edge is lost if the side is
     # taken from the recorded ray (the first version of the cull lost one at u3, 0.5 m on).
@@ -471,8 +472,12 @@ def test_the_default_turns_the_cache_on_for_the_cpu_and_off_on_cuda():
     assert use_shoot_cache("auto", "llvm_ad_mono_polarized") and use_shoot_cache("auto", "llvm_ad_rgb")
     assert not use_shoot_cache("auto", "cuda_ad_mono_polarized") and not use_shoot_cache("auto", "cuda_ad_rgb")
     assert use_shoot_cache(True, "cuda_ad_mono_polarized") and not use_shoot_cache(False, "llvm_ad_rgb")
-    assert use_shoot_cache("auto") is True  # this machine: LLVM
-    assert RadioScene(RadioConfig(scene="empty", samples_per_src=100, uav_mesh=False)).shoot_cache is not None
+    import mitsuba as mi
+
+    on_cpu = not str(mi.variant()).startswith("cuda")
+    assert use_shoot_cache("auto") is on_cpu
+    default = RadioScene(RadioConfig(scene="empty", samples_per_src=100, uav_mesh=False))
+    assert (default.shoot_cache is not None) is on_cpu
     for bad in ("yes", 1, None):
         with pytest.raises(ValueError, match=r'shoot_cache: expected true, false or "auto"'):
             RadioConfig(shoot_cache=bad)

@@ -231,7 +231,7 @@ def test_a_moving_car_reflects_where_the_image_method_says_on_the_shoot_cache(tm
     independent computation), at the power Sionna's loop finds with a million rays."""
     tx, rx = np.array([0.0, 0.0, 1.0]), np.array([40.0, 0.0, 1.0])
     plugin = radio_plugin(tmp_path, tx_position=tx.tolist(), max_depth=2, samples_per_src=10_000,
-                          diffraction=False, threads=1)
+                          diffraction=False, threads=1, shoot_cache=True)  # ("auto" is off on CUDA)
     ue = position_payload("ue", rx, "pedestrian-phone")
     for x in (17.0, 18.5, 20.0):  # the car's footprint centre, 5 m off the line, heading +x
         car = position_payload("car", (x, 5.0, 0.0), "car")

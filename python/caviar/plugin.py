@@ -245,8 +245,8 @@ class Plugin:
     module publishes and publications that no module subscribes to."""
 
     optional: ClassVar[tuple[str, ...]] = ()
-    """Default subscriptions the plugin works without (optional inputs, each one of
-    ``subscribe``): ``validate`` does not warn when no module publishes them. A
+    """Default subscriptions the plugin works without (optional inputs; those not among
+    ``subscribe`` are ignored): ``validate`` does not warn when no module publishes them. A
     subscription the configuration writes itself still warns."""
 
     Params: ClassVar[type | None] = None

@@ -19,11 +19,6 @@ import pathlib
 import sys
 from typing import Any, Sequence
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
-
 from caviar import _core
 
 TABLES = ("messages", "timings")
@@ -84,6 +79,10 @@ class RunDir:
         file when it cannot be read."""
         if not self.config_file.is_file():
             return {}
+        if sys.version_info >= (3, 11):
+            import tomllib
+        else:  # pragma: no cover (tomli: the `ml` extra; only a reader of the config needs it)
+            import tomli as tomllib
         try:
             return tomllib.loads(self.config_text())
         except (OSError, ValueError) as e:

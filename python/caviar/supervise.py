@@ -107,7 +107,10 @@ def run(argv: list[str]) -> int:
             return 1
         return code if code >= 0 else 1
     message = f"the process {cause(code, before, oom_kills())}"
-    where = RunDir(run_dir).close_failed(message) or ""
+    try:
+        where = RunDir(run_dir).close_failed(message) or ""
+    except (OSError, ValueError) as e:  # (run.json unreadable or unwritable: say so, and what happened)
+        where = f" (the run could not be closed: {e})"
     print(f"error: {run_dir}: the run ended abnormally: {message}{where}", file=sys.stderr)
     return 1
 

@@ -186,7 +186,8 @@ class RadioNetwork(caviar.Plugin):
         return {"map_files": [f.relative_to(self.ctx.run_dir).as_posix() for f in self.map_files],
                 "layer": self.layer, "ues": self.ues, "free": self.free, "last_sinr": self.last_sinr,
                 "handover": self.mm.ues, "link": self.link.state(), "channels": self.channels,
-                "traced": self.traced, "refreshed_at": self.refreshed_at}
+                "traced": self.traced, "refreshed_at": self.refreshed_at,
+                "cache_seen": self.tracer is not None and self.tracer.cache_seen()}
 
     def restore(self, state):
         self.map_files = [self.ctx.run_dir / f for f in state["map_files"]]
@@ -194,6 +195,10 @@ class RadioNetwork(caviar.Plugin):
         self.last_sinr, self.mm.ues = state["last_sinr"], state["handover"]
         self.link.restore(state["link"])
         self.channels, self.traced, self.refreshed_at = state["channels"], state["traced"], state["refreshed_at"]
+        if state.get("cache_seen") and self.tracer is not None and self.channels is not None:
+            # The shoot cache had seen the scene: one trace where the UEs last were lets it see
+            # it again (its result is not used), so the next trace is served as it would have been.
+            self.tracer.trace(self.channels.position)
 
     def _channel_gains(self, t: float, ids: list[str], pos: np.ndarray) -> np.ndarray:
         """Channel gains (path and sector pattern, dB) of every cell toward the UEs

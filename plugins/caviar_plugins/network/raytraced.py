@@ -157,6 +157,12 @@ class SiteTracer:
                                  max_num_paths_per_src=settings.max_num_paths_per_src)
         self.receivers: list[str] = []
 
+    def cache_seen(self) -> bool:
+        """Whether the shoot cache saw the last trace's geometry (the next trace of the same
+        scene is served from it): what a checkpoint keeps of the tracer."""
+        cache = self.tracer.shoot_cache
+        return cache is not None and cache.has_seen_geometry
+
     def _place(self, ues: np.ndarray) -> None:
         n = len(ues)
         while len(self.receivers) < n:

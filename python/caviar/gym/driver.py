@@ -89,7 +89,8 @@ class EpisodeDriver:
         """Ends the episode in progress, if any, and starts a new one with ``episode.seed
         = seed``; returns the agent's first turn (or the end, if it never got one)."""
         self.finish()
-        self.episodes += 1
+        # (after the episodes ``out`` holds now: another environment may have added some)
+        self.episodes = max(self.episodes, last_episode(self.out)) + 1
         self._stop.clear()
         self.run_dir = self.out / f"episode-{self.episodes:04d}"
         overrides = [*self.overrides,

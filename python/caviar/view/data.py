@@ -119,7 +119,9 @@ class RunData:
 
     def _read_status(self, strict: bool):
         stamp = self.run.status_stamp()
-        if stamp is None or stamp == self._status_mtime:
+        # A running run is read at every poll even when run.json did not change: a process
+        # killed without closing it is seen as abandoned (the core's reading of its pid).
+        if stamp is None or (stamp == self._status_mtime and self.status.get("status") != "running"):
             return
         try:
             status = self.run.status()  # (the core's reading: a run whose process died says so)
@@ -127,6 +129,8 @@ class RunData:
             if strict:
                 raise RunDirError(f"{self.path}: unreadable run status ({e})") from None
             return  # being rewritten: next poll
+        if status == self.status and stamp == self._status_mtime:
+            return
         self.status, self._status_mtime = status, stamp
         self.version += 1
         if not self.config:

@@ -134,13 +134,15 @@ class ShootCache:
                  diffraction: bool, edge_diffraction: bool, seed: int = 1, src_boxes=None):
         dr, mi = jit()
         flags = (specular_reflection, diffuse_reflection, refraction, diffraction, edge_diffraction)
-        key = (self.fingerprint(), id(mi_scene), tuple(dr.ravel(src_positions).numpy().tolist()), samples_per_src,
-               max_depth, flags, seed)
         # More than one source (several transmitters, or synthetic_array = false): Sionna
-        # deduplicates chains per source, this cache does not yet, so Sionna's loop runs.
-        if src_boxes is not None or max_depth == 0 or dr.shape(src_positions)[1] != 1 or key != self._seen:
+        # deduplicates chains per source, this cache does not yet, so Sionna's loop runs (and
+        # the scene is not fingerprinted for nothing).
+        covered = src_boxes is None and max_depth > 0 and dr.shape(src_positions)[1] == 1
+        key = (self.fingerprint(), id(mi_scene), tuple(dr.ravel(src_positions).numpy().tolist()), samples_per_src,
+               max_depth, flags, seed) if covered else None
+        if not covered or key != self._seen:
             # New geometry (or options this cache does not cover): Sionna's own loop.
-            self._seen = None if src_boxes is not None else key
+            self._seen = key
             self._key = self._shots = None
             self.paths_counter_per_source = None
             return self.generator(mi_scene, src_positions, tgt_positions, samples_per_src, max_num_paths_per_src,
