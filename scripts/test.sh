@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Runs every check: lint and types (clippy, ruff, mypy), the documentation site (mkdocs, warnings
+# Runs every check: format, lint and types (rustfmt, clippy, ruff, mypy), the documentation site (mkdocs, warnings
 # are errors), then the tests of the Rust core
 # (cargo test) and of the Python side (pytest, including the view in headless chromium).
 set -euo pipefail
@@ -7,6 +7,8 @@ cd "$(dirname "$0")/.."
 
 log() { printf '\n== %s\n' "$*"; }
 
+log "cargo fmt --check"
+cargo fmt --all --check
 log "cargo clippy (warnings are errors)"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 log "ruff"

@@ -43,7 +43,7 @@ def use_shoot_cache(setting: bool | str, variant: str | None = None) -> bool:
         from caviar_plugins.rt.drjit_setup import mitsuba
 
         variant = str(mitsuba().variant())
-    return not variant.startswith("cuda")
+    return not variant.startswith("cuda_")  # (cuda_ad_rgb, cuda_ad_mono_polarized...)
 
 
 class PathTracer:

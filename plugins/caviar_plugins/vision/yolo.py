@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+import sys
 
 import numpy as np
 
@@ -75,9 +76,24 @@ def nms(boxes: np.ndarray, scores: np.ndarray, threshold: float) -> np.ndarray:
     return np.array(keep, dtype=np.int64)
 
 
+def execution_providers(available: list[str], gpu: bool) -> tuple[list[str], str | None]:
+    """onnxruntime's providers for a session, and the one line to print about them (None:
+    nothing to say): CUDA first where onnxruntime has it (``onnxruntime-gpu``), else the CPU,
+    said once when an NVIDIA GPU is there to use."""
+    if "CUDAExecutionProvider" in available:
+        return ["CUDAExecutionProvider", "CPUExecutionProvider"], None
+    note = ("onnxruntime has no CUDA provider (install onnxruntime-gpu to use the GPU): ONNX models run on "
+            "the CPU") if gpu else None
+    return ["CPUExecutionProvider"], note
+
+
+_SAID: set[str] = set()
+
+
 def onnx_session(path, threads: int = 0, what: str = "ONNX model"):
-    """An onnxruntime session (CPU) of the ONNX file at ``path``; a clear error naming the file
-    when it is missing, cannot be loaded or onnxruntime is not installed."""
+    """An onnxruntime session of the ONNX file at ``path`` (on the GPU where onnxruntime has
+    its CUDA provider, see :func:`execution_providers`); a clear error naming the file when it
+    is missing, cannot be loaded or onnxruntime is not installed."""
     path = pathlib.Path(path)
     try:
         import onnxruntime as ort
@@ -88,8 +104,14 @@ def onnx_session(path, threads: int = 0, what: str = "ONNX model"):
     options = ort.SessionOptions()
     if threads:
         options.intra_op_num_threads = threads
+    from caviar._gpu import open_sampler
+
+    providers, note = execution_providers(list(ort.get_available_providers()), gpu=open_sampler() is not None)
+    if note is not None and note not in _SAID:
+        _SAID.add(note)
+        print(note, file=sys.stderr, flush=True)
     try:
-        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(str(path), options, providers=providers)
     except Exception as e:  # onnxruntime raises its own exception types
         raise ValueError(f"{path}: cannot load the ONNX model: {e}") from None
 
