@@ -1,0 +1,207 @@
+"""Checks a machine, a GPU one first of all (issue #39): every blueprint for a few steps, then
+the timing items; prints one table and writes ``docs/results/gpu.json`` with the device named.
+
+    python3 scripts/gpu_check.py [--steps 6] [--out docs/results/gpu.json] [--no-timings]
+
+``scripts/gpu-check.sh`` runs it with the right interpreter. It runs anywhere: on a CPU-only
+machine it checks the same blueprints on Dr.Jit's LLVM backend and names that device. Per
+blueprint: steps done, ``ok`` or the error (the run's own words, from run.json), T_p/T_v, and
+the GPU's mean utilisation and peak memory over the run's modules (the core samples them with
+nvidia-ml-py; empty without a GPU). A blueprint whose packages are missing (SUMO's, on a machine
+they cannot travel to) is reported as skipped, with the reason. Timing items: one solve of the
+SAR route with 1 and 10 UAVs at 1e6 samples (median of 5, after 2 that compile), with the
+shoot cache as the backend's default chooses it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import pathlib
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+BLUEPRINTS = ROOT / "blueprints"
+CORE = [sys.executable, "-m", "caviar.cli"]
+
+
+def blueprint_runs(steps: int) -> dict[str, tuple[pathlib.Path, list[str], list[str]]]:
+    """name -> (config, extra --set overrides, modules it needs importable)."""
+    return {
+        "quickstart": (BLUEPRINTS / "quickstart/config.toml", [], []),
+        "raytraced": (BLUEPRINTS / "raytraced/config.toml", [], ["sionna.rt"]),
+        "sar": (BLUEPRINTS / "sar/config.toml", [], ["sionna.rt"]),
+        "sar-paper": (BLUEPRINTS / "sar-paper/config.toml", [], ["sionna.rt"]),
+        "osm-city": (BLUEPRINTS / "osm-city/config.toml", [], ["sionna.rt"]),
+        "osm-traffic": (BLUEPRINTS / "osm-traffic/config.toml", [], ["sionna.rt", "libsumo"]),
+        "network-city": (BLUEPRINTS / "network-city/config.toml", [], ["sionna.rt", "sionna.sys", "libsumo"]),
+        "live-uav": (BLUEPRINTS / "live-uav/config.toml", [], ["sionna.rt", "pymavlink"]),
+        "beam-gym": (BLUEPRINTS / "beam-gym/config.toml", [], ["sionna.rt"]),
+    }
+
+
+def device() -> dict:
+    """The machine: CPU, GPU (nvidia-ml-py) and the Dr.Jit variant Sionna RT chooses."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    out = {"cpu": cpu, "cores": os.cpu_count(), "gpu": None, "python": platform.python_version()}
+    try:
+        import pynvml
+
+        pynvml.nvmlInit()
+        handle = pynvml.nvmlDeviceGetHandleByIndex(0)
+        name = pynvml.nvmlDeviceGetName(handle)
+        memory = pynvml.nvmlDeviceGetMemoryInfo(handle).total / 2**30
+        out["gpu"] = f"{name if isinstance(name, str) else name.decode()}, {memory:.0f} GiB"
+    except Exception:  # noqa: BLE001 - no driver, no GPU, no nvidia-ml-py: no GPU to name
+        pass
+    try:
+        from caviar_plugins.rt.drjit_setup import mitsuba
+
+        out["drjit_variant"] = str(mitsuba().variant())  # (Sionna RT's choice where it is installed)
+    except Exception as e:  # noqa: BLE001
+        out["drjit_variant"] = f"unavailable ({e})"
+    out["name"] = out["gpu"] or f"no GPU ({out['cpu']}, {out['cores']} cores)"
+    return out
+
+
+def missing(modules: list[str]) -> str | None:
+    for m in modules:
+        try:
+            if importlib.util.find_spec(m) is None:
+                return f"{m} is not installed"
+        except (ImportError, ValueError):
+            return f"{m} is not installed"
+    return None
+
+
+def run_blueprint(name: str, config: pathlib.Path, sets: list[str], steps: int, work: pathlib.Path,
+                  timeout_s: float) -> dict:
+    """One blueprint for ``steps`` steps: its row of the table."""
+    from caviar.rundir import RunDir
+
+    out = work / name
+    cmd = [*CORE, "run", str(config), *length(config, steps), *[x for s in sets for x in ("--set", s)],
+           "--out", str(out), "-q"]
+    sender = None
+    if name == "live-uav":  # its vehicle: the scripted MAVLink sender
+        sender = subprocess.Popen([sys.executable, str(BLUEPRINTS / "live-uav/send_mavlink.py")],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    t0 = time.perf_counter()
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=ROOT)
+        error = None if p.returncode == 0 else (p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1]
+    except subprocess.TimeoutExpired:
+        error = f"timed out after {timeout_s:.0f} s"
+    finally:
+        if sender is not None:
+            sender.terminate()
+    row: dict = {"ok": error is None, "error": error, "wall_s": round(time.perf_counter() - t0, 2),
+                 "steps": 0, "tp_tv": None, "gpu_util_pct": None, "gpu_mem_mib": None}
+    run = RunDir(out)
+    if run.exists():
+        status = run.status()
+        row["steps"] = status.get("steps_done", 0)
+        row["tp_tv"] = None if status.get("rtf") is None else round(float(status["rtf"]), 3)
+        if status.get("error") and row["error"] is None:
+            row["error"] = status["error"].get("message")
+        try:
+            totals = run.module_totals()
+            utils = [t["gpu_util_mean_pct"] for t in totals if t.get("gpu_util_mean_pct") is not None]
+            mems = [t["gpu_mem_max_mib"] for t in totals if t.get("gpu_mem_max_mib") is not None]
+            row["gpu_util_pct"] = round(max(utils), 1) if utils else None
+            row["gpu_mem_mib"] = round(max(mems), 0) if mems else None
+        except (OSError, ValueError):
+            pass
+    return row
+
+
+def length(config: pathlib.Path, steps: int) -> list[str]:
+    """The overrides that make a blueprint run ``steps`` steps: ``episode.steps``, or for one
+    that gives a ``duration`` (the core refuses both), that many sampling intervals of it."""
+    import tomllib
+
+    episode = tomllib.loads(config.read_text()).get("episode", {})
+    if "duration" in episode:
+        return ["--set", f"episode.duration={steps * float(episode['ts'])}"]
+    return ["--set", f"episode.steps={steps}"]
+
+
+def solve_times(n_uav: int, samples: int = 1_000_000, reps: int = 5) -> float:
+    """Median seconds of one solve of ``n_uav`` receivers along the SAR route (the UAVs move
+    0.5 m between solves), after 2 solves that compile (and record the shoot cache)."""
+    import numpy as np
+
+    from caviar_plugins import DATA
+    from caviar_plugins.mobility import Path, read_waypoints
+    from caviar_plugins.radio import RadioConfig, RadioScene
+
+    route = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
+    radio = RadioScene(RadioConfig(samples_per_src=samples, uav_mesh=False), seed=0)
+    starts = np.linspace(0.0, 0.9 * route.length, n_uav)
+    times = []
+    for k in range(reps + 2):
+        radio.place({f"u{i}": route.at(s + 0.5 * k) for i, s in enumerate(starts)})
+        t0 = time.perf_counter()
+        radio.solve()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times[2:])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--steps", type=int, default=6, help="steps each blueprint runs")
+    ap.add_argument("--timeout", type=float, default=240.0, help="seconds a blueprint may take")
+    ap.add_argument("--out", type=pathlib.Path, default=ROOT / "docs/results/gpu.json")
+    ap.add_argument("--no-timings", action="store_true", help="blueprints only")
+    ap.add_argument("--only", nargs="*", help="these blueprints only")
+    args = ap.parse_args()
+    dev = device()
+    print(f"device: {dev['name']}; Dr.Jit variant {dev['drjit_variant']}", flush=True)
+    rows: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
+        for name, (config, sets, needs) in blueprint_runs(args.steps).items():
+            if args.only and name not in args.only:
+                continue
+            why = missing(needs)
+            if why is not None:
+                rows[name] = {"ok": False, "error": f"skipped: {why}", "steps": 0, "tp_tv": None,
+                              "gpu_util_pct": None, "gpu_mem_mib": None}
+            else:
+                rows[name] = run_blueprint(name, config, sets, args.steps, pathlib.Path(tmp), args.timeout)
+            r = rows[name]
+            print(f"{name:14s} {r['steps']:>3} steps  {'ok' if r['ok'] else 'FAIL':4s}  "
+                  f"T_p/T_v {r['tp_tv'] if r['tp_tv'] is not None else '-'}  GPU {r['gpu_util_pct']} %  "
+                  f"{r['gpu_mem_mib']} MiB  {r['error'] or ''}", flush=True)
+    result: dict = {"device": dev["name"], "machine": dev, "steps_per_blueprint": args.steps,
+                    "blueprints": {k: {"ok": v["ok"], "tp_tv": v["tp_tv"], "error": v["error"], "steps": v["steps"],
+                                       "gpu_util_pct": v["gpu_util_pct"], "gpu_mem_mib": v["gpu_mem_mib"]}
+                                   for k, v in rows.items()},
+                    "main_job_wall_s": None, "network_21x100_tp_tv": None, "network_21x1000_tp_tv": None,
+                    "not_measured": "main job, network 21x100 and 21x1000: not in this version of the check"}
+    if not args.no_timings:
+        for key, n in (("solve_1uav_1e6_s", 1), ("solve_10uav_1e6_s", 10)):
+            try:
+                result[key] = round(solve_times(n), 4)
+            except Exception as e:  # noqa: BLE001 - reported, not fatal: the table matters more
+                result[key] = None
+                result[f"{key}_error"] = str(e)
+            print(f"{key}: {result[key]}", flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {args.out}")
+    return 0 if all(r["ok"] or str(r["error"]).startswith("skipped") for r in rows.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
