@@ -48,3 +48,18 @@ def test_the_plugins_package_lists_and_gives_every_plugin_it_registers():
         module, cls = target.split(":")
         assert f"``{name}`` (:class:`{cls}`)" in " ".join((caviar_plugins.__doc__ or "").split()), name
         assert cls in caviar_plugins.__all__ and getattr(caviar_plugins, cls).__module__ == module, name
+
+
+def test_no_source_file_is_over_600_lines():
+    """A file a person reads in one sitting (issue #40): the bundled page (view.js, built by
+    web/build.mjs from web/src) is the only generated source, and is left out."""
+    roots = ["python", "plugins", "crates", "web/src", "tests", "benches", "scripts", "blueprints", "examples"]
+    long = []
+    for root in roots:
+        for path in (ROOT / root).rglob("*"):
+            if path.suffix in (".py", ".rs", ".js", ".mjs", ".sh") and "node_modules" not in path.parts \
+                    and path.name != "view.js" and path.is_file():
+                n = len(path.read_text(errors="replace").splitlines())
+                if n > 600:
+                    long.append(f"{path.relative_to(ROOT)}: {n} lines")
+    assert not long, "\n".join(long)
