@@ -181,6 +181,14 @@ def close_failed_run(run_dir: str | os.PathLike[str], message: str) -> str | Non
     that place in words, or None when the run is not running. ValueError if run.json cannot
     be read or written (naming the file)."""
 
+def run_dir_files() -> dict[str, str]:
+    """The names of a run directory's files, as the core writes them: ``status`` (run.json),
+    ``progress``, ``config`` (the configuration run, overrides applied), ``checkpoint``."""
+
+def compacted_file(table: str) -> str:
+    """The file a recorded table (``messages``, ``timings``) is compacted into when its run
+    ends (``messages.parquet``)."""
+
 def run_status(run_dir: str | os.PathLike[str]) -> str:
     """run.json as JSON text, with what a reader concludes about a run left running:
     ``status`` ``abandoned`` when its process is gone (and ``abandoned``, in words),

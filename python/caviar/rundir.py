@@ -22,8 +22,11 @@ from typing import Any, Sequence
 from caviar import _core
 
 TABLES = ("messages", "timings")
-STATUS_FILE = "run.json"
-CONFIG_FILE = "config.toml"
+FILES = _core.run_dir_files()
+"""The names of a run directory's files, from the core that writes them (``status``:
+run.json, ``progress``, ``config``, ``checkpoint``)."""
+STATUS_FILE = FILES["status"]
+CONFIG_FILE = FILES["config"]
 
 
 class RunDir:
@@ -108,7 +111,7 @@ class RunDir:
         in progress or killed, read part by part as they come). ``files``: the table's
         files as :meth:`table_files` just listed them (default: listed now)."""
         files = self.table_files(table) if files is None else files
-        return len(files) == 1 and files[0].name == f"{table}.parquet"
+        return len(files) == 1 and files[0].name == _core.compacted_file(table)
 
     def read(self, table: str, columns: Sequence[str] | None = None,
              files: Sequence[pathlib.Path] | None = None):

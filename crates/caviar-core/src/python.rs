@@ -436,6 +436,24 @@ fn main(py: Python<'_>, argv: Vec<String>) -> i32 {
     })
 }
 
+/// The names of a run directory's files, as the core writes them: `status` (run.json),
+/// `progress`, `config`, `checkpoint`.
+#[pyfunction]
+fn run_dir_files() -> std::collections::HashMap<&'static str, &'static str> {
+    std::collections::HashMap::from([
+        ("status", crate::status::STATUS_FILE),
+        ("progress", crate::status::PROGRESS_FILE),
+        ("config", crate::run::CONFIG_FILE),
+        ("checkpoint", crate::checkpoint::FILE),
+    ])
+}
+
+/// The file a recorded table is compacted into when its run ends.
+#[pyfunction]
+fn compacted_file(table: &str) -> String {
+    crate::recorder::compacted_file(table)
+}
+
 /// Closes the run.json a dead process left `running` as `failed` with `message`, at the
 /// step and module progress.json names; where, in words (None: not running).
 #[pyfunction]
@@ -500,6 +518,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(inspect, m)?)?;
     m.add_function(wrap_pyfunction!(run_status, m)?)?;
     m.add_function(wrap_pyfunction!(close_failed_run, m)?)?;
+    m.add_function(wrap_pyfunction!(run_dir_files, m)?)?;
+    m.add_function(wrap_pyfunction!(compacted_file, m)?)?;
     m.add_function(wrap_pyfunction!(table_files, m)?)?;
     m.add_function(wrap_pyfunction!(module_totals, m)?)?;
     m.add_function(wrap_pyfunction!(matches, m)?)?;

@@ -20,6 +20,8 @@ use crate::status::{Deadlines, Monitor, RunState, RunStatus};
 use crate::topic::Pattern;
 use crate::transport::{self, Connection, WorkerLauncher};
 
+/// The configuration a run ran (overrides applied), as the run directory keeps it.
+pub const CONFIG_FILE: &str = "config.toml";
 /// Builds the module of a `[modules.NAME]` table. Loading and checking parameters
 /// happens here, before any run directory exists: a config error never starts a run.
 pub trait PluginLoader {
@@ -210,7 +212,7 @@ impl RunSession {
             None => create_numbered(&cfg)?,
         };
         let io = |e: std::io::Error| PrepareError::Io(format!("{}: {e}", run_dir.display()));
-        fs::write(run_dir.join("config.toml"), &cfg.text).map_err(io)?;
+        fs::write(run_dir.join(CONFIG_FILE), &cfg.text).map_err(io)?;
         let (specs, tap, connection) = match (local, transport) {
             (Some(specs), _) => (specs, None, None),
             (None, Some(t)) => {
@@ -295,7 +297,7 @@ impl RunSession {
                 run_dir.display()
             )));
         }
-        let file = run_dir.join("config.toml");
+        let file = run_dir.join(CONFIG_FILE);
         let text = fs::read_to_string(&file).map_err(|e| io(format!("{}: {e}", file.display())))?;
         let mut cfg =
             crate::config::parse(&text, &file.display().to_string(), &cp.config_dir, &[])?;

@@ -38,12 +38,17 @@ pub(super) fn part_files(dir: &Path) -> Result<Vec<PathBuf>, RecordError> {
     Ok(out)
 }
 
+/// The file a table is compacted into at the end of a run (`messages.parquet`).
+pub fn compacted_file(table: &str) -> String {
+    format!("{table}.parquet")
+}
+
 /// The Parquet files that hold a recorded table (`messages` or `timings`), in order:
 /// `TABLE.parquet` once the run was compacted, else `TABLE/part-NNNNNN.parquet` (a
 /// run in progress or one that was killed). The one place that knows the layout: the
 /// readers of the Rust side and of the Python side (`caviar._core.table_files`) use it.
 pub fn table_files(run_dir: &Path, table: &str) -> Result<Vec<PathBuf>, RecordError> {
-    let single = run_dir.join(format!("{table}.parquet"));
+    let single = run_dir.join(compacted_file(table));
     if single.exists() {
         return Ok(vec![single]);
     }

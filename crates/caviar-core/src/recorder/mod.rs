@@ -23,7 +23,7 @@ mod schema;
 mod writer;
 
 pub use error::RecordError;
-pub use layout::table_files;
+pub use layout::{compacted_file, table_files};
 pub use reader::{read_messages, read_table, read_timings};
 pub use schema::{messages_schema, timings_schema, TimingRow, CORE, MESSAGES, TIMINGS};
 pub use writer::{Recorder, CHUNK_BYTES, CHUNK_PARTS};

@@ -14,7 +14,7 @@ use parquet::file::properties::WriterProperties;
 
 use super::columns::{MessageColumns, TimingColumns};
 use super::error::{io_err, pq_err, RecordError};
-use super::layout::{part_files, parts_of, table_files};
+use super::layout::{compacted_file, part_files, parts_of, table_files};
 use super::reader::read_table;
 use super::schema::{messages_schema, timings_schema, TimingRow, MESSAGES, TIMINGS};
 use crate::message::Message;
@@ -129,7 +129,7 @@ impl Recorder {
                     fs::remove_file(f.path()).map_err(io_err(&f.path()))?;
                 }
             }
-            let single = run_dir.join(format!("{table}.parquet"));
+            let single = run_dir.join(compacted_file(table));
             if single.exists() {
                 fs::remove_file(&single).map_err(io_err(&single))?;
             }
@@ -252,6 +252,6 @@ fn before_step(batches: Vec<RecordBatch>, step: u64) -> Vec<RecordBatch> {
 fn compact(run_dir: &Path, table: &str, schema: SchemaRef) -> Result<(), RecordError> {
     let parts_dir = run_dir.join(table);
     let batches = read_table(run_dir, table)?;
-    write_parquet(&run_dir.join(format!("{table}.parquet")), schema, &batches)?;
+    write_parquet(&run_dir.join(compacted_file(table)), schema, &batches)?;
     fs::remove_dir_all(&parts_dir).map_err(io_err(&parts_dir))
 }

@@ -14,7 +14,8 @@ mod progress;
 mod run_json;
 
 pub use monitor::{Deadlines, Monitor};
-pub use run_json::{rtf, rtf_text, RunErrorInfo, RunState, RunStatus, RTF_DEFINITION};
+pub use progress::PROGRESS_FILE;
+pub use run_json::{rtf, rtf_text, RunErrorInfo, RunState, RunStatus, RTF_DEFINITION, STATUS_FILE};
 
 #[cfg(test)]
 mod tests;

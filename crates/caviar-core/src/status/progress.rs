@@ -19,7 +19,7 @@ pub(super) struct ProgressRecord {
     pub(super) modules: Vec<String>,
 }
 
-pub(super) const PROGRESS_FILE: &str = "progress.json";
+pub const PROGRESS_FILE: &str = "progress.json";
 const PROGRESS_SIZE: usize = 1024;
 
 pub(super) fn read_progress(run_dir: &Path) -> Option<ProgressRecord> {

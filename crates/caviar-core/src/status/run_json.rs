@@ -12,6 +12,8 @@ use crate::config::LoadedConfig;
 use crate::engine::{EndReason, Engine, EngineError};
 use crate::pacing::PacingReport;
 
+/// The run's status file in its run directory.
+pub const STATUS_FILE: &str = "run.json";
 /// `rtf_definition` of run.json.
 pub const RTF_DEFINITION: &str = "T_p/T_v: wall-clock seconds per virtual second (the paper's RTF)";
 
@@ -267,7 +269,7 @@ impl RunStatus {
 
     /// Reads `RUN_DIR/run.json`.
     pub fn read(run_dir: &Path) -> Result<Self, String> {
-        let path = run_dir.join("run.json");
+        let path = run_dir.join(STATUS_FILE);
         let text = std::fs::read_to_string(&path)
             .map_err(|e| format!("{}: not a run directory ({e})", run_dir.display()))?;
         serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))
@@ -325,7 +327,7 @@ impl RunStatus {
     /// Writes `RUN_DIR/run.json` atomically (a temporary file renamed over it): a reader
     /// or a crash never sees half of it.
     pub fn write(&self, run_dir: &Path) -> Result<(), String> {
-        let path = run_dir.join("run.json");
+        let path = run_dir.join(STATUS_FILE);
         let tmp = run_dir.join(".run.json.tmp");
         let text = serde_json::to_string_pretty(self).expect("json");
         std::fs::write(&tmp, text + "\n")
