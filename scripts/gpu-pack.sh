@@ -36,6 +36,7 @@ echo "== wheels for CPython $pyver"
 echo "== caviar (abi3) and caviar-plugins"
 .venv/bin/maturin build --release --quiet --out "$work/wheels" > /dev/null
 "$py" -m pip wheel --quiet --no-deps --wheel-dir "$work/wheels" ./plugins
+rm -rf plugins/build  # (setuptools builds in the tree)
 "$py" -m pip install --quiet --target "$site" --no-deps "$work"/wheels/*.whl
 
 echo "== stand-ins for the notebook packages (Sionna RT's previewer only)"
