@@ -14,6 +14,8 @@ from __future__ import annotations
 import pathlib
 import random
 
+import pytest
+
 import caviar
 from conftest import ROOT, write_config
 from test_resume import _kill_at, _messages
@@ -94,13 +96,19 @@ azimuths_deg = [180.0]
 """
 
 
-def test_the_radio_network_resumes_to_the_same_messages(tmp_path, cli):
-    """Sionna SYS's OLLA offsets, PF history, HARQ outcomes and random stream, the
-    handover filters and the last trace (the channel evolves from it between refreshes:
-    checkpoints fall between them)."""
+@pytest.mark.parametrize("sites", [2, 1])
+def test_the_radio_network_resumes_to_the_same_messages(tmp_path, cli, sites):
+    """Sionna SYS's OLLA offsets, PF history (torch buffers of the scheduler), HARQ outcomes
+    and random stream, the handover filters and the last trace (the channel evolves from it
+    between refreshes: checkpoints fall between them). With one site both UEs share a cell,
+    so the scheduler's history decides, and the shoot cache serves the traces (one source
+    per solve): whether it had seen the scene is part of the checkpoint."""
     import sionna.rt as rt
 
-    cfg = write_config(tmp_path, NETWORK.replace("SCENE", pathlib.Path(rt.scene.simple_street_canyon).as_posix()))
+    text = NETWORK.replace("SCENE", pathlib.Path(rt.scene.simple_street_canyon).as_posix())
+    if sites == 1:
+        text = text[:text.index('[[modules.net.params.sites]]\nname = "east"')]
+    cfg = write_config(tmp_path, text)
     kill = random.Random(23).randrange(9, 20)
     log = _resumes_to_the_reference(tmp_path, cli, cfg, [], kill, every=7, steps=24)
     ue = [m.data for m in log.decoded("network.ue")]

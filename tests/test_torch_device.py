@@ -65,3 +65,34 @@ def test_auto_is_sionnas_device_and_a_bad_setting_is_named():
             check_setting(bad)
     with pytest.raises(ValueError, match="device: expected"):
         LinkSettings(num_prb=24, device="gpu")
+
+
+def test_the_link_levels_checkpoint_holds_the_schedulers_rate_history(monkeypatch):
+    """The proportional-fair scheduler keeps its rate history in torch buffers, which an
+    object's attributes do not show: a checkpoint without them resumed a cell of several UEs
+    with a fresh history (a one-site network did not resume bit for bit). Restored into a new
+    link level, the state gives the next slots exactly as the original goes on."""
+    import pickle
+
+    from caviar_plugins.rt import sionna_adapter
+
+    settings = LinkSettings(num_prb=24, subcarrier_spacing_hz=30e3, harq_processes=2, subbands=2, device="cpu")
+    sinr = np.random.default_rng(3).uniform(0.0, 20.0, (8, 3, 2))
+    serving = np.zeros(3, dtype=int)  # three UEs in one cell: the scheduler's history decides
+
+    def resumed(state_of):
+        a = LinkLevel(settings, n_cell=1, seed=4)
+        a.run(sinr[:4], serving)
+        b = LinkLevel(settings, n_cell=1, seed=4)
+        b.restore(pickle.loads(pickle.dumps(state_of(a))))
+        return a.run(sinr[4:], serving), b.run(sinr[4:], serving)
+
+    going_on, back = resumed(LinkLevel.state)
+    assert "_rate_achieved_past" in LinkLevel(settings, n_cell=1, seed=4).state()["pf"]
+    np.testing.assert_array_equal(back.decoded_bits, going_on.decoded_bits)
+    np.testing.assert_array_equal(back.prbs, going_on.prbs)
+    # Without the buffers (attributes only, as before) the resumed slots differ.
+    monkeypatch.setattr(sionna_adapter, "block_state", lambda block: {
+        k: v.clone() for k, v in vars(block).items() if isinstance(v, torch.Tensor)})
+    going_on, back = resumed(LinkLevel.state)
+    assert not np.array_equal(back.prbs, going_on.prbs)

@@ -213,9 +213,8 @@ class LinkLevel:
         the position of Sionna's random stream (the PHY abstraction's ACK draws)."""
         if self._sys is None:
             return {"capacity": self.capacity}
-        torch = self._torch
         return {"capacity": self.capacity,
-                "olla": _tensors(self.olla, torch), "pf": _tensors(self.pf, torch),
+                "olla": adapter.block_state(self.olla), "pf": adapter.block_state(self.pf),
                 "harq": self.harq.clone(), "rate_last": self.rate_last.clone(),
                 "rng": self._rng().get_state()}
 
@@ -226,8 +225,7 @@ class LinkLevel:
         if self._sys is None:
             return
         for obj, saved in ((self.olla, state["olla"]), (self.pf, state["pf"])):
-            for name, value in saved.items():
-                setattr(obj, name, value.clone())
+            adapter.set_block_state(obj, saved)
         self.harq, self.rate_last = state["harq"].clone(), state["rate_last"].clone()
         self._rng().set_state(state["rng"])
 
@@ -396,9 +394,3 @@ class LinkLevel:
                 else:  # round-robin: one UE per slot, in turn
                     granted[j, c, :, int(ues[(first_slot + j) % ues.size])] = True
         return granted
-
-
-def _tensors(obj: Any, torch: Any) -> dict[str, Any]:
-    """Copies of the tensors an object (a Sionna SYS block) holds as attributes: its state
-    between calls, whatever the block names it."""
-    return {k: v.clone() for k, v in vars(obj).items() if isinstance(v, torch.Tensor)}

@@ -258,3 +258,22 @@ def reset_scheduler_history(pf: Any, ue: int, cell: int | None = None) -> None:
 def reset_link_adaptation(olla: Any, ue: int) -> None:
     """UE column ``ue`` of an ``OuterLoopLinkAdaptation`` starts again with no offset."""
     olla._offset[:, ue] = 0.0
+
+
+def block_state(block: Any) -> dict[str, Any]:
+    """Copies of every tensor a Sionna SYS block keeps between calls, whatever it names them:
+    its tensor attributes and its buffers (a ``torch.nn.Module``'s, where the proportional-fair
+    scheduler keeps its rate history: ``vars()`` does not show them)."""
+    import torch
+
+    tensors = {k: v for k, v in vars(block).items() if isinstance(v, torch.Tensor)}
+    if isinstance(block, torch.nn.Module):
+        tensors.update(dict(block.named_buffers(recurse=False)))
+    return {k: v.clone() for k, v in tensors.items()}
+
+
+def set_block_state(block: Any, state: dict[str, Any]) -> None:
+    """Puts back :func:`block_state` into a block built with the same settings (a buffer is
+    set through the module, as an attribute)."""
+    for name, value in state.items():
+        setattr(block, name, value.clone())
