@@ -158,10 +158,9 @@ class SiteTracer:
         self.receivers: list[str] = []
 
     def cache_seen(self) -> bool:
-        """Whether the shoot cache saw the last trace's geometry (the next trace of the same
-        scene is served from it): what a checkpoint keeps of the tracer."""
-        cache = self.tracer.shoot_cache
-        return cache is not None and cache.has_seen_geometry
+        """Whether the shoot cache saw the last trace's geometry
+        (:attr:`~caviar_plugins.rt.solver.PathTracer.cache_seen`)."""
+        return self.tracer.cache_seen
 
     def _place(self, ues: np.ndarray) -> None:
         n = len(ues)

@@ -234,10 +234,6 @@ class RadioScene:
         without it, the object's bounding box. Declaring an object again does nothing."""
         self.movers.declare(objects, away, boxes)
 
-    def geometry_fingerprint(self) -> tuple:
-        """The shoot cache's key (:meth:`caviar_plugins.rt.scene.MovingObjects.fingerprint`)."""
-        return self.movers.fingerprint()
-
     def cache_status(self) -> str | None:
         """One line on what share of the solves the shoot cache served (None without it or
         before the first solve), for ``caviar.status``."""
@@ -287,7 +283,7 @@ class RadioScene:
         offset = np.asarray(self.cfg.antenna_offset, dtype=float)
         return {"receivers": [(k, self._where[k] - offset) for k in self.receivers],
                 "placed": self._placed, "solved": self._solved,
-                "geometry_seen": self.shoot_cache is not None and self.shoot_cache.has_seen_geometry,
+                "geometry_seen": self.tracer.cache_seen,
                 "counts": (self.solves, *((self.shoot_cache.connects, self.shoot_cache.shoots)
                                           if self.shoot_cache is not None else ()))}
 

@@ -93,6 +93,12 @@ class PathTracer:
         for every candidate *before* the cap)."""
         self._counter = counter
 
+    @property
+    def cache_seen(self) -> bool:
+        """Whether the shoot cache saw the last solve's geometry (the next solve of it is
+        served from the cache): what a checkpoint keeps of the tracer."""
+        return self.shoot_cache is not None and self.shoot_cache.has_seen_geometry
+
     def paths_dropped(self) -> int:
         """Candidates the last solve dropped for lack of buffer (0: none)."""
         counter = self._counter

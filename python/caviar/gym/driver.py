@@ -64,9 +64,9 @@ class EpisodeDriver:
         self.subscribe = list(subscribe)
         self.overrides = overrides
         self.out = out
-        self.episodes = last_episode(out)
-        """Episodes started: numbering goes on from those ``out`` already holds (a script run
-        again with the same ``out`` adds episodes after them)."""
+        self.episodes = 0
+        """The number of the last episode started: each start goes on from the episodes
+        ``out`` holds then (a script run again with the same ``out`` adds episodes after them)."""
         self.run_dir: pathlib.Path | None = None
         self._events: queue.Queue = queue.Queue()
         self._socket_dir = pathlib.Path(tempfile.mkdtemp(prefix="caviar-gym-"))  # private (0700)
