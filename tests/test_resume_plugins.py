@@ -138,3 +138,15 @@ def test_the_ray_traced_link_with_shoot_cache_prediction_and_look_ahead_resumes(
             "--set", "modules.comm.params.predict_horizons_s=[0.5, 1.0]"]
     kill = random.Random(25).randrange(5, 9)
     _resumes_to_the_reference(tmp_path, cli, BLUEPRINTS / "raytraced" / "config.toml", sets, kill, every=3, steps=11)
+
+
+def test_the_radio_network_on_the_38901_channel_resumes_to_the_same_messages(tmp_path, cli):
+    """The TR 38.901 channel: every UE's LOS state and shadow fading per site, and the
+    random state of Sionna's draws (seeded from the call count) are in the checkpoint."""
+    text = NETWORK.replace('channel = "ray-traced"', 'channel = "38.901-uma"')
+    cfg = write_config(tmp_path, text)
+    kill = random.Random(26).randrange(9, 20)
+    log = _resumes_to_the_reference(tmp_path, cli, cfg, [], kill, every=7, steps=24)
+    ue = [m.data for m in log.decoded("network.ue")]
+    assert {u["UE_Id"] for u in ue} == {"car1", "car2"}
+    assert all(u["coupling_loss_db"] > 40 for u in ue if u["serving_cell"])

@@ -112,7 +112,8 @@ OWN_PRIVATE = {
 }
 """The only private names (``obj._name``, obj not ``self`` or ``cls``) used outside the
 adapter: this project's own, each defined in the file named (checked)."""
-PUBLIC_SIONNA = {"sionna", "sionna.rt", "sionna.sys", "sionna.phy"}
+# (sionna.phy.channel.tr38901 is where Sionna documents its 38.901 models: UMa, UMaScenario, LSPGenerator.)
+PUBLIC_SIONNA = {"sionna", "sionna.rt", "sionna.sys", "sionna.phy", "sionna.phy.channel.tr38901"}
 """The Sionna modules imported outside the adapter: the documented packages' top level."""
 
 

@@ -40,6 +40,44 @@ SIDE_LOBE_DB = 30.0
 
 
 @dataclasses.dataclass(frozen=True)
+class Column:
+    """A vertical column of ``elements`` sector elements, ``spacing_wavelengths`` apart,
+    fed with one port through the virtualisation weights of TR 36.897 §5.2.2 (option
+    1-A) that steer it to ``electrical_tilt_deg`` below the horizon: TR 38.901 Table 7.8-1's
+    "config 1" for UMa and UMi, 10 elements tilted 12° (a zenith of 102°). Spaced 0.5 λ as
+    in QuaDRiGa's 38.901 calibration; at 0.8 λ the UMa 6 GHz coupling loss leaves the 3GPP
+    companies' band (median 123.5 dB against their 118.1–123.1 dB, measured here)."""
+
+    elements: int = 10
+    spacing_wavelengths: float = 0.5
+    electrical_tilt_deg: float = 12.0
+
+    def __post_init__(self):
+        if isinstance(self.elements, bool) or not isinstance(self.elements, int) or self.elements < 1:
+            raise ValueError(f"elements: expected a whole number of elements >= 1, got {self.elements!r}")
+        if not 0 < self.spacing_wavelengths <= 4:
+            raise ValueError(f"spacing_wavelengths: expected a spacing in (0, 4] wavelengths, "
+                             f"got {self.spacing_wavelengths!r}")
+        if not -90 <= self.electrical_tilt_deg <= 90:
+            raise ValueError(f"electrical_tilt_deg: expected a tilt in [-90, 90] degrees below the horizon, "
+                             f"got {self.electrical_tilt_deg!r}")
+
+    def gain_db(self, theta_deg: np.ndarray) -> np.ndarray:
+        """The column's array gain (dB, 10·log10(M) at the tilt) toward zenith angles
+        ``theta_deg`` (90° at the horizon) in the panel's frame:
+        ``|Σ_m w_m·a_m(θ)|²`` with ``a_m = exp(j2π(m−1)d·cos θ)`` and
+        ``w_m = exp(−j2π(m−1)d·cos θ_tilt)/√M``, summed in closed form."""
+        m = self.elements
+        psi = 2 * np.pi * self.spacing_wavelengths * (
+            np.cos(np.radians(np.asarray(theta_deg, dtype=float)))
+            - np.cos(np.radians(90.0 + self.electrical_tilt_deg)))
+        half = psi / 2
+        small = np.abs(np.sin(half)) < 1e-9
+        ratio = np.where(small, float(m), np.sin(m * half) ** 2 / np.where(small, 1.0, m * np.sin(half) ** 2))
+        return 10 * np.log10(np.maximum(ratio, 1e-30))
+
+
+@dataclasses.dataclass(frozen=True)
 class Cell:
     """One sector of a site: a cell."""
 
@@ -53,6 +91,10 @@ class Cell:
     carrier_hz: float
     bandwidth_hz: float
     array: tuple[int, int]
+    column: Column | None = None
+    """The elements behind each port (TR 38.901 Table 7.8-1 "config 1": a column of 10
+    elements with an electrical tilt): their array factor is part of the cell's pattern,
+    toward every UE, not a beam to one."""
 
     @property
     def array_gain_db(self) -> float:
@@ -133,12 +175,16 @@ def parse_sites(sites: Sequence[Mapping[str, Any]], defaults: Mapping[str, Any])
 def pattern_gain_db(cell: Cell, theta_deg: np.ndarray, phi_deg: np.ndarray) -> np.ndarray:
     """TR 38.901 sector element gain (dBi) of ``cell`` toward directions of departure given
     as zenith ``theta_deg`` (90° at the horizon) and azimuth ``phi_deg`` (from +x, counter-
-    clockwise), in the scene frame; the panel points at the cell's azimuth, tilted down."""
+    clockwise), in the scene frame; the panel points at the cell's azimuth, tilted down
+    (mechanically). With a :class:`Column`, its array gain is added."""
     phi = (np.asarray(phi_deg) - cell.azimuth_deg + 180.0) % 360.0 - 180.0
     theta = np.asarray(theta_deg)
     a_h = -np.minimum(12 * (phi / HALF_POWER_BEAMWIDTH_DEG) ** 2, FRONT_TO_BACK_DB)
     a_v = -np.minimum(12 * ((theta - 90.0 - cell.downtilt_deg) / HALF_POWER_BEAMWIDTH_DEG) ** 2, SIDE_LOBE_DB)
-    return ELEMENT_GAIN_DBI - np.minimum(-(a_h + a_v), FRONT_TO_BACK_DB)
+    gain = ELEMENT_GAIN_DBI - np.minimum(-(a_h + a_v), FRONT_TO_BACK_DB)
+    if cell.column is not None:
+        gain = gain + cell.column.gain_db(theta - cell.downtilt_deg)
+    return gain
 
 
 def element_gain_db(cells: Sequence[Cell], ues: np.ndarray) -> np.ndarray:

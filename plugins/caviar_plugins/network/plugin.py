@@ -30,10 +30,21 @@ from typing import Any
 import numpy as np
 
 import caviar
-from caviar_plugins.network.cells import Cell, line_of_sight_gain_db, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
+from caviar_plugins.network.cells import (
+    Cell,
+    Column,
+    line_of_sight_gain_db,
+    parse_sites,
+    rsrp_dbm,
+    rx_power_dbm,
+    sinr_db,
+)
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
+from caviar_plugins.network.layout import LayoutSettings, Wraparound, drop_ues, layout_cells
 from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, layer_message, save
 from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings
+from caviar_plugins.network.tr38901 import CHANNELS as STOCHASTIC
+from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings, check_carrier
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.schema import (
     ARRIVED,
@@ -58,7 +69,39 @@ NR_PRBS = {
     120e3: {50: 32, 100: 66, 200: 132, 400: 264},
 }
 INTERFERENCE = ("full-buffer", "scheduled")
-CHANNELS = ("free-space", "ray-traced")
+CHANNELS = ("free-space", "ray-traced", *STOCHASTIC)
+
+
+def carrier_key(p: Any, cell: Cell) -> str:
+    """The key that gave ``cell`` its carrier: ``carrier_hz`` or its site's ``sites.N.carrier_hz``."""
+    if cell.carrier_hz == p.carrier_hz or p.layout is not None:
+        return "carrier_hz"
+    return f"sites.{[s.get('name') for s in p.sites].index(cell.site)}.carrier_hz"
+
+
+def deployment(p: Any) -> list[Cell]:
+    """The cells of the network's ``Params``: its standard ``layout`` or its hand-placed
+    ``sites`` (not both), with the ``column`` behind each port; checked against the 38.901
+    channel's carrier range."""
+    if p.layout is not None and p.sites:
+        given = getattr(p.layout, "given", None) or frozenset()
+        if "wraparound" in given and p.layout.wraparound and "kind" not in given:
+            raise ValueError("layout.wraparound: wraparound needs the hexagonal layout (layout.kind = \"hex\"); "
+                             "hand-placed sites have no repeating pattern to wrap")
+        raise ValueError("layout: conflicts with sites: give a standard layout or hand-placed "
+                         "[[...params.sites]], not both")
+    defaults = {k: getattr(p, k) for k in ("tx_power_dbm", "carrier_hz", "bandwidth_hz", "array")}
+    if p.layout is not None:
+        cells = layout_cells(p.layout, defaults, p.column)
+    else:
+        cells = [dataclasses.replace(c, column=p.column) for c in parse_sites(p.sites, defaults)]
+    if p.channel in STOCHASTIC:
+        for c in cells:
+            check_carrier(STOCHASTIC[p.channel], c.carrier_hz, carrier_key(p, c))
+        if len({c.carrier_hz for c in cells}) > 1:
+            raise ValueError(f"carrier_hz: the 38.901 channel models one carrier; the sites give "
+                             f"{sorted({c.carrier_hz for c in cells})}")
+    return cells
 
 
 def nr_prbs(bandwidth_hz: float, scs_hz: float) -> int | None:
@@ -107,8 +150,25 @@ class RadioNetwork(caviar.Plugin):
         antenna_height_m: float = 1.5
         """A UE's antenna above the position it reports (SUMO reports the street)."""
         channel: str = "free-space"
-        """``free-space`` (Friis along the straight line) or ``ray-traced`` (Sionna RT, every
-        site in one solve, refreshed every ``raytracing.refresh_s``)."""
+        """``free-space`` (Friis along the straight line), ``ray-traced`` (Sionna RT, every
+        site in one solve, refreshed every ``raytracing.refresh_s``) or TR 38.901's
+        stochastic ``38.901-uma``, ``38.901-umi``, ``38.901-rma`` (Sionna's models: pathloss,
+        LOS probability, shadow fading, O2I; no fast fading; see ``tr38901``)."""
+        layout: LayoutSettings | None = None
+        """A standard hexagonal deployment instead of hand-placed ``sites``: ``rings``,
+        ``isd_m``, ``height_m``, ``wraparound``, and UEs dropped per sector
+        (``ues_per_sector``...; see :class:`~caviar_plugins.network.layout.LayoutSettings`)."""
+        column: Column | None = None
+        """The elements behind each port: a vertical column with an electrical tilt (TR
+        38.901 Table 7.8-1: ``{ elements = 10, spacing_wavelengths = 0.8,
+        electrical_tilt_deg = 12 }``), part of every cell's pattern (see
+        :class:`~caviar_plugins.network.cells.Column`)."""
+        tr38901: StochasticSettings = dataclasses.field(default_factory=StochasticSettings)
+        """The 38.901 channel's O2I building mix, shadow fading and redraw distance (see
+        :class:`~caviar_plugins.network.tr38901.StochasticSettings`)."""
+        report_cells: int = 0
+        """``network.ue`` lists the RSRP of this many strongest cells (0: every cell), as a
+        measurement report lists the serving cell and its best neighbours."""
         raytracing: TraceSettings = dataclasses.field(default_factory=TraceSettings)
         """``scene`` (default ``empty``), ``max_depth``, ``samples_per_src``, ``diffraction``,
         ``refresh_s``...: see :class:`~caviar_plugins.network.raytraced.TraceSettings`."""
@@ -119,10 +179,15 @@ class RadioNetwork(caviar.Plugin):
         ``radio-map.npz`` and ``radio-map.png`` and announced on ``network.radio_map``."""
 
         def __post_init__(self):
-            self.cells: list[Cell] = parse_sites(self.sites, dataclasses.asdict(self))
-            for i, c in enumerate(self.cells):
-                check_nr_carrier(c.carrier_hz, "carrier_hz" if c.carrier_hz == self.carrier_hz
-                                 else f"sites.{i}.carrier_hz")
+            if self.channel not in CHANNELS:
+                raise ValueError(f"channel: expected one of {list(CHANNELS)}, got {self.channel!r}")
+            self.cells: list[Cell] = deployment(self)
+            if self.layout is not None and self.layout.ues_per_sector and self.layout.scenario is None:
+                object.__setattr__(self.layout, "scenario", STOCHASTIC.get(self.channel, "uma"))
+            if isinstance(self.report_cells, bool) or self.report_cells < 0:
+                raise ValueError(f"report_cells: expected a number of cells >= 0, got {self.report_cells!r}")
+            for c in self.cells:
+                check_nr_carrier(c.carrier_hz, carrier_key(self, c))
             if self.interference not in INTERFERENCE:
                 raise ValueError(f"interference: expected one of {list(INTERFERENCE)}, got {self.interference!r}")
             if self.num_prb is None:
@@ -133,9 +198,7 @@ class RadioNetwork(caviar.Plugin):
             if self.num_prb * 12 * self.subcarrier_spacing_hz > self.bandwidth_hz:
                 raise ValueError(f"num_prb: {self.num_prb} PRBs of {12 * self.subcarrier_spacing_hz:g} Hz do not "
                                  f"fit in bandwidth_hz = {self.bandwidth_hz:g}")
-            if self.channel not in CHANNELS:
-                raise ValueError(f"channel: expected one of {list(CHANNELS)}, got {self.channel!r}")
-            flat = self.channel == "free-space" or self.raytracing.evolve == "hold"
+            flat = self.channel != "ray-traced" or self.raytracing.evolve == "hold"
             self.link = LinkSettings(num_prb=self.num_prb, subcarrier_spacing_hz=self.subcarrier_spacing_hz,
                                      bler_target=self.bler_target, mcs_table=self.mcs_table,
                                      scheduler=self.scheduler, link_model=self.link_model,
@@ -178,6 +241,45 @@ class RadioNetwork(caviar.Plugin):
         self.channels: TracedChannels | None = None  # the last trace, rows in self.traced order
         self.traced: dict[str, int] = {}  # UE_Id -> row of self.channels
         self.refreshed_at = -np.inf  # the last refresh on the refresh_s schedule
+        self.stochastic: StochasticChannel | None = None
+        if p.channel in STOCHASTIC:
+            self.stochastic = StochasticChannel(STOCHASTIC[p.channel], self.cells, p.tr38901, self._site_xy_of(),
+                                                seed=ctx.seed)
+        self.drops = 0  # drops made (the layout's UEs)
+        if p.layout is not None and p.layout.ues_per_sector:
+            self._drop()
+
+    def _site_xy_of(self):
+        """Where a UE sees each site (x, y): the wraparound's nearest image, or the site."""
+        sites = list(dict.fromkeys(c.site for c in self.cells))
+        xy = np.array([next(c.position[:2] for c in self.cells if c.site == s) for s in sites])
+        layout = self.p.layout
+        if layout is not None and layout.wraparound:
+            return Wraparound(layout, xy).site_xy
+        return lambda ues: np.broadcast_to(xy[None], (len(ues), *xy.shape))
+
+    def _drop(self) -> None:
+        """A drop of the layout's UEs (TR 38.901 §7.8): ``drop<k>``, each a new UE."""
+        from sionna.phy import config as sionna_config
+
+        layout = self.p.layout
+        assert layout is not None and layout.scenario is not None
+        sionna_config.seed = (self.ctx.seed * 1_000_003 + self.drops) % 2**31  # (Sionna draws the drop)
+        drop = drop_ues(layout, layout.scenario, self.p.carrier_hz)
+        self.drops += 1
+        for k, position in enumerate(drop.positions):
+            u = f"drop{k}"
+            if u in self.ues:  # a fresh UE in the same column
+                self.mm.forget(u)
+                self.link.released(self.ues[u]["column"])
+                self.last_sinr.pop(u, None)
+                if self.stochastic is not None:
+                    self.stochastic.forget(u)
+            else:
+                self.ues[u] = {"type": "dropped", "column": self._column()}
+            # The drop gives antenna heights (floors): no antenna_height_m on top.
+            self.ues[u].update(position=[float(v) for v in position], antenna_included=True,
+                               indoor=bool(drop.indoor[k]), distance_2d_in=float(drop.distance_2d_in[k]))
 
     def state(self):
         # Cells, tracer and radio map come from setup (the map's files are written again);
@@ -186,7 +288,8 @@ class RadioNetwork(caviar.Plugin):
         return {"map_files": [f.relative_to(self.ctx.run_dir).as_posix() for f in self.map_files],
                 "layer": self.layer, "ues": self.ues, "free": self.free, "last_sinr": self.last_sinr,
                 "handover": self.mm.ues, "link": self.link.state(), "channels": self.channels,
-                "traced": self.traced, "refreshed_at": self.refreshed_at,
+                "traced": self.traced, "refreshed_at": self.refreshed_at, "drops": self.drops,
+                "stochastic": None if self.stochastic is None else self.stochastic.snapshot(),
                 "cache_seen": self.tracer is not None and self.tracer.cache_seen()}
 
     def restore(self, state):
@@ -195,6 +298,9 @@ class RadioNetwork(caviar.Plugin):
         self.last_sinr, self.mm.ues = state["last_sinr"], state["handover"]
         self.link.restore(state["link"])
         self.channels, self.traced, self.refreshed_at = state["channels"], state["traced"], state["refreshed_at"]
+        self.drops = state["drops"]
+        if self.stochastic is not None:
+            self.stochastic.restore(state["stochastic"])
         if state.get("cache_seen") and self.tracer is not None and self.channels is not None:
             # The shoot cache had seen the scene: one trace where the UEs last were lets it see
             # it again (its result is not used), so the next trace is served as it would have been.
@@ -204,6 +310,10 @@ class RadioNetwork(caviar.Plugin):
         """Channel gains (path and sector pattern, dB) of every cell toward the UEs
         ``ids`` at ``pos``: [n_ue, n_cell, subbands]. Ray-traced paths are refreshed every
         ``raytracing.refresh_s`` (and when a UE appears) and evolve in between."""
+        if self.stochastic is not None:
+            indoor = np.array([self.ues[u].get("indoor", False) for u in ids])
+            d_in = np.array([self.ues[u].get("distance_2d_in", 0.0) for u in ids])
+            return self.stochastic.gains_db(ids, pos, indoor, d_in)[..., None]
         if self.tracer is None:
             return line_of_sight_gain_db(self.cells, pos)[..., None]
         due = t - self.refreshed_at >= self.p.raytracing.refresh_s - 1e-9
@@ -230,6 +340,8 @@ class RadioNetwork(caviar.Plugin):
             ue = self.ues.pop(m.data["UE_Id"], None)
             if ue is not None:
                 self.mm.forget(m.data["UE_Id"])
+                if self.stochastic is not None:
+                    self.stochastic.forget(m.data["UE_Id"])
                 self.link.released(ue["column"])
                 self.free.append(ue["column"])
                 self.free.sort()
@@ -243,7 +355,8 @@ class RadioNetwork(caviar.Plugin):
         """Received power of every cell at every UE (per subband, and wideband) and RSRP;
         mobility management on them. Returns (rx dBm [ue, cell, subband], wideband rx dBm
         [ue, cell], RSRP dBm, serving cell per UE, events)."""
-        pos = np.array([self.ues[u]["position"] for u in ids]) + [0.0, 0.0, self.p.antenna_height_m]
+        pos = np.array([self.ues[u]["position"] for u in ids]) + np.array(
+            [[0.0, 0.0, 0.0 if self.ues[u].get("antenna_included") else self.p.antenna_height_m] for u in ids])
         gains = self._channel_gains(t, ids, pos)
         rx = rx_power_dbm(self.cells, gains)
         weights = self.p.link.subband_prbs if gains.shape[-1] > 1 else np.ones(1)
@@ -264,6 +377,9 @@ class RadioNetwork(caviar.Plugin):
             yield VIEW_RADIO_MAP, self.layer
             self.layer = None
         self._read(inbox)
+        if self.p.layout is not None and self.p.layout.redrop == "every-step" and self.drops \
+                and t > 0 and self.p.layout.ues_per_sector:
+            self._drop()
         if not self.ues:
             return
         ids = list(self.ues)
@@ -272,6 +388,7 @@ class RadioNetwork(caviar.Plugin):
         if self.p.interference == "scheduled":
             load = np.isin(np.arange(len(self.cells)), serving).astype(float)
         sinr = sinr_db(self.cells, wideband, serving, self.p.noise_figure_db, load)
+        sir = sinr_db(self.cells, wideband, serving, -np.inf, load)
         per_subband = sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)  # [ue, subband]
         # The link level works on UE columns (stable across steps).
         cols = np.array([self.ues[u]["column"] for u in ids])
@@ -288,19 +405,27 @@ class RadioNetwork(caviar.Plugin):
                 self.last_sinr[u] = float(sinr[i])
             else:
                 self.last_sinr.pop(u, None)
-            yield from self._report(u, serving[i], sinr[i], rsrp[i], float(mbps[cols[i]]), res.summary(cols[i]))
+            loss = self.cells[serving[i]].tx_power_dbm - wideband[i, serving[i]] if covered else math.nan
+            yield from self._report(u, serving[i], sinr[i], sir[i], loss, rsrp[i], float(mbps[cols[i]]),
+                                    res.summary(cols[i]))
         used = res.cells_active.mean(axis=0)
         yield NETWORK_CELLS, {"cells": [
             {"cell": n, "ues": int((serving == k).sum()), "active_share": round(float(used[k]), 4)}
             for k, n in enumerate(self.names)]}
 
-    def _report(self, u: str, serving: int, sinr: float, rsrp: np.ndarray, mbps: float, link: dict):
+    def _report(self, u: str, serving: int, sinr: float, sir: float, coupling_loss: float, rsrp: np.ndarray,
+                mbps: float, link: dict):
         ue_type = self.ues[u]["type"]
         covered = serving >= 0
         yield THROUGHPUT, throughput_payload(ue_type, u, round(mbps, 6))
+        listed: list[int] = list(range(len(self.names)))
+        if self.p.report_cells:
+            listed = sorted(int(k) for k in np.argsort(-rsrp, kind="stable")[:self.p.report_cells])
         report = {"UE_type": ue_type, "UE_Id": u, "serving_cell": self.names[serving] if covered else None,
                   "sinr_db": round(float(sinr), 3) if covered else None,
-                  "rsrp_dbm": {n: round(float(v), 2) for n, v in zip(self.names, rsrp, strict=True)},
+                  "sir_db": round(float(sir), 3) if covered and math.isfinite(sir) else None,
+                  "coupling_loss_db": round(float(coupling_loss), 3) if covered else None,
+                  "rsrp_dbm": {self.names[k]: round(float(rsrp[k]), 2) for k in listed},
                   "throughput_mbps": round(mbps, 6)}
         if self.p.link_model == "sys":
             report.update(link)

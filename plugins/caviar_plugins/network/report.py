@@ -27,10 +27,22 @@ def _cdf(ax, values: dict[str, np.ndarray], xlabel: str) -> None:
 
 
 def _sites(log) -> list[dict[str, Any]]:
-    """The sites of the run's radio-network module(s), from its config."""
+    """The sites of the run's radio-network module(s), from its config: hand-placed, or
+    those of its standard layout."""
+    from caviar_plugins.network.layout import SECTOR_AZIMUTHS_DEG, LayoutSettings, site_positions
+
     cfg = tomllib.loads(log.config_text)
-    return [s for m in cfg.get("modules", {}).values() if m.get("plugin") == "radio-network"
-            for s in m.get("params", {}).get("sites", [])]
+    out: list[dict[str, Any]] = []
+    for m in cfg.get("modules", {}).values():
+        if m.get("plugin") != "radio-network":
+            continue
+        params = m.get("params", {})
+        out += params.get("sites", [])
+        if "layout" in params:
+            layout = LayoutSettings(**params["layout"])
+            out += [{"name": f"S{i}", "position": [float(x), float(y), layout.height_m],
+                     "azimuths_deg": list(SECTOR_AZIMUTHS_DEG)} for i, (x, y) in enumerate(site_positions(layout))]
+    return out
 
 
 def summarize(log) -> dict[str, Any] | None:

@@ -1,0 +1,233 @@
+"""The TR 38.901 stochastic channel (UMa, UMi, RMa) of the radio network: pathloss, LOS
+probability, shadow fading and O2I penetration from Sionna's models
+(:mod:`sionna.phy.channel.tr38901`, PyTorch), the antenna patterns from the network's
+cells (:func:`~caviar_plugins.network.cells.pattern_gain_db`), no fast fading.
+
+Large-scale parameters belong to a **site**, not a sector (TR 38.901 §7.5: co-sited
+sectors share them): Sionna draws them per site, and each sector adds its pattern toward
+the UE, seen from the site's image nearest to the UE when the layout wraps around.
+
+A UE keeps its LOS state and shadow fading while it moves less than ``redraw_m`` from
+where they were drawn (a piecewise-constant stand-in for the spatial consistency of
+§7.6.3: the decorrelation distances of Table 7.5-6 are 37–120 m); the pathloss follows
+its position at every step. A UE that has not moved keeps its gains as they were.
+
+Indoor UEs (the drop's) get the O2I loss of a low-loss or a high-loss building (Table
+7.4.3-2), ``o2i_high_loss_share`` of them the high-loss one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from caviar_plugins.network.cells import Cell, pattern_gain_db
+
+CHANNELS = {"38.901-uma": "uma", "38.901-umi": "umi", "38.901-rma": "rma"}
+# TR 38.901 Table 7.4.1-1: where the pathloss models hold (carrier frequency).
+VALID_CARRIER_HZ = {"uma": (0.5e9, 100e9), "umi": (0.5e9, 100e9), "rma": (0.5e9, 30e9)}
+# Table 7.4.1-1: UE heights the models take (a higher UE, an aerial one, is clipped for the
+# pathloss only; TR 36.777's aerial models are not part of this channel).
+UE_HEIGHT_M = {"uma": (1.5, 22.5), "umi": (1.5, 22.5), "rma": (1.0, 10.0)}
+# Decorrelation distance of the shadow fading in NLOS (Table 7.5-6).
+REDRAW_M = {"uma": 50.0, "umi": 13.0, "rma": 120.0}
+
+
+@dataclasses.dataclass(frozen=True)
+class StochasticSettings:
+    """Settings of the TR 38.901 channel (``params.tr38901``)."""
+
+    o2i_high_loss_share: float = 0.5
+    """Share of indoor UEs in high-loss buildings (TR 38.901 Table 7.8-1: 50 %)."""
+    shadow_fading: bool = True
+    redraw_m: float | None = None
+    """How far a UE moves before its LOS state and shadow fading are drawn again; the
+    scenario's NLOS shadow-fading decorrelation distance by default (UMa 50 m, UMi 13 m,
+    RMa 120 m)."""
+
+    def __post_init__(self):
+        if not 0.0 <= self.o2i_high_loss_share <= 1.0:
+            raise ValueError(f"o2i_high_loss_share: expected a share in [0, 1], got {self.o2i_high_loss_share!r}")
+        if self.redraw_m is not None and not self.redraw_m > 0:
+            raise ValueError(f"redraw_m: expected a positive distance in metres, got {self.redraw_m!r}")
+
+
+def check_carrier(scenario: str, carrier_hz: float, key: str) -> None:
+    lo, hi = VALID_CARRIER_HZ[scenario]
+    if not lo <= carrier_hz <= hi:
+        raise ValueError(f"{key}: TR 38.901's {scenario.upper()} model holds from {lo / 1e9:g} to "
+                         f"{hi / 1e9:g} GHz, got {carrier_hz / 1e9:g} GHz")
+
+
+@dataclasses.dataclass
+class _Draw:
+    """What a UE keeps between steps: where its state was drawn, its LOS state and shadow
+    fading per site, its building, and the gains it last had (and where)."""
+
+    anchor: np.ndarray
+    los: np.ndarray  # [site] bool
+    sf_db: np.ndarray  # [site]
+    indoor: bool
+    distance_2d_in: float
+    high_loss: bool
+    position: np.ndarray
+    site_gain_db: np.ndarray  # [site]: −pathloss − shadow fading
+
+
+class StochasticChannel:
+    """Large-scale channel gains of every cell toward every UE, for one scenario."""
+
+    def __init__(self, scenario: str, cells: list[Cell], settings: StochasticSettings,
+                 site_xy_of, device: str = "cpu", seed: int = 0):
+        """``site_xy_of(ues [n, 3]) -> [n, n_site, 2]``: where each UE sees each site (the
+        wraparound's nearest image, or the site itself)."""
+        import torch
+        from sionna.phy.channel.tr38901 import LSPGenerator, PanelArray, RMaScenario, UMaScenario, UMiScenario
+
+        self.scenario = scenario
+        self.cells = cells
+        self.settings = settings
+        self.device = device
+        self.site_xy_of = site_xy_of
+        self.sites = list(dict.fromkeys(c.site for c in cells))
+        self.cell_site = np.array([self.sites.index(c.site) for c in cells])
+        first = {s: next(c for c in cells if c.site == s) for s in self.sites}
+        self.site_height = np.array([first[s].position[2] for s in self.sites])
+        self.redraw_m = settings.redraw_m or REDRAW_M[scenario]
+        carrier = cells[0].carrier_hz
+        model = {"uma": UMaScenario, "umi": UMiScenario, "rma": RMaScenario}[scenario]
+        # One omnidirectional element at both ends: the cells' own patterns are applied here.
+        array = PanelArray(num_rows_per_panel=1, num_cols_per_panel=1, polarization="single",
+                           polarization_type="V", antenna_pattern="omni", carrier_frequency=carrier,
+                           precision="double", device=device)
+        kw = dict(carrier_frequency=carrier, ut_array=array, bs_array=array, direction="downlink",
+                  enable_shadow_fading=settings.shadow_fading, precision="double", device=device)
+        self.models = {loss: model(o2i_model=loss, **kw) for loss in ("low", "high")}
+        self.lsp = {loss: LSPGenerator(m) for loss, m in self.models.items()}
+        self.seed = seed
+        self.rng = np.random.default_rng(seed)
+        self.torch = torch
+        self.state: dict[str, _Draw] = {}
+        self.calls = 0  # gains_db calls: each seeds Sionna's random state anew (resumable)
+
+    def snapshot(self) -> dict:
+        """What a checkpoint keeps: every UE's draw, the call count and the building draws."""
+        return {"ues": self.state, "calls": self.calls, "rng": self.rng.bit_generator.state}
+
+    def restore(self, saved: dict) -> None:
+        self.state, self.calls = saved["ues"], saved["calls"]
+        self.rng.bit_generator.state = saved["rng"]
+
+    # -- Sionna ------------------------------------------------------------------------
+    def _sample(self, loss: str, pos: np.ndarray, site_xy: np.ndarray, indoor: np.ndarray,
+                d_in: np.ndarray, los: np.ndarray | None):
+        """Pathloss (dB) and shadow fading (dB) per [ue, site] from Sionna's model, with
+        ``los`` [ue, site] forced (None: drawn)."""
+        torch = self.torch
+        model = self.models[loss]
+        n_ue, n_site = len(pos), len(self.sites)
+        lo, hi = UE_HEIGHT_M[self.scenario]
+        ut = pos.copy()
+        ut[:, 2] = np.clip(ut[:, 2], lo, hi)
+
+        def t(a, dtype=torch.float64):
+            return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=self.device)
+
+        bs = np.concatenate([site_xy, np.broadcast_to(self.site_height[None, :, None], (n_ue, n_site, 1))],
+                            axis=-1)  # [ue, site, 3]
+        model.reset_topology()
+        kwargs = {}
+        if self.scenario == "rma":
+            kwargs["in_car"] = t(np.zeros((1, n_ue)), torch.bool)
+        model.set_topology(
+            ut_loc=t(ut[None]), bs_loc=t(bs[:1]), ut_orientations=t(np.zeros((1, n_ue, 3))),
+            bs_orientations=t(np.zeros((1, n_site, 3))), ut_velocities=t(np.zeros((1, n_ue, 3))),
+            in_state=t(indoor[None], torch.bool),
+            los="random" if los is None else t(los.T[None], torch.bool),
+            bs_virtual_loc=t(bs.transpose(1, 0, 2)[None]), bs_site_ids=t(np.arange(n_site), torch.int64),
+            distance_2d_in=t(d_in[None]), **kwargs)
+        self.lsp[loss].reset_topology()
+        self.lsp[loss].topology_updated_callback()  # (what SystemLevelChannel.set_topology does)
+        lsp = self.lsp[loss]()
+        pl = lsp.pathloss.detach().cpu().double().numpy()[0].T  # [ue, site]
+        sf = 10 * np.log10(lsp.sf.detach().cpu().double().numpy()[0].T)
+        if not self.settings.shadow_fading:
+            sf = np.zeros_like(sf)
+        drawn = model.los.detach().cpu().numpy()[0].T if los is None else los
+        return pl, sf, drawn.astype(bool)
+
+    # -- the network's side -------------------------------------------------------------
+    def forget(self, ue: str) -> None:
+        self.state.pop(ue, None)
+
+    def gains_db(self, ids: list[str], pos: np.ndarray, indoor: np.ndarray | None = None,
+                 distance_2d_in: np.ndarray | None = None) -> np.ndarray:
+        """Channel gains (dB: −pathloss − shadow fading + the cell's pattern) of every
+        cell toward the UEs ``ids`` at ``pos`` [n, 3]: [n_ue, n_cell]. ``indoor`` and
+        ``distance_2d_in`` describe UEs seen for the first time (default: outdoor)."""
+        from sionna.phy import config as sionna_config
+
+        sionna_config.seed = (self.seed * 1_000_003 + 7919 * self.calls + 1) % 2**31
+        self.calls += 1
+        n = len(ids)
+        indoor = np.zeros(n, bool) if indoor is None else np.asarray(indoor, bool)
+        d_in = np.zeros(n) if distance_2d_in is None else np.asarray(distance_2d_in, float)
+        site_xy = self.site_xy_of(pos)  # [ue, site, 2]
+        fresh, moved = [], []
+        for i, u in enumerate(ids):
+            s = self.state.get(u)
+            if s is None or np.linalg.norm(pos[i, :2] - s.anchor[:2]) > self.redraw_m:
+                fresh.append(i)
+            elif not np.array_equal(pos[i], s.position):
+                moved.append(i)
+        building = {i: self._building(ids[i], indoor[i]) for i in fresh + moved}
+        for group, forced in ((fresh, False), (moved, True)):
+            for loss in ("low", "high"):
+                rows = [i for i in group if building[i] == loss]
+                if not rows:
+                    continue
+                r = np.array(rows)
+                ind = np.array([self._indoor(ids[i], indoor[i]) for i in rows])
+                din = np.array([self._d_in(ids[i], d_in[i]) for i in rows])
+                los = np.array([self.state[ids[i]].los for i in rows]) if forced else None
+                pl, sf, los_drawn = self._sample(loss, pos[r], site_xy[r], ind, din, los)
+                for k, i in enumerate(rows):
+                    if forced:
+                        s = self.state[ids[i]]
+                        s.position, s.site_gain_db = pos[i].copy(), -pl[k] - s.sf_db
+                    else:
+                        self.state[ids[i]] = _Draw(anchor=pos[i].copy(), los=los_drawn[k], sf_db=sf[k],
+                                                   indoor=bool(ind[k]), distance_2d_in=float(din[k]),
+                                                   high_loss=loss == "high", position=pos[i].copy(),
+                                                   site_gain_db=-pl[k] - sf[k])
+        site_gain = np.array([self.state[u].site_gain_db for u in ids]).reshape(n, len(self.sites))
+        return site_gain[:, self.cell_site] + self._patterns(pos, site_xy)
+
+    def _building(self, ue: str, indoor: bool) -> str:
+        s = self.state.get(ue)
+        if s is not None:
+            return "high" if s.high_loss else "low"
+        if not indoor:
+            return "low"  # (outdoors the O2I model plays no part)
+        return "high" if self.rng.random() < self.settings.o2i_high_loss_share else "low"
+
+    def _indoor(self, ue: str, indoor: bool) -> bool:
+        s = self.state.get(ue)
+        return s.indoor if s is not None else bool(indoor)
+
+    def _d_in(self, ue: str, d_in: float) -> float:
+        s = self.state.get(ue)
+        return s.distance_2d_in if s is not None else float(d_in)
+
+    def _patterns(self, pos: np.ndarray, site_xy: np.ndarray) -> np.ndarray:
+        """Each cell's pattern (dBi) toward each UE, from the site image the UE sees."""
+        out = np.empty((len(pos), len(self.cells)))
+        for k, c in enumerate(self.cells):
+            src = site_xy[:, self.cell_site[k]]
+            d = pos[:, :2] - src
+            phi = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
+            theta = np.degrees(np.arctan2(np.hypot(d[:, 0], d[:, 1]), pos[:, 2] - c.position[2]))
+            out[:, k] = pattern_gain_db(c, theta, phi)
+        return out
+
