@@ -98,7 +98,7 @@ def site_positions(layout: LayoutSettings) -> np.ndarray:
     _, xy = gen_tr38901_multicell_topology(
         "uma", batch_size=1, num_ut_per_sector=1, carrier_frequency=6e9, num_rings=layout.rings,
         use_3gpp_calibration_defaults=False, isd=float(layout.isd_m), bs_height=float(layout.height_m),
-        min_bs_ut_dist=0.0, indoor_probability=0.0, return_site_positions=True, device="cpu")
+        min_bs_ut_dist=0.0, indoor_probability=0.0, return_site_positions=True)
     return xy.detach().cpu().double().numpy()
 
 
@@ -119,8 +119,7 @@ class Wraparound:
     def __init__(self, layout: LayoutSettings, sites_xy: np.ndarray):
         from sionna.sys import HexGrid
 
-        grid = HexGrid(num_rings=layout.rings, isd=float(layout.isd_m), cell_height=float(layout.height_m),
-                       device="cpu")
+        grid = HexGrid(num_rings=layout.rings, isd=float(layout.isd_m), cell_height=float(layout.height_m))
         mirrors = grid.mirror_cell_loc.detach().cpu().double().numpy()[..., :2]  # [site, 7, 2]
         # Sionna's hexagonal grid is drawn turned by 90° from the 38.901 layout, so its sites
         # differ; the 7 translations that tile the plane with copies of the layout are the
@@ -157,7 +156,7 @@ def drop_ues(layout: LayoutSettings, scenario: str, carrier_hz: float) -> Drop:
         scenario, batch_size=1, num_ut_per_sector=layout.ues_per_sector, carrier_frequency=float(carrier_hz),
         num_rings=layout.rings, use_3gpp_calibration_defaults=False, isd=float(layout.isd_m),
         bs_height=float(layout.height_m), min_bs_ut_dist=float(layout.min_distance_m),
-        indoor_probability=float(layout.indoor_share), device="cpu")
+        indoor_probability=float(layout.indoor_share))
     ut_loc, in_state, d_in = topo[0], topo[5], topo[10]
     d_in = d_in.detach().cpu().double().numpy()[0]
     if d_in.ndim == 2:  # link-specific below 6 GHz ([cell, ut]): the home site's value

@@ -244,7 +244,7 @@ class RadioNetwork(caviar.Plugin):
         self.stochastic: StochasticChannel | None = None
         if p.channel in STOCHASTIC:
             self.stochastic = StochasticChannel(STOCHASTIC[p.channel], self.cells, p.tr38901, self._site_xy_of(),
-                                                seed=ctx.seed)
+                                                device=p.device, seed=ctx.seed)
         self.drops = 0  # drops made (the layout's UEs)
         if p.layout is not None and p.layout.ues_per_sector:
             self._drop()

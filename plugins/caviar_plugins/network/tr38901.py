@@ -23,6 +23,7 @@ import dataclasses
 import numpy as np
 
 from caviar_plugins.network.cells import Cell, pattern_gain_db
+from caviar_plugins.torch_device import resolve
 
 CHANNELS = {"38.901-uma": "uma", "38.901-umi": "umi", "38.901-rma": "rma"}
 # TR 38.901 Table 7.4.1-1: where the pathloss models hold (carrier frequency).
@@ -79,16 +80,17 @@ class StochasticChannel:
     """Large-scale channel gains of every cell toward every UE, for one scenario."""
 
     def __init__(self, scenario: str, cells: list[Cell], settings: StochasticSettings,
-                 site_xy_of, device: str = "cpu", seed: int = 0):
+                 site_xy_of, device: str | None = None, seed: int = 0):
         """``site_xy_of(ues [n, 3]) -> [n, n_site, 2]``: where each UE sees each site (the
-        wraparound's nearest image, or the site itself)."""
+        wraparound's nearest image, or the site itself). ``device``: the torch device of
+        Sionna's models (default: Sionna's)."""
         import torch
         from sionna.phy.channel.tr38901 import LSPGenerator, PanelArray, RMaScenario, UMaScenario, UMiScenario
 
         self.scenario = scenario
         self.cells = cells
         self.settings = settings
-        self.device = device
+        self.device = str(resolve("auto") if device is None else resolve(device))
         self.site_xy_of = site_xy_of
         self.sites = list(dict.fromkeys(c.site for c in cells))
         self.cell_site = np.array([self.sites.index(c.site) for c in cells])
@@ -100,9 +102,9 @@ class StochasticChannel:
         # One omnidirectional element at both ends: the cells' own patterns are applied here.
         array = PanelArray(num_rows_per_panel=1, num_cols_per_panel=1, polarization="single",
                            polarization_type="V", antenna_pattern="omni", carrier_frequency=carrier,
-                           precision="double", device=device)
+                           precision="double", device=self.device)
         kw = dict(carrier_frequency=carrier, ut_array=array, bs_array=array, direction="downlink",
-                  enable_shadow_fading=settings.shadow_fading, precision="double", device=device)
+                  enable_shadow_fading=settings.shadow_fading, precision="double", device=self.device)
         self.models = {loss: model(o2i_model=loss, **kw) for loss in ("low", "high")}
         self.lsp = {loss: LSPGenerator(m) for loss, m in self.models.items()}
         self.seed = seed
