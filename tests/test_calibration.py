@@ -59,7 +59,7 @@ def test_the_wraparound_is_sionnas_ue_by_ue(rings):
     topo = gen_tr38901_multicell_topology("umi", 1, 4, 6e9, num_rings=rings)
     ues = topo[0].double().numpy()[0]
     sionna_virtual = topo[7].double().numpy()[0][::3, :, :2]  # [site, ue, 2] (3 sectors share a site)
-    ours = Wraparound(layout, xy).site_xy(ues).transpose(1, 0, 2)
+    ours = Wraparound(layout).site_xy(ues).transpose(1, 0, 2)
     assert np.allclose(ours, sionna_virtual, atol=1e-3)
     # Without a wraparound a UE at the edge would see the far sites across the layout.
     far = np.linalg.norm(ues[:, None, :2] - xy[None], axis=-1).max()
@@ -156,8 +156,7 @@ def test_a_ue_keeps_its_draw_and_its_gain_follows_the_uma_pathloss_as_it_moves()
     cells = parse_sites([{"name": "A", "position": [0.0, 0.0, 25.0], "azimuths_deg": [0.0]},
                          {"name": "B", "position": [400.0, 0.0, 25.0], "azimuths_deg": [180.0]}],
                         {"tx_power_dbm": 49.0, "carrier_hz": 6e9, "bandwidth_hz": 20e6, "array": [1, 1]})
-    xy = np.array([c.position[:2] for c in cells])
-    ch = StochasticChannel("uma", cells, StochasticSettings(), lambda ues: np.broadcast_to(xy, (len(ues), 2, 2)))
+    ch = StochasticChannel("uma", cells, StochasticSettings())
     here = np.array([[150.0, 10.0, 1.5]])
     first = ch.gains_db(["u"], here)
     assert np.array_equal(ch.gains_db(["u"], here), first)  # a UE that stays keeps its gains

@@ -116,7 +116,7 @@ class Wraparound:
     """Where each UE sees each site: the nearest of the site's 7 images (the site and its
     6 copies around the layout, :attr:`sionna.sys.HexGrid.mirror_cell_loc`)."""
 
-    def __init__(self, layout: LayoutSettings, sites_xy: np.ndarray):
+    def __init__(self, layout: LayoutSettings):
         from sionna.sys import HexGrid
 
         grid = HexGrid(num_rings=layout.rings, isd=float(layout.isd_m), cell_height=float(layout.height_m))
@@ -129,7 +129,7 @@ class Wraparound:
         shifts = np.stack([shifts[:, 0], -shifts[:, 1]], axis=-1)  # [7, 2]
         if layout.rings == 0:  # one site: nothing to wrap
             shifts = np.zeros((1, 2))
-        self.images = sites_xy[:, None, :] + shifts[None]  # [site, 7, 2]
+        self.images = site_positions(layout)[:, None, :] + shifts[None]  # [site, 7, 2], in the cells' order
 
     def site_xy(self, ues: np.ndarray) -> np.ndarray:
         """[n_ue, n_site, 2]: the image of every site nearest to every UE (2D)."""

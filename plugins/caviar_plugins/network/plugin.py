@@ -160,7 +160,7 @@ class RadioNetwork(caviar.Plugin):
         (``ues_per_sector``...; see :class:`~caviar_plugins.network.layout.LayoutSettings`)."""
         column: Column | None = None
         """The elements behind each port: a vertical column with an electrical tilt (TR
-        38.901 Table 7.8-1: ``{ elements = 10, spacing_wavelengths = 0.8,
+        38.901 Table 7.8-1: ``{ elements = 10, spacing_wavelengths = 0.5,
         electrical_tilt_deg = 12 }``), part of every cell's pattern (see
         :class:`~caviar_plugins.network.cells.Column`)."""
         tr38901: StochasticSettings = dataclasses.field(default_factory=StochasticSettings)
@@ -182,8 +182,6 @@ class RadioNetwork(caviar.Plugin):
             if self.channel not in CHANNELS:
                 raise ValueError(f"channel: expected one of {list(CHANNELS)}, got {self.channel!r}")
             self.cells: list[Cell] = deployment(self)
-            if self.layout is not None and self.layout.ues_per_sector and self.layout.scenario is None:
-                object.__setattr__(self.layout, "scenario", STOCHASTIC.get(self.channel, "uma"))
             if isinstance(self.report_cells, bool) or self.report_cells < 0:
                 raise ValueError(f"report_cells: expected a number of cells >= 0, got {self.report_cells!r}")
             for c in self.cells:
@@ -243,38 +241,35 @@ class RadioNetwork(caviar.Plugin):
         self.refreshed_at = -np.inf  # the last refresh on the refresh_s schedule
         self.stochastic: StochasticChannel | None = None
         if p.channel in STOCHASTIC:
-            self.stochastic = StochasticChannel(STOCHASTIC[p.channel], self.cells, p.tr38901, self._site_xy_of(),
+            wrap = Wraparound(p.layout) if p.layout is not None and p.layout.wraparound else None
+            self.stochastic = StochasticChannel(STOCHASTIC[p.channel], self.cells, p.tr38901, wrap,
                                                 device=p.device, seed=ctx.seed)
         self.drops = 0  # drops made (the layout's UEs)
         if p.layout is not None and p.layout.ues_per_sector:
             self._drop()
 
-    def _site_xy_of(self):
-        """Where a UE sees each site (x, y): the wraparound's nearest image, or the site."""
-        sites = list(dict.fromkeys(c.site for c in self.cells))
-        xy = np.array([next(c.position[:2] for c in self.cells if c.site == s) for s in sites])
-        layout = self.p.layout
-        if layout is not None and layout.wraparound:
-            return Wraparound(layout, xy).site_xy
-        return lambda ues: np.broadcast_to(xy[None], (len(ues), *xy.shape))
+    def _forget(self, u: str) -> None:
+        """What the network knew of UE ``u``'s radio: its handover state, its link level's
+        column (the column itself stays ``u``'s) and its 38.901 draw."""
+        self.mm.forget(u)
+        self.link.released(self.ues[u]["column"])
+        if self.stochastic is not None:
+            self.stochastic.forget(u)
 
     def _drop(self) -> None:
         """A drop of the layout's UEs (TR 38.901 §7.8): ``drop<k>``, each a new UE."""
         from sionna.phy import config as sionna_config
 
         layout = self.p.layout
-        assert layout is not None and layout.scenario is not None
+        assert layout is not None
         sionna_config.seed = (self.ctx.seed * 1_000_003 + self.drops) % 2**31  # (Sionna draws the drop)
-        drop = drop_ues(layout, layout.scenario, self.p.carrier_hz)
+        drop = drop_ues(layout, layout.scenario or STOCHASTIC.get(self.p.channel, "uma"), self.p.carrier_hz)
         self.drops += 1
         for k, position in enumerate(drop.positions):
             u = f"drop{k}"
             if u in self.ues:  # a fresh UE in the same column
-                self.mm.forget(u)
-                self.link.released(self.ues[u]["column"])
+                self._forget(u)
                 self.last_sinr.pop(u, None)
-                if self.stochastic is not None:
-                    self.stochastic.forget(u)
             else:
                 self.ues[u] = {"type": "dropped", "column": self._column()}
             # The drop gives antenna heights (floors): no antenna_height_m on top.
@@ -337,12 +332,9 @@ class RadioNetwork(caviar.Plugin):
     def _read(self, inbox) -> None:
         """UEs that left free their column; positions update (and add) UEs."""
         for m in inbox.on(ARRIVED):
-            ue = self.ues.pop(m.data["UE_Id"], None)
-            if ue is not None:
-                self.mm.forget(m.data["UE_Id"])
-                if self.stochastic is not None:
-                    self.stochastic.forget(m.data["UE_Id"])
-                self.link.released(ue["column"])
+            if m.data["UE_Id"] in self.ues:
+                self._forget(m.data["UE_Id"])
+                ue = self.ues.pop(m.data["UE_Id"])
                 self.free.append(ue["column"])
                 self.free.sort()
         for m in inbox.on(POSITIONS):
@@ -377,8 +369,7 @@ class RadioNetwork(caviar.Plugin):
             yield VIEW_RADIO_MAP, self.layer
             self.layer = None
         self._read(inbox)
-        if self.p.layout is not None and self.p.layout.redrop == "every-step" and self.drops \
-                and t > 0 and self.p.layout.ues_per_sector:
+        if self.drops and t > 0 and self.p.layout is not None and self.p.layout.redrop == "every-step":
             self._drop()
         if not self.ues:
             return

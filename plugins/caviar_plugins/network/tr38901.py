@@ -23,6 +23,7 @@ import dataclasses
 import numpy as np
 
 from caviar_plugins.network.cells import Cell, pattern_gain_db
+from caviar_plugins.network.layout import Wraparound
 from caviar_plugins.torch_device import resolve
 
 CHANNELS = {"38.901-uma": "uma", "38.901-umi": "umi", "38.901-rma": "rma"}
@@ -80,10 +81,9 @@ class StochasticChannel:
     """Large-scale channel gains of every cell toward every UE, for one scenario."""
 
     def __init__(self, scenario: str, cells: list[Cell], settings: StochasticSettings,
-                 site_xy_of, device: str | None = None, seed: int = 0):
-        """``site_xy_of(ues [n, 3]) -> [n, n_site, 2]``: where each UE sees each site (the
-        wraparound's nearest image, or the site itself). ``device``: the torch device of
-        Sionna's models (default: Sionna's)."""
+                 wraparound: Wraparound | None = None, device: str | None = None, seed: int = 0):
+        """``wraparound``: each UE sees each site at its nearest image (None: the sites
+        themselves). ``device``: the torch device of Sionna's models (default: Sionna's)."""
         import torch
         from sionna.phy.channel.tr38901 import LSPGenerator, PanelArray, RMaScenario, UMaScenario, UMiScenario
 
@@ -91,11 +91,12 @@ class StochasticChannel:
         self.cells = cells
         self.settings = settings
         self.device = str(resolve("auto") if device is None else resolve(device))
-        self.site_xy_of = site_xy_of
+        self.wraparound = wraparound
         self.sites = list(dict.fromkeys(c.site for c in cells))
         self.cell_site = np.array([self.sites.index(c.site) for c in cells])
-        first = {s: next(c for c in cells if c.site == s) for s in self.sites}
-        self.site_height = np.array([first[s].position[2] for s in self.sites])
+        first = [next(c for c in cells if c.site == s) for s in self.sites]
+        self.site_position = np.array([c.position for c in first])  # [site, 3]
+        self.site_height = self.site_position[:, 2]
         self.redraw_m = settings.redraw_m or REDRAW_M[scenario]
         carrier = cells[0].carrier_hz
         model = {"uma": UMaScenario, "umi": UMiScenario, "rma": RMaScenario}[scenario]
@@ -175,7 +176,8 @@ class StochasticChannel:
         n = len(ids)
         indoor = np.zeros(n, bool) if indoor is None else np.asarray(indoor, bool)
         d_in = np.zeros(n) if distance_2d_in is None else np.asarray(distance_2d_in, float)
-        site_xy = self.site_xy_of(pos)  # [ue, site, 2]
+        site_xy = (self.wraparound.site_xy(pos) if self.wraparound is not None  # [ue, site, 2]
+                   else np.broadcast_to(self.site_position[None, :, :2], (n, len(self.sites), 2)))
         fresh, moved = [], []
         for i, u in enumerate(ids):
             s = self.state.get(u)
@@ -183,15 +185,15 @@ class StochasticChannel:
                 fresh.append(i)
             elif not np.array_equal(pos[i], s.position):
                 moved.append(i)
-        building = {i: self._building(ids[i], indoor[i]) for i in fresh + moved}
+        kept = {i: self._kept(ids[i], indoor[i], d_in[i]) for i in fresh + moved}
         for group, forced in ((fresh, False), (moved, True)):
             for loss in ("low", "high"):
-                rows = [i for i in group if building[i] == loss]
+                rows = [i for i in group if kept[i][0] == loss]
                 if not rows:
                     continue
                 r = np.array(rows)
-                ind = np.array([self._indoor(ids[i], indoor[i]) for i in rows])
-                din = np.array([self._d_in(ids[i], d_in[i]) for i in rows])
+                ind = np.array([kept[i][1] for i in rows])
+                din = np.array([kept[i][2] for i in rows])
                 los = np.array([self.state[ids[i]].los for i in rows]) if forced else None
                 pl, sf, los_drawn = self._sample(loss, pos[r], site_xy[r], ind, din, los)
                 for k, i in enumerate(rows):
@@ -206,21 +208,15 @@ class StochasticChannel:
         site_gain = np.array([self.state[u].site_gain_db for u in ids]).reshape(n, len(self.sites))
         return site_gain[:, self.cell_site] + self._patterns(pos, site_xy)
 
-    def _building(self, ue: str, indoor: bool) -> str:
+    def _kept(self, ue: str, indoor: bool, d_in: float) -> tuple[str, bool, float]:
+        """A UE's building (``low``/``high`` loss), indoor state and indoor distance: those it
+        was first drawn with, or for a new UE the given ones and a building drawn now."""
         s = self.state.get(ue)
         if s is not None:
-            return "high" if s.high_loss else "low"
+            return ("high" if s.high_loss else "low"), s.indoor, s.distance_2d_in
         if not indoor:
-            return "low"  # (outdoors the O2I model plays no part)
-        return "high" if self.rng.random() < self.settings.o2i_high_loss_share else "low"
-
-    def _indoor(self, ue: str, indoor: bool) -> bool:
-        s = self.state.get(ue)
-        return s.indoor if s is not None else bool(indoor)
-
-    def _d_in(self, ue: str, d_in: float) -> float:
-        s = self.state.get(ue)
-        return s.distance_2d_in if s is not None else float(d_in)
+            return "low", False, float(d_in)  # (outdoors the O2I model plays no part)
+        return ("high" if self.rng.random() < self.settings.o2i_high_loss_share else "low"), True, float(d_in)
 
     def _patterns(self, pos: np.ndarray, site_xy: np.ndarray) -> np.ndarray:
         """Each cell's pattern (dBi) toward each UE, from the site image the UE sees."""
