@@ -58,6 +58,9 @@ class LayoutSettings:
     redrop: str = "never"
     """``every-step``: a fresh drop at every step (the calibration's drops), each UE new;
     ``never``: one drop at setup, the UEs stay."""
+    center_m: tuple[float, float] = (0.0, 0.0)
+    """Where the centre site stands (x, y in the scene frame, metres): places the layout
+    in a ray-traced scene."""
 
     def __post_init__(self):
         object.__setattr__(self, "given", caviar.given_keys())  # (which keys the configuration wrote)
@@ -83,6 +86,12 @@ class LayoutSettings:
                              f"(the cell radius isd_m/√3), got {self.min_distance_m!r}")
         if self.scenario is not None and self.scenario not in DROP_SCENARIOS:
             raise ValueError(f"scenario: expected one of {list(DROP_SCENARIOS)}, got {self.scenario!r}")
+        center = self.center_m
+        if not (isinstance(center, (list, tuple)) and len(center) == 2
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                        for v in center)):
+            raise ValueError(f"center_m: expected [x, y] in metres, got {center!r}")
+        object.__setattr__(self, "center_m", (float(center[0]), float(center[1])))
         if self.redrop not in REDROP:
             raise ValueError(f"redrop: expected one of {list(REDROP)}, got {self.redrop!r}")
 
@@ -99,7 +108,7 @@ def site_positions(layout: LayoutSettings) -> np.ndarray:
         "uma", batch_size=1, num_ut_per_sector=1, carrier_frequency=6e9, num_rings=layout.rings,
         use_3gpp_calibration_defaults=False, isd=float(layout.isd_m), bs_height=float(layout.height_m),
         min_bs_ut_dist=0.0, indoor_probability=0.0, return_site_positions=True)
-    return xy.detach().cpu().double().numpy()
+    return xy.detach().cpu().double().numpy() + np.array(layout.center_m)
 
 
 def layout_cells(layout: LayoutSettings, defaults: Mapping[str, Any], column: Column | None) -> list[Cell]:
@@ -162,5 +171,7 @@ def drop_ues(layout: LayoutSettings, scenario: str, carrier_hz: float) -> Drop:
     if d_in.ndim == 2:  # link-specific below 6 GHz ([cell, ut]): the home site's value
         home = np.arange(d_in.shape[1]) // layout.ues_per_sector
         d_in = d_in[home, np.arange(d_in.shape[1])]
-    return Drop(positions=ut_loc.detach().cpu().double().numpy()[0],
+    positions = ut_loc.detach().cpu().double().numpy()[0]
+    positions[:, :2] += np.array(layout.center_m)
+    return Drop(positions=positions,
                 indoor=in_state.detach().cpu().numpy()[0].astype(bool), distance_2d_in=d_in)

@@ -7,7 +7,8 @@ proportional-fair scheduling, outer-loop link adaptation, PHY abstraction on NR 
 tables; or Shannon). Publishes per step:
 
 - ``communications.throughput`` (the paper's schema, Mbit/s of decoded bits) per UE;
-- ``network.ue`` per UE: serving cell, RSRP of every cell, SINR, MCS, TBLER, HARQ;
+- ``network.ue`` per UE: serving cell, RSRP of every cell, SINR, SIR, coupling loss, MCS,
+  TBLER, HARQ (and, for a UE the layout dropped, its position);
 - ``network.events``: attach, handover and radio-link-failure events;
 - ``network.cells``: per cell, its UEs and the share of PRB-slots it used.
 
@@ -70,6 +71,8 @@ NR_PRBS = {
 }
 INTERFERENCE = ("full-buffer", "scheduled")
 CHANNELS = ("free-space", "ray-traced", *STOCHASTIC)
+MAX_REDROPS = 50
+"""Fresh drops a ray-traced layout tries for a UE that fell under a roof."""
 
 
 def carrier_key(p: Any, cell: Cell) -> str:
@@ -92,6 +95,13 @@ def deployment(p: Any) -> list[Cell]:
                          "[[...params.sites]], not both")
     defaults = {k: getattr(p, k) for k in ("tx_power_dbm", "carrier_hz", "bandwidth_hz", "array")}
     if p.layout is not None:
+        if p.channel == "ray-traced":
+            if p.layout.wraparound:
+                raise ValueError("layout.wraparound: a ray-traced scene is finite and does not repeat; set "
+                                 "wraparound = false (the UEs at the layout's edge then see fewer interferers)")
+            if p.layout.ues_per_sector and p.layout.indoor_share > 0:
+                raise ValueError(f"layout.indoor_share: the ray tracer traces outdoor UEs only (no building "
+                                 f"entry loss); set indoor_share = 0, got {p.layout.indoor_share!r}")
         cells = layout_cells(p.layout, defaults, p.column)
     else:
         cells = [dataclasses.replace(c, column=p.column) for c in parse_sites(p.sites, defaults)]
@@ -223,6 +233,13 @@ class RadioNetwork(caviar.Plugin):
         self.tracer = None
         if p.channel == "ray-traced":
             self.tracer = SiteTracer(p.raytracing, self.cells, seed=ctx.seed, base_dir=ctx.config_dir)
+            if p.layout is not None:
+                covered = [c.site for c in self.cells if not self.tracer.outdoors(np.array([c.position]))[0]]
+                if covered:
+                    raise caviar.ConfigError(
+                        f"the layout puts site(s) {', '.join(dict.fromkeys(covered))} under a roof of "
+                        f"{p.raytracing.scene!r} (no open sky above {p.layout.height_m:g} m): move the layout "
+                        f"with layout.center_m (now {list(p.layout.center_m)})", "params.layout.center_m")
         self.map_files: list = []
         self.layer: dict | None = None
         if p.radio_map is not None:
@@ -253,17 +270,35 @@ class RadioNetwork(caviar.Plugin):
         column (the column itself stays ``u``'s) and its 38.901 draw."""
         self.mm.forget(u)
         self.link.released(self.ues[u]["column"])
+        self.traced.pop(u, None)  # (traced again where it next is)
         if self.stochastic is not None:
             self.stochastic.forget(u)
 
     def _drop(self) -> None:
-        """A drop of the layout's UEs (TR 38.901 §7.8): ``drop<k>``, each a new UE."""
+        """A drop of the layout's UEs (TR 38.901 §7.8): ``drop<k>``, each a new UE. In a
+        ray-traced scene a UE dropped under a roof is dropped again in its sector until it
+        is outdoors (uniform over the sector's open ground)."""
         from sionna.phy import config as sionna_config
 
         layout = self.p.layout
         assert layout is not None
+        scenario = layout.scenario or STOCHASTIC.get(self.p.channel, "uma")
         sionna_config.seed = (self.ctx.seed * 1_000_003 + self.drops) % 2**31  # (Sionna draws the drop)
-        drop = drop_ues(layout, layout.scenario or STOCHASTIC.get(self.p.channel, "uma"), self.p.carrier_hz)
+        drop = drop_ues(layout, scenario, self.p.carrier_hz)
+        if self.tracer is not None:
+            inside = ~self.tracer.outdoors(drop.positions)
+            for again in range(1, MAX_REDROPS + 1):
+                if not inside.any():
+                    break
+                sionna_config.seed = (self.ctx.seed * 1_000_003 + self.drops + 7_919 * again) % 2**31
+                more = drop_ues(layout, scenario, self.p.carrier_hz).positions  # (the same sectors, k by k)
+                drop.positions[inside] = more[inside]
+                inside[inside] = ~self.tracer.outdoors(more[inside])
+            if inside.any():
+                sectors = sorted({self.names[k // layout.ues_per_sector] for k in np.flatnonzero(inside)})
+                raise caviar.ConfigError(f"{MAX_REDROPS} drops found no open ground in sector(s) {', '.join(sectors)} "
+                                         f"of {self.p.raytracing.scene!r}: move the layout with layout.center_m",
+                                         "params.layout.center_m")
         self.drops += 1
         for k, position in enumerate(drop.positions):
             u = f"drop{k}"
@@ -418,6 +453,8 @@ class RadioNetwork(caviar.Plugin):
                   "coupling_loss_db": round(float(coupling_loss), 3) if covered else None,
                   "rsrp_dbm": {self.names[k]: round(float(rsrp[k]), 2) for k in listed},
                   "throughput_mbps": round(mbps, 6)}
+        if ue_type == "dropped":  # (no other module publishes where the network dropped it)
+            report["position_m"] = [round(float(v), 2) for v in self.ues[u]["position"]]
         if self.p.link_model == "sys":
             report.update(link)
         yield NETWORK_UE, report

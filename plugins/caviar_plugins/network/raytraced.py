@@ -162,6 +162,13 @@ class SiteTracer:
         (:attr:`~caviar_plugins.rt.solver.PathTracer.cache_seen`)."""
         return self.tracer.cache_seen
 
+    def outdoors(self, points: np.ndarray) -> np.ndarray:
+        """Whether each point [n, 3] has open sky above it in the scene
+        (:func:`~caviar_plugins.rt.scene.open_sky`): not inside a building."""
+        from caviar_plugins.rt.scene import open_sky
+
+        return open_sky(self.scene, points)
+
     def _place(self, ues: np.ndarray) -> None:
         n = len(ues)
         while len(self.receivers) < n:

@@ -8,7 +8,8 @@ writes its vertex positions.
   :func:`geometry_fingerprint` that leaves them out;
 * vertex positions: :func:`write_vertex_positions` (then :func:`geometry_changed`),
   :func:`vertex_positions`, and :func:`objects_out_of_the_way`;
-* which shapes a ray meets first: :func:`first_hits`, :func:`shape_table`, :func:`on_shapes`.
+* which shapes a ray meets first: :func:`first_hits`, :func:`shape_table`, :func:`on_shapes`;
+  and which points are outdoors: :func:`open_sky`.
 
 Sionna RT's public scene API (``load_scene``, ``SceneObject``, ``Scene.edit``) is used as
 documented; Mitsuba's scene parameters (``mi_scene_params``) only here.
@@ -218,6 +219,16 @@ def first_hits(scene: Any, origins: np.ndarray, directions: np.ndarray,
     si = scene.mi_scene.ray_intersect_preliminary(ray)
     return (np.array(si.is_valid(), dtype=bool), np.array(dr.reinterpret_array(mi.UInt32, si.shape)),
             np.array(si.prim_index))
+
+
+def open_sky(scene: Any, points: np.ndarray) -> np.ndarray:
+    """Whether each point (n, 3) has open sky above it: a ray straight up meets nothing.
+    False inside a building (its roof is above), under a bridge or an overhang."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    up = np.broadcast_to([0.0, 0.0, 1.0], points.shape)
+    return ~first_hits(scene, points, up)[0]
 
 
 def shape_table(scene, objects) -> Any:
