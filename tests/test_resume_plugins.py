@@ -150,3 +150,45 @@ def test_the_radio_network_on_the_38901_channel_resumes_to_the_same_messages(tmp
     ue = [m.data for m in log.decoded("network.ue")]
     assert {u["UE_Id"] for u in ue} == {"car1", "car2"}
     assert all(u["coupling_loss_db"] > 40 for u in ue if u["serving_cell"])
+
+
+ENERGY = """
+[episode]
+ts = 1.0
+seed = 1
+stages = ["mobility", "energy", "mission", "pace"]
+
+[output]
+name = "energy"
+analysis = ["3D.mobility.forecast", "mission.rescue", "mission.result"]
+
+[modules.slow]             # (steps of 50 ms, for the kill to land on its step)
+stage = "pace"
+plugin = "sample_plugins:Slow"
+params = { seconds = 0.05 }
+
+[modules.uav]
+stage = "mobility"
+plugin = "waypoint-flight"
+params = { waypoints = "route.csv", frame = "scene", speed = 10.0 }
+
+[modules.energy]
+stage = "energy"
+plugin = "uav-energy"
+params = { battery = { capacity_wh = 1.0, reserve = 0.2 }, return_speed_mps = 5.0 }
+
+[modules.mission]
+stage = "mission"
+plugin = "mission"
+subscribe = ["uav.energy", "caviar.episode.end"]
+"""
+
+
+def test_uav_energy_and_the_flight_home_resume_to_the_same_messages(tmp_path, cli):
+    """The battery, the mission's decision and the flight's way home (sent home at t = 5 s)."""
+    (tmp_path / "route.csv").write_text("X,Y,Z\n0,0,30\n400,0,30\n")
+    config = tmp_path / "energy.toml"
+    config.write_text(ENERGY)
+    kill = random.Random(43).randrange(7, 13)
+    log = _resumes_to_the_reference(tmp_path, cli, config, [], kill, every=3, steps=16)
+    assert len(log.decoded("mission.return")) == 1

@@ -21,6 +21,8 @@ configuration's ``plugin = "..."`` gives), by subpackage:
   interference, handover and scheduling.
 * :mod:`~caviar_plugins.live`: ``mavlink-telemetry`` (:class:`MavlinkTelemetry`), a real
   vehicle's positions over MAVLink.
+* :mod:`~caviar_plugins.energy`: ``uav-energy`` (:class:`UavEnergy`), every UAV's power,
+  energy and battery (Zeng et al.'s rotary-wing model).
 
 Besides: :mod:`~caviar_plugins.rt`, ray tracing in one home (Sionna RT scene, path solver,
 shoot cache, the adapter to Sionna's internals); :mod:`~caviar_plugins.osm`, scenes from
@@ -39,6 +41,7 @@ from typing import Any
 from caviar_plugins import schema
 from caviar_plugins.assets import DATA, SCENES
 from caviar_plugins.beam_selection import BeamDataset, BeamSelector
+from caviar_plugins.energy import UavEnergy
 from caviar_plugins.mobility import RandomWaypointFlight, WaypointFlight
 from caviar_plugins.radio import FreeSpaceLink, LinkMonitor, SionnaLink
 from caviar_plugins.sar import Mission
@@ -57,4 +60,4 @@ def __getattr__(name: str) -> Any:
 
 __all__ = ["DATA", "SCENES", "BeamDataset", "BeamSelector", "Camera", "FreeSpaceLink", "ImageLink", "LinkMonitor",
            "MavlinkTelemetry", "Mission", "PersonDetector", "RadioNetwork", "RandomWaypointFlight", "SionnaLink",
-           "SionnaTrafficLink", "SumoTraffic", "WaypointFlight", "schema"]
+           "SionnaTrafficLink", "SumoTraffic", "UavEnergy", "WaypointFlight", "schema"]

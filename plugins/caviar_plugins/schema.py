@@ -104,7 +104,19 @@ HOVER = "mission.hover"
 RESCUE = "mission.rescue"
 """One rescued target: ``{"UE_Id", "x", "y", "time", "throughput", "hover_s"}``."""
 RESULT = "mission.result"
-"""At the end: ``{"mission_time_s", "rescued", "rescues"}``."""
+"""At the end: ``{"mission_time_s", "rescued", "rescues"}`` and, with ``uav.energy``,
+``"energy"`` (per UAV: Wh used, state of charge, returned home) and ``"energy_per_rescue_wh"``."""
+RETURN_HOME = "mission.return"
+"""``{"UE_Id", "speed_mps", "reason"}``: the UAV leaves its route and flies straight home at
+this speed (where ``uav.energy`` says it took off), and the episode ends there."""
+
+# UAV energy (caviar_plugins.energy)
+ENERGY = "uav.energy"
+"""Per UAV and step (:class:`caviar_plugins.energy.UavEnergy`): ``{"UE_type", "UE_Id",
+"speed_mps", "power_w", "propulsion_w", "energy_wh", "remaining_wh", "soc", "capacity_wh", "reserve_wh",
+"home", "return_wh", "return_speed_mps", "must_return"}``: the power over the last step
+(propulsion, communication and computing), the energy used since the start, the battery
+left, and the energy to fly home at ``return_speed_mps``."""
 
 # Datasets
 DATASET_RECORD = "dataset.record"

@@ -14,7 +14,7 @@ from caviar_plugins import protocol as paper
 from caviar_plugins.assets import DATA
 from caviar_plugins.mobility.frames import airsim_ned_to_scene
 from caviar_plugins.mobility.waypoints import Path, read_waypoints
-from caviar_plugins.schema import FORECAST, HOVER, POSITIONS, position_payload
+from caviar_plugins.schema import FORECAST, HOVER, POSITIONS, RETURN_HOME, position_payload
 
 
 class WaypointFlight(caviar.Plugin):
@@ -23,7 +23,8 @@ class WaypointFlight(caviar.Plugin):
 
     ``protocol = "physical"``: constant speed through the waypoints; it hovers while a
     ``mission.hover`` message for it says so, and ends the episode at the last waypoint
-    if ``end_at_last``.
+    if ``end_at_last``. On ``mission.return`` it leaves the route and flies straight home
+    at the speed the message gives, and the episode ends when it is there.
 
     ``protocol = "paper"``: the 2023 AirSim loop (:class:`PaperFlight`): stop-and-go legs,
     a hover requested by ``mission.hover`` is served at the next waypoint reached, and
@@ -31,8 +32,8 @@ class WaypointFlight(caviar.Plugin):
     carries the mission clock, which starts ``takeoff_s`` before the first move.
     """
 
-    subscribe = [HOVER]
-    optional = (HOVER,)  # (a mission that holds the UAV, when there is one)
+    subscribe = [HOVER, RETURN_HOME]
+    optional = (HOVER, RETURN_HOME)  # (a mission that holds the UAV or sends it home, when there is one)
     publishes = (POSITIONS, FORECAST, caviar.END_TOPIC)
 
     @dataclasses.dataclass
@@ -96,6 +97,8 @@ class WaypointFlight(caviar.Plugin):
         self.path = Path(pts)
         self.p = p
         self.s = min(max(p.start_m, 0.0), self.path.length)  # arc length flown
+        self.speed = p.speed
+        self.home: dict | None = None  # {"reason"} once it flies home
         self.hover_until = -1.0
         self.ts = ctx.ts
         self.paper: PaperFlight | None = None
@@ -109,8 +112,11 @@ class WaypointFlight(caviar.Plugin):
             yield from self._paper_step(self.paper, t, inbox)
             return
         for m in inbox.on(HOVER):
-            if m.data.get("UE_Id") == self.p.ue_id:
+            if m.data.get("UE_Id") == self.p.ue_id and self.home is None:
                 self.hover_until = max(self.hover_until, t + float(m.data["seconds"]))
+        for m in inbox.on(RETURN_HOME):
+            if m.data.get("UE_Id") == self.p.ue_id and self.home is None:
+                self._fly_home(m.data)
         yield POSITIONS, position_payload(self.p.ue_id, self.path.at(self.s))
         if self.p.forecast_steps:
             # The same additions the next steps will make (bit-identical positions),
@@ -118,20 +124,37 @@ class WaypointFlight(caviar.Plugin):
             s, ahead = self.s, []
             for k in range(self.p.forecast_steps):
                 if t + k * self.ts + 1e-9 >= self.hover_until:
-                    s += self.p.speed * self.ts
+                    s += self.speed * self.ts
                 ahead.append(self.path.at(s))
             yield FORECAST, forecast_payload(self.p.ue_id, ahead, self.ts)
-        if self.s >= self.path.length and self.p.end_at_last:
+        if self.s >= self.path.length and self.home is not None:
+            yield caviar.END_TOPIC, {"reason": f"{self.p.ue_id} flew home: {self.home['reason']}"}
+        elif self.s >= self.path.length and self.p.end_at_last:
             yield caviar.END_TOPIC, {"reason": f"{self.p.ue_id} reached its last waypoint"}
         if t + 1e-9 >= self.hover_until:
-            self.s += self.p.speed * self.ts
+            self.s += self.speed * self.ts
+
+    def _fly_home(self, command: dict) -> None:
+        """Leaves the route: a straight path from where the UAV is to ``command["home"]``
+        (the route's first waypoint where the command names none), at its speed."""
+        here = self.path.at(self.s)
+        home = np.asarray(command.get("home") or self.path.points[0], dtype=float)
+        self.path = Path(np.stack([here, home]))
+        self.s, self.hover_until = 0.0, -1.0
+        self.speed = float(command.get("speed_mps") or self.p.speed)
+        self.home = {"reason": str(command.get("reason", "sent home"))}
 
     def state(self):
-        # The route and parameters come from setup; what moves is here.
-        return {"s": self.s, "hover_until": self.hover_until, "paper": copy.deepcopy(self.paper)}
+        # The route and parameters come from setup; what moves is here (and the way home).
+        return {"s": self.s, "hover_until": self.hover_until, "paper": copy.deepcopy(self.paper),
+                "speed": self.speed, "home": self.home,
+                "home_path": self.path.points.tolist() if self.home is not None else None}
 
     def restore(self, state):
         self.s, self.hover_until, self.paper = state["s"], state["hover_until"], state["paper"]
+        self.speed, self.home = state.get("speed", self.p.speed), state.get("home")
+        if state.get("home_path") is not None:
+            self.path = Path(np.array(state["home_path"]))
 
     def _paper_step(self, f: PaperFlight, t, inbox):
         for m in inbox.on(HOVER):

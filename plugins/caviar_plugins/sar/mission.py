@@ -2,7 +2,12 @@
 the rescue is counted, and the flight continues.
 
 The stop lasts S = B / throughput with B = 10 images of 4 MB (the paper's), at the
-UAV's latest throughput. A person seen again within ``same_target_m`` of a rescued
+UAV's latest throughput.
+
+With ``uav-energy`` in the loop (``uav.energy``), a UAV whose battery would not last the
+way home (``must_return``) is sent home (``mission.return``, at the speed the energy
+model chose); on its way it stops for no one. ``mission.result`` then reports each UAV's
+energy and the energy per rescue. A person seen again within ``same_target_m`` of a rescued
 one is the same person. When the episode ends (the UAV reached its last waypoint),
 ``mission.result`` reports the total mission time and the rescued targets.
 
@@ -21,12 +26,13 @@ import math
 
 import caviar
 from caviar_plugins import protocol as paper
-from caviar_plugins.schema import DETECTIONS, HOVER, RESCUE, RESULT, THROUGHPUT
+from caviar_plugins.schema import DETECTIONS, ENERGY, HOVER, RESCUE, RESULT, RETURN_HOME, THROUGHPUT
 
 
 class Mission(caviar.Plugin):
-    subscribe = [DETECTIONS, THROUGHPUT, caviar.END_TOPIC]
-    publishes = (HOVER, RESCUE, RESULT)
+    subscribe = [DETECTIONS, THROUGHPUT, ENERGY, caviar.END_TOPIC]
+    optional = (ENERGY,)  # (a battery model, when there is one)
+    publishes = (HOVER, RESCUE, RESULT, RETURN_HOME)
 
     @dataclasses.dataclass
     class Params:
@@ -46,12 +52,16 @@ class Mission(caviar.Plugin):
         self.ctx = ctx
         self.throughput: dict[str, float] = {}
         self.rescues: list[dict] = []
+        self.energy: dict[str, dict] = {}  # UE_Id -> its latest uav.energy
+        self.returning: list[str] = []
 
     def state(self):
-        return {"throughput": self.throughput, "rescues": self.rescues}
+        return {"throughput": self.throughput, "rescues": self.rescues, "energy": self.energy,
+                "returning": self.returning}
 
     def restore(self, state):
         self.throughput, self.rescues = state["throughput"], state["rescues"]
+        self.energy, self.returning = state["energy"], state["returning"]
 
     def step(self, t, inbox):
         p = self.ctx.params
@@ -60,10 +70,13 @@ class Mission(caviar.Plugin):
         for m in inbox:
             if m.topic == THROUGHPUT:
                 self.throughput[m.data["UE_Id"]] = float(m.data["throughput"])
+        yield from self._send_home(inbox, is_paper)
         end = inbox.latest(caviar.END_TOPIC)
         detections = [] if (is_paper and end is not None) else inbox.on(DETECTIONS)
         for m in detections:
             ue = m.data["UE_Id"]
+            if ue in self.returning:
+                continue  # (on its way home it stops for no one)
             for d in m.data["detections"]:
                 g = d.get("ground")
                 if g is None or any(math.dist((g["x"], g["y"]), (r["x"], r["y"])) < p.same_target_m
@@ -83,6 +96,16 @@ class Mission(caviar.Plugin):
         if end is not None:
             yield RESULT, self._result(end, is_paper)
 
+    def _send_home(self, inbox, is_paper: bool):
+        """``mission.return`` for a UAV whose battery would not last the way home."""
+        for m in inbox.on(ENERGY):
+            e = self.energy[m.data["UE_Id"]] = m.data
+            if e["must_return"] and e["UE_Id"] not in self.returning and not is_paper:
+                self.returning.append(e["UE_Id"])
+                yield RETURN_HOME, {"UE_Id": e["UE_Id"], "speed_mps": e["return_speed_mps"], "home": e["home"],
+                                    "reason": f"battery: {e['remaining_wh']:.2f} Wh left, {e['return_wh']:.2f} Wh "
+                                              f"to fly home and {e['reserve_wh']:.2f} Wh of reserve"}
+
     def _stop(self, ue: str, throughput: dict[str, float]) -> tuple[float, float] | None:
         """(throughput, hover seconds) of a rescue, or None when it does not count."""
         p = self.ctx.params
@@ -94,6 +117,11 @@ class Mission(caviar.Plugin):
 
     def _result(self, end, is_paper: bool) -> dict:
         result = {"mission_time_s": end.time, "rescued": len(self.rescues), "rescues": self.rescues}
+        if self.energy:
+            used = sum(e["energy_wh"] for e in self.energy.values())
+            result["energy"] = {ue: {"energy_wh": e["energy_wh"], "soc": e["soc"],
+                                     "returned_home": ue in self.returning} for ue, e in self.energy.items()}
+            result["energy_per_rescue_wh"] = round(used / len(self.rescues), 4) if self.rescues else None
         if is_paper:
             data = end.data if isinstance(end.data, dict) else {}
             for key in ("mission_time_s", "clock_offset_s", "flight_time_s", "hover_s", "flown_m"):
