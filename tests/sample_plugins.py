@@ -367,3 +367,22 @@ class Status(caviar.Plugin):
         if self.ctx.step == self.ctx.params.bad_at:
             yield "caviar.other", "x"
         yield caviar.STATUS_TOPIC, f"{self.ctx.step + 1} steps\nsaid"
+
+
+class CarAt(caviar.Plugin):
+    """A SUMO-like car (``dimensions``, ``heading``) at x = ``xs[step]`` on the x axis."""
+
+    publishes = ("3D.mobility.positions",)
+    stateless = True  # its position from the step alone
+
+    @dataclasses.dataclass
+    class Params:
+        xs: list = dataclasses.field(default_factory=list)
+        height: float = 1.5
+
+    def step(self, t, inbox):
+        p = self.ctx.params
+        x = float(p.xs[min(self.ctx.step, len(p.xs) - 1)])
+        yield "3D.mobility.positions", {"UE_type": "passenger", "UE_Id": "car1",
+                                        "position": {"x": x, "y": 0.0, "z": 0.0}, "heading": 0.0,
+                                        "dimensions": {"length": 4.5, "width": 1.8, "height": p.height}}

@@ -192,3 +192,57 @@ def test_uav_energy_and_the_flight_home_resume_to_the_same_messages(tmp_path, cl
     kill = random.Random(43).randrange(7, 13)
     log = _resumes_to_the_reference(tmp_path, cli, config, [], kill, every=3, steps=16)
     assert len(log.decoded("mission.return")) == 1
+
+
+LIDAR = """
+[episode]
+ts = 0.1
+seed = 3
+stages = ["mobility", "sensing", "pace"]
+
+[output]
+name = "lidar"
+analysis = ["3D.mobility.forecast", "3D.lidar.*", "3D.lidar.*.sweep"]
+
+[modules.uav]
+stage = "mobility"
+plugin = "waypoint-flight"
+params = { waypoints = "route.csv", frame = "scene", speed = 10.0, end_at_last = false }
+
+[modules.car]
+stage = "mobility"
+plugin = "sample_plugins:CarAt"
+params = { xs = [10.0, 11.0, 12.0, 13.0, 14.0, 15.0, 16.0, 17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0] }
+
+[modules.lidar]
+stage = "sensing"
+plugin = "lidar"
+[modules.lidar.params]
+scene = "scene.xml"
+threads = 1
+[modules.lidar.params.sensor]
+channels = 8
+horizontal_resolution_deg = 2.0
+range_noise_m = 0.05
+dropout = 0.1
+mount_offset_m = [0.0, 0.0, -1.0]
+
+[modules.slow]             # (steps of 50 ms, for the kill to land on its step)
+stage = "pace"
+plugin = "sample_plugins:Slow"
+params = { seconds = 0.05 }
+"""
+
+
+def test_the_lidar_resumes_to_the_same_point_clouds(tmp_path, cli):
+    """Noise and dropout (ctx.rng), the car's box in the pool, the sensor's velocity."""
+    from test_lidar import _scene
+
+    _scene(tmp_path, building=(30.0, -10.0, 50.0, 10.0, 40.0))
+    (tmp_path / "route.csv").write_text("X,Y,Z\n0,0,2\n-100,0,2\n")
+    config = tmp_path / "lidar.toml"
+    config.write_text(LIDAR)
+    kill = random.Random(431).randrange(6, 11)
+    log = _resumes_to_the_reference(tmp_path, cli, config, [], kill, every=3, steps=14)
+    assert len(log.decoded("3D.lidar.uav1")) == 14
+    assert "car1" in log.decoded("3D.lidar.uav1.sweep")[-1].data["objects"]

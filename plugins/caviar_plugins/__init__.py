@@ -23,6 +23,8 @@ configuration's ``plugin = "..."`` gives), by subpackage:
   vehicle's positions over MAVLink.
 * :mod:`~caviar_plugins.energy`: ``uav-energy`` (:class:`UavEnergy`), every UAV's power,
   energy and battery (Zeng et al.'s rotary-wing model).
+* :mod:`~caviar_plugins.lidar`: ``lidar`` (:class:`Lidar`), rotating LiDARs cast into the ray
+  tracer's scene with the moving bodies.
 
 Besides: :mod:`~caviar_plugins.rt`, ray tracing in one home (Sionna RT scene, path solver,
 shoot cache, the adapter to Sionna's internals); :mod:`~caviar_plugins.osm`, scenes from
@@ -42,6 +44,7 @@ from caviar_plugins import schema
 from caviar_plugins.assets import DATA, SCENES
 from caviar_plugins.beam_selection import BeamDataset, BeamSelector
 from caviar_plugins.energy import UavEnergy
+from caviar_plugins.lidar import Lidar
 from caviar_plugins.mobility import RandomWaypointFlight, WaypointFlight
 from caviar_plugins.radio import FreeSpaceLink, LinkMonitor, SionnaLink
 from caviar_plugins.sar import Mission
@@ -58,6 +61,6 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module 'caviar_plugins' has no attribute {name!r}")
 
 
-__all__ = ["DATA", "SCENES", "BeamDataset", "BeamSelector", "Camera", "FreeSpaceLink", "ImageLink", "LinkMonitor",
-           "MavlinkTelemetry", "Mission", "PersonDetector", "RadioNetwork", "RandomWaypointFlight", "SionnaLink",
-           "SionnaTrafficLink", "SumoTraffic", "UavEnergy", "WaypointFlight", "schema"]
+__all__ = ["DATA", "SCENES", "BeamDataset", "BeamSelector", "Camera", "FreeSpaceLink", "ImageLink", "Lidar",
+           "LinkMonitor", "MavlinkTelemetry", "Mission", "PersonDetector", "RadioNetwork", "RandomWaypointFlight",
+           "SionnaLink", "SionnaTrafficLink", "SumoTraffic", "UavEnergy", "WaypointFlight", "schema"]

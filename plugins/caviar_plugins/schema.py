@@ -34,6 +34,11 @@ FORECAST = "3D.mobility.forecast"
 """Where a UE expects to be next (opt-in, e.g. waypoint-flight's ``forecast_steps``):
 ``{"UE_type", "UE_Id", "ts", "positions": [{"x", "y", "z"}, …]}``, the positions at the
 next steps (one per ``ts``), assuming no new command (hover) arrives."""
+LIDAR = "3D.lidar"
+"""Prefix: ``3D.lidar.<UE_Id>`` one LiDAR sweep's point cloud (float32, n × 6: x, y, z,
+intensity, ring, object; binary); ``3D.lidar.<UE_Id>.sweep`` its metadata: ``{"UE_Id",
+"sweep", "time", "origin", "rays", "points", "dropped", "columns", "objects"}``
+(:mod:`caviar_plugins.lidar`)."""
 CAMERA = "3D.camera"
 """Prefix: ``3D.camera.<UE_Id>`` a nadir camera image (uint8, H × W × 3, binary);
 ``3D.camera.<UE_Id>.file`` the same image as a PNG artifact."""

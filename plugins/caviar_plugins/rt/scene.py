@@ -45,13 +45,16 @@ def scene_path(name: str, base: pathlib.Path | None = None) -> pathlib.Path | No
     return p
 
 
-def load_scene(name: str, base: pathlib.Path | None = None) -> Any:
-    """Sionna RT's scene for :func:`scene_path` (``empty``: free space)."""
+def load_scene(name: str, base: pathlib.Path | None = None, merge_shapes: bool = True) -> Any:
+    """Sionna RT's scene for :func:`scene_path` (``empty``: free space). Sionna merges the
+    shapes of one material into one object by default (faster to trace);
+    ``merge_shapes=False`` keeps each shape an object of its own name (a sensor that says
+    what it hit)."""
     configure_drjit()
     import sionna.rt as rt
 
     path = scene_path(name, base)
-    return rt.load_scene(str(path)) if path else rt.load_scene()
+    return rt.load_scene(str(path), merge_shapes=merge_shapes) if path else rt.load_scene()
 
 
 def bounding_box(obj) -> np.ndarray:
