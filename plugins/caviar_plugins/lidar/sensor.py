@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -126,7 +126,7 @@ class Caster:
     ``pools`` in it. ``names`` and ``reflectivity`` of each shape come from the scene's
     objects (their radio material) and, for a pool's mesh, from whose box is hit."""
 
-    def __init__(self, scene: Any, settings: LidarSettings, pools: list[Any] = ()):
+    def __init__(self, scene: Any, settings: LidarSettings, pools: Sequence[Any] = ()):
         self.scene, self.s, self.pools = scene, settings, list(pools)
         self.directions = settings.directions().reshape(-1, 3)
 
