@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import pathlib
+import warnings
 from typing import Any
 
 import numpy as np
@@ -27,7 +28,9 @@ from caviar_plugins.assets import DATA
 from caviar_plugins.mobility.waypoints import Path, read_waypoints
 from caviar_plugins.rt.drjit_setup import mitsuba
 from caviar_plugins.schema import CAMERA, POSITIONS, every_ue, per_ue, read_position
+from caviar_plugins.vision.shading import daylight, facing, in_shadow, shade, to_srgb8, vary_albedo
 
+RENDERERS = ("flat", "shaded")
 CLOTHES = [(0.95, 0.35, 0.05), (0.85, 0.08, 0.08), (0.95, 0.85, 0.1), (0.1, 0.25, 0.85), (0.55, 0.1, 0.6)]
 SKIN = (0.8, 0.6, 0.45)
 SKY = (0.6, 0.75, 0.95)
@@ -68,6 +71,32 @@ class VisualConfig:
     """Horizontal field of view."""
     supersample: int = 2
     """Samples per pixel along each axis (averaged: anti-aliasing)."""
+    render: str = "flat"
+    """``flat``: each shape's colour under a fixed Lambert term (no shadows), the loop's
+    renderer since the start; ``shaded``: the light of the detector's training frames
+    (:mod:`~caviar_plugins.vision.shading`): a sun with cast shadows, a sky term, an
+    exposure and the ground's albedo noise."""
+    sun_elevation_deg: float = 45.0
+    """shaded: the sun's elevation above the horizon (the training frames: 15° to 75°)."""
+    sun_azimuth_deg: float = 135.0
+    """shaded: the sun's azimuth, counter-clockwise from x (east)."""
+    sky: float = 0.35
+    """shaded: the sky term (the training frames: 0.25 to 0.5)."""
+    exposure: float = 1.0
+    """shaded: the exposure (the training frames: 0.75 to 1.25)."""
+
+    def __post_init__(self):
+        if self.render not in RENDERERS:
+            raise ValueError(f"render: expected one of {list(RENDERERS)}, got {self.render!r}")
+        if not 0.0 < self.sun_elevation_deg <= 90.0:
+            raise ValueError(f"sun_elevation_deg: expected degrees in (0, 90], got {self.sun_elevation_deg!r}")
+        if not 0.0 <= self.sky <= 1.0 or not 0.0 < self.exposure <= 4.0:
+            key = "sky" if not 0.0 <= self.sky <= 1.0 else "exposure"
+            raise ValueError(f"{key}: expected sky in [0, 1] and exposure in (0, 4], got {getattr(self, key)!r}")
+
+    def light(self) -> dict:
+        """The shaded renderer's light (:func:`~caviar_plugins.vision.shading.daylight`)."""
+        return daylight(self.sun_elevation_deg, self.sun_azimuth_deg, self.sky, self.exposure)
 
 
 GROUND = (0.22, 0.45, 0.16)
@@ -138,8 +167,11 @@ class VisualScene:
         size = int(ids.max()) + 1
         self.palette = np.tile(np.array(SKY, dtype=np.float32), (size, 1))
         self.person_of_id = np.full(size, -1)
+        self.noisy = np.zeros(size, dtype=bool)  # ground, roads, roofs: the shaded albedo noise
+        self.seed = seed
         for i, n in zip(ids, names, strict=True):
             self.palette[i] = colours[n]
+            self.noisy[i] = colours[n] in (GROUND, ROADS, BUILDINGS)
             if n.startswith("person"):
                 self.person_of_id[i] = int(n[len("person"):].split("-")[0])
         self._palette_dr = [mi.Float(np.ascontiguousarray(self.palette[:, ch])) for ch in range(3)]
@@ -165,8 +197,24 @@ class VisualScene:
         chunk = max(1, chunk)
         out: list[tuple[np.ndarray, np.ndarray]] = []
         for s in range(0, len(pos), chunk):
-            images, labels = self._shade_batch(*self._trace_chunk(pos[s:s + chunk]))
+            if self.cfg.render == "shaded":
+                images, labels, _ = self._shaded_chunk(pos[s:s + chunk])
+            else:
+                images, labels = self._shade_batch(*self._trace_chunk(pos[s:s + chunk]))
             out.extend(zip(images, labels, strict=True))
+        return out
+
+    def render_depth(self, positions, chunk: int = 64) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(image, depth) of each view: the ``shaded`` or ``flat`` image of
+        :meth:`render_many` and the distance (m, float32 H × W) from the camera to what each
+        pixel sees, averaged over its samples that hit something (NaN: only sky)."""
+        pos = np.array([[float(v) for v in p] for p in positions], dtype=np.float64).reshape(-1, 3)
+        out: list[tuple[np.ndarray, np.ndarray]] = []
+        for s in range(0, len(pos), max(1, chunk)):
+            shaded, _, depth = self._shaded_chunk(pos[s:s + max(1, chunk)])
+            images = list(shaded) if self.cfg.render == "shaded" else \
+                [im for im, _ in self.render_many(pos[s:s + max(1, chunk)], chunk)]
+            out.extend(zip(images, depth, strict=True))
         return out
 
     def _view_rays(self, rotation: bytes):
@@ -201,9 +249,8 @@ class VisualScene:
         cache[rotation] = rays
         return rays
 
-    def _trace_chunk(self, pos: np.ndarray) -> tuple[np.ndarray, Any, int]:
-        """The normal (numpy, N·H·k·W·k × 3) and shape-id (Dr.Jit UInt32) AOVs of the
-        views at ``pos``, and their number."""
+    def _rays(self, pos: np.ndarray):
+        """The primary rays of the views at ``pos`` in one wavefront (see :meth:`render_many`)."""
         import drjit as dr
 
         c, mi = self.cfg, self.mi
@@ -234,6 +281,15 @@ class VisualScene:
         ray = mi.Ray3f(origin, dr.gather(mi.Vector3f, d_g, src))
         ray.maxt = dr.gather(mi.Float, maxt_g, src)
         dr.eval(ray)  # rays first: fused into the intersection kernel they cost ~10x more
+        return ray
+
+    def _trace_chunk(self, pos: np.ndarray) -> tuple[np.ndarray, Any, int]:
+        """The normal (numpy, N·H·k·W·k × 3) and shape-id (Dr.Jit UInt32) AOVs of the
+        views at ``pos``, and their number."""
+        import drjit as dr
+
+        mi, n = self.mi, len(pos)
+        ray = self._rays(pos)
         si = self.scene.ray_intersect(ray, mi.RayFlags.All, True)
         valid = si.is_valid()
         shape_id = dr.select(valid, dr.reinterpret_array(mi.UInt32, si.shape), 0)
@@ -242,6 +298,38 @@ class VisualScene:
         # Component by component: np.array of a whole Vector3f takes a slow path (~0.2 s per 1e6 rays).
         normal_np = np.stack([np.array(normal.x), np.array(normal.y), np.array(normal.z)], axis=-1)
         return normal_np, shape_id, n
+
+    def _shaded_chunk(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ``shaded`` images (N, H, W, 3), person labels (N, H, W) and depth (N, H, W)
+        of the views at ``pos``: the primary rays of :meth:`render_many`, then the light of
+        the training frames (:mod:`~caviar_plugins.vision.shading`: one shadow ray per
+        sample, geometric normals turned toward the camera, the albedo noise)."""
+        import drjit as dr
+
+        c, mi, k = self.cfg, self.mi, self.cfg.supersample
+        n, h, w = len(pos), c.height, c.width
+        si = self.scene.ray_intersect(self._rays(pos), mi.RayFlags.All, True)
+        valid = si.is_valid()
+        shape_id = dr.select(valid, dr.reinterpret_array(mi.UInt32, si.shape), 0)
+        dr.eval(shape_id, si.p, si.n, si.t)
+        hit = np.array(valid, dtype=bool)
+        shape = np.clip(np.array(shape_id, dtype=np.int64), 0, len(self.palette) - 1)
+        points = np.stack([np.array(si.p.x), np.array(si.p.y), np.array(si.p.z)], axis=-1).astype(float)
+        normals = np.stack([np.array(si.n.x), np.array(si.n.y), np.array(si.n.z)], axis=-1).astype(float)
+        eye = np.repeat(pos, h * k * w * k, axis=0)
+        normals = facing(normals, points, eye)
+        light = c.light()
+        shadow = in_shadow(mi, self.scene, points, normals, light["sun"], hit)
+        albedo = self.palette[shape].astype(float)
+        vary_albedo(albedo, points, self.noisy[shape] & hit, self.seed)
+        linear = shade(albedo, normals, shadow, hit, light).reshape(n, h, k, w, k, 3).mean(axis=(2, 4))
+        t = np.where(hit, np.array(si.t, dtype=float), np.nan).reshape(n, h, k, w, k)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # (a pixel that sees only sky: NaN)
+            depth = np.nanmean(t.transpose(0, 1, 3, 2, 4).reshape(n, h, w, k * k), axis=-1) \
+                if hit.any() else np.full((n, h, w), np.nan)
+        labels = self.person_of_id[shape.reshape(n, h * k, w * k)[:, ::k, ::k]]
+        return to_srgb8(linear), labels, depth.astype(np.float32)
 
     def _shade_batch(self, normal: np.ndarray, shape_id, n: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_shade` of ``n`` views, bit for bit: the Lambert term in numpy (its
@@ -318,15 +406,20 @@ class VisualScene:
 
 FILE = "file"
 """Last token of the PNG artifact's topic, ``3D.camera.<UE_Id>.file``."""
+DEPTH = "depth"
+"""Last token of the depth image's topic, ``3D.camera.<UE_Id>.depth``."""
 
 
 class Camera(caviar.Plugin):
     """Renders each UAV's nadir camera image and publishes it as a binary payload on
     ``3D.camera.<UE_Id>`` (uint8, H × W × 3); with ``save`` also as PNG artifacts on
-    ``3D.camera.<UE_Id>.file``."""
+    ``3D.camera.<UE_Id>.file``; with ``depth`` the depth image beside it on
+    ``3D.camera.<UE_Id>.depth`` (float32, H × W, metres from the camera, NaN where only sky).
+    ``render = "shaded"`` renders as the detector's training frames are lit (sun, cast
+    shadows, sky, exposure); ``flat`` (the default) as the loop always has."""
 
     subscribe = [POSITIONS]
-    publishes = (every_ue(CAMERA), f"{every_ue(CAMERA)}.{FILE}")
+    publishes = (every_ue(CAMERA), f"{every_ue(CAMERA)}.{FILE}", f"{every_ue(CAMERA)}.{DEPTH}")
     stateless = True  # each step's images from that step's positions (the last ones kept are a shortcut)
 
     @dataclasses.dataclass
@@ -339,33 +432,45 @@ class Camera(caviar.Plugin):
         """A UAV where it was at its last image gets that image again without a render
         (the scene is static and the renderer seeded: it is the same image, bit for bit;
         a hovering UAV costs nothing); ``false``: every image rendered."""
+        depth: bool = False
+        """Also publish each image's depth image (``3D.camera.<UE_Id>.depth``)."""
 
     def setup(self, ctx):
         self.ctx = ctx
         p = ctx.params
         cfg = VisualConfig(**{f.name: getattr(p, f.name) for f in dataclasses.fields(VisualConfig)})
         self.visual = VisualScene(cfg, seed=ctx.seed, base_dir=ctx.config_dir)
-        self.last: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # UE -> (position, image) of its last image
+        # UE -> (position, image, depth or None) of its last image
+        self.last: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
+
+    def _render(self, positions: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        """(image, depth or None) of each view."""
+        p = self.ctx.params
+        if not positions:
+            return []
+        if p.depth:
+            return [(im, d) for im, d in self.visual.render_depth(positions)]
+        if p.batch or p.render == "shaded":  # (the shaded renderer is the batched one)
+            return [(im, None) for im, _ in self.visual.render_many(positions)]
+        return [(self.visual.render(pos), None) for pos in positions]
 
     def step(self, t, inbox):
         latest = {}
         for m in inbox.on(POSITIONS):
             latest[m.data["UE_Id"]] = read_position(m.data)
         p = self.ctx.params
-        images = {ue: self.last[ue][1] for ue, pos in latest.items()
+        frames = {ue: self.last[ue][1:] for ue, pos in latest.items()
                   if p.still_frames and ue in self.last and np.array_equal(self.last[ue][0], pos)}
-        todo = [ue for ue in latest if ue not in images]
-        if p.batch:
-            rendered = [im for im, _ in self.visual.render_many([latest[ue] for ue in todo])] if todo else []
-        else:
-            rendered = [self.visual.render(latest[ue]) for ue in todo]
-        for ue, image in zip(todo, rendered, strict=True):
-            images[ue] = image
+        todo = [ue for ue in latest if ue not in frames]
+        for ue, frame in zip(todo, self._render([latest[ue] for ue in todo]), strict=True):
+            frames[ue] = frame
             if p.still_frames:
-                self.last[ue] = (latest[ue], image)
+                self.last[ue] = (latest[ue], *frame)
         for ue in latest:
-            image = images[ue]
+            image, depth = frames[ue]
             yield per_ue(CAMERA, ue), image
+            if depth is not None:
+                yield f"{per_ue(CAMERA, ue)}.{DEPTH}", depth
             if self.ctx.params.save:
                 path = self.ctx.artifact_dir / f"{ue}-{self.ctx.step:06d}.png"
                 write_png(path, image)

@@ -47,14 +47,13 @@ from caviar_plugins.mobility.waypoints import read_waypoints
 from caviar_plugins.rt.drjit_setup import mitsuba
 from caviar_plugins.vision.camera import _scene_meshes, shape_ids
 from caviar_plugins.vision.image_link import packet_loss
+from caviar_plugins.vision.shading import daylight, facing, in_shadow, shade, to_srgb8, vary_albedo
 
 SPLIT_SEEDS = {"train": 101, "val": 202, "test": 303}
 """Each split has its own scene (persons, distractors) and flights, from its own seed."""
 TRAIN_LOSS_RATES = (0.0, 0.0, 0.01, 0.25, 0.5)
 """Packet-loss rates drawn for training frames (the image link's table, loss-free twice)."""
 SKIN_TONES = [(0.94, 0.76, 0.62), (0.84, 0.62, 0.47), (0.66, 0.46, 0.32), (0.45, 0.3, 0.2), (0.3, 0.2, 0.14)]
-SUN = 0.75
-"""The sun's irradiance against the sky term's scale (a white surface facing it: 0.75 + sky)."""
 MIN_BOX_PIXELS = 6
 """A person whose visible pixels are fewer than this (image resolution) gets no box."""
 
@@ -249,12 +248,7 @@ class TwinFrames:
         """A random time of day: sun direction and colour, sky term, exposure."""
         elevation = float(rng.uniform(15, 75))
         azimuth = float(rng.uniform(0, 360))
-        e, a = math.radians(elevation), math.radians(azimuth)
-        warm = 1.0 - (elevation - 15) / 60  # 1 at sunrise, 0 at noon
-        sun_colour = np.array([1.0, 0.93 - 0.13 * warm, 0.85 - 0.3 * warm])
-        return {"sun": np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)]),
-                "sun_colour": sun_colour, "sky": float(rng.uniform(0.25, 0.5)),
-                "exposure": float(rng.uniform(0.75, 1.25)), "elevation_deg": elevation}
+        return daylight(elevation, azimuth, sky=float(rng.uniform(0.25, 0.5)), exposure=float(rng.uniform(0.75, 1.25)))
 
     def render(self, position, heading_deg: float, light: dict) -> tuple[np.ndarray, np.ndarray]:
         """An sRGB uint8 image (H, W, 3) seen straight down from ``position``, image-up along
@@ -276,31 +270,17 @@ class TwinFrames:
         p, n = aov[..., -7:-4].reshape(-1, 3), aov[..., -4:-1].reshape(-1, 3)
         shape = np.clip(np.rint(aov[..., -1]).astype(np.int64), 0, len(self.palette) - 1).reshape(-1)
         hit = shape > 0
-        sun = light["sun"]
         # Normals towards the camera (Mitsuba's cube and sphere normals point out already;
         # flipped where a face is seen from behind).
-        view = p - np.array(pos)
-        n = np.where((np.sum(n * view, axis=1) > 0)[:, None], -n, n)
-        origin = p + n * 0.02
-        ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.ascontiguousarray(origin[:, i], dtype=np.float32)) for i in range(3))),
-                       mi.Vector3f(*(mi.Float(np.full(len(p), sun[i], dtype=np.float32)) for i in range(3))))
-        shadow = np.asarray(self.scene.ray_test(ray, active=mi.Bool(hit)), dtype=bool)
+        n = facing(n, p, np.array(pos))
+        shadow = in_shadow(mi, self.scene, p, n, light["sun"], hit)
         dr.eval()
         albedo = self.palette[shape]
-        noisy = self.noisy[shape]
-        if noisy.any():
-            cell = np.floor(p[noisy, :2] / 0.5).astype(np.int64)
-            hsh = (cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663) ^ self.seed
-            jitter = ((hsh % 1000) / 1000.0 - 0.5) * 0.3
-            albedo[noisy] *= (1.0 + jitter)[:, None]
-        lambert = np.clip(n @ sun, 0, 1) * ~shadow
-        linear = albedo * (light["sky"] + SUN * lambert[:, None] * light["sun_colour"][None, :]) * light["exposure"]
-        sky = np.array([0.6, 0.75, 0.95])
-        linear[~hit] = sky
+        vary_albedo(albedo, p, self.noisy[shape], self.seed)
+        linear = shade(albedo, n, shadow, hit, light)
         linear = linear.reshape(c.height, k, c.width, k, 3).mean(axis=(1, 3))
-        srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.clip(linear, 0, 1) ** (1 / 2.4) - 0.055)
         labels = self.person_of_id[shape].reshape(c.height * k, c.width * k)
-        return (255 * np.clip(srgb, 0, 1) + 0.5).astype(np.uint8), labels
+        return to_srgb8(linear), labels
 
 
 def yolo_boxes(labels: np.ndarray, supersample: int, min_pixels: int = MIN_BOX_PIXELS) -> list[tuple[int, float, float,
