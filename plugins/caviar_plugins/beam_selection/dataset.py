@@ -1,9 +1,13 @@
 """The beam-selection dataset (Mob+3D/Comm-in-loop, no AI in the loop), like Raymobtime:
 one npz record per step with the UAV position, the best beam pair, the LOS flag and
-the gains of all pairs.
+the gains of all pairs and, where a ``lidar`` or ``camera`` module runs, the UE's LiDAR
+sweep and camera image of that step (multimodal, as Raymobtime pairs them).
 
 * :class:`BeamDataset` writes ``RUN_DIR/artifacts/NAME/step-NNNNNN-UE.npz``.
-* :func:`load` reads a run's records back as arrays.
+* :func:`load` reads a run's records back as arrays (:func:`load_multimodal`: with the
+  LiDAR sweeps and images);
+* ``caviar-core export raymobtime`` writes them in Raymobtime's files
+  (:mod:`caviar_plugins.beam_selection.raymobtime`).
 
 The UAV flies with :class:`~caviar_plugins.mobility.RandomWaypointFlight`.
 """
@@ -11,17 +15,31 @@ The UAV flies with :class:`~caviar_plugins.mobility.RandomWaypointFlight`.
 from __future__ import annotations
 
 import pathlib
+from typing import Any
 
 import numpy as np
 
 import caviar
-from caviar_plugins.schema import BEAM_GAINS, DATASET_RECORD, LINK, POSITIONS, every_ue, read_position, ue_of
+from caviar_plugins.schema import (
+    BEAM_GAINS,
+    CAMERA,
+    DATASET_RECORD,
+    LIDAR,
+    LINK,
+    POSITIONS,
+    every_ue,
+    read_position,
+    ue_of,
+)
 
 
 class BeamDataset(caviar.Plugin):
-    """Writes one npz record per UAV and step: position, best pair, LOS, gains."""
+    """Writes one npz record per UAV and step: position, best pair, LOS, gains, and the
+    step's LiDAR sweep (the last, ``lidar``: n × 6) and camera image (``image``) when those
+    modules run."""
 
-    subscribe = [POSITIONS, LINK, every_ue(BEAM_GAINS)]
+    subscribe = [POSITIONS, LINK, every_ue(BEAM_GAINS), every_ue(LIDAR), every_ue(CAMERA)]
+    optional = (every_ue(LIDAR), every_ue(CAMERA))  # (the other modalities, when they run)
     publishes = (DATASET_RECORD,)
 
     def setup(self, ctx):
@@ -38,11 +56,16 @@ class BeamDataset(caviar.Plugin):
         for m in inbox.on(POSITIONS):
             self.positions[m.data["UE_Id"]] = read_position(m.data)
         links = {m.data["UE_Id"]: m.data for m in inbox.on(LINK)}
+        sweeps = {ue_of(m.topic): np.asarray(m.data) for m in inbox.on(every_ue(LIDAR))}  # (the last one)
+        images = {ue_of(m.topic): np.asarray(m.data) for m in inbox.on(every_ue(CAMERA))}
         for m in inbox.on(every_ue(BEAM_GAINS)):
             ue = ue_of(m.topic)
             path = self.ctx.artifact_dir / f"step-{self.ctx.step:06d}-{ue}.npz"
-            np.savez(path, position=self.positions[ue], best_pair=links[ue]["best_pair"],
-                     los=links[ue]["los"], gains=m.data, time=t, n_paths=links[ue]["n_paths"])
+            record: dict[str, Any] = {
+                "position": self.positions[ue], "best_pair": links[ue]["best_pair"], "los": links[ue]["los"],
+                "gains": m.data, "time": t, "n_paths": links[ue]["n_paths"]}
+            record.update({k: v for k, v in (("lidar", sweeps.get(ue)), ("image", images.get(ue))) if v is not None})
+            np.savez(path, **record)
             yield DATASET_RECORD, caviar.Artifact(path)
 
 
@@ -57,3 +80,18 @@ def load(run_dir: str | pathlib.Path) -> dict[str, np.ndarray]:
     if all("n_paths" in r for r in records):
         keys.append("n_paths")
     return {k: np.stack([r[k] for r in records]) for k in keys}
+
+
+def load_multimodal(run_dir: str | pathlib.Path) -> tuple[dict[str, np.ndarray], list[np.ndarray | None],
+                                                          list[np.ndarray | None], list[str]]:
+    """:func:`load`'s arrays, each record's LiDAR sweep (n × 6) and camera image (None
+    where the record has none), and each record's UE id, in the same order."""
+    files = sorted(pathlib.Path(run_dir).glob("artifacts/*/step-*.npz"))
+    arrays = load(run_dir)
+    sweeps, images = [], []
+    for f in files:
+        with np.load(f) as r:
+            sweeps.append(r["lidar"] if "lidar" in r else None)
+            images.append(r["image"] if "image" in r else None)
+    ues = [f.stem.split("-", 2)[2] for f in files]
+    return arrays, sweeps, images, ues

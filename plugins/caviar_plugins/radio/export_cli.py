@@ -2,9 +2,12 @@
 a recorded run in another tool's format.
 
     export deepmimo RUN_DIR OUT [--module NAME] [--quiet] [--debug]
+    export raymobtime RUN_DIR OUT [--grid X,Y,Z] [--cell M] [--tx X,Y,Z] [--debug]
 
 ``deepmimo``: a DeepMIMO v4 scenario from the path data of a ray-traced run
 (``sionna-link``'s ``publish_paths = true``; :mod:`caviar_plugins.radio.deepmimo_export`).
+``raymobtime``: a ``beam-dataset`` run's records (position, beam-pair gains, LiDAR, camera)
+in Raymobtime's files (:mod:`caviar_plugins.beam_selection.raymobtime`).
 
 Exit status: 0 written; 2 bad input (no run directory, a run without path data, an OUT
 that exists, deepmimo missing, bad option), one line on stderr naming what is wrong;
@@ -43,7 +46,45 @@ def parser() -> argparse.ArgumentParser:
     d.add_argument("--module", help="the module whose paths to export, when several published some")
     d.add_argument("--quiet", action="store_true", help="no progress lines")
     d.add_argument("--debug", action="store_true", help="tracebacks for unexpected errors")
+    r = sub.add_parser("raymobtime", help="a beam-dataset run's records in Raymobtime's files",
+                       description="Writes OUT: CoordVehiclesRxPerScene.csv, beams_output.npz "
+                       "(output_classification), lidar_input.npz (input_classification, occupancy grids around "
+                       "the UE from its LiDAR sweeps), img_input.npz (inputs, the camera images) and meta.json, "
+                       "from the records a beam-dataset module wrote (with lidar and camera modules in the run "
+                       "for those modalities).")
+    r.add_argument("run_dir", type=pathlib.Path, help="the run directory (caviar-core run's output)")
+    r.add_argument("out", type=pathlib.Path, help="the folder to create")
+    r.add_argument("--grid", default="40,40,20", help="LiDAR grid cells X,Y,Z (default 40,40,20)")
+    r.add_argument("--cell", type=float, default=1.0, help="LiDAR grid cell size in metres (default 1)")
+    r.add_argument("--tx", help="the base station X,Y,Z (default: the run's link module's tx_position)")
+    r.add_argument("--debug", action="store_true", help="tracebacks for unexpected errors")
     return p
+
+
+def _raymobtime(args) -> int:
+    from caviar_plugins.beam_selection.raymobtime import ExportError, export_raymobtime
+
+    try:
+        try:
+            grid = tuple(int(v) for v in args.grid.split(","))
+            tx = [float(v) for v in args.tx.split(",")] if args.tx else None
+        except ValueError:
+            raise ExportError(f"--grid/--tx: expected comma-separated numbers, got {args.grid!r} / {args.tx!r}") \
+                from None
+        if tx is not None and len(tx) != 3:
+            raise ExportError(f"--tx: expected X,Y,Z, got {args.tx!r}")
+        meta = export_raymobtime(args.run_dir, args.out, grid=grid, cell_m=args.cell, tx=tx)  # type: ignore[arg-type]
+    except ExportError as e:
+        print(f"{PROG} raymobtime: error: {e}", file=sys.stderr)
+        return 2
+    except Exception as e:  # noqa: BLE001 - one line unless --debug
+        if args.debug:
+            raise
+        print(f"{PROG} raymobtime: error: {type(e).__name__}: {e} (--debug for the traceback)", file=sys.stderr)
+        return 1
+    print(f"{args.out}: {meta['records']} records ({meta['lidar']['records']} with LiDAR, {meta['images']} with an "
+          f"image)")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -55,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except SystemExit as e:  # --help
         return int(e.code or 0)
+    if args.format == "raymobtime":
+        return _raymobtime(args)
     from caviar_plugins.radio.deepmimo_export import ExportError, export_deepmimo
 
     try:
