@@ -185,3 +185,39 @@ def test_bad_lidar_input_names_the_key_before_anything_runs(tmp_path, capfd, sen
     assert _core.main(["caviar-core", "validate", str(cfg)]) == 2
     first = capfd.readouterr().err.splitlines()[0]
     assert f"modules.lidar.params.{key}:" in first and says in first, first
+
+
+def test_the_view_draws_the_sweep_as_one_cloud_per_colour_and_the_state_of_charge(tmp_path, browser):
+    """caviar-core view: the LiDAR's view.lidar points (thinned to view_points) in a few
+    THREE.Points, and the energy plugin's state-of-charge label beside the UAV."""
+    from caviar.view import start_server
+    from view_support import open_page
+
+    sensor = "channels = 16, vertical_fov_deg = [-60.0, -5.0], horizontal_resolution_deg = 1.0, range_noise_m = 0.0"
+    extra = """
+[modules.energy]
+stage = "sensing"
+plugin = "uav-energy"
+params = { battery = { capacity_wh = 50.0 } }
+"""
+    scene = _scene(tmp_path, building=(30.0, -10.0, 50.0, 10.0, 40.0))
+    text = RUN.format(steps=3, speed=5.0, plugin=PLUGIN, scene=scene, sensor=sensor).replace(
+        "threads = 1,", "threads = 1, view_points = 500,") + extra
+    (tmp_path / "route.csv").write_text("X,Y,Z\n0,0,20\n100,0,20\n")
+    (tmp_path / "lidar.toml").write_text(text)
+    with caviar.Simulation.from_toml(tmp_path / "lidar.toml", out=tmp_path / "run") as sim:
+        log = sim.run(progress=False)
+    drawn = log.decoded("view.lidar")[-1].data["points"]
+    assert len(drawn) == 500 and {p["color"] for p in drawn} == {"#7cb342", "#b0bec5"}  # ground, building
+    label = log.decoded("view.energy")[-1].data["labels"][0]
+    assert label["text"].startswith("uav1 ") and label["text"].endswith(" %") and label["z"] == pytest.approx(23.0)
+    srv = start_server(tmp_path / "run", pending=False)
+    try:
+        page, errors = open_page(browser, srv.url)
+        page.wait_for_function("caviarView.viewPrimitives > 0", timeout=20_000)  # (at step 0)
+        assert page.evaluate("caviarView.viewPrimitives") == 500 + 1  # the points and the label
+        assert page.evaluate("caviarView.viewObjects") == 2 + 1  # two clouds (two colours) and the label
+        assert not errors
+        page.close()
+    finally:
+        srv.stop()

@@ -86,6 +86,11 @@ NETWORK_RADIO_MAP = "network.radio_map"
 artifacts at the first step."""
 VIEW_RADIO_MAP = "view.radio_map"
 """The map's SINR layer for the browser view (a ``view.*`` ``images`` entry), at the first step."""
+VIEW_LIDAR = "view.lidar"
+"""A LiDAR's last sweep of the step for the browser view (``view.*`` ``points``, thinned to
+``view_points``, coloured by what they hit)."""
+VIEW_ENERGY = "view.energy"
+"""Each UAV's state of charge for the browser view (``view.*`` ``labels`` beside the UAV)."""
 NETWORK_CELLS = "network.cells"
 """Per step: ``{"cells": [{"cell", "ues", "active_share"}]}``, the UEs a cell serves and the
 share of the step's slots in which it scheduled someone."""

@@ -315,6 +315,7 @@ window.caviarView = Object.freeze({
   },
   get beams() { return S.drawnBeams.map((b) => ({ ...b })); },
   get viewPrimitives() { return S.drawnView; },
+  get viewObjects() { return S.drawnViewObjects; },
   get imageLayers() { return S.drawnLayers; },
   get imageLayersShown() { return layerGroup.visible ? S.drawnLayers : 0; },
   get imageLayersLoaded() { return S.layersLoaded; },

@@ -24,12 +24,21 @@ export function drawView(step) {
   for (const i of latest.values()) {
     const d = S.view[i].data || {};
     for (const im of Array.isArray(d.images) ? d.images : []) if (addLayer(im)) n++;
+    // One THREE.Points per colour and size, whatever the number of points (a LiDAR sweep is
+    // thousands): one draw call each instead of one per point.
+    const clouds = new Map(); // color|size -> [x, y, z, ...]
     for (const p of Array.isArray(d.points) ? d.points : []) {
       if (typeof p.x !== 'number' || typeof p.y !== 'number') continue;
-      const g = new THREE.BufferGeometry().setAttribute('position', new THREE.Float32BufferAttribute([p.x, p.y, p.z || 0], 3));
-      viewGroup.add(new THREE.Points(g, new THREE.PointsMaterial({ color: safeColor(p.color), size: p.size || 6, sizeAttenuation: false })));
+      const key = safeCss(p.color) + '|' + (p.size || 6);
+      if (!clouds.has(key)) clouds.set(key, []);
+      clouds.get(key).push(p.x, p.y, p.z || 0);
       if (p.label) { const l = labelSprite(String(p.label), safeCss(p.color)); l.position.set(p.x, p.y, p.z || 0); viewGroup.add(l); }
       n++;
+    }
+    for (const [key, xyz] of clouds) {
+      const [css, size] = key.split('|');
+      const g = new THREE.BufferGeometry().setAttribute('position', new THREE.Float32BufferAttribute(xyz, 3));
+      viewGroup.add(new THREE.Points(g, new THREE.PointsMaterial({ color: safeColor(css), size: Number(size), sizeAttenuation: false })));
     }
     for (const ln of Array.isArray(d.lines) ? d.lines : []) {
       const pts = (Array.isArray(ln.points) ? ln.points : []).filter((q) => Array.isArray(q) && q.length >= 2).map((q) => new THREE.Vector3(q[0], q[1], q[2] || 0));
@@ -44,6 +53,7 @@ export function drawView(step) {
     }
   }
   S.drawnView = n;
+  S.drawnViewObjects = viewGroup.children.length;
   S.drawnLayers = layerGroup.children.filter((o) => o.isMesh).length;
 }
 

@@ -26,7 +26,7 @@ export const S = {
   dirty: true, plotsDirty: true,
   renders: 0, meshesLoaded: 0, meshesTotal: 0,
   loadedAt: null, ready: false, error: null,
-  drawnBeams: [], drawnView: 0,
+  drawnBeams: [], drawnView: 0, drawnViewObjects: 0,
   drawnLayers: 0, layersLoaded: 0, layerBox: null, // image layers of view.* messages (ground overlays)
   ms: { step: null, plots: null, render: null }, // moving averages of the frame's parts
 };

@@ -26,14 +26,14 @@ import numpy as np
 
 import caviar
 from caviar_plugins.energy.rotary_wing import Battery, RotaryWing
-from caviar_plugins.schema import ENERGY, POSITIONS, read_position
+from caviar_plugins.schema import ENERGY, POSITIONS, VIEW_ENERGY, read_position
 
 WH = 3600.0  # J
 
 
 class UavEnergy(caviar.Plugin):
     subscribe = [POSITIONS]
-    publishes = (ENERGY, caviar.END_TOPIC)
+    publishes = (ENERGY, VIEW_ENERGY, caviar.END_TOPIC)
 
     @dataclasses.dataclass
     class Params:
@@ -100,6 +100,20 @@ class UavEnergy(caviar.Plugin):
         return (0.5 * p.airframe.mass_kg * v ** 2 + flying + climb) / WH
 
     def step(self, t, inbox):
+        labels = []
+        for message in self._step(t, inbox):
+            yield message
+            topic, e = message
+            if topic == ENERGY:  # the browser view: the state of charge beside the UAV
+                x, y, z = self.uavs[e["UE_Id"]]["position"]
+                colour = "#66bb6a" if e["soc"] > 0.5 else "#ffca28" if e["soc"] > e["reserve_wh"] / e["capacity_wh"] \
+                    else "#ef5350"
+                text = f"{e['UE_Id']} {100 * e['soc']:.0f} %" + (" → home" if e["must_return"] else "")
+                labels.append({"x": x, "y": y, "z": z + 3.0, "color": colour, "text": text})
+        if labels:
+            yield VIEW_ENERGY, {"labels": labels}
+
+    def _step(self, t, inbox):
         p = self.p
         capacity = p.battery.capacity_wh
         for m in inbox.on(POSITIONS):

@@ -28,7 +28,7 @@ from caviar_plugins.lidar.sensor import COLUMNS, Caster, LidarSettings
 from caviar_plugins.rt.drjit_setup import configure_drjit, set_thread_count
 from caviar_plugins.rt.scatterers import Body, ScattererPool
 from caviar_plugins.rt.scene import load_scene
-from caviar_plugins.schema import ARRIVED, LIDAR, POSITIONS, every_ue, per_ue, read_position
+from caviar_plugins.schema import ARRIVED, LIDAR, POSITIONS, VIEW_LIDAR, every_ue, per_ue, read_position
 
 SWEEP = "sweep"
 """Last token of a sweep's metadata topic, ``3D.lidar.<UE_Id>.sweep``."""
@@ -39,7 +39,7 @@ FILE = "file"
 class Lidar(caviar.Plugin):
     subscribe = [POSITIONS, ARRIVED]
     optional = (ARRIVED,)  # (UEs that leave: SUMO's arrivals, when traffic runs)
-    publishes = (every_ue(LIDAR), f"{every_ue(LIDAR)}.{SWEEP}", f"{every_ue(LIDAR)}.{FILE}")
+    publishes = (every_ue(LIDAR), f"{every_ue(LIDAR)}.{SWEEP}", f"{every_ue(LIDAR)}.{FILE}", VIEW_LIDAR)
 
     @dataclasses.dataclass
     class Params:
@@ -59,10 +59,15 @@ class Lidar(caviar.Plugin):
         """Dr.Jit CPU threads; 0 = all cores."""
         save_every: int = 0
         """Also save every N-th sweep as an ``.npz`` artifact (points, columns, objects, origin, time; 0: none)."""
+        view_points: int = 0
+        """Draw each step's last sweep in the browser view (``view.lidar``), thinned to this
+        many points, coloured by what they hit (0: not drawn)."""
 
         def __post_init__(self):
-            if isinstance(self.save_every, bool) or not isinstance(self.save_every, int) or self.save_every < 0:
-                raise ValueError(f"save_every: expected a whole number of sweeps >= 0, got {self.save_every!r}")
+            for key in ("save_every", "view_points"):
+                v = getattr(self, key)
+                if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                    raise ValueError(f"{key}: expected a whole number >= 0, got {v!r}")
             if not self.ue_ids or len(set(self.ue_ids)) != len(self.ue_ids):
                 raise ValueError(f"ue_ids: expected one or more distinct UE ids, got {self.ue_ids!r}")
             if len(self.uav_body_m) != 3 or not all(v > 0 for v in self.uav_body_m):
@@ -128,6 +133,7 @@ class Lidar(caviar.Plugin):
         first = math.floor((t - self.step_s) * s.rate_hz + 1e-9) + 1
         last = math.floor(t * s.rate_hz + 1e-9)
         offset = np.asarray(s.mount_offset_m)
+        drawn: list[dict] = []
         for ue in self.p.ue_ids:
             u = self.ues.get(ue)
             if u is None or last < first:
@@ -150,3 +156,22 @@ class Lidar(caviar.Plugin):
                     np.savez_compressed(path, points=sweep.points, columns=np.array(COLUMNS),
                                         objects=np.array(sweep.objects), origin=origins[0], time=start)
                     yield f"{per_ue(LIDAR, ue)}.{FILE}", caviar.Artifact(path)
+                if k == last and self.p.view_points:
+                    drawn += self._view_points(sweep)
+        if drawn:
+            yield VIEW_LIDAR, {"points": drawn}
+
+    def _view_points(self, sweep) -> list[dict]:
+        """Up to ``view_points`` of the sweep's points, evenly thinned: moving bodies red,
+        the ground and roads green, the rest (buildings) grey."""
+        pts = sweep.points[np.linspace(0, len(sweep.points) - 1, min(self.p.view_points, len(sweep.points)))
+                           .astype(int)] if len(sweep.points) else sweep.points
+        out = []
+        for x, y, z, _, _, obj in pts:
+            name = sweep.objects[int(obj)]
+            low = name.lower()
+            colour = "#ff5252" if name in self.ues else "#7cb342" if any(
+                w in low for w in ("ground", "road", "plane", "floor", "terrain")) else "#b0bec5"
+            out.append({"x": round(float(x), 2), "y": round(float(y), 2), "z": round(float(z), 2), "color": colour,
+                        "size": 2})
+        return out
