@@ -44,6 +44,10 @@ def blueprint_runs(steps: int) -> dict[str, tuple[pathlib.Path, list[str], list[
         "network-city": (BLUEPRINTS / "network-city/config.toml", [], ["sionna.rt", "sionna.sys", "libsumo"]),
         "live-uav": (BLUEPRINTS / "live-uav/config.toml", [], ["sionna.rt", "pymavlink"]),
         "beam-gym": (BLUEPRINTS / "beam-gym/config.toml", [], ["sionna.rt"]),
+        "network-38901": (BLUEPRINTS / "network-38901/config.toml", [], ["sionna.sys"]),
+        "uav-energy": (BLUEPRINTS / "uav-energy/config.toml", [], ["sionna.rt"]),
+        "lidar-city": (BLUEPRINTS / "lidar-city/config.toml", [], ["sionna.rt", "libsumo"]),
+        "beam-lidar": (BLUEPRINTS / "beam-lidar/config.toml", [], ["sionna.rt"]),
     }
 
 
