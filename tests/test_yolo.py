@@ -168,12 +168,13 @@ def test_the_builtin_yolo_finds_persons_in_held_out_frames(frames):
     yolo = evaluate(yolo_detect(YoloOnnx(BUILTIN_YOLO, confidence=0.001)), images, truths, levels=(0.0, 0.25))
     strict = evaluate(yolo_detect(YoloOnnx(BUILTIN_YOLO)), images, truths, levels=(0.0,))
     forest = evaluate(pixel_detect(detector.builtin_model()), images, truths, levels=(0.0,))
-    # Measured on these 40 frames (2026-11-26): YOLO 0.65 / 0.62 (25 % loss), at confidence 0.25
-    # P 0.74, R 0.59; the forest 0.33. On all 240 test frames: docs/results/yolo.md.
-    assert yolo["0.00"]["ap50"] >= 0.5, yolo
-    assert yolo["0.00"]["ap50"] > forest["0.00"]["ap50"] + 0.15, (yolo, forest)
-    assert strict["0.00"]["precision"] >= 0.6 and strict["0.00"]["recall"] >= 0.5, strict
-    assert yolo["0.25"]["ap50"] >= 0.35, yolo
+    # Measured on these 40 frames (2026-11-27, the model trained with degrees = 0): YOLO 0.88 /
+    # 0.71 (25 % loss), at confidence 0.25 P 0.83, R 0.78; the forest 0.33 (the first model,
+    # degrees = 180: 0.65 / 0.62, P 0.74, R 0.59). On all 240 test frames: docs/results/yolo.md.
+    assert yolo["0.00"]["ap50"] >= 0.75, yolo  # issue #43's target on the shaded frames
+    assert yolo["0.00"]["ap50"] > forest["0.00"]["ap50"] + 0.3, (yolo, forest)
+    assert strict["0.00"]["precision"] >= 0.7 and strict["0.00"]["recall"] >= 0.65, strict
+    assert yolo["0.25"]["ap50"] >= 0.55, yolo
 
 
 def test_the_pixel_classifiers_boxes_are_its_regions_extents(frames):
