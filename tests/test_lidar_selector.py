@@ -47,3 +47,8 @@ def test_the_cnn_learns_what_only_the_lidar_shows():
     knn = ls.top_k(GainKNN(k=5).fit(positions[train], gains[train]).scores(positions[test]), gains[test])
     assert cnn["top1"] >= 0.95, cnn
     assert knn["top1"] <= 0.5, knn
+
+
+def test_a_record_with_no_path_gives_no_target_and_no_nan():
+    targets = ls.soft_targets(np.array([[0.0, 0.0, 0.0], [1.0, 0.1, 0.9]]))
+    assert np.all(np.isfinite(targets)) and targets[0].sum() == 0.0 and targets[1].sum() == pytest.approx(1.0)

@@ -184,3 +184,19 @@ def test_the_battery_refuses_shares_out_of_range():
     with pytest.raises(ValueError, match="rotor_solidity"):
         RotaryWing(rotor_solidity=1.5)
     assert math.isclose(Battery().capacity_wh, 100.0)
+
+
+def test_the_way_home_is_the_straight_3d_line_and_climbs_where_home_is_higher():
+    from caviar_plugins.energy import UavEnergy
+
+    plugin = UavEnergy()
+    plugin.p = UavEnergy.Params()
+    uav = plugin.p.airframe
+    v = plugin.return_speed = uav.max_range_speed()
+    start = (0.5 * uav.mass_kg * v ** 2) / 3600
+    per_second = (uav.level_power_w(v) + 15.0) / 3600
+    above = plugin.return_wh(np.array([0.0, 0.0, 90.0]), np.array([0.0, 0.0, 30.0]))  # 60 m straight down
+    assert above == pytest.approx(start + 60.0 / v * per_second)
+    below = plugin.return_wh(np.array([30.0, 40.0, 10.0]), np.array([0.0, 0.0, 30.0]))  # 50 m, then 20 m up
+    assert below == pytest.approx(start + math.dist((30, 40, 10), (0, 0, 30)) / v * per_second + 20.0 * 20.0 / 3600)
+    assert plugin.return_wh(np.zeros(3), np.zeros(3)) == 0.0

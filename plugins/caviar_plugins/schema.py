@@ -41,7 +41,8 @@ intensity, ring, object; binary); ``3D.lidar.<UE_Id>.sweep`` its metadata: ``{"U
 (:mod:`caviar_plugins.lidar`)."""
 CAMERA = "3D.camera"
 """Prefix: ``3D.camera.<UE_Id>`` a nadir camera image (uint8, H × W × 3, binary);
-``3D.camera.<UE_Id>.file`` the same image as a PNG artifact."""
+``3D.camera.<UE_Id>.file`` the same image as a PNG artifact; ``3D.camera.<UE_Id>.depth`` its
+depth image (float32, H × W, metres from the camera, NaN where only sky; ``depth = true``)."""
 
 # A live twin: telemetry from real vehicles (caviar_plugins.live)
 LIVE_TELEMETRY = "live.telemetry"
@@ -117,8 +118,9 @@ RESULT = "mission.result"
 """At the end: ``{"mission_time_s", "rescued", "rescues"}`` and, with ``uav.energy``,
 ``"energy"`` (per UAV: Wh used, state of charge, returned home) and ``"energy_per_rescue_wh"``."""
 RETURN_HOME = "mission.return"
-"""``{"UE_Id", "speed_mps", "reason"}``: the UAV leaves its route and flies straight home at
-this speed (where ``uav.energy`` says it took off), and the episode ends there."""
+"""``{"UE_Id", "speed_mps", "home", "reason"}``: the UAV leaves its route and flies straight
+home ([x, y, z], ``uav.energy``'s: where the UAV was first seen or its ``home`` parameter) at
+this speed, and the episode ends there."""
 
 # UAV energy (caviar_plugins.energy)
 ENERGY = "uav.energy"

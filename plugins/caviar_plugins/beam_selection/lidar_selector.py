@@ -63,7 +63,7 @@ def soft_targets(gains: np.ndarray, threshold_db: float = THRESHOLD_DB) -> np.nd
     g = np.asarray(gains, dtype=np.float64)
     db = 10 * np.log10(np.maximum(g, 1e-30))
     kept = np.where(db >= db.max(axis=1, keepdims=True) - threshold_db, g, 0.0)
-    return kept / kept.sum(axis=1, keepdims=True)
+    return kept / np.maximum(kept.sum(axis=1, keepdims=True), 1e-30)  # (no path at all: zeros)
 
 
 def top_k(scores: np.ndarray, gains: np.ndarray, ks=KS) -> dict[str, float]:
@@ -117,7 +117,8 @@ def train_cnn(grids: np.ndarray, positions: np.ndarray, targets: np.ndarray, wit
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    mean, std = positions.mean(axis=0), positions.std(axis=0) + 1e-9
+    mean, std = positions.mean(axis=0), positions.std(axis=0)
+    std = np.where(std < 1e-6, 1.0, std)  # (a coordinate constant in training: left unscaled)
     model = _model(grids.shape[1], targets.shape[1], with_position).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3, weight_decay=1e-4)
     g = to_torch(grids, device, torch.float32)

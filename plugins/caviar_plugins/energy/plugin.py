@@ -90,7 +90,7 @@ class UavEnergy(caviar.Plugin):
         getting up to that speed (½mV², from a stop), the flight and any climb; with
         ``step_s``, the flight in whole steps (its last, shorter one costs a whole step)."""
         p, v = self.p, self.return_speed
-        seconds = math.dist(position[:2], home[:2]) / v
+        seconds = math.dist(position, home) / v  # (the flight flies the straight 3D line home)
         if step_s:
             seconds = math.ceil(seconds / step_s - 1e-9) * step_s
         if seconds == 0:

@@ -353,6 +353,9 @@ def side_by_side(scene: str, drops: int, out: pathlib.Path, center: tuple[float,
                 log = sim.run(progress=progress)
             values, uncovered = _covered(metrics_of(log))
             ues[channel] = dropped_ues(log)
+        if values["coupling_loss_db"].size == 0:
+            raise CalibrationError(f"--center/--max-depth: no cell reaches any UE with channel {channel!r} "
+                                   f"({uncovered} UEs dropped); place the layout elsewhere or trace deeper")
         r: dict[str, Any] = {m: [round(float(x), 3) for x in np.percentile(v, PERCENTILES)] for m, v in values.items()}
         r.update(samples=int(values["coupling_loss_db"].size), uncovered=uncovered,
                  wall_s=round(time.perf_counter() - started, 1))

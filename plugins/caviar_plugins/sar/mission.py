@@ -61,7 +61,7 @@ class Mission(caviar.Plugin):
 
     def restore(self, state):
         self.throughput, self.rescues = state["throughput"], state["rescues"]
-        self.energy, self.returning = state["energy"], state["returning"]
+        self.energy, self.returning = state.get("energy", {}), state.get("returning", [])  # (older checkpoints)
 
     def step(self, t, inbox):
         p = self.ctx.params
