@@ -98,8 +98,10 @@ def export_raymobtime(run_dir: pathlib.Path, out: pathlib.Path, grid: tuple[int,
     from caviar_plugins.beam_selection.dataset import load_multimodal
 
     run_dir = pathlib.Path(run_dir)
-    if not (run_dir / "run.json").exists():
-        raise ExportError(f"{run_dir}: not a run directory (no run.json)")
+    try:
+        RunDir(run_dir).require("; give the folder of a run of `caviar-core run`")
+    except FileNotFoundError as e:
+        raise ExportError(str(e)) from None
     if out.exists():
         raise ExportError(f"{out}: exists; give a new folder")
     if len(grid) != 3 or min(grid) < 1 or not cell_m > 0:
