@@ -20,7 +20,7 @@ from caviar_plugins.network.layout import LayoutSettings, Wraparound, site_posit
 from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-COMPANIES = ROOT.parent / "shared" / "data" / "3gpp-calibration" / "phase1-uma-6ghz.json"
+COMPANIES = calibration.COMPANIES  # (shipped in caviar_plugins/data)
 C = 299_792_458.0
 
 

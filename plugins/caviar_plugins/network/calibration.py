@@ -10,8 +10,8 @@ handover margin) and reports, on ``network.ue``, its coupling loss, its geometry
 (with noise) and its wideband SIR (without). The command writes
 ``<out>/<scenario>-<carrier>GHz.json`` (the three CDFs at the percentiles 0..100, the drops
 and the settings; coupling loss as a positive loss) and a ``.png`` that draws each CDF
-over the band of the 3GPP companies' curves where ``../shared/data``'s file has them
-(``--reference``).
+over the band of the 3GPP companies' curves where the shipped file has them
+(``--reference``, :data:`COMPANIES` by default).
 
     caviar-core calibrate ray-traced --scene blueprints/osm-city/scene/scene.xml --drops 20
 
@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from caviar_plugins.assets import DATA
+
 # TR 38.901 Table 7.8-1 (large-scale calibration): per scenario the layout, and per
 # carrier the BS power and the bandwidth (with the NR numerology used here).
 LAYOUTS = {"uma": {"isd_m": 500.0, "height_m": 25.0, "min_distance_m": 35.0},
@@ -50,6 +52,9 @@ METRICS = ("coupling_loss_db", "geometry_sinr_db", "wideband_sir_db")
 REFERENCE_NAMES = {"coupling_loss_db": "coupling_loss", "geometry_sinr_db": "geometry_sinr",
                    "wideband_sir_db": "wideband_sir"}
 PERCENTILES = list(range(101))
+COMPANIES = DATA / "3gpp-phase1-uma-6ghz.json"
+"""The 20 companies' phase-1 CDFs of UMa at 6 GHz (R1-165974; ``Phase1Calibration_v42_CMCC.xlsx``
+as NVIDIA Aerial encodes it), shipped with the package: the band the calibration is drawn over."""
 
 
 class CalibrationError(ValueError):
@@ -452,7 +457,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/results/calibration"))
     parser.add_argument("--reference", type=pathlib.Path,
-                        default=pathlib.Path("../shared/data/3gpp-calibration/phase1-uma-6ghz.json"),
+                        default=COMPANIES,
                         help="the 3GPP companies' CDFs (JSON) to draw and compare with")
     parser.add_argument("--scene", default="blueprints/osm-city/scene/scene.xml",
                         help="ray-traced: the scene (a Mitsuba XML file, e.g. scene build's)")
