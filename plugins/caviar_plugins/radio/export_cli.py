@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
+from typing import Callable
 
 PROG = "caviar-core export"
 
@@ -61,30 +62,36 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def _raymobtime(args) -> int:
-    from caviar_plugins.beam_selection.raymobtime import ExportError, export_raymobtime
-
+def _exported(args, bad_input: type[Exception], work: Callable[[], object]) -> int:
+    """Runs ``work`` (one export): 0 done; 2 ``bad_input``, named in one line; 1 anything else,
+    one line unless ``--debug``."""
     try:
-        try:
-            grid = tuple(int(v) for v in args.grid.split(","))
-            tx = [float(v) for v in args.tx.split(",")] if args.tx else None
-        except ValueError:
-            raise ExportError(f"--grid/--tx: expected comma-separated numbers, got {args.grid!r} / {args.tx!r}") \
-                from None
-        if tx is not None and len(tx) != 3:
-            raise ExportError(f"--tx: expected X,Y,Z, got {args.tx!r}")
-        meta = export_raymobtime(args.run_dir, args.out, grid=grid, cell_m=args.cell, tx=tx)  # type: ignore[arg-type]
-    except ExportError as e:
-        print(f"{PROG} raymobtime: error: {e}", file=sys.stderr)
+        work()
+    except bad_input as e:
+        print(f"{PROG} {args.format}: error: {e}", file=sys.stderr)
         return 2
     except Exception as e:  # noqa: BLE001 - one line unless --debug
         if args.debug:
             raise
-        print(f"{PROG} raymobtime: error: {type(e).__name__}: {e} (--debug for the traceback)", file=sys.stderr)
+        print(f"{PROG} {args.format}: error: {type(e).__name__}: {e} (--debug for the traceback)", file=sys.stderr)
         return 1
+    return 0
+
+
+def _raymobtime(args) -> None:
+    from caviar_plugins.beam_selection.raymobtime import ExportError, export_raymobtime
+
+    try:
+        grid = tuple(int(v) for v in args.grid.split(","))
+        tx = [float(v) for v in args.tx.split(",")] if args.tx else None
+    except ValueError:
+        raise ExportError(f"--grid/--tx: expected comma-separated numbers, got {args.grid!r} / {args.tx!r}") \
+            from None
+    if tx is not None and len(tx) != 3:
+        raise ExportError(f"--tx: expected X,Y,Z, got {args.tx!r}")
+    meta = export_raymobtime(args.run_dir, args.out, grid=grid, cell_m=args.cell, tx=tx)  # type: ignore[arg-type]
     print(f"{args.out}: {meta['records']} records ({meta['lidar']['records']} with LiDAR, {meta['images']} with an "
           f"image)")
-    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,20 +104,13 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:  # --help
         return int(e.code or 0)
     if args.format == "raymobtime":
-        return _raymobtime(args)
+        from caviar_plugins.beam_selection.raymobtime import ExportError as RaymobtimeError
+
+        return _exported(args, RaymobtimeError, lambda: _raymobtime(args))
     from caviar_plugins.radio.deepmimo_export import ExportError, export_deepmimo
 
-    try:
-        export_deepmimo(args.run_dir, args.out, module=args.module, progress=None if args.quiet else print)
-    except ExportError as e:
-        print(f"{PROG} deepmimo: error: {e}", file=sys.stderr)
-        return 2
-    except Exception as e:  # noqa: BLE001 - one line unless --debug
-        if args.debug:
-            raise
-        print(f"{PROG} deepmimo: error: {type(e).__name__}: {e} (--debug for the traceback)", file=sys.stderr)
-        return 1
-    return 0
+    return _exported(args, ExportError, lambda: export_deepmimo(
+        args.run_dir, args.out, module=args.module, progress=None if args.quiet else print))
 
 
 if __name__ == "__main__":
