@@ -198,7 +198,9 @@ class VisualScene:
         out: list[tuple[np.ndarray, np.ndarray]] = []
         for s in range(0, len(pos), chunk):
             if self.cfg.render == "shaded":
-                images, labels, _ = self._shaded_chunk(pos[s:s + chunk])
+                lit, labels, _ = self._shaded_chunk(pos[s:s + chunk])
+                assert lit is not None
+                images = lit
             else:
                 images, labels = self._shade_batch(*self._trace_chunk(pos[s:s + chunk]))
             out.extend(zip(images, labels, strict=True))
@@ -211,8 +213,9 @@ class VisualScene:
         pos = np.array([[float(v) for v in p] for p in positions], dtype=np.float64).reshape(-1, 3)
         out: list[tuple[np.ndarray, np.ndarray]] = []
         for s in range(0, len(pos), max(1, chunk)):
-            shaded, _, depth = self._shaded_chunk(pos[s:s + max(1, chunk)])
-            images = list(shaded) if self.cfg.render == "shaded" else \
+            shading = self.cfg.render == "shaded"
+            shaded, _, depth = self._shaded_chunk(pos[s:s + max(1, chunk)], lit=shading)
+            images = list(shaded) if shaded is not None else \
                 [im for im, _ in self.render_many(pos[s:s + max(1, chunk)], chunk)]
             out.extend(zip(images, depth, strict=True))
         return out
@@ -299,11 +302,12 @@ class VisualScene:
         normal_np = np.stack([np.array(normal.x), np.array(normal.y), np.array(normal.z)], axis=-1)
         return normal_np, shape_id, n
 
-    def _shaded_chunk(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The ``shaded`` images (N, H, W, 3), person labels (N, H, W) and depth (N, H, W)
-        of the views at ``pos``: the primary rays of :meth:`render_many`, then the light of
-        the training frames (:mod:`~caviar_plugins.vision.shading`: one shadow ray per
-        sample, geometric normals turned toward the camera, the albedo noise)."""
+    def _shaded_chunk(self, pos: np.ndarray, lit: bool = True) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+        """The ``shaded`` images (N, H, W, 3; None without ``lit``: the depth alone, no
+        shadow rays), person labels (N, H, W) and depth (N, H, W) of the views at ``pos``:
+        the primary rays of :meth:`render_many`, then the light of the training frames
+        (:mod:`~caviar_plugins.vision.shading`: one shadow ray per sample, geometric normals
+        turned toward the camera, the albedo noise)."""
         import drjit as dr
 
         c, mi, k = self.cfg, self.mi, self.cfg.supersample
@@ -314,6 +318,14 @@ class VisualScene:
         dr.eval(shape_id, si.p, si.n, si.t)
         hit = np.array(valid, dtype=bool)
         shape = np.clip(np.array(shape_id, dtype=np.int64), 0, len(self.palette) - 1)
+        t = np.where(hit, np.array(si.t, dtype=float), np.nan).reshape(n, h, k, w, k)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # (a pixel that sees only sky: NaN)
+            depth = np.nanmean(t.transpose(0, 1, 3, 2, 4).reshape(n, h, w, k * k), axis=-1) \
+                if hit.any() else np.full((n, h, w), np.nan)
+        labels = self.person_of_id[shape.reshape(n, h * k, w * k)[:, ::k, ::k]]
+        if not lit:
+            return None, labels, depth.astype(np.float32)
         points = np.stack([np.array(si.p.x), np.array(si.p.y), np.array(si.p.z)], axis=-1).astype(float)
         normals = np.stack([np.array(si.n.x), np.array(si.n.y), np.array(si.n.z)], axis=-1).astype(float)
         eye = np.repeat(pos, h * k * w * k, axis=0)
@@ -323,12 +335,6 @@ class VisualScene:
         albedo = self.palette[shape].astype(float)
         vary_albedo(albedo, points, self.noisy[shape] & hit, self.seed)
         linear = shade(albedo, normals, shadow, hit, light).reshape(n, h, k, w, k, 3).mean(axis=(2, 4))
-        t = np.where(hit, np.array(si.t, dtype=float), np.nan).reshape(n, h, k, w, k)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # (a pixel that sees only sky: NaN)
-            depth = np.nanmean(t.transpose(0, 1, 3, 2, 4).reshape(n, h, w, k * k), axis=-1) \
-                if hit.any() else np.full((n, h, w), np.nan)
-        labels = self.person_of_id[shape.reshape(n, h * k, w * k)[:, ::k, ::k]]
         return to_srgb8(linear), labels, depth.astype(np.float32)
 
     def _shade_batch(self, normal: np.ndarray, shape_id, n: int) -> tuple[np.ndarray, np.ndarray]:
