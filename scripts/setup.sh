@@ -45,6 +45,8 @@ log "Python packages"
 # release would replace the torch Sionna SYS brought; held at that torch.
 torch_pin=$(.venv/bin/python -c 'import torch; print(torch.__version__.split("+")[0])')
 .venv/bin/pip install --quiet -e "plugins[yolo]" -c <(echo "torch==$torch_pin")
+# The `ns3` extra (the ns3-network plugin): ns-3 3.44 with cppyy bindings, about 2.5 min.
+.venv/bin/pip install --quiet -e "plugins[ns3]"
 
 # The browser view: its bundle ships built; chromium (apt) and playwright for its tests.
 bash scripts/setup-view.sh

@@ -60,11 +60,13 @@ def test_link_messages_report_the_used_pair_then_the_link_then_h_and_the_gains()
     best = float(np.float32(4e-8))  # no pair selected: the strongest, flat index 1
     assert msgs[0][1] == {"UE_type": "car", "UE_Id": "car1", "throughput": _mbps(best)}
     payload = msgs[1][1]
-    assert list(payload) == ["UE_type", "UE_Id", "los", "n_paths", "best_pair", "pair", "selected", "path_gain_db",
-                             "snr_db", "best_throughput", "speed", "blocker"]  # the recorded JSON's order
+    # the recorded JSON's order
+    assert list(payload) == ["UE_type", "UE_Id", "los", "n_paths", "best_pair", "pair", "selected",
+                             "path_gain_db", "pair_gain_db", "snr_db", "best_throughput", "speed", "blocker"]
     assert payload["pair"] == payload["best_pair"] == 1 and payload["selected"] is False
     assert payload["path_gain_db"] == pytest.approx(10 * math.log10(np.mean(np.abs(link.h) ** 2)), rel=1e-12)
     assert payload["snr_db"] == pytest.approx(10 * math.log10(1e9 * best), rel=1e-12)
+    assert payload["pair_gain_db"] == pytest.approx(10 * math.log10(best), rel=1e-12)  # the used pair's
     assert payload["best_throughput"] == _mbps(best) and payload["speed"] == 3.0 and payload["blocker"] is None
     assert msgs[2][1].dtype == np.complex64 and np.allclose(msgs[2][1], link.h)
     assert msgs[3][1].dtype == np.float32 and np.array_equal(msgs[3][1], link.gains)

@@ -92,6 +92,11 @@ VIEW_LIDAR = "view.lidar"
 ``view_points``, coloured by what they hit)."""
 VIEW_ENERGY = "view.energy"
 """Each UAV's state of charge for the browser view (``view.*`` ``labels`` beside the UAV)."""
+NS3_LINK = "network.ns3.link"
+"""Per UE and step, from ``ns3-network``: ``{"UE_Id", "time", "ran", "loss_db" (the loss set
+in ns-3 from the channel), "delivered_bytes", "throughput_mbps" (at the ground station),
+"sinr_db", "mcs", "grants", "tb_bytes"}``, the last four what the eNB saw of the uplink (LTE:
+mean SRS SINR, mean granted MCS; None on point-to-point)."""
 NETWORK_CELLS = "network.cells"
 """Per step: ``{"cells": [{"cell", "ues", "active_share"}]}``, the UEs a cell serves and the
 share of the step's slots in which it scheduled someone."""
@@ -102,7 +107,9 @@ BEAM_SELECTION = "ai.beam.selection"
 IMAGES = "ai.images"
 """Prefix: ``ai.images.<UE_Id>`` a camera image as received over the UE's link."""
 IMAGE_QUALITY = "ai.image_quality"
-"""``{"UE_Id", "throughput", "loss_rate", "psnr_db", "step"}`` per image sent."""
+"""``{"UE_Id", "throughput", "loss_rate", "psnr_db", "step"}`` per image sent; over ns-3
+(``ns3-network``) also ``"image", "network", "sent_at", "released_at", "complete",
+"delay_s", "bytes_sent", "bytes_received", "packets_sent", "packets_lost"``."""
 DETECTIONS = "ai.detections"
 """``{"UE_Id", "image_step", "count", "detections"}``; a detection may carry ``ground``
 ``{"x", "y"}``, its estimated position on the ground."""

@@ -14,12 +14,13 @@ import numpy as np
 
 import caviar
 from caviar_plugins.radio.link_budget import LinkBudget, friis_path_gain
-from caviar_plugins.schema import POSITIONS, STATE, THROUGHPUT, read_position, throughput_payload
+from caviar_plugins.radio.link_report import db
+from caviar_plugins.schema import LINK, POSITIONS, STATE, THROUGHPUT, read_position, throughput_payload
 
 
 class FreeSpaceLink(caviar.Plugin):
     subscribe = [POSITIONS]
-    publishes = (THROUGHPUT, STATE)
+    publishes = (THROUGHPUT, STATE, LINK)
 
     stateless = True  # each step from its inbox alone: a resumed run needs only setup
 
@@ -32,6 +33,10 @@ class FreeSpaceLink(caviar.Plugin):
         bandwidth_hz: float = 40e6
         tx_power_w: float = 0.5
         interference_dbw: float = -130.0
+        publish_link: bool = False
+        """Also publish ``communications.link`` per UE (line of sight, one path): its Friis
+        ``path_gain_db``, ``pair_gain_db`` (with both arrays' gain) and ``snr_db``, what a
+        network simulator (``ns3-network``) takes its losses from."""
 
         def __post_init__(self):
             if len(self.tx_position) != 3:
@@ -57,6 +62,13 @@ class FreeSpaceLink(caviar.Plugin):
             dx, dy, dz = (float(v) for v in pos - self.tx)
             d = math.sqrt(dx * dx + dy * dy + dz * dz)
             gain = friis_path_gain(d, self.p.frequency_hz) * self.array_gain
-            yield THROUGHPUT, throughput_payload(ue_type, ue_id, self.budget.throughput_mbps(gain))
+            mbps = float(self.budget.throughput_mbps(gain))
+            yield THROUGHPUT, throughput_payload(ue_type, ue_id, mbps)
+            if self.p.publish_link:
+                path_gain = gain / self.array_gain
+                yield LINK, {"UE_type": ue_type, "UE_Id": ue_id, "los": True, "n_paths": 1, "best_pair": 0,
+                             "pair": 0, "selected": False, "path_gain_db": db(float(path_gain)),
+                             "pair_gain_db": db(float(gain)), "snr_db": db(float(self.budget.sinr(gain))),
+                             "best_throughput": mbps}
         if latest:
             yield STATE, "Ready"

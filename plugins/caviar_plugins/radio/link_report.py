@@ -50,7 +50,7 @@ def link_messages(ue_type: str, ue: str, link: Any, pair: int | None, n_pairs: i
     payload = {
         "UE_type": ue_type, "UE_Id": ue, "los": link.los, "n_paths": link.n_paths,
         "best_pair": link.best_pair, "pair": pair, "selected": selected,
-        "path_gain_db": db(link.path_gain), "snr_db": db(snr(gain)),
+        "path_gain_db": db(link.path_gain), "pair_gain_db": db(gain), "snr_db": db(snr(gain)),
         "best_throughput": mbps(float(link.gains.max())),
         **(extra or {}),
     }

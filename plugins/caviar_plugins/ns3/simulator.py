@@ -1,0 +1,258 @@
+"""ns-3 in lockstep: one network of UEs and a ground station, advanced one engine step
+at a time (:class:`Ns3Simulation`).
+
+The real ns-3 (PyPI's ``ns3`` wheel, cppyy bindings) runs the packets; the small C++
+half (``caviar_ns3.h``, compiled by cppyy on first use) owns the sockets and the trace
+sinks, so ns-3 never calls into Python. After each ``Simulator::Run()`` Python reads the
+arrivals and the uplink statistics of the step.
+
+ns-3's simulator is a process-wide singleton: one :class:`Ns3Simulation` lives at a
+time; :meth:`Ns3Simulation.close` destroys it and resets ns-3's defaults and address
+pools so that the next one starts clean.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import pathlib
+import time
+from typing import Any, Mapping, Sequence
+
+RAN_KINDS = ("lte", "p2p")
+"""Networks this plugin builds from the ``ns3`` wheel: ``lte`` (LTE with its EPC: the
+UEs, one eNB, a point-to-point backhaul to the ground station) and ``p2p`` (one
+point-to-point link per UE, no radio: the reference case)."""
+
+NOT_IN_WHEEL = {
+    "nr": "5G-LENA (ns-3's NR module) is not built into PyPI's ns3 3.44 wheel",
+    "5g": "5G-LENA (ns-3's NR module) is not built into PyPI's ns3 3.44 wheel",
+    "5g-lena": "5G-LENA is not built into PyPI's ns3 3.44 wheel",
+    "mmwave": "ns-3's mmwave module is not built into PyPI's ns3 3.44 wheel",
+    "wifi": "the wifi module is in the wheel, but this plugin builds LTE and point-to-point only",
+}
+
+BASE_PORT = 9000
+UDP_IP_BYTES = 8 + 20
+"""UDP and IPv4 headers on every packet (ns-3 adds no options)."""
+HEADER_BYTES = 8
+"""The plugin's own header on each UDP packet: image id and packet index (u32 each)."""
+PPP_BYTES = 2
+"""The point-to-point header ns-3's PointToPointNetDevice adds."""
+
+
+class Ns3Unavailable(ImportError):
+    """The ``ns3`` package is not installed (``pip install -e 'plugins[ns3]'``)."""
+
+
+@functools.cache
+def load() -> Any:
+    """Imports ns-3 (cppyy parses its headers: about 14 s, once per process) and compiles
+    the plugin's C++ half. Returns cppyy's global namespace."""
+    try:
+        import cppyy
+        from ns import ns  # noqa: F401  (loads the ns-3 libraries and their headers)
+    except ImportError as e:  # pragma: no cover - the test environment installs it
+        raise Ns3Unavailable("the ns3-network plugin needs ns-3: pip install -e 'plugins[ns3]' "
+                             f"(PyPI's ns3 3.44 wheel); import failed: {e}") from e
+    cppyy.cppdef((pathlib.Path(__file__).with_name("caviar_ns3.h")).read_text())
+    return cppyy.gbl
+
+
+def check_attributes(attributes: Mapping[str, Any]) -> None:
+    """Sets ns-3 attribute defaults (``{"ns3::LteUePhy::TxPower": 23}``); raises
+    ``ValueError("attributes.NAME: ...")`` for one that does not exist or whose value
+    does not parse."""
+    if not attributes:
+        return
+    g = load()
+    for name, value in attributes.items():
+        text = _attribute_text(value)
+        kind = str(g.caviar_ns3.AttributeType(name))
+        if not kind:
+            raise ValueError(f'attributes."{name}": ns-3 has no such attribute (expected '
+                             '"ns3::Class::Attribute" = value, e.g. "ns3::LteUePhy::TxPower" = 23)')
+        # ns-3 aborts the process on a number it cannot parse: check those here.
+        if kind in _NUMERIC and not _parses(kind, text):
+            raise ValueError(f'attributes."{name}": expected {_NUMERIC[kind]} for this {kind}, got {text!r}')
+        if not g.caviar_ns3.SetDefault(name, text):
+            raise ValueError(f'attributes."{name}": ns-3 does not take the value {text!r} ({kind})')
+
+
+_NUMERIC = {"ns3::DoubleValue": "a number", "ns3::UintegerValue": "an integer >= 0",
+            "ns3::IntegerValue": "an integer"}
+
+
+def _parses(kind: str, text: str) -> bool:
+    try:
+        value = float(text) if kind == "ns3::DoubleValue" else int(text)
+    except ValueError:
+        return False
+    return kind != "ns3::UintegerValue" or value >= 0
+
+
+def _attribute_text(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
+
+
+@dataclasses.dataclass
+class Arrival:
+    """One packet (UDP) or chunk of stream (TCP) at the ground station."""
+
+    ue: int
+    image: int
+    index: int
+    bytes: int
+    time_s: float
+
+
+@dataclasses.dataclass
+class UplinkStep:
+    """What the eNB saw of one UE over a step (LTE only)."""
+
+    sinr_db: float | None
+    """Mean of the SRS SINRs the eNB reported (ns-3's ``ReportUeSinr``)."""
+    mcs: float | None
+    """Mean MCS of the uplink grants (``UlScheduling``)."""
+    mcs_mode: int | None
+    """The MCS granted most often."""
+    grants: int
+    tb_bytes: float
+    """Transport-block bytes granted."""
+
+
+@dataclasses.dataclass
+class LteSettings:
+    bandwidth_rb: int = 25
+    scheduler: str = "ns3::PfFfMacScheduler"
+    backhaul_rate: str = "10Gbps"
+    backhaul_delay_s: float = 0.001
+    attach_loss_db: float = 100.0
+
+
+@dataclasses.dataclass
+class P2pSettings:
+    rate: str = "20Mbps"
+    delay_s: float = 0.005
+    queue: str = "100000p"
+
+
+class Ns3Simulation:
+    """One ns-3 network, advanced by :meth:`run_until`.
+
+    ``ues``: how many UE nodes (index 0..n-1); ``ran``: one of :data:`RAN_KINDS`;
+    ``tcp``: one TCP stream per UE instead of UDP packets; ``warmup_s``: ns-3 time run
+    before the engine's time 0 (the UEs attach; ns-3 time = engine time + warmup).
+    """
+
+    def __init__(self, ues: int, ran: str = "lte", *, tcp: bool = False, seed: int = 1,
+                 lte: LteSettings | None = None, p2p: P2pSettings | None = None,
+                 attributes: Mapping[str, Any] | None = None, warmup_s: float = 0.1):
+        if ran not in RAN_KINDS:
+            raise ValueError(f"ran: expected one of {', '.join(RAN_KINDS)}, got {ran!r}"
+                             + (f" ({NOT_IN_WHEEL[ran.lower()]})" if ran.lower() in NOT_IN_WHEEL else ""))
+        g = load()
+        self.g, self.ns = g, g.ns3
+        self.c = g.caviar_ns3
+        self.c.Reset()  # a previous network in this process leaves nothing behind
+        self.ran, self.tcp, self.n = ran, tcp, ues
+        self.ns.RngSeedManager.SetSeed(1)
+        self.ns.RngSeedManager.SetRun(max(1, int(seed)))
+        if tcp:
+            # Images go whole into the stream: a send buffer that holds many of them.
+            self.c.SetDefault("ns3::TcpSocket::SndBufSize", str(64 << 20))
+            self.c.SetDefault("ns3::TcpSocket::RcvBufSize", str(64 << 20))
+        if ran == "lte":
+            self.lte = lte or LteSettings()
+            # Queue an image rather than drop it at the RLC (ns-3's default buffer: 10 kB);
+            # stay attached out of coverage (images are lost, the UE does not re-attach).
+            self.c.SetDefault("ns3::LteRlcUm::MaxTxBufferSize", str(64 << 20))
+            self.c.SetDefault("ns3::LteUePhy::EnableRlfDetection", "false")
+        check_attributes(attributes or {})
+        self.wall_s = 0.0
+        t0 = time.perf_counter()
+        if ran == "lte":
+            s = self.lte
+            self.net = self.c.BuildLte(ues, s.bandwidth_rb, s.scheduler, s.backhaul_rate,
+                                       s.backhaul_delay_s, s.attach_loss_db)
+        else:
+            s2 = p2p or P2pSettings()
+            self.net = self.c.BuildP2p(ues, s2.rate, s2.delay_s, s2.queue)
+        self.net.AddFlows(tcp, BASE_PORT)
+        self.warmup_s = warmup_s
+        # Run once even for no warm-up: the nodes initialize (their traffic control layer
+        # finds its devices) in the simulator's first events.
+        self.ns.Simulator.Stop(self.ns.Seconds(0))
+        self.ns.Simulator.Run()
+        self._run_to(warmup_s)
+        self.wall_s += time.perf_counter() - t0
+        self.rntis = [int(self.net.Rnti(i)) for i in range(ues)] if ran == "lte" else []
+
+    # -- per step ----------------------------------------------------------------------
+    def set_position(self, ue: int, xyz: Sequence[float]) -> None:
+        self.net.SetPosition(ue, float(xyz[0]), float(xyz[1]), float(xyz[2]))
+
+    def set_enb_position(self, xyz: Sequence[float]) -> None:
+        if self.ran == "lte":
+            self.net.SetEnbPosition(float(xyz[0]), float(xyz[1]), float(xyz[2]))
+
+    def set_loss(self, ue: int, loss_db: float) -> None:
+        """The UE–cell loss in dB (both directions), until set again (LTE only)."""
+        if self.ran == "lte":
+            self.net.SetLoss(ue, float(loss_db))
+
+    def send(self, ue: int, image: int, nbytes: int, payload_bytes: int) -> int:
+        """Queues ``nbytes`` of image ``image`` at UE ``ue`` now. UDP: returns the packets
+        (``payload_bytes`` of image each, plus the 8-byte header); TCP: the bytes queued."""
+        return int(self.net.senders[ue].Send(image, nbytes, payload_bytes))
+
+    def now(self) -> float:
+        """Engine time of ns-3's clock."""
+        return float(self.ns.Simulator.Now().GetSeconds()) - self.warmup_s
+
+    def run_until(self, t_engine: float) -> None:
+        t0 = time.perf_counter()
+        self._run_to(t_engine + self.warmup_s)
+        self.wall_s += time.perf_counter() - t0
+
+    def _run_to(self, t_ns3: float) -> None:
+        dt = t_ns3 - float(self.ns.Simulator.Now().GetSeconds())
+        if dt > 0:
+            self.ns.Simulator.Stop(self.ns.Seconds(dt))
+            self.ns.Simulator.Run()
+
+    def arrivals(self) -> list[Arrival]:
+        """The packets that reached the ground station since the last call (engine times)."""
+        out = []
+        for ue, r in enumerate(self.net.receivers):
+            n = r.time_.size()
+            if n:
+                images, index, nbytes, times = list(r.image_), list(r.index_), list(r.bytes_), list(r.time_)
+                out += [Arrival(ue, int(images[k]), int(index[k]), int(nbytes[k]), float(times[k]) - self.warmup_s)
+                        for k in range(n)]
+                r.Clear()
+        return out
+
+    def uplink(self) -> list[UplinkStep | None]:
+        """Per UE, the eNB's view of its uplink since the last call (None for ``p2p``)."""
+        if self.ran != "lte":
+            return [None] * self.n
+        st = self.net.stats
+        out: list[UplinkStep | None] = []
+        for rnti in self.rntis:
+            sinr, grants = float(st.MeanSinr(rnti)), int(st.Grants(rnti))
+            out.append(UplinkStep(
+                sinr_db=10 * math.log10(sinr) if sinr > 0 else None,
+                mcs=float(st.MeanMcs(rnti)) if grants else None,
+                mcs_mode=int(st.ModeMcs(rnti)) if grants else None,
+                grants=grants, tb_bytes=float(st.TbBytes(rnti))))
+        st.Clear()
+        return out
+
+    def close(self) -> None:
+        if getattr(self, "net", None) is not None:
+            self.c.Reset()
+            self.net = None
