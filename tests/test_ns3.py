@@ -3,6 +3,7 @@ lockstep with the engine, each check against a computation by hand."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
@@ -61,7 +62,7 @@ def _cqi_edges(amc) -> list[float]:
 
 def test_lte_uplink_at_a_fixed_loss_runs_at_the_rate_of_the_mcs_ns3_amc_picks():
     tx_dbm, nrb, nf_db = 23.0, 25, 5.0  # UE power, uplink RBs, the eNB's noise figure (ns-3's default)
-    s = sim.Ns3Simulation(1, "lte", lte=sim.LteSettings(bandwidth_rb=nrb),
+    s = sim.Ns3Simulation(1, "lte", lte=sim.LteSettings(bandwidth_rb=nrb, rlc_buffer_bytes=64 << 20),
                           attributes={"ns3::LteUePhy::EnableUplinkPowerControl": False,
                                       "ns3::LteUePhy::TxPower": tx_dbm})
     try:
@@ -180,6 +181,27 @@ def test_a_uav_flying_out_of_coverage_loses_more_and_its_images_degrade(tmp_path
     assert loss[-5:].min() > 0.5 and quality[-5:].max() < 20.0  # far out: most of each image is lost
     rank = np.corrcoef(np.argsort(np.argsort(distance[:len(loss)])), np.argsort(np.argsort(loss)))[0, 1]
     assert rank > 0.8  # loss rises with distance (Spearman)
+    # caviar-core report's figure and numbers of the same run
+    from caviar_plugins.ns3.report import figures
+
+    png, numbers = figures(log, tmp_path / "report")
+    assert png.stat().st_size > 20_000
+    summary = json.loads(numbers.read_text())["ues"]["uav1"]
+    assert summary["images"] == len(images) and summary["complete"] == sum(d["complete"] for d in images)
+    assert summary["loss_rate"] == pytest.approx(1 - sum(d["bytes_received"] for d in images)
+                                                 / sum(d["bytes_sent"] for d in images), abs=1e-4)
+
+
+def test_over_tcp_every_image_arrives_whole_and_the_stream_is_cut_at_image_boundaries(tmp_path):
+    log = _fly(tmp_path, 'transport = "tcp"\nenb_position = [0.0, 0.0, 60.0]', [[30, 0, 60], [90, 0, 60]],
+               speed=10.0)
+    images = [m.data for m in log.decoded("ai.image_quality")]
+    assert len(images) >= 10
+    assert all(d["complete"] and d["bytes_received"] == d["bytes_sent"] == 160 * 120 * 3 for d in images)
+    assert all(d["psnr_db"] == 99.0 and 0 < d["delay_s"] < 0.5 for d in images)
+    links = [m.data for m in log.decoded("network.ns3.link")]
+    # The ground station received the images' bytes and nothing else (TCP's own headers aside).
+    assert sum(d["delivered_bytes"] for d in links) == sum(d["bytes_sent"] for d in images)
 
 
 BIN = os.path.dirname(sys.executable)

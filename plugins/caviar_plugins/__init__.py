@@ -25,14 +25,16 @@ configuration's ``plugin = "..."`` gives), by subpackage:
   energy and battery (Zeng et al.'s rotary-wing model).
 * :mod:`~caviar_plugins.lidar`: ``lidar`` (:class:`Lidar`), rotating LiDARs cast into the ray
   tracer's scene with the moving bodies.
+* :mod:`~caviar_plugins.ns3`: ``ns3-network`` (:class:`Ns3Network`), the UAVs' images over the
+  real ns-3 (LTE with its EPC, or point-to-point) in lockstep with the engine.
 
 Besides: :mod:`~caviar_plugins.rt`, ray tracing in one home (Sionna RT scene, path solver,
 shoot cache, the adapter to Sionna's internals); :mod:`~caviar_plugins.osm`, scenes from
 OpenStreetMap; :mod:`~caviar_plugins.schema`, the topics and the payloads they share.
 
 Each plugin is a :class:`caviar.Plugin` that declares what it ``publishes``; none of them
-knows how messages travel. The four of SUMO, the network and MAVLink are imported on first
-use (``caviar_plugins.SumoTraffic``): their packages are optional extras. Offline tools run
+knows how messages travel. The five of SUMO, the network, MAVLink and ns-3 are imported on
+first use (``caviar_plugins.SumoTraffic``): their packages are optional extras. Offline tools run
 with ``python -m``: ``caviar_plugins.beam_selection.train_tree``,
 ``caviar_plugins.vision.train_detector``, ``caviar_plugins.sar.results``.
 """
@@ -52,7 +54,8 @@ from caviar_plugins.vision import Camera, ImageLink, PersonDetector
 
 _ON_FIRST_USE = {"SumoTraffic": "caviar_plugins.traffic.plugin", "SionnaTrafficLink": "caviar_plugins.traffic.link",
                  "RadioNetwork": "caviar_plugins.network.plugin",
-                 "MavlinkTelemetry": "caviar_plugins.live.mavlink_telemetry"}
+                 "MavlinkTelemetry": "caviar_plugins.live.mavlink_telemetry",
+                 "Ns3Network": "caviar_plugins.ns3.plugin"}
 
 
 def __getattr__(name: str) -> Any:
@@ -62,5 +65,5 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = ["DATA", "SCENES", "BeamDataset", "BeamSelector", "Camera", "FreeSpaceLink", "ImageLink", "Lidar",
-           "LinkMonitor", "MavlinkTelemetry", "Mission", "PersonDetector", "RadioNetwork", "RandomWaypointFlight",
+           "LinkMonitor", "MavlinkTelemetry", "Mission", "Ns3Network", "PersonDetector", "RadioNetwork", "RandomWaypointFlight",
            "SionnaLink", "SionnaTrafficLink", "SumoTraffic", "UavEnergy", "WaypointFlight", "schema"]

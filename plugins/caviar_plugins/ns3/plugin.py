@@ -101,6 +101,10 @@ class Ns3Network(caviar.Plugin):
         backhaul_delay_s: float = 0.001
         attach_loss_db: float = 100.0
         """The UE–eNB loss while the UEs attach (before the first ``communications.link``)."""
+        rlc_buffer_bytes: int = 131072
+        """LTE: the UE's RLC transmit buffer (RLC UM); a packet that finds it full is
+        dropped. About two images: after an outage new images do not queue behind many
+        stale ones (ns-3's default, 10 kB, would drop most of every image)."""
         p2p_rate: str = "20Mbps"
         p2p_delay_s: float = 0.005
         p2p_queue: str = "100000p"
@@ -124,6 +128,8 @@ class Ns3Network(caviar.Plugin):
                 raise ValueError(f"payload_bytes: expected 64..65000, got {self.payload_bytes}")
             if self.bandwidth_rb not in (6, 15, 25, 50, 75, 100):
                 raise ValueError(f"bandwidth_rb: expected 6, 15, 25, 50, 75 or 100, got {self.bandwidth_rb}")
+            if self.rlc_buffer_bytes < 10240:
+                raise ValueError(f"rlc_buffer_bytes: expected >= 10240, got {self.rlc_buffer_bytes}")
             if self.deadline_s < 0:
                 raise ValueError(f"deadline_s: expected >= 0 (0: one step), got {self.deadline_s}")
             if len(self.enb_position) != 3:
@@ -145,7 +151,7 @@ class Ns3Network(caviar.Plugin):
         self.net = sim.Ns3Simulation(
             len(p.ues), p.ran, tcp=p.transport == "tcp", seed=ctx.seed,
             lte=sim.LteSettings(p.bandwidth_rb, p.scheduler, p.backhaul_rate, p.backhaul_delay_s,
-                                p.attach_loss_db),
+                                p.attach_loss_db, p.rlc_buffer_bytes),
             p2p=sim.P2pSettings(p.p2p_rate, p.p2p_delay_s, p.p2p_queue),
             attributes=p.attributes)
         self.net.set_enb_position(p.enb_position)

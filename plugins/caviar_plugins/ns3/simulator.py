@@ -131,6 +131,8 @@ class LteSettings:
     backhaul_rate: str = "10Gbps"
     backhaul_delay_s: float = 0.001
     attach_loss_db: float = 100.0
+    rlc_buffer_bytes: int = 131072
+    """The UE's RLC transmit buffer: a packet that finds it full is dropped."""
 
 
 @dataclasses.dataclass
@@ -145,7 +147,8 @@ class Ns3Simulation:
 
     ``ues``: how many UE nodes (index 0..n-1); ``ran``: one of :data:`RAN_KINDS`;
     ``tcp``: one TCP stream per UE instead of UDP packets; ``warmup_s``: ns-3 time run
-    before the engine's time 0 (the UEs attach; ns-3 time = engine time + warmup).
+    before the engine's time 0 (the UEs attach; with TCP 50 ms more for the handshakes;
+    ns-3 time = engine time + that).
     """
 
     def __init__(self, ues: int, ran: str = "lte", *, tcp: bool = False, seed: int = 1,
@@ -167,9 +170,11 @@ class Ns3Simulation:
             self.c.SetDefault("ns3::TcpSocket::RcvBufSize", str(64 << 20))
         if ran == "lte":
             self.lte = lte or LteSettings()
-            # Queue an image rather than drop it at the RLC (ns-3's default buffer: 10 kB);
-            # stay attached out of coverage (images are lost, the UE does not re-attach).
-            self.c.SetDefault("ns3::LteRlcUm::MaxTxBufferSize", str(64 << 20))
+            # Queue a few images rather than drop most of one at the RLC (ns-3's default
+            # buffer: 10 kB); stay attached out of coverage (images are lost, the UE does not
+            # re-attach). ns-3's PDCP discard timer acts only as a packet enters the RLC.
+            self.c.SetDefault("ns3::LteEnbRrc::EpsBearerToRlcMapping", "RlcUmAlways")
+            self.c.SetDefault("ns3::LteRlcUm::MaxTxBufferSize", str(self.lte.rlc_buffer_bytes))
             self.c.SetDefault("ns3::LteUePhy::EnableRlfDetection", "false")
         check_attributes(attributes or {})
         self.wall_s = 0.0
@@ -181,13 +186,18 @@ class Ns3Simulation:
         else:
             s2 = p2p or P2pSettings()
             self.net = self.c.BuildP2p(ues, s2.rate, s2.delay_s, s2.queue)
-        self.net.AddFlows(tcp, BASE_PORT)
-        self.warmup_s = warmup_s
         # Run once even for no warm-up: the nodes initialize (their traffic control layer
-        # finds its devices) in the simulator's first events.
+        # finds its devices) in the simulator's first events. Then the UEs attach, and only
+        # then do the flows open: a TCP handshake before the attach would wait out its
+        # retransmission timeouts (seconds).
         self.ns.Simulator.Stop(self.ns.Seconds(0))
         self.ns.Simulator.Run()
         self._run_to(warmup_s)
+        self.net.AddFlows(tcp, BASE_PORT)
+        if tcp:
+            warmup_s += 0.05  # the handshake
+            self._run_to(warmup_s)
+        self.warmup_s = warmup_s
         self.wall_s += time.perf_counter() - t0
         self.rntis = [int(self.net.Rnti(i)) for i in range(ues)] if ran == "lte" else []
 
@@ -211,7 +221,7 @@ class Ns3Simulation:
 
     def now(self) -> float:
         """Engine time of ns-3's clock."""
-        return float(self.ns.Simulator.Now().GetSeconds()) - self.warmup_s
+        return round(float(self.ns.Simulator.Now().GetSeconds()) - self.warmup_s, 9)  # ns-3 counts ns
 
     def run_until(self, t_engine: float) -> None:
         t0 = time.perf_counter()
@@ -231,8 +241,8 @@ class Ns3Simulation:
             n = r.time_.size()
             if n:
                 images, index, nbytes, times = list(r.image_), list(r.index_), list(r.bytes_), list(r.time_)
-                out += [Arrival(ue, int(images[k]), int(index[k]), int(nbytes[k]), float(times[k]) - self.warmup_s)
-                        for k in range(n)]
+                out += [Arrival(ue, int(images[k]), int(index[k]), int(nbytes[k]),
+                                round(float(times[k]) - self.warmup_s, 9)) for k in range(n)]
                 r.Clear()
         return out
 
