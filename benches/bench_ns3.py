@@ -59,6 +59,16 @@ def run(blueprint: str, out: pathlib.Path) -> dict:
                                                                      if x.get("delay_s") is not None]) else None)}
 
 
+def figure(run_dir: pathlib.Path, out: pathlib.Path) -> None:
+    """caviar-core report's ns-3 figure of a sar-ns3 run, kept as ``out``."""
+    import caviar
+    from caviar_plugins.ns3.report import figures
+
+    with tempfile.TemporaryDirectory() as d:
+        png, _ = figures(caviar.load_run(run_dir), pathlib.Path(d))
+        shutil.copy(png, out)
+
+
 def load_time() -> float:
     """ns-3's import and the plugin's C++ half, in a fresh process."""
     code = ("import time; t = time.perf_counter(); from caviar_plugins.ns3 import simulator; simulator.load(); "
@@ -108,6 +118,7 @@ def main() -> None:
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
+    figure(work / f"sar-ns3-{args.reps - 1}", args.out.with_name("ns3-sar.png"))
     print(json.dumps({k: result[k] for k in ("tp_tv_sar", "tp_tv_sar_ns3", "tp_tv_sar_ns3_process",
                                              "tp_tv_added_by_ns3", "ns3_load_s",
                                              "split_tp_tv")}))
