@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import caviar
+from conftest import ROOT
 from caviar_plugins.ns3 import simulator as sim
 
 SPEED_OF_LIGHT = 299_792_458.0
@@ -264,3 +265,29 @@ def test_an_image_from_a_ue_without_a_node_stops_the_run_naming_the_key(tmp_path
             s.run(progress=False)
     msg = str(e.value)
     assert "'net'" in msg and "step 0" in msg and "modules.net.params.ues" in msg and "'uav1'" in msg, msg
+
+
+def test_the_same_run_in_process_and_over_nats_records_the_same_messages(tmp_path, cli):
+    """ns-3 is deterministic: a worker process of its own gives what the embedded plugin gave."""
+    (tmp_path / "route.csv").write_text("X,Y,Z\n200,0,60\n500,0,60\n")
+    net = ('loss_from = "path"\nenb_position = [0.0, 0.0, 60.0]\n'
+           'attributes = { "ns3::LteUePhy::EnableUplinkPowerControl" = false, "ns3::LteUePhy::TxPower" = 10 }')
+    (tmp_path / "cfg.toml").write_text(FLIGHT.format(ts=0.5, speed=20.0, net=net))
+    cli("run", "cfg.toml", "-q", "--out", "inproc", check=0)
+    cli("run", "cfg.toml", "-q", "--out", "nats", "--set", 'transport.kind="nats"', check=0)
+    a, b = (caviar.load_run(tmp_path / d).messages.drop("seq") for d in ("inproc", "nats"))
+    assert a.height == b.height > 100 and a.equals(b)
+    quality = [m.data for m in caviar.load_run(tmp_path / "nats").decoded("ai.image_quality")]
+    assert 0 < sum(d["complete"] for d in quality) < len(quality)  # in coverage, then out of it
+
+
+def test_the_sar_mission_over_ns3_resumes_to_the_same_messages(tmp_path, cli):
+    """ns-3's state is not saved: the journal of what the plugin did to it is, and replaying
+    it on a new network after a SIGKILL gives the same packets, bit for bit."""
+    from test_resume_plugins import _resumes_to_the_reference
+
+    sets = ["--set", "modules.comm.params.samples_per_src=10000", "--set", "modules.comm.params.threads=1"]
+    log = _resumes_to_the_reference(tmp_path, cli, ROOT / "blueprints" / "sar-ns3" / "config.toml", sets, kill=7,
+                                    every=3, steps=12)
+    quality = [m.data for m in log.decoded("ai.image_quality")]
+    assert len(quality) == 12 and sum(d["complete"] for d in quality) >= 6

@@ -165,6 +165,21 @@ class Ns3Network(caviar.Plugin):
         if getattr(self, "net", None) is not None:
             self.net.close()
 
+    def state(self):
+        # ns-3's own state cannot be saved: the journal of what the plugin did to it can,
+        # and replaying it on a new network gives the same state (restore).
+        return {"journal": list(self.net.journal), "pending": self.pending, "next_image": self.next_image,
+                "stream_sent": self.stream_sent, "stream_received": self.stream_received,
+                "loss_db": self.loss_db}
+
+    def restore(self, state):
+        self.net.replay(state["journal"])
+        self.pending = state["pending"]
+        self.next_image = state["next_image"]
+        self.stream_sent = state["stream_sent"]
+        self.stream_received = state["stream_received"]
+        self.loss_db = state["loss_db"]
+
     def _node(self, ue: str, topic: str) -> int:
         i = self.index.get(ue)
         if i is None:

@@ -199,31 +199,61 @@ class Ns3Simulation:
             self._run_to(warmup_s)
         self.warmup_s = warmup_s
         self.wall_s += time.perf_counter() - t0
+        self.journal: list[tuple] = []
+        """Every call that changed the network since it was built, in order: replayed on a
+        new network (:meth:`replay`) it brings ns-3 to the same state, event for event."""
         self.rntis = [int(self.net.Rnti(i)) for i in range(ues)] if ran == "lte" else []
 
     # -- per step ----------------------------------------------------------------------
     def set_position(self, ue: int, xyz: Sequence[float]) -> None:
-        self.net.SetPosition(ue, float(xyz[0]), float(xyz[1]), float(xyz[2]))
+        x, y, z = (float(v) for v in xyz)
+        self.journal.append(("position", ue, x, y, z))
+        self.net.SetPosition(ue, x, y, z)
 
     def set_enb_position(self, xyz: Sequence[float]) -> None:
         if self.ran == "lte":
-            self.net.SetEnbPosition(float(xyz[0]), float(xyz[1]), float(xyz[2]))
+            x, y, z = (float(v) for v in xyz)
+            self.journal.append(("enb", x, y, z))
+            self.net.SetEnbPosition(x, y, z)
 
     def set_loss(self, ue: int, loss_db: float) -> None:
         """The UE–cell loss in dB (both directions), until set again (LTE only)."""
         if self.ran == "lte":
+            self.journal.append(("loss", ue, float(loss_db)))
             self.net.SetLoss(ue, float(loss_db))
 
     def send(self, ue: int, image: int, nbytes: int, payload_bytes: int) -> int:
         """Queues ``nbytes`` of image ``image`` at UE ``ue`` now. UDP: returns the packets
         (``payload_bytes`` of image each, plus the 8-byte header); TCP: the bytes queued."""
+        self.journal.append(("send", ue, image, nbytes, payload_bytes))
         return int(self.net.senders[ue].Send(image, nbytes, payload_bytes))
+
+    def replay(self, journal: Sequence[tuple]) -> None:
+        """Brings this new network to where another one was after ``journal`` (its
+        :attr:`journal`): ns-3 is deterministic, so the same calls give the same events.
+        What arrived meanwhile is dropped (the caller kept its own account)."""
+        for op, *args in journal:
+            if op == "position":
+                self.set_position(args[0], args[1:])
+            elif op == "enb":
+                self.set_enb_position(args)
+            elif op == "loss":
+                self.set_loss(*args)
+            elif op == "send":
+                self.send(*args)
+            elif op == "run":
+                self.run_until(args[0])
+            else:
+                raise ValueError(f"unknown journal entry {op!r}")
+        self.arrivals()
+        self.uplink()
 
     def now(self) -> float:
         """Engine time of ns-3's clock."""
         return round(float(self.ns.Simulator.Now().GetSeconds()) - self.warmup_s, 9)  # ns-3 counts ns
 
     def run_until(self, t_engine: float) -> None:
+        self.journal.append(("run", t_engine))
         t0 = time.perf_counter()
         self._run_to(t_engine + self.warmup_s)
         self.wall_s += time.perf_counter() - t0
