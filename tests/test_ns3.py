@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 import caviar
-from conftest import ROOT
 from caviar_plugins.ns3 import simulator as sim
+from conftest import ROOT
 
 SPEED_OF_LIGHT = 299_792_458.0
 KT_DBM_HZ = 10 * math.log10(1.380649e-23 * 290 * 1e3)  # ns-3 LTE's thermal noise, dBm/Hz

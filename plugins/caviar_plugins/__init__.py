@@ -65,5 +65,6 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = ["DATA", "SCENES", "BeamDataset", "BeamSelector", "Camera", "FreeSpaceLink", "ImageLink", "Lidar",
-           "LinkMonitor", "MavlinkTelemetry", "Mission", "Ns3Network", "PersonDetector", "RadioNetwork", "RandomWaypointFlight",
-           "SionnaLink", "SionnaTrafficLink", "SumoTraffic", "UavEnergy", "WaypointFlight", "schema"]
+           "LinkMonitor", "MavlinkTelemetry", "Mission", "Ns3Network", "PersonDetector", "RadioNetwork",
+           "RandomWaypointFlight", "SionnaLink", "SionnaTrafficLink", "SumoTraffic", "UavEnergy", "WaypointFlight",
+           "schema"]
