@@ -45,6 +45,12 @@ def run(blueprint: str, out: pathlib.Path) -> dict:
     log = caviar.load_run(out)
     images = [m.data for m in log.decoded("ai.image_quality")]
     result = log.decoded("mission.result")[-1].data
+    bins = ((0.0, 0.0), (0.0, 0.01), (0.01, 0.25), (0.25, 0.5), (0.5, 0.999999), (0.999999, 1.0))
+    psnr_by_loss = []  # the paper's packet loss -> PSNR table, from the losses this run had
+    for lo, hi in bins:
+        inside = [d["psnr_db"] for d in images if (lo < d["loss_rate"] <= hi) or (lo == hi == d["loss_rate"])]
+        psnr_by_loss.append({"loss_above": lo, "loss_up_to": round(hi, 4), "images": len(inside),
+                             "mean_psnr_db": round(float(np.mean(inside)), 2) if inside else None})
     m = s["modules"]
     return {"tp_tv": round(s["wall_s"] / s["virtual_time_s"], 4),
             "tp_tv_process": round(process_s / s["virtual_time_s"], 4), "wall_s": round(s["wall_s"], 2),
@@ -53,7 +59,8 @@ def run(blueprint: str, out: pathlib.Path) -> dict:
             "link_s_per_step": round(m["link"]["wall_s_per_step"], 5),
             "rest_s_per_step": round(sum(v["wall_s_per_step"] for k, v in m.items() if k not in ("comm", "link")), 5),
             "rescued": result["rescued"], "mission_time_s": result["mission_time_s"],
-            "images": len(images), "mean_loss_rate": round(float(np.mean([d["loss_rate"] for d in images])), 4),
+            "psnr_by_loss": psnr_by_loss, "images": len(images),
+            "mean_loss_rate": round(float(np.mean([d["loss_rate"] for d in images])), 4),
             "complete": sum(bool(d.get("complete", d["loss_rate"] == 0)) for d in images),
             "delay_s_p50": (round(float(np.median(d)), 4) if (d := [x["delay_s"] for x in images
                                                                      if x.get("delay_s") is not None]) else None)}

@@ -137,7 +137,7 @@ class Ns3Network(caviar.Plugin):
 
     @classmethod
     def check_params(cls, params, config_dir):
-        # ns-3 itself says whether each attribute exists (loads ns-3: ~14 s, once per process).
+        # ns-3 itself says whether each attribute exists (loads ns-3: about 3 s, once per process).
         if params.attributes:
             sim.check_attributes(params.attributes)
             sim.load().caviar_ns3.Reset()
