@@ -45,12 +45,14 @@ def run(blueprint: str, out: pathlib.Path) -> dict:
     log = caviar.load_run(out)
     images = [m.data for m in log.decoded("ai.image_quality")]
     result = log.decoded("mission.result")[-1].data
-    bins = ((0.0, 0.0), (0.0, 0.01), (0.01, 0.25), (0.25, 0.5), (0.5, 0.999999), (0.999999, 1.0))
+    bins = (("0", lambda x: x == 0), ("(0, 1 %]", lambda x: 0 < x <= 0.01),
+            ("(1, 25 %]", lambda x: 0.01 < x <= 0.25), ("(25, 50 %]", lambda x: 0.25 < x <= 0.5),
+            ("(50, 100 %)", lambda x: 0.5 < x < 1), ("100 %", lambda x: x == 1))
     psnr_by_loss = []  # the paper's packet loss -> PSNR table, from the losses this run had
-    for lo, hi in bins:
-        inside = [d["psnr_db"] for d in images if (lo < d["loss_rate"] <= hi) or (lo == hi == d["loss_rate"])]
-        psnr_by_loss.append({"loss_above": lo, "loss_up_to": round(hi, 4), "images": len(inside),
-                             "mean_psnr_db": round(float(np.mean(inside)), 2) if inside else None})
+    for label, inside in bins:
+        psnr = [d["psnr_db"] for d in images if inside(d["loss_rate"])]
+        psnr_by_loss.append({"loss": label, "images": len(psnr),
+                             "mean_psnr_db": round(float(np.mean(psnr)), 2) if psnr else None})
     m = s["modules"]
     return {"tp_tv": round(s["wall_s"] / s["virtual_time_s"], 4),
             "tp_tv_process": round(process_s / s["virtual_time_s"], 4), "wall_s": round(s["wall_s"], 2),
