@@ -97,6 +97,40 @@ def test_lte_uplink_at_a_fixed_loss_runs_at_the_rate_of_the_mcs_ns3_amc_picks():
         s.close()
 
 
+def test_two_ues_share_the_uplink_each_at_its_half_of_the_rbs():
+    """ns-3's proportional-fair uplink scheduler gives each of two backlogged UEs half the
+    band (12 of 25 RBs); the MCS still comes from the SRS SINR over the whole band."""
+    tx_dbm, nrb, nf_db = 23.0, 25, 5.0
+    s = sim.Ns3Simulation(2, "lte", lte=sim.LteSettings(bandwidth_rb=nrb, rlc_buffer_bytes=64 << 20),
+                          attributes={"ns3::LteUePhy::EnableUplinkPowerControl": False,
+                                      "ns3::LteUePhy::TxPower": tx_dbm})
+    try:
+        amc = s.ns.CreateObject[s.ns.LteAmc]()
+        edges = _cqi_edges(amc)
+        target = (edges[8] + edges[9]) / 2
+        loss = tx_dbm - target - (KT_DBM_HZ + nf_db + 10 * math.log10(nrb * 180e3))
+        s.set_enb_position([0, 0, 25])
+        for ue in (0, 1):
+            s.set_position(ue, [200, 50 * ue, 1.5])
+            s.set_loss(ue, loss)
+        s.uplink(), s.arrivals()
+        t0 = s.now()
+        for ue in (0, 1):
+            s.send(ue, ue, 3_000_000, 1400)
+        s.run_until(t0 + 1.2)
+        got = s.arrivals()
+        mcs = int(amc.GetMcsFromCqi(8))
+        rate = amc.GetUlTbSizeFromMcs(mcs, nrb // 2) * 1000  # bit/s on 12 RBs
+        for ue, up in enumerate(s.uplink()):
+            assert up.sinr_db == pytest.approx(target, abs=0.1) and up.mcs_mode == mcs
+            late = [a for a in got if a.ue == ue and a.time_s > t0 + 0.2]
+            measured = sum(a.bytes for a in late) * 8 / (late[-1].time_s - late[0].time_s)
+            print(f"UE {ue}: {measured / 1e6:.3f} Mbit/s against {rate / 1e6:.3f} on 12 RBs at MCS {mcs}")
+            assert measured == pytest.approx(rate, rel=0.10) and measured < rate
+    finally:
+        s.close()
+
+
 FLIGHT = """
 [episode]
 ts = {ts}
