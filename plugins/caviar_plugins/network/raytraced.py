@@ -105,6 +105,9 @@ class TracedChannels:
     carrier_hz: float
     power_sum_db: np.ndarray
     """[ue, cell]: every traced path's power summed (dB), the wideband gain with no fading."""
+    departure: np.ndarray | None = None
+    """[ue, cell, path, 3] unit vectors from the cell along which each path leaves (what a
+    beam codebook acts on: :func:`caviar_plugins.network.beams.beam_gains`)."""
 
     def doppler_hz(self, velocity: np.ndarray) -> np.ndarray:
         """[ue, cell, path]: each path's Doppler shift v·k̂/λ for UE velocities [ue, 3] (m/s)."""
@@ -122,7 +125,8 @@ class TracedChannels:
 
     def rows(self, index: np.ndarray) -> TracedChannels:
         return TracedChannels(self.amplitude[index], self.delay_s[index], self.arrival[index],
-                              self.position[index], self.carrier_hz, self.power_sum_db[index])
+                              self.position[index], self.carrier_hz, self.power_sum_db[index],
+                              None if self.departure is None else self.departure[index])
 
 
 class SiteTracer:
@@ -194,7 +198,7 @@ class SiteTracer:
         if n_ue == 0:
             z = np.zeros((0, n_cell, k))
             return TracedChannels(z.astype(complex), z, np.zeros((0, n_cell, k, 3)), np.zeros((0, 3)), carrier,
-                                  np.zeros((0, n_cell)))
+                                  np.zeros((0, n_cell)), np.zeros((0, n_cell, k, 3)))
         self._place(ues)
         s = self.s
         paths = self.tracer.solve(max_depth=s.max_depth, samples_per_src=s.samples_per_src, synthetic_array=True,
@@ -208,12 +212,15 @@ class SiteTracer:
         phi = np.degrees(np.array(paths.phi_t).reshape(shape))  # azimuth of departure
         theta_r, phi_r = (np.array(x).reshape(shape) for x in (paths.theta_r, paths.phi_r))
         arrival = np.stack([np.sin(theta_r) * np.cos(phi_r), np.sin(theta_r) * np.sin(phi_r), np.cos(theta_r)], -1)
+        th, ph = np.radians(theta), np.radians(phi)
+        leaving = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
         tau = np.array(paths.tau).reshape(shape).astype(float)
         # Sionna's a excludes the carrier's phase: the baseband coefficient is a·exp(-j2π f_c τ).
         a = np.where(valid, a * np.exp(-2j * np.pi * carrier * tau), 0.0)
         amp = np.zeros((n_ue, n_cell, k), dtype=complex)
         delay = np.zeros((n_ue, n_cell, k))
         toward = np.zeros((n_ue, n_cell, k, 3))
+        departs = np.zeros((n_ue, n_cell, k, 3))
         total = np.zeros((n_ue, n_cell))
         kept = min(k, shape[-1])
         for c, cell in enumerate(self.cells):
@@ -224,5 +231,6 @@ class SiteTracer:
             amp[:, c, :kept] = np.take_along_axis(b, keep, axis=-1)
             delay[:, c, :kept] = np.take_along_axis(tau[:, site], keep, axis=-1)
             toward[:, c, :kept] = np.take_along_axis(arrival[:, site], keep[..., None], axis=1)
+            departs[:, c, :kept] = np.take_along_axis(leaving[:, site], keep[..., None], axis=1)
         return TracedChannels(amp, delay, toward, np.array(ues, dtype=float), carrier,
-                              10 * np.log10(np.maximum(total, 10 ** (NO_PATH_DB / 10))))
+                              10 * np.log10(np.maximum(total, 10 ** (NO_PATH_DB / 10))), departs)

@@ -1,0 +1,126 @@
+"""SSB beams from the channel (issue #41, part 1, the computation): a DFT codebook on each
+cell's panel, the gain of every beam toward every UE from the channel's paths, and the
+SINR when each interfering cell points the beam it scheduled.
+
+Geometry. A cell's panel is a uniform planar array of ``rows × cols`` elements at half a
+wavelength, facing its azimuth (counter-clockwise from +x), tilted down by its downtilt.
+In the panel's frame (x' the boresight, y' along the rows, z' up the columns) a departure
+direction has the spatial frequencies ``u = sin θ' sin φ'`` (horizontal) and
+``v = cos θ'`` (vertical); element (m, n) sees the phase ``π (n u + m v)``.
+
+Codebook. ``beams_h × beams_v`` DFT beams, ``beams_h ≤ cols`` and ``beams_v ≤ rows`` (a
+codebook larger than the array has no more orthogonal beams): beam (i, k) steers to
+``u_i = (2i + 1)/beams_h − 1`` and ``v_k = (2k + 1)/beams_v − 1``, unit-norm weights.
+
+Beam gain of beam ``w`` toward a UE with paths ``a_p`` (complex amplitude, the element
+pattern applied) leaving along ``k_p``: ``|Σ_p a_p · e(k_p)ᵀ w|²``, where ``e`` has unit-modulus
+entries, so a beam aimed exactly along a single path gains ``rows · cols``.
+
+Not yet wired into the ``radio-network`` plugin's RSRP, scheduling and SINR.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Sequence
+
+import numpy as np
+
+from caviar_plugins.constants import SPEED_OF_LIGHT
+from caviar_plugins.network.cells import Cell, pattern_gain_db
+
+
+@dataclasses.dataclass(frozen=True)
+class Codebook:
+    """DFT beams on a ``rows × cols`` panel: ``beams_h`` across, ``beams_v`` up."""
+
+    rows: int
+    cols: int
+    beams_h: int
+    beams_v: int = 1
+
+    def __post_init__(self):
+        if not 1 <= self.beams_h <= self.cols:
+            raise ValueError(f"beams: {self.beams_h} horizontal beams on {self.cols} columns; expected 1..{self.cols} "
+                             "(a DFT codebook has at most one orthogonal beam per element)")
+        if not 1 <= self.beams_v <= self.rows:
+            raise ValueError(f"beams: {self.beams_v} vertical beams on {self.rows} rows; expected 1..{self.rows}")
+
+    @property
+    def size(self) -> int:
+        return self.beams_h * self.beams_v
+
+    def pointing(self) -> np.ndarray:
+        """[beam, 2]: each beam's (u, v), horizontal index fastest."""
+        u = (2 * np.arange(self.beams_h) + 1) / self.beams_h - 1
+        v = (2 * np.arange(self.beams_v) + 1) / self.beams_v - 1
+        return np.stack(np.meshgrid(u, v, indexing="xy"), -1).reshape(-1, 2)
+
+    def weights(self) -> np.ndarray:
+        """[beam, rows·cols] unit-norm weights."""
+        p = self.pointing()
+        return steering(self.rows, self.cols, p[:, 0], p[:, 1]).conj() / math.sqrt(self.rows * self.cols)
+
+
+def steering(rows: int, cols: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """[..., rows·cols] the panel's response at spatial frequencies (u, v), unit-modulus."""
+    m, n = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    phase = np.pi * (np.asarray(u)[..., None] * n.reshape(-1) + np.asarray(v)[..., None] * m.reshape(-1))
+    return np.exp(1j * phase)
+
+
+def panel_frequencies(cell: Cell, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(u, v) of unit ``direction`` vectors [..., 3] (scene frame) in ``cell``'s panel frame."""
+    a, t = math.radians(cell.azimuth_deg), math.radians(cell.downtilt_deg)
+    d = np.asarray(direction, dtype=float)
+    # Undo the azimuth (about z), then the downtilt (about the panel's y axis).
+    x = math.cos(a) * d[..., 0] + math.sin(a) * d[..., 1]
+    y = -math.sin(a) * d[..., 0] + math.cos(a) * d[..., 1]
+    # The boresight (cos t, 0, -sin t) maps to the panel's x axis: z' = sin t · x + cos t · z.
+    up = math.sin(t) * x + math.cos(t) * d[..., 2]
+    return y, up  # sin θ' sin φ' = y', cos θ' = z'
+
+
+def beam_gains(cell: Cell, codebook: Codebook, amplitude: np.ndarray, departure: np.ndarray) -> np.ndarray:
+    """[ue, beam]: ``|Σ_p a_p e(k_p)ᵀ w_b|²`` for paths ``amplitude`` [ue, path] (complex, the
+    element pattern applied; 0 for no path) leaving the cell along ``departure`` [ue, path, 3]."""
+    u, v = panel_frequencies(cell, departure)
+    e = steering(codebook.rows, codebook.cols, u, v)  # [ue, path, element]
+    h = np.einsum("up,upe->ue", np.asarray(amplitude), e)  # the UE's channel across the panel
+    return np.abs(h @ codebook.weights().T) ** 2
+
+
+def line_of_sight(cells: Sequence[Cell], ues: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Free space, one path per cell and UE: amplitudes [ue, cell, 1] (Friis and the sector
+    pattern, real) and departure directions [ue, cell, 1, 3]."""
+    ues = np.asarray(ues, dtype=float)
+    amplitude = np.zeros((len(ues), len(cells), 1), dtype=complex)
+    departure = np.zeros((len(ues), len(cells), 1, 3))
+    for c, cell in enumerate(cells):
+        d = ues - np.asarray(cell.position)
+        dist = np.linalg.norm(d, axis=-1)
+        k = d / dist[:, None]
+        theta = np.degrees(np.arccos(np.clip(k[:, 2], -1, 1)))
+        phi = np.degrees(np.arctan2(k[:, 1], k[:, 0]))
+        lam = SPEED_OF_LIGHT / cell.carrier_hz
+        amplitude[:, c, 0] = lam / (4 * np.pi * dist) * 10 ** (pattern_gain_db(cell, theta, phi) / 20)
+        departure[:, c, 0] = k
+    return amplitude, departure
+
+
+def beamformed_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, beam: np.ndarray,
+                       scheduled_beam: np.ndarray, noise_mw: float) -> np.ndarray:
+    """[ue]: SINR of each UE on its serving cell's beam ``beam[u]``, every other cell ``c`` on
+    the carrier transmitting its beam ``scheduled_beam[c]`` (-1: silent), both evaluated on
+    the victim's channel. ``gains`` [ue, cell, beam] linear beam gains (:func:`beam_gains`)."""
+    power = 10 ** (np.array([c.tx_power_dbm for c in cells]) / 10)
+    carrier = np.array([c.carrier_hz for c in cells])
+    out = np.full(len(serving), np.nan)
+    for u, s in enumerate(np.asarray(serving)):
+        if s < 0:
+            continue
+        interference = sum(power[c] * gains[u, c, scheduled_beam[c]] for c in range(len(cells))
+                           if c != s and carrier[c] == carrier[s] and scheduled_beam[c] >= 0)
+        out[u] = 10 * math.log10(power[s] * gains[u, s, beam[u]] / (noise_mw + interference))
+    return out

@@ -1,0 +1,121 @@
+"""SSB beams from the channel (issue #41, part 1): the DFT codebook's gains and the SINR
+with the interferer's scheduled beam, against the array factor computed by hand."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from caviar_plugins.network.beams import Codebook, beam_gains, beamformed_sinr_db, line_of_sight
+from caviar_plugins.network.cells import Cell
+
+CARRIER, N = 3.5e9, 8
+LAMBDA = 299_792_458.0 / CARRIER
+NOISE_MW = 10 ** ((-174 + 10 * math.log10(20e6) + 7) / 10)
+
+
+def _cell(name, index, position, azimuth):
+    return Cell(name=name, site=name, index=index, position=position, azimuth_deg=azimuth, downtilt_deg=0.0,
+                tx_power_dbm=46.0, carrier_hz=CARRIER, bandwidth_hz=20e6, array=(1, N))
+
+
+def _dirichlet(u, u_beam):
+    """|Σ_n exp(jπn(u − u_b))|² / N for an N-element half-wavelength line: the array factor."""
+    x = math.pi * (u - u_beam) / 2
+    return N if abs(math.sin(x)) < 1e-12 else math.sin(N * x) ** 2 / (N * math.sin(x) ** 2)
+
+
+def _element_db(phi_deg):  # TR 38.901 Table 7.3-1 on the horizon, no tilt
+    return 8.0 - min(12 * (phi_deg / 65) ** 2, 30.0)
+
+
+def _hand(cell, ue, beam_u):
+    """Friis × element × array factor of `cell`'s beam steered to `beam_u`, toward `ue` (same height)."""
+    d = np.asarray(ue) - np.asarray(cell.position)
+    dist = float(np.linalg.norm(d))
+    phi = math.degrees(math.atan2(d[1], d[0])) - cell.azimuth_deg
+    phi = (phi + 180) % 360 - 180
+    u = math.sin(math.radians(phi))
+    return (LAMBDA / (4 * math.pi * dist)) ** 2 * 10 ** (_element_db(phi) / 10) * _dirichlet(u, beam_u), u
+
+
+def _best(u):  # the DFT beam nearest to u: the codebook's best for a single path
+    grid = (2 * np.arange(N) + 1) / N - 1
+    return float(grid[np.argmin(np.abs(grid - u))])
+
+
+@pytest.mark.parametrize("toward_victim", [True, False])
+def test_two_cells_sinr_is_the_hand_array_factor_with_the_interferers_beam_on_or_off_the_victim(toward_victim):
+    a = _cell("A", 0, (0.0, 0.0, 25.0), 0.0)
+    b = _cell("B", 1, (400.0, 0.0, 25.0), 180.0)
+    victim = np.array([180.0, 60.0, 25.0])  # served by A
+    # B's own UE: on the line from B through the victim (B's beam then points at it), or off to B's other side.
+    other = b.position + 0.5 * (victim - b.position) if toward_victim else np.array([250.0, -120.0, 25.0])
+    cells, ues = [a, b], np.array([victim, other])
+    codebook = Codebook(rows=1, cols=N, beams_h=N)
+    amplitude, departure = line_of_sight(cells, ues)
+    gains = np.stack([beam_gains(c, codebook, amplitude[:, k], departure[:, k]) for k, c in enumerate(cells)], 1)
+    beam = gains[np.arange(2), [0, 1]].argmax(-1)  # each UE's best beam from its serving cell
+    sinr = beamformed_sinr_db(cells, gains, np.array([0, 1]), beam, scheduled_beam=beam, noise_mw=NOISE_MW)[0]
+
+    # By hand: A's best beam toward the victim, B's best beam toward its own UE, on the victim.
+    _, u_a = _hand(a, victim, 0.0)
+    signal, _ = _hand(a, victim, _best(u_a))
+    _, u_b_own = _hand(b, other, 0.0)
+    leak, _ = _hand(b, victim, _best(u_b_own))
+    power = 10 ** (46 / 10)
+    hand = 10 * math.log10(power * signal / (NOISE_MW + power * leak))
+    print(f"toward the victim: {toward_victim}: SINR {sinr:.3f} dB, by hand {hand:.3f} dB")
+    assert sinr == pytest.approx(hand, abs=0.1)
+    if toward_victim:
+        assert leak > 0.5 * N * (LAMBDA / (4 * math.pi * np.linalg.norm(victim - b.position))) ** 2  # near the peak
+    else:
+        assert hand > 10  # the interferer's beam points away
+
+
+def test_the_beams_tile_the_panel_and_a_beam_on_a_path_gains_the_array():
+    cell = _cell("A", 0, (0.0, 0.0, 0.0), 30.0)
+    codebook = Codebook(rows=4, cols=8, beams_h=8, beams_v=4)
+    w = codebook.weights()
+    assert w.shape == (32, 32) and np.allclose(w @ w.conj().T, np.eye(32), atol=1e-12)  # orthonormal DFT beams
+    # A unit path along each beam's own direction gains rows·cols = 32 on that beam, ~0 on the
+    # others (the four corner beams, u² + v² > 1, point at no real direction).
+    u, v = codebook.pointing().T
+    real = u**2 + v**2 < 1
+    assert real.sum() == 28
+    a_rad = math.radians(30.0)
+    # the panel frame's (x', y', z') for spatial frequencies (u, v): x' = sqrt(1 - u² - v²)
+    x = np.sqrt(np.clip(1 - u**2 - v**2, 0, None))
+    k = np.stack([math.cos(a_rad) * x - math.sin(a_rad) * u, math.sin(a_rad) * x + math.cos(a_rad) * u, v], -1)
+    g = beam_gains(cell, codebook, np.ones((28, 1)), k[real][:, None, :])
+    on = g[np.arange(28), np.flatnonzero(real)]
+    assert np.allclose(on, 32) and np.allclose(g.sum(axis=1), 32)  # all of it on its own beam
+
+
+def test_a_codebook_larger_than_the_array_is_refused_naming_the_key():
+    with pytest.raises(ValueError, match=r"beams: 16 horizontal beams on 8 columns; expected 1\.\.8"):
+        Codebook(rows=4, cols=8, beams_h=16)
+    with pytest.raises(ValueError, match=r"beams: 5 vertical beams on 4 rows"):
+        Codebook(rows=4, cols=8, beams_h=8, beams_v=5)
+
+
+def test_the_ray_traced_paths_give_the_free_space_beams_in_an_empty_scene():
+    """A ray test: with only the direct path, each sector's beam gains from the traced
+    departure directions are those of the straight line, beam by beam."""
+    from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
+
+    cells = [Cell(name=f"A/{k}", site="A", index=k, position=(0.0, 0.0, 30.0), azimuth_deg=az, downtilt_deg=6.0,
+                  tx_power_dbm=46.0, carrier_hz=CARRIER, bandwidth_hz=20e6, array=(4, 8))
+             for k, az in enumerate((0.0, 120.0, 240.0))]
+    ues = np.array([[120.0, 40.0, 1.5], [-80.0, -60.0, 1.5], [60.0, 150.0, 40.0]])
+    traced = SiteTracer(TraceSettings(scene="empty", max_depth=0, samples_per_src=1000), cells).trace(ues)
+    amplitude, departure = line_of_sight(cells, ues)
+    codebook = Codebook(rows=4, cols=8, beams_h=8, beams_v=2)
+    for k, cell in enumerate(cells):
+        ray = beam_gains(cell, codebook, traced.amplitude[:, k], traced.departure[:, k])
+        straight = beam_gains(cell, codebook, amplitude[:, k], departure[:, k])
+        strong = straight > 1e-3 * straight.max(axis=1, keepdims=True)  # away from the nulls
+        np.testing.assert_allclose(10 * np.log10(ray[strong]), 10 * np.log10(straight[strong]), atol=0.02)
+        assert (ray.argmax(axis=1) == straight.argmax(axis=1)).all()
