@@ -119,3 +119,109 @@ def test_the_ray_traced_paths_give_the_free_space_beams_in_an_empty_scene():
         strong = straight > 1e-3 * straight.max(axis=1, keepdims=True)  # away from the nulls
         np.testing.assert_allclose(10 * np.log10(ray[strong]), 10 * np.log10(straight[strong]), atol=0.02)
         assert (ray.argmax(axis=1) == straight.argmax(axis=1)).all()
+
+
+BEAMS = """
+[episode]
+ts = 0.01
+steps = 3
+seed = 4
+stages = ["mobility", "communications"]
+
+[output]
+analysis = ["communications.throughput", "network.ue", "network.events", "network.cells"]
+
+[modules.ues]
+stage = "mobility"
+plugin = "sample_plugins:LineMover"
+[[modules.ues.params.ues]]
+id = "victim"
+start = [180.0, 60.0, 25.0]
+end = [180.0, 60.0, 25.0]
+speed = 1.0
+[[modules.ues.params.ues]]
+id = "other"
+start = {other}
+end = {other}
+speed = 1.0
+
+[modules.net]
+stage = "communications"
+plugin = "radio-network"
+[modules.net.params]
+carrier_hz = 3.5e9
+bandwidth_hz = 20e6
+subcarrier_spacing_hz = 30e3
+tx_power_dbm = 46.0
+array = [1, 8]
+noise_figure_db = 7.0
+beams = {{ horizontal = {beams} }}
+handover = {{ offset_db = 0.0, hysteresis_db = 3.0 }}
+[[modules.net.params.sites]]
+name = "A"
+position = [0.0, 0.0, 25.0]
+azimuths_deg = [0.0]
+downtilt_deg = 0.0
+[[modules.net.params.sites]]
+name = "B"
+position = [400.0, 0.0, 25.0]
+azimuths_deg = [180.0]
+downtilt_deg = 0.0
+"""
+
+
+@pytest.mark.parametrize("toward_victim", [True, False])
+def test_in_the_network_the_victims_sinr_is_the_hand_array_factor(tmp_path, toward_victim):
+    """The radio-network plugin with beams: the same two cells and two UEs, through cell
+    selection on L1-RSRP, the serving beam and the interferer's scheduled beam."""
+    import caviar
+
+    victim = np.array([180.0, 60.0, 25.0])
+    b = np.array([400.0, 0.0, 25.0])
+    other = b + 0.5 * (victim - b) if toward_victim else np.array([250.0, -120.0, 25.0])
+    cfg = tmp_path / "net.toml"
+    cfg.write_text(BEAMS.format(other=[float(v) for v in other], beams=N))
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    last = {m.data["UE_Id"]: m.data for m in log.decoded("network.ue")}
+    assert last["victim"]["serving_cell"] == "A/0" and last["other"]["serving_cell"] == "B/0"
+    a_cell = _cell("A", 0, (0.0, 0.0, 25.0), 0.0)
+    b_cell = _cell("B", 1, tuple(b), 180.0)
+    _, u_a = _hand(a_cell, victim, 0.0)
+    signal, _ = _hand(a_cell, victim, _best(u_a))
+    _, u_b = _hand(b_cell, other, 0.0)
+    leak, _ = _hand(b_cell, victim, _best(u_b))
+    power = 10 ** (46 / 10)
+    noise = 10 ** ((-174 + 10 * math.log10(20e6) + 7) / 10)
+    hand = 10 * math.log10(power * signal / (noise + power * leak))
+    assert last["victim"]["sinr_db"] == pytest.approx(hand, abs=0.1)
+    # L1-RSRP: the best beam's received power per resource element.
+    rsrp = 10 * math.log10(power * signal) - 10 * math.log10(12 * 51)
+    assert last["victim"]["rsrp_dbm"]["A/0"] == pytest.approx(rsrp, abs=0.01)
+
+
+def test_a_codebook_larger_than_the_panel_is_refused_before_the_run_naming_the_key(tmp_path):
+    import caviar
+
+    cfg = tmp_path / "net.toml"
+    cfg.write_text(BEAMS.format(other=[250.0, -120.0, 25.0], beams=16))
+    with pytest.raises(caviar.ConfigError, match=r"net\.toml:\d+: modules\.net\.params\.beams: 16 horizontal beams "
+                                                 r"on 8 columns"):
+        caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_in_an_empty_scene_the_ray_traced_beams_give_the_free_space_sinr(tmp_path):
+    """A ray test through the plugin: the traced paths' departure directions and phases,
+    moved with the UEs per subband, give the straight line's beams."""
+    import caviar
+
+    text = BEAMS.format(other=[250.0, -120.0, 25.0], beams=N)
+    sinr = {}
+    for channel in ("free-space", "ray-traced"):
+        extra = ('channel = "ray-traced"\nraytracing = { scene = "empty", max_depth = 0, samples_per_src = 1000 }\n'
+                 if channel == "ray-traced" else "")
+        cfg = tmp_path / f"{channel}.toml"
+        cfg.write_text(text.replace("beams = {", extra + "beams = {"))
+        log = caviar.Simulation.from_toml(cfg, out=tmp_path / channel).run()
+        sinr[channel] = {m.data["UE_Id"]: m.data["sinr_db"] for m in log.decoded("network.ue")}
+    assert sinr["ray-traced"] == pytest.approx(sinr["free-space"], abs=0.05)

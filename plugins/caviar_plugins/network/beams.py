@@ -16,7 +16,11 @@ Beam gain of beam ``w`` toward a UE with paths ``a_p`` (complex amplitude, the e
 pattern applied) leaving along ``k_p``: ``|Σ_p a_p · e(k_p)ᵀ w|²``, where ``e`` has unit-modulus
 entries, so a beam aimed exactly along a single path gains ``rows · cols``.
 
-Not yet wired into the ``radio-network`` plugin's RSRP, scheduling and SINR.
+In the ``radio-network`` plugin (``beams = { horizontal = 8 }``): each cell sweeps its
+codebook, a UE's L1-RSRP of a cell is its best beam's (cell selection and A3 handover use
+it), data goes out on the serving cell's best beam for the UE, and in every slot each other
+cell on the carrier interferes with the beam toward the UE it schedules then
+(:func:`slot_beams`: its UEs in turn, one per slot), evaluated on the victim's channel.
 """
 
 from __future__ import annotations
@@ -29,6 +33,25 @@ import numpy as np
 
 from caviar_plugins.constants import SPEED_OF_LIGHT
 from caviar_plugins.network.cells import Cell, pattern_gain_db
+
+
+@dataclasses.dataclass(frozen=True)
+class BeamSettings:
+    """``[modules.NAME.params.beams]``: the SSB codebook of every cell's panel."""
+
+    horizontal: int = 8
+    """DFT beams across the panel (at most its columns)."""
+    vertical: int = 1
+    """DFT beams up the panel (at most its rows)."""
+
+    def __post_init__(self):
+        for key in ("horizontal", "vertical"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{key}: expected a number of beams >= 1, got {value!r}")
+
+    def codebook(self, array: tuple[int, int]) -> Codebook:
+        return Codebook(rows=array[0], cols=array[1], beams_h=self.horizontal, beams_v=self.vertical)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,4 +146,58 @@ def beamformed_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.nda
         interference = sum(power[c] * gains[u, c, scheduled_beam[c]] for c in range(len(cells))
                            if c != s and carrier[c] == carrier[s] and scheduled_beam[c] >= 0)
         out[u] = 10 * math.log10(power[s] * gains[u, s, beam[u]] / (noise_mw + interference))
+    return out
+
+
+def all_beam_gains(cells: Sequence[Cell], codebooks: Sequence[Codebook], amplitude: np.ndarray,
+                   departure: np.ndarray) -> np.ndarray:
+    """[ue, cell, freq, beam]: :func:`beam_gains` of every cell, for path amplitudes
+    [ue, cell, path, freq] (per frequency) leaving along ``departure`` [ue, cell, path, 3]."""
+    n_ue, n_cell, _, n_f = amplitude.shape
+    width = max(cb.size for cb in codebooks)
+    out = np.zeros((n_ue, n_cell, n_f, width))
+    for c, (cell, cb) in enumerate(zip(cells, codebooks, strict=True)):
+        u, v = panel_frequencies(cell, departure[:, c])
+        e = steering(cb.rows, cb.cols, u, v)  # [ue, path, element]
+        h = np.einsum("upf,upe->ufe", amplitude[:, c], e)
+        out[:, c, :, :cb.size] = np.abs(h @ cb.weights().T) ** 2
+    return out
+
+
+def slot_beams(serving: np.ndarray, best_beam: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
+    """[slot, cell]: the beam each cell points in each slot: toward its UEs in turn (UE order),
+    one per slot; -1 for a cell that serves nobody."""
+    out = np.full((slots, n_cells), -1)
+    for c in range(n_cells):
+        mine = np.flatnonzero(np.asarray(serving) == c)
+        if len(mine):
+            out[:, c] = np.asarray(best_beam)[mine[np.arange(slots) % len(mine)]]
+    return out
+
+
+def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, best_beam: np.ndarray,
+                 beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool) -> np.ndarray:
+    """[slot, ue, freq]: the SINR of every UE on its serving cell's best beam, the other cells
+    on its carrier pointing ``beams`` [slot, cell] (:func:`slot_beams`), on the victim's channel
+    ``gains`` [ue, cell, freq, beam] (linear). A cell serving nobody is silent with
+    ``silent_idle``, and otherwise sends over its codebook evenly (its mean beam gain).
+    ``noise_mw`` [ue] (0: the SIR); NaN for a UE without a cell."""
+    n_ue, n_cell, n_f, _ = gains.shape
+    power = 10 ** (np.array([c.tx_power_dbm for c in cells]) / 10)
+    carrier = np.array([c.carrier_hz for c in cells])
+    serving = np.asarray(serving)
+    ue, cell = np.arange(n_ue)[None, :, None, None], np.arange(n_cell)[None, None, :, None]
+    freq = np.arange(n_f)[None, None, None, :]
+    pointed = gains[ue, cell, freq, np.maximum(beams, 0)[:, None, :, None]]  # [slot, ue, cell, freq]
+    idle = 0.0 if silent_idle else gains.mean(axis=-1)[None]  # (over the codebook's beams)
+    received = power[None, None, :, None] * np.where((beams >= 0)[:, None, :, None], pointed, idle)
+    out = np.full((len(beams), n_ue, n_f), np.nan)
+    for u, s in enumerate(serving):
+        if s < 0:
+            continue
+        others = (carrier == carrier[s]) & (np.arange(n_cell) != s)
+        interference = received[:, u, others].sum(axis=1)  # [slot, freq]
+        signal = power[s] * gains[u, s, :, best_beam[u]]
+        with np.errstate(divide="ignore"):
+            out[:, u] = 10 * np.log10(signal / (noise_mw[u] + interference))
     return out

@@ -18,7 +18,8 @@ with ``N = k·T·B·NF``, ``load`` 1 for every interfering cell (``full-buffer``
 for cells that scheduled someone in the slot (``scheduled``), and ``A(c)`` the array gain
 of cell ``c``: its data beams point at its own UEs, and the array factor averaged over
 directions is 1, so an interferer reaches the UE with its element gain only (RSRP is
-measured on beam-swept reference signals and keeps the array gain).
+measured on beam-swept reference signals and keeps the array gain). With ``beams`` the
+network uses the beams themselves instead (:mod:`caviar_plugins.network.beams`).
 """
 
 from __future__ import annotations

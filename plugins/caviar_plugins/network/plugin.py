@@ -31,10 +31,13 @@ from typing import Any
 import numpy as np
 
 import caviar
+from caviar_plugins.constants import SPEED_OF_LIGHT
+from caviar_plugins.network.beams import BeamSettings, all_beam_gains, line_of_sight, slot_beams, slot_sinr_db
 from caviar_plugins.network.cells import (
     Cell,
     Column,
     line_of_sight_gain_db,
+    noise_dbm,
     parse_sites,
     rsrp_dbm,
     rx_power_dbm,
@@ -182,6 +185,12 @@ class RadioNetwork(caviar.Plugin):
         raytracing: TraceSettings = dataclasses.field(default_factory=TraceSettings)
         """``scene`` (default ``empty``), ``max_depth``, ``samples_per_src``, ``diffraction``,
         ``refresh_s``...: see :class:`~caviar_plugins.network.raytraced.TraceSettings`."""
+        beams: BeamSettings | None = None
+        """SSB beams from the channel (a table turns them on): every cell sweeps a DFT
+        codebook of ``horizontal × vertical`` beams on its panel, L1-RSRP is the best beam's,
+        data goes on the serving cell's best beam, and in each slot every other cell
+        interferes with its beam toward the UE it schedules then, on the victim's channel
+        (:mod:`~caviar_plugins.network.beams`). Needs the free-space or ray-traced channel."""
         radio_map: RadioMapSettings | None = None
         """A best-server SINR map of ``raytracing.scene`` at setup (a table turns it on):
         ``cell_size_m``, ``height_m``, ``margin_m``, ``samples_per_tx``, ``max_depth`` (see
@@ -196,6 +205,11 @@ class RadioNetwork(caviar.Plugin):
                 raise ValueError(f"report_cells: expected a number of cells >= 0, got {self.report_cells!r}")
             for c in self.cells:
                 check_nr_carrier(c.carrier_hz, carrier_key(self, c))
+            if self.beams is not None:
+                if self.channel not in ("free-space", "ray-traced"):
+                    raise ValueError(f"beams: need the channel's path directions, which the free-space and "
+                                     f"ray-traced channels have; got channel = {self.channel!r}")
+                self.codebooks = [self.beams.codebook(c.array) for c in self.cells]
             if self.interference not in INTERFERENCE:
                 raise ValueError(f"interference: expected one of {list(INTERFERENCE)}, got {self.interference!r}")
             if self.num_prb is None:
@@ -361,6 +375,48 @@ class RadioNetwork(caviar.Plugin):
             return 10 * np.log10(np.mean(10 ** (gains / 10), axis=-1, keepdims=True))
         return gains
 
+    def _beam_gains(self, ids: list[str], pos: np.ndarray) -> np.ndarray:
+        """[ue, cell, subband, beam]: every cell's SSB beams toward the UEs (linear), from the
+        channel's paths: the straight line, or the last trace's paths moved with the UEs as
+        :meth:`TracedChannels.gain_db` moves them (run after :meth:`_channel_gains`)."""
+        if self.tracer is None:
+            amplitude, departure = line_of_sight(self.cells, pos)
+            amplitude = amplitude[..., None]
+        else:
+            assert self.channels is not None
+            ch = self.channels.rows(np.array([self.traced[u] for u in ids]))
+            assert ch.departure is not None
+            departure = ch.departure
+            if self.p.raytracing.evolve == "hold":
+                amplitude = ch.amplitude[..., None]
+            else:
+                f = np.asarray(self.frequencies, dtype=float)
+                shorter = np.einsum("ucpk,uk->ucp", ch.arrival, pos - ch.position)
+                phase = 2 * np.pi * ((ch.carrier_hz + f) * (shorter / SPEED_OF_LIGHT)[..., None]
+                                     - ch.delay_s[..., None] * f)
+                amplitude = ch.amplitude[..., None] * np.exp(1j * phase)
+        gains = all_beam_gains(self.cells, self.p.codebooks, amplitude, departure)
+        if self.tracer is not None and self.band_average:
+            gains = gains.mean(axis=2, keepdims=True)
+        return gains
+
+    def _beamformed_sinr(self, serving: np.ndarray):
+        """Per slot and subband, and wideband (the slots' mean), SINR and SIR with beams."""
+        assert self.beam_gains is not None
+        ue = np.arange(len(serving))
+        best = np.where(serving >= 0, self.best_beams[ue, np.maximum(serving, 0)], 0)
+        beams = slot_beams(serving, best, len(self.cells), self.slots)
+        bandwidth = np.array([self.cells[max(int(s), 0)].bandwidth_hz for s in serving])
+        noise = 10 ** (noise_dbm(bandwidth, self.p.noise_figure_db) / 10)
+        silent = self.p.interference == "scheduled"
+        per_slot = slot_sinr_db(self.cells, self.beam_gains, serving, best, beams, noise, silent)
+        weights = self.p.link.subband_prbs if self.beam_gains.shape[2] > 1 else np.ones(1)
+        flat = np.average(self.beam_gains, axis=2, weights=weights)[:, :, None, :]
+        sinr, sir = (10 * np.log10(np.mean(10 ** (slot_sinr_db(self.cells, flat, serving, best, beams, n, silent)
+                                                  [:, :, 0] / 10), axis=0))
+                     for n in (noise, np.zeros(len(serving))))
+        return per_slot, sinr, sir
+
     def _column(self) -> int:
         return self.free.pop(0) if self.free else len(self.ues)
 
@@ -388,6 +444,13 @@ class RadioNetwork(caviar.Plugin):
         rx = rx_power_dbm(self.cells, gains)
         weights = self.p.link.subband_prbs if gains.shape[-1] > 1 else np.ones(1)
         wideband = 10 * np.log10(np.average(10 ** (rx / 10), axis=-1, weights=weights))
+        self.beam_gains = None
+        if self.p.beams is not None:  # L1-RSRP: the best SSB beam's
+            self.beam_gains = self._beam_gains(ids, pos)
+            tx = np.array([c.tx_power_dbm for c in self.cells])[None, :]
+            per_beam = 10 * np.log10(np.maximum(np.average(self.beam_gains, axis=2, weights=weights), 1e-40))
+            wideband = tx + per_beam.max(axis=-1)
+            self.best_beams = per_beam.argmax(axis=-1)  # [ue, cell]
         rsrp = rsrp_dbm(self.cells, wideband, [self.p.num_prb] * len(self.cells))
         events = []
         for i, u in enumerate(ids):
@@ -413,15 +476,18 @@ class RadioNetwork(caviar.Plugin):
         load = None
         if self.p.interference == "scheduled":
             load = np.isin(np.arange(len(self.cells)), serving).astype(float)
-        sinr = sinr_db(self.cells, wideband, serving, self.p.noise_figure_db, load)
-        sir = sinr_db(self.cells, wideband, serving, -np.inf, load)
-        per_subband = sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)  # [ue, subband]
+        if self.p.beams is not None:
+            per_slot, sinr, sir = self._beamformed_sinr(serving)  # [slot, ue, subband], [ue], [ue]
+        else:
+            sinr = sinr_db(self.cells, wideband, serving, self.p.noise_figure_db, load)
+            sir = sinr_db(self.cells, wideband, serving, -np.inf, load)
+            per_slot = sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)[None]  # [1, ue, subband]
         # The link level works on UE columns (stable across steps).
         cols = np.array([self.ues[u]["column"] for u in ids])
-        sinr_cols = np.full((int(cols.max()) + 1, per_subband.shape[1]), np.nan)
+        sinr_cols = np.full((len(per_slot), int(cols.max()) + 1, per_slot.shape[2]), np.nan)
         serving_cols = np.full(int(cols.max()) + 1, -1)
-        sinr_cols[cols], serving_cols[cols] = per_subband, serving
-        res = self.link.run(np.broadcast_to(sinr_cols, (self.slots, *sinr_cols.shape)), serving_cols)
+        sinr_cols[:, cols], serving_cols[cols] = per_slot, serving
+        res = self.link.run(np.broadcast_to(sinr_cols, (self.slots, *sinr_cols.shape[1:])), serving_cols)
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         for e in events:
             yield NETWORK_EVENTS, e
