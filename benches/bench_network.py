@@ -26,11 +26,13 @@ import argparse
 import json
 import pathlib
 import time
+import warnings
 
 import numpy as np
 
 from bench_perf_steps import machine
-from caviar_plugins.network.cells import parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
+from caviar_plugins.network.beams import BeamSettings, all_beam_gains, slot_beams, slot_sinr_db
+from caviar_plugins.network.cells import noise_dbm, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
@@ -64,10 +66,31 @@ def ues(rng: np.random.Generator):
     return kinds, pos, vel
 
 
+def beamformed(cells, codebooks, channels: TracedChannels, pos, freqs, weights, mm, t, last_sinr, slots):
+    """The plugin's ``beams`` path (radio-network): SSB beam gains from the paths, L1-RSRP,
+    mobility, and the per-slot SINR with each interferer's scheduled beam."""
+    gains = all_beam_gains(cells, codebooks, channels.amplitudes(pos, freqs), channels.departure)
+    per_beam = 10 * np.log10(np.maximum(np.average(gains, axis=2, weights=weights), 1e-40))
+    tx = np.array([c.tx_power_dbm for c in cells])[None, :]
+    rsrp = rsrp_dbm(cells, tx + per_beam.max(axis=-1), [NUM_PRB] * len(cells))
+    for u in range(len(pos)):
+        mm.update(t, str(u), list(rsrp[u]), last_sinr.get(u))
+    serving = np.array([mm.serving(str(u)) for u in range(len(pos))])
+    best = np.where(serving >= 0, per_beam.argmax(axis=-1)[np.arange(len(pos)), np.maximum(serving, 0)], 0)
+    beams = slot_beams(serving, best, len(cells), slots)
+    noise = np.full(len(pos), 10 ** (noise_dbm(cells[0].bandwidth_hz, 7.0) / 10))
+    per_slot = slot_sinr_db(cells, gains, serving, best, beams, noise, silent_idle=False)
+    with warnings.catch_warnings():  # (a UE without a cell: all NaN)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        sinr = 10 * np.log10(np.nanmean(10 ** (per_slot / 10), axis=(0, 2)))
+    return per_slot, sinr, serving
+
+
 def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, vel, initial: TracedChannels,
-        processes: int, subbands: int, compiled: bool = False) -> dict:
+        processes: int, subbands: int, compiled: bool = False, beams: BeamSettings | None = None) -> dict:
     """``refresh`` None: the initial trace's channels held (wideband: the power sum; per
-    subband: at the trace's instant); else traced every ``refresh`` s and evolved."""
+    subband: at the trace's instant); else traced every ``refresh`` s and evolved. ``beams``:
+    the SSB beams' path (L1-RSRP, scheduled interfering beams per slot)."""
     settings = LinkSettings(num_prb=NUM_PRB, subcarrier_spacing_hz=SCS, harq_processes=processes,
                             subbands=subbands, compile=compiled)
     link = LinkLevel(settings, len(cells), seed=1)
@@ -83,7 +106,7 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
     freqs, weights = settings.subband_frequencies_hz, settings.subband_prbs
     channels = initial
     held = initial.power_sum_db[..., None] if subbands == 1 else initial.gain_db(pos0, freqs)
-    t_rt, t_evolve, t_sys, last_sinr = 0.0, 0.0, 0.0, {}
+    t_rt, t_evolve, t_sys, t_beams, last_sinr = 0.0, 0.0, 0.0, 0.0, {}
     steps = round(seconds / TS)
     t0 = time.perf_counter()
     for k in range(steps):
@@ -93,6 +116,17 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
         if refresh is not None and k and k % round(refresh / TS) == 0:
             channels = tracer.trace(pos)
         b = time.perf_counter()
+        if beams is not None:
+            c = time.perf_counter()
+            t_rt = t_rt + b - a
+            codebooks = [beams.codebook(cell.array) for cell in cells]
+            per_slot, sinr, serving = beamformed(cells, codebooks, channels, pos0 if refresh is None else pos,
+                                                 freqs, weights, mm, t, last_sinr, slots)
+            t_beams += time.perf_counter() - c
+            link.run(per_slot, serving)
+            last_sinr = {u: float(s) for u, s in enumerate(sinr) if serving[u] >= 0}
+            t_sys += time.perf_counter() - c
+            continue
         gains = held if refresh is None else channels.gain_db(pos, freqs)
         c = time.perf_counter()
         t_rt, t_evolve = t_rt + b - a, t_evolve + c - b
@@ -111,7 +145,7 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
     return {"harq_processes": processes, "subbands": subbands, "compiled": compiled,
             "compile_s": round(compile_s, 1), "virtual_s": seconds, "wall_s": round(wall, 3),
             "tp_tv": round(wall / seconds, 3), "rt_s": round(t_rt, 3), "evolve_s": round(t_evolve, 3),
-            "sys_s": round(t_sys, 3), "slots": steps * slots,
+            "sys_s": round(t_sys - t_beams, 3), "beams_s": round(t_beams, 3), "slots": steps * slots,
             "ms_per_slot": round(1e3 * t_sys / (steps * slots), 3), "covered_ues": int((serving >= 0).sum())}
 
 
@@ -142,6 +176,12 @@ def main() -> None:
     print(f"sys only, {d} HARQ processes per call, {sub} subbands, compiled", sys_only, flush=True)
     with_rt = run(args.seconds, args.refresh, tracer, cells, pos0, vel, initial, d, sub, compiled=True)
     print("with rt", with_rt, flush=True)
+    beams = BeamSettings(horizontal=4, vertical=1)  # the 4×4 panels' SSB sweep
+    sys_only_beams = run(args.seconds, None, tracer, cells, pos0, vel, initial, d, sub, compiled=True, beams=beams)
+    print("sys only, beams", sys_only_beams, flush=True)
+    with_rt_beams = run(args.seconds, args.refresh, tracer, cells, pos0, vel, initial, d, sub, compiled=True,
+                        beams=beams)
+    print("with rt, beams", with_rt_beams, flush=True)
     result = {
         "cells": len(cells), "ues": len(pos0), "ue_types": {k: kinds.count(k) for k in sorted(set(kinds))},
         "slot_s": 1e-3 * 15e3 / SCS, "step_s": TS, "rt_refresh_s": args.refresh, "samples_per_src": args.samples,
@@ -153,16 +193,21 @@ def main() -> None:
         "sys_share_of_step": round(with_rt["sys_s"] / with_rt["wall_s"], 3),
         "rt_share_of_step": round(with_rt["rt_s"] / with_rt["wall_s"], 3),
         "evolve_share_of_step": round(with_rt["evolve_s"] / with_rt["wall_s"], 3),
+        "tp_tv_sys_only_beams": sys_only_beams["tp_tv"], "tp_tv_with_rt_beams": with_rt_beams["tp_tv"],
+        "beams": {"horizontal": beams.horizontal, "vertical": beams.vertical},
+        "cost_of_beams_sys_only": round(sys_only_beams["wall_s"] / sys_only["wall_s"], 2),
+        "cost_of_beams_with_rt": round(with_rt_beams["wall_s"] / with_rt["wall_s"], 2),
         "targets": {"tp_tv_sys_only": 1.0, "tp_tv_with_rt": 3.0},
         "runs": {"sys_only_slot_by_slot": baseline, "sys_only_wideband": wideband, "sys_only_eager": eager,
                  "sys_only": sys_only,
-                 "with_rt": with_rt},
+                 "with_rt": with_rt, "sys_only_beams": sys_only_beams, "with_rt_beams": with_rt_beams},
         "first_trace_s": round(first_trace, 2),
         "machine": machine(),
     }
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps({k: result[k] for k in ("tp_tv_sys_only", "tp_tv_with_rt", "sys_share_of_step")}))
+    print(json.dumps({k: result[k] for k in ("tp_tv_sys_only", "tp_tv_with_rt", "tp_tv_sys_only_beams",
+                                             "tp_tv_with_rt_beams", "sys_share_of_step")}))
 
 
 if __name__ == "__main__":

@@ -31,7 +31,6 @@ from typing import Any
 import numpy as np
 
 import caviar
-from caviar_plugins.constants import SPEED_OF_LIGHT
 from caviar_plugins.network.beams import BeamSettings, all_beam_gains, line_of_sight, slot_beams, slot_sinr_db
 from caviar_plugins.network.cells import (
     Cell,
@@ -390,11 +389,7 @@ class RadioNetwork(caviar.Plugin):
             if self.p.raytracing.evolve == "hold":
                 amplitude = ch.amplitude[..., None]
             else:
-                f = np.asarray(self.frequencies, dtype=float)
-                shorter = np.einsum("ucpk,uk->ucp", ch.arrival, pos - ch.position)
-                phase = 2 * np.pi * ((ch.carrier_hz + f) * (shorter / SPEED_OF_LIGHT)[..., None]
-                                     - ch.delay_s[..., None] * f)
-                amplitude = ch.amplitude[..., None] * np.exp(1j * phase)
+                amplitude = ch.amplitudes(pos, self.frequencies)
         gains = all_beam_gains(self.cells, self.p.codebooks, amplitude, departure)
         if self.tracer is not None and self.band_average:
             gains = gains.mean(axis=2, keepdims=True)

@@ -113,14 +113,19 @@ class TracedChannels:
         """[ue, cell, path]: each path's Doppler shift v·k̂/λ for UE velocities [ue, 3] (m/s)."""
         return np.einsum("ucpk,uk->ucp", self.arrival, velocity) * self.carrier_hz / SPEED_OF_LIGHT
 
-    def gain_db(self, position: np.ndarray, frequencies_hz: np.ndarray) -> np.ndarray:
-        """[ue, cell, freq]: |H|² (dB) with the UEs at ``position`` [ue, 3], at baseband
-        ``frequencies_hz`` (offsets from the carrier)."""
+    def amplitudes(self, position: np.ndarray, frequencies_hz: np.ndarray) -> np.ndarray:
+        """[ue, cell, path, freq]: each path's coefficient with the UEs at ``position`` [ue, 3],
+        at baseband ``frequencies_hz`` (offsets from the carrier)."""
         f = np.asarray(frequencies_hz, dtype=float)
         shorter = np.einsum("ucpk,uk->ucp", self.arrival, np.asarray(position) - self.position)  # m
         phase = 2 * np.pi * ((self.carrier_hz + f) * (shorter / SPEED_OF_LIGHT)[..., None]
                              - self.delay_s[..., None] * f)
-        h = (self.amplitude[..., None] * np.exp(1j * phase)).sum(axis=-2)
+        return self.amplitude[..., None] * np.exp(1j * phase)
+
+    def gain_db(self, position: np.ndarray, frequencies_hz: np.ndarray) -> np.ndarray:
+        """[ue, cell, freq]: |H|² (dB) with the UEs at ``position`` [ue, 3], at baseband
+        ``frequencies_hz`` (offsets from the carrier)."""
+        h = self.amplitudes(position, frequencies_hz).sum(axis=-2)
         return 10 * np.log10(np.maximum(np.abs(h) ** 2, 10 ** (NO_PATH_DB / 10)))
 
     def rows(self, index: np.ndarray) -> TracedChannels:
