@@ -197,6 +197,16 @@ def test_in_the_network_the_victims_sinr_is_the_hand_array_factor(tmp_path, towa
     # L1-RSRP: the best beam's received power per resource element.
     rsrp = 10 * math.log10(power * signal) - 10 * math.log10(12 * 51)
     assert last["victim"]["rsrp_dbm"]["A/0"] == pytest.approx(rsrp, abs=0.01)
+    # The serving beam, reported where it points: the DFT direction nearest the victim's.
+    assert last["victim"]["beam_azimuth_deg"] == pytest.approx(math.degrees(math.asin(_best(u_a))), abs=0.01)
+    assert abs(math.degrees(math.asin(_best(u_a))) - math.degrees(math.atan2(60, 180))) < 8  # half a beam
+    if not toward_victim:
+        return
+    # caviar-core report draws the serving beams on the map.
+    from caviar.report import main as report
+
+    assert report([str(tmp_path / "run"), "--out", str(tmp_path / "rep")]) == 0
+    assert (tmp_path / "rep" / "network-handovers.png").stat().st_size > 10_000
 
 
 def test_a_codebook_larger_than_the_panel_is_refused_before_the_run_naming_the_key(tmp_path):

@@ -78,7 +78,8 @@ NETWORK_UE = "network.ue"
 """Per UE and step: ``{"UE_type", "UE_Id", "serving_cell", "sinr_db", "sir_db",
 "coupling_loss_db", "rsrp_dbm": {cell: dBm}, "throughput_mbps"}``, ``"position_m"`` for a UE
 the network's layout dropped, and, with the Sionna SYS link model, ``"mcs", "tbler",
-"harq_ack", "harq_nack", "prbs"`` (over the step's slots)."""
+"harq_ack", "harq_nack", "prbs"`` (over the step's slots); with SSB beams (``beams``),
+``"ssb_beam", "beam_azimuth_deg", "beam_elevation_deg"``: the serving beam and where it points."""
 NETWORK_EVENTS = "network.events"
 """``{"event": "attach" | "handover" | "rlf", "UE_Id", "time", "to_cell", "rsrp_to_dbm"}``
 (and ``"from_cell", "rsrp_from_dbm"`` for a handover or a radio-link failure)."""

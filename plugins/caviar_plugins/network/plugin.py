@@ -493,12 +493,24 @@ class RadioNetwork(caviar.Plugin):
             else:
                 self.last_sinr.pop(u, None)
             loss = self.cells[serving[i]].tx_power_dbm - wideband[i, serving[i]] if covered else math.nan
-            yield from self._report(u, serving[i], sinr[i], sir[i], loss, rsrp[i], float(mbps[cols[i]]),
-                                    res.summary(cols[i]))
+            link = res.summary(cols[i])
+            if self.p.beams is not None and covered:
+                link = {**link, **self._beam(int(serving[i]), int(self.best_beams[i, serving[i]]))}
+            yield from self._report(u, serving[i], sinr[i], sir[i], loss, rsrp[i], float(mbps[cols[i]]), link)
         used = res.cells_active.mean(axis=0)
         yield NETWORK_CELLS, {"cells": [
             {"cell": n, "ues": int((serving == k).sum()), "active_share": round(float(used[k]), 4)}
             for k, n in enumerate(self.names)]}
+
+    def _beam(self, cell: int, beam: int) -> dict[str, Any]:
+        """The serving SSB beam: its index and where it points (azimuth from +x and elevation,
+        scene frame; the codebook's direction, not the UE's)."""
+        c = self.cells[cell]
+        u, v = self.p.codebooks[cell].pointing()[beam]
+        elevation = math.degrees(math.asin(max(-1.0, min(1.0, v)))) - c.downtilt_deg
+        across = math.degrees(math.asin(max(-1.0, min(1.0, u / max(math.cos(math.radians(elevation)), 1e-9)))))
+        return {"ssb_beam": beam, "beam_azimuth_deg": round((c.azimuth_deg + across) % 360.0, 2),
+                "beam_elevation_deg": round(elevation, 2)}
 
     def _report(self, u: str, serving: int, sinr: float, sir: float, coupling_loss: float, rsrp: np.ndarray,
                 mbps: float, link: dict):
@@ -518,6 +530,8 @@ class RadioNetwork(caviar.Plugin):
             report["position_m"] = [round(float(v), 2) for v in self.ues[u]["position"]]
         if self.p.link_model == "sys":
             report.update(link)
+        elif "ssb_beam" in link:
+            report.update({k: link[k] for k in ("ssb_beam", "beam_azimuth_deg", "beam_elevation_deg")})
         yield NETWORK_UE, report
 
 

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import json
+import math
 import pathlib
 from typing import Any
 
@@ -43,6 +44,24 @@ def _sites(log) -> list[dict[str, Any]]:
             out += [{"name": f"S{i}", "position": [float(x), float(y), layout.height_m],
                      "azimuths_deg": list(SECTOR_AZIMUTHS_DEG)} for i, (x, y) in enumerate(site_positions(layout))]
     return out
+
+
+def _beams(ax, log, track: dict[str, dict[int, tuple[float, float]]], samples: int = 12) -> None:
+    """With SSB beams (``network.ue``'s ``beam_azimuth_deg``): from each UE's serving site, its
+    serving beam's direction out to the UE's distance, at ``samples`` instants of its track."""
+    site = {s["name"]: s["position"][:2] for s in _sites(log)}
+    rows = [m for m in log.decoded(NETWORK_UE) if m.data.get("beam_azimuth_deg") is not None]
+    drawn = False
+    for k, ue in enumerate(sorted({m.data["UE_Id"] for m in rows})):
+        mine = [m for m in rows if m.data["UE_Id"] == ue and m.step in track.get(ue, {})]
+        for m in mine[::max(1, len(mine) // samples)]:
+            x0, y0 = site[m.data["serving_cell"].split("/")[0]]
+            x, y = track[ue][m.step]
+            reach = math.hypot(x - x0, y - y0)
+            az = math.radians(m.data["beam_azimuth_deg"])
+            ax.plot([x0, x0 + reach * math.cos(az)], [y0, y0 + reach * math.sin(az)], color=f"C{k % 10}",
+                    lw=0.8, alpha=0.6, label=None if drawn else "serving SSB beam")
+            drawn = True
 
 
 def summarize(log) -> dict[str, Any] | None:
@@ -110,6 +129,7 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
         ax.annotate(s["name"], (x, y), textcoords="offset points", xytext=(5, 5))
         for az in s.get("azimuths_deg", [0.0, 120.0, 240.0]):
             ax.plot([x, x + 40 * np.cos(np.radians(az))], [y, y + 40 * np.sin(np.radians(az))], "k-", lw=1)
+    _beams(ax, log, track)
     step_of = {round(t, 9): s for s, t in zip(log.messages["step"].to_list(), log.messages["time"].to_list(),
                                                 strict=True)}
     marks = {"handover": ("o", "tab:blue"), "rlf": ("x", "tab:red"), "coverage_lost": ("s", "tab:orange")}
