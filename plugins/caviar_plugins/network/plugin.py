@@ -48,6 +48,7 @@ from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, 
 from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings
 from caviar_plugins.network.tr38901 import CHANNELS as STOCHASTIC
 from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings, check_carrier
+from caviar_plugins.network.uplink import UplinkSettings, uplink
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.schema import (
     ARRIVED,
@@ -190,6 +191,11 @@ class RadioNetwork(caviar.Plugin):
         data goes on the serving cell's best beam, and in each slot every other cell
         interferes with its beam toward the UE it schedules then, on the victim's channel
         (:mod:`~caviar_plugins.network.beams`). Needs the free-space or ray-traced channel."""
+        uplink: UplinkSettings | None = None
+        """The uplink (a table turns it on): PUSCH with open-loop power control (``p0_dbm``,
+        ``alpha``, ``ue_max_power_dbm``), interference from the UEs other cells schedule in the
+        slot, Sionna SYS on the PUSCH tables (:mod:`~caviar_plugins.network.uplink`);
+        ``network.ue`` adds ``ul_*``."""
         radio_map: RadioMapSettings | None = None
         """A best-server SINR map of ``raytracing.scene`` at setup (a table turns it on):
         ``cell_size_m``, ``height_m``, ``margin_m``, ``samples_per_tx``, ``max_depth`` (see
@@ -240,6 +246,9 @@ class RadioNetwork(caviar.Plugin):
                                      "params.harq_processes")
         self.mm = MobilityManager(p.handover, self.names)
         self.link = LinkLevel(p.link, len(self.cells), seed=ctx.seed)
+        self.ul_link = None if p.uplink is None else LinkLevel(
+            dataclasses.replace(p.link, direction="uplink", mcs_table=p.uplink.mcs_table), len(self.cells),
+            seed=ctx.seed + 1)
         self.ues: dict[str, dict[str, Any]] = {}  # UE_Id -> {type, position, column}
         self.free: list[int] = []
         self.last_sinr: dict[str, float] = {}
@@ -331,6 +340,7 @@ class RadioNetwork(caviar.Plugin):
         return {"map_files": [f.relative_to(self.ctx.run_dir).as_posix() for f in self.map_files],
                 "layer": self.layer, "ues": self.ues, "free": self.free, "last_sinr": self.last_sinr,
                 "handover": self.mm.ues, "link": self.link.state(), "channels": self.channels,
+                "ul_link": None if self.ul_link is None else self.ul_link.state(),
                 "traced": self.traced, "refreshed_at": self.refreshed_at, "drops": self.drops,
                 "stochastic": None if self.stochastic is None else self.stochastic.snapshot(),
                 "cache_seen": self.tracer is not None and self.tracer.cache_seen()}
@@ -340,6 +350,8 @@ class RadioNetwork(caviar.Plugin):
         self.layer, self.ues, self.free = state["layer"], state["ues"], state["free"]
         self.last_sinr, self.mm.ues = state["last_sinr"], state["handover"]
         self.link.restore(state["link"])
+        if self.ul_link is not None:
+            self.ul_link.restore(state["ul_link"])
         self.channels, self.traced, self.refreshed_at = state["channels"], state["traced"], state["refreshed_at"]
         self.drops = state["drops"]
         if self.stochastic is not None:
@@ -486,6 +498,7 @@ class RadioNetwork(caviar.Plugin):
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         for e in events:
             yield NETWORK_EVENTS, e
+        ul = self._uplink(rx, serving, cols) if self.ul_link is not None else None
         for i, u in enumerate(ids):
             covered = serving[i] >= 0
             if covered:
@@ -494,6 +507,8 @@ class RadioNetwork(caviar.Plugin):
                 self.last_sinr.pop(u, None)
             loss = self.cells[serving[i]].tx_power_dbm - wideband[i, serving[i]] if covered else math.nan
             link = res.summary(cols[i])
+            if ul is not None and covered:
+                link = {**link, **ul(i)}
             if self.p.beams is not None and covered:
                 link = {**link, **self._beam(int(serving[i]), int(self.best_beams[i, serving[i]]))}
             yield from self._report(u, serving[i], sinr[i], sir[i], loss, rsrp[i], float(mbps[cols[i]]), link)
@@ -501,6 +516,22 @@ class RadioNetwork(caviar.Plugin):
         yield NETWORK_CELLS, {"cells": [
             {"cell": n, "ues": int((serving == k).sum()), "active_share": round(float(used[k]), 4)}
             for k, n in enumerate(self.names)]}
+
+    def _uplink(self, rx: np.ndarray, serving: np.ndarray, cols: np.ndarray):
+        """The step's PUSCH: powers, per-slot SINR, the uplink link level; ``ul(i)``: UE i's."""
+        assert self.p.uplink is not None and self.ul_link is not None
+        tx, per_slot = uplink(self.cells, self.p.uplink, serving, rx, self.beam_gains,
+                              getattr(self, "best_beams", None) if self.p.beams else None, self.p.num_prb,
+                              self.p.subcarrier_spacing_hz, self.slots)
+        sinr_cols = np.full((self.slots, int(cols.max()) + 1, per_slot.shape[2]), np.nan)
+        serving_cols = np.full(int(cols.max()) + 1, -1)
+        sinr_cols[:, cols], serving_cols[cols] = per_slot, serving
+        res = self.ul_link.run(sinr_cols, serving_cols)
+        mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
+        mean = 10 * np.log10(np.mean(10 ** (per_slot / 10), axis=(0, 2)))
+        return lambda i: {"ul_tx_power_dbm": round(float(tx[i]), 3), "ul_sinr_db": round(float(mean[i]), 3),
+                          "ul_throughput_mbps": round(float(mbps[cols[i]]), 6),
+                          **{f"ul_{k}": v for k, v in res.summary(int(cols[i])).items()}}
 
     def _beam(self, cell: int, beam: int) -> dict[str, Any]:
         """The serving SSB beam: its index and where it points (azimuth from +x and elevation,
@@ -530,8 +561,8 @@ class RadioNetwork(caviar.Plugin):
             report["position_m"] = [round(float(v), 2) for v in self.ues[u]["position"]]
         if self.p.link_model == "sys":
             report.update(link)
-        elif "ssb_beam" in link:
-            report.update({k: link[k] for k in ("ssb_beam", "beam_azimuth_deg", "beam_elevation_deg")})
+        else:
+            report.update({k: v for k, v in link.items() if k.startswith(("ssb_beam", "beam_", "ul_"))})
         yield NETWORK_UE, report
 
 

@@ -54,6 +54,8 @@ SCHEDULERS = ("proportional-fair", "round-robin", "max-rate")
 LINK_MODELS = ("sys", "shannon")
 DATA_SYMBOLS_PER_SLOT = 12  # of 14: two for control and reference signals
 PDSCH = 1  # Sionna's MCS category of the downlink (0: PUSCH); its BLER tables are PDSCH_table*.json
+PUSCH = 0  # the uplink's: PUSCH_table1.json and PUSCH_table2.json
+DIRECTIONS = {"downlink": PDSCH, "uplink": PUSCH}
 COMPILED_CAPACITY = 128
 """UE columns a compiled link level starts with (growing past them compiles again)."""
 
@@ -83,6 +85,13 @@ class LinkSettings:
     """The torch device of the Sionna SYS blocks and every tensor they are given: ``auto``
     (Sionna's choice, a GPU where there is one), ``cpu``, ``cuda`` or ``cuda:N``. numpy
     enters and leaves only at the call's boundary (:mod:`caviar_plugins.torch_device`)."""
+    direction: str = "downlink"
+    """``downlink`` (PDSCH: MCS tables 1-4 and their BLER tables) or ``uplink`` (PUSCH: MCS
+    tables 1-2, Sionna's PUSCH BLER tables)."""
+
+    @property
+    def mcs_category(self) -> int:
+        return DIRECTIONS[self.direction]
 
     def __post_init__(self):
         check_setting(self.device)
@@ -90,8 +99,12 @@ class LinkSettings:
             raise ValueError(f"num_prb: expected at least 1 PRB, got {self.num_prb}")
         if not 0.0 < self.bler_target < 1.0:
             raise ValueError(f"bler_target: expected a BLER target in (0, 1), got {self.bler_target}")
-        if self.mcs_table not in (1, 2, 3, 4):
+        if self.direction not in DIRECTIONS:
+            raise ValueError(f"direction: expected 'downlink' or 'uplink', got {self.direction!r}")
+        if self.direction == "downlink" and self.mcs_table not in (1, 2, 3, 4):
             raise ValueError(f"mcs_table: expected an NR PDSCH MCS table index 1-4, got {self.mcs_table}")
+        if self.direction == "uplink" and self.mcs_table not in (1, 2):
+            raise ValueError(f"mcs_table: expected an NR PUSCH MCS table index 1-2, got {self.mcs_table}")
         if self.scheduler not in SCHEDULERS:
             raise ValueError(f"scheduler: expected one of {list(SCHEDULERS)}, got {self.scheduler!r}")
         if self.link_model not in LINK_MODELS:
@@ -240,7 +253,7 @@ class LinkLevel:
         """The BLER this link level uses for ``mcs`` at ``sinr_db`` and code-block size
         ``cb_size`` (Sionna's interpolated NR PDSCH table ``mcs_table``)."""
         sinr = to_torch(10 ** (sinr_db / 10), self.device, self._torch.float32)
-        return float(self.phy.get_bler(mcs, self.s.mcs_table, PDSCH, cb_size, sinr))
+        return float(self.phy.get_bler(mcs, self.s.mcs_table, self.s.mcs_category, cb_size, sinr))
 
     def ensure(self, n_ue: int) -> None:
         if n_ue > self.capacity:
@@ -354,12 +367,13 @@ class LinkLevel:
         the allocated PRBs' [D, 1, P, cap, 1] for the EESM."""
         # CSI feedback: the slot's SINR as the UE reports it (ideal), corrected by the
         # loop's offset, which follows the HARQ outcome of the process's last transmission.
-        mcs = self.olla(n_re, harq_last, csi, mcs_table_index=self.s.mcs_table, mcs_category=PDSCH)
+        mcs = self.olla(n_re, harq_last, csi, mcs_table_index=self.s.mcs_table, mcs_category=self.s.mcs_category)
         if sinr_in.dim() > 2:  # EESM over the allocated PRBs, with the MCS's own beta
             sinr_in = self.eesm(sinr_in, mcs_index=mcs, mcs_table_index=self.s.mcs_table,
-                                mcs_category=PDSCH, per_stream=False)
+                                mcs_category=self.s.mcs_category, per_stream=False)
         bits, harq, sinr_eff, tbler, _ = self.phy(
-            mcs, sinr_eff=sinr_in, num_allocated_re=n_re, mcs_table_index=self.s.mcs_table, mcs_category=PDSCH)
+            mcs, sinr_eff=sinr_in, num_allocated_re=n_re, mcs_table_index=self.s.mcs_table,
+            mcs_category=self.s.mcs_category)
         return mcs, bits, harq, sinr_eff, tbler
 
     def _subband_sinr(self, lin_t, alloc):

@@ -1,0 +1,138 @@
+"""The uplink (issue #41, part 2): PUSCH with open-loop power control.
+
+Each UE sets its power with Sionna SYS's ``open_loop_uplink_power_control`` (TS 38.213
+§7.1.1, no closed loop): ``P = min(P0 + α·PL + 10·log10(#PRB), P_max)`` dBm, ``PL`` the
+pathloss the UE estimates from its serving cell's RSRP (so it includes the SSB beam or
+array gain, as a real UE's estimate does). The serving cell receives ``P0 + (α − 1)·PL``
+per PRB while the UE is below its limit.
+
+Interference: in every slot each other cell schedules one of its UEs in turn (across the
+band, as the downlink's beams do) and that UE's signal reaches the victim's cell through
+the victim cell's receive beam toward its own UE (with ``beams``), or its element pattern
+(without). Sionna SYS's link level then runs on the PUSCH MCS and BLER tables, with its own
+outer-loop link adaptation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import numpy as np
+
+from caviar_plugins.network.cells import Cell
+
+ALPHAS = (0.0, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+"""TS 38.213's pathloss compensation factors (``msg3-Alpha``/``alpha``)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class UplinkSettings:
+    """``[modules.NAME.params.uplink]``: PUSCH power control and link level."""
+
+    p0_dbm: float = -90.0
+    """Target received power per PRB (TS 38.213's P0, -202..24 dBm)."""
+    alpha: float = 0.8
+    """Pathloss compensation (one of :data:`ALPHAS`)."""
+    ue_max_power_dbm: float = 23.0
+    """The UE's maximum power (P_CMAX; 23 dBm: power class 3)."""
+    noise_figure_db: float = 5.0
+    """The cell's receiver."""
+    mcs_table: int = 1
+    """NR PUSCH MCS table (1 or 2)."""
+
+    def __post_init__(self):
+        if isinstance(self.p0_dbm, bool) or not -202.0 <= self.p0_dbm <= 24.0:
+            raise ValueError(f"p0_dbm: expected -202..24 dBm (TS 38.213's P0), got {self.p0_dbm!r}")
+        if self.alpha not in ALPHAS:
+            raise ValueError(f"alpha: expected one of {', '.join(f'{a:g}' for a in ALPHAS)} (TS 38.213), "
+                             f"got {self.alpha!r}")
+        if not -40.0 <= self.ue_max_power_dbm <= 33.0:
+            raise ValueError(f"ue_max_power_dbm: expected -40..33 dBm, got {self.ue_max_power_dbm!r}")
+        if self.mcs_table not in (1, 2):
+            raise ValueError(f"mcs_table: expected an NR PUSCH MCS table index 1-2, got {self.mcs_table!r}")
+
+
+def tx_power_dbm(s: UplinkSettings, pathloss_db: np.ndarray, num_prb: int) -> np.ndarray:
+    """[ue]: each UE's PUSCH power over ``num_prb`` PRBs, by Sionna SYS's open-loop power
+    control (``pathloss_db`` [ue] from the serving cell's RSRP)."""
+    import torch
+    from sionna.sys import open_loop_uplink_power_control
+
+    pl = torch.as_tensor(10 ** (np.asarray(pathloss_db, dtype=float) / 10), dtype=torch.float64)
+    watts = open_loop_uplink_power_control(pl, torch.full_like(pl, 12 * num_prb), alpha=s.alpha, p0_dbm=s.p0_dbm,
+                                           ut_max_power_dbm=s.ue_max_power_dbm)
+    return 10 * np.log10(watts.double().cpu().numpy()) + 30
+
+
+def scheduled_ues(serving: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
+    """[slot, cell]: the UE (index) each cell schedules in each slot, its UEs in turn; -1: none."""
+    out = np.full((slots, n_cells), -1)
+    for c in range(n_cells):
+        mine = np.flatnonzero(np.asarray(serving) == c)
+        if len(mine):
+            out[:, c] = mine[np.arange(slots) % len(mine)]
+    return out
+
+
+def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, carrier_of: np.ndarray,
+                 prb_power_dbm: np.ndarray, scheduled: np.ndarray, noise_prb_mw: float) -> np.ndarray:
+    """[slot, ue, freq]: uplink SINR of every UE at its serving cell.
+
+    ``desired`` [ue, freq]: gain from the UE to its cell (receive beam or array included);
+    ``leak`` [ue, ue', freq]: gain from UE ue' into the cell serving ue, through that cell's
+    receive beam toward ue; ``prb_power_dbm`` [ue]: power per PRB; ``scheduled`` [slot, cell]
+    (:func:`scheduled_ues`); ``carrier_of`` [cell]. NaN for a UE without a cell."""
+    p = 10 ** (np.asarray(prb_power_dbm, dtype=float) / 10)
+    n_slot, n_cell = scheduled.shape
+    out = np.full((n_slot, len(serving), desired.shape[1]), np.nan)
+    for u, s in enumerate(np.asarray(serving)):
+        if s < 0:
+            continue
+        others = [c for c in range(n_cell) if c != s and carrier_of[c] == carrier_of[s]]
+        v = scheduled[:, others]  # [slot, other cell]
+        gain = np.where((v >= 0)[..., None], leak[u, np.maximum(v, 0)], 0.0)  # [slot, other, freq]
+        interference = (p[np.maximum(v, 0)][..., None] * gain).sum(axis=1)
+        out[:, u] = 10 * np.log10(p[u] * desired[u] / (noise_prb_mw + interference))
+    return out
+
+
+def noise_per_prb_mw(subcarrier_spacing_hz: float, noise_figure_db: float) -> float:
+    """k·T·B·NF over one PRB (12 subcarriers), mW."""
+    return 1.380649e-23 * 290.0 * 12 * subcarrier_spacing_hz * 1e3 * 10 ** (noise_figure_db / 10)
+
+
+def pathloss_db(tx_power_dbm: np.ndarray, rx_dbm: np.ndarray) -> np.ndarray:
+    """The pathloss a UE estimates from its serving cell: transmitted minus received power."""
+    return np.asarray(tx_power_dbm, dtype=float) - np.asarray(rx_dbm, dtype=float)
+
+
+def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm: np.ndarray,
+           beam_gains: np.ndarray | None, best_beams: np.ndarray | None, num_prb: int,
+           subcarrier_spacing_hz: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every UE's PUSCH power (dBm, [ue]) and SINR ([slot, ue, freq]) from the downlink's
+    measurements: ``rx_dbm`` [ue, cell, freq] the cells' received power (power, array gain
+    and channel), and with SSB beams their gains [ue, cell, freq, beam] and each UE's best
+    beam per cell [ue, cell]. The channel is reciprocal: the same gains both ways."""
+    n = len(serving)
+    ue, sv = np.arange(n), np.maximum(np.asarray(serving), 0)
+    power = np.array([c.tx_power_dbm for c in cells])
+    array = np.array([c.array_gain_db for c in cells])
+    rx_lin = np.mean(10 ** (np.asarray(rx_dbm) / 10), axis=-1)  # [ue, cell] (over the band)
+    if beam_gains is not None and best_beams is not None:
+        best = best_beams[ue, sv]
+        rsrp_gain = np.mean(beam_gains[ue, sv, :, best], axis=-1)
+        pl = -10 * np.log10(np.maximum(rsrp_gain, 1e-40))
+        desired = beam_gains[ue, sv, :, best]  # [ue, freq]
+        leak = beam_gains[ue[None, :], sv[:, None], :, best[:, None]]  # [u, v, freq]: v into u's beam
+    else:
+        pl = pathloss_db(power[sv], 10 * np.log10(np.maximum(rx_lin[ue, sv], 1e-40)))
+        channel = 10 ** ((np.asarray(rx_dbm) - (power + array)[None, :, None]) / 10)  # [ue, cell, freq]
+        desired = channel[ue, sv] * 10 ** (array[sv] / 10)[:, None]
+        leak = channel[ue[None, :], sv[:, None]]  # element pattern only (the array serves u)
+    tx = tx_power_dbm(s, pl, num_prb)
+    scheduled = scheduled_ues(serving, len(cells), slots)
+    carriers = np.array([c.carrier_hz for c in cells])
+    sinr = slot_sinr_db(desired, leak, serving, carriers, tx - 10 * np.log10(num_prb), scheduled,
+                        noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db))
+    return tx, sinr

@@ -1,0 +1,132 @@
+"""The uplink (issue #41, part 2): PUSCH open-loop power control by hand, and the uplink
+SINR through the radio-network plugin against a hand link budget."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import caviar
+from caviar_plugins.network.uplink import UplinkSettings, noise_per_prb_mw, tx_power_dbm
+
+LAMBDA = 299_792_458.0 / 3.5e9
+
+
+@pytest.mark.parametrize("alpha", [1.0, 0.8, 0.4])
+def test_power_control_is_p0_plus_alpha_pathloss_within_the_ues_limit(alpha):
+    s = UplinkSettings(p0_dbm=-90.0, alpha=alpha, ue_max_power_dbm=23.0)
+    pl = np.array([70.0, 90.0, 110.0, 130.0, 150.0, 250.0])
+    prb = 51
+    got = tx_power_dbm(s, pl, prb)
+    hand = np.minimum(-90.0 + alpha * pl + 10 * math.log10(prb), 23.0)
+    np.testing.assert_allclose(got, hand, atol=1e-4)  # (Sionna computes in float32)
+    below = hand < 23.0
+    assert below.any() and (~below).any()  # both regimes covered
+    # The cell receives P0 + (α − 1)·PL per PRB while the UE has power to spare.
+    received = got - 10 * math.log10(prb) - pl
+    np.testing.assert_allclose(received[below], -90.0 + (alpha - 1) * pl[below], atol=1e-4)
+
+
+UPLINK = """
+[episode]
+ts = 0.01
+steps = 3
+seed = 4
+stages = ["mobility", "communications"]
+
+[output]
+analysis = ["communications.throughput", "network.ue", "network.events", "network.cells"]
+
+[modules.ues]
+stage = "mobility"
+plugin = "sample_plugins:LineMover"
+[[modules.ues.params.ues]]
+id = "victim"
+start = [180.0, 60.0, 25.0]
+end = [180.0, 60.0, 25.0]
+speed = 1.0
+[[modules.ues.params.ues]]
+id = "other"
+start = [250.0, -120.0, 25.0]
+end = [250.0, -120.0, 25.0]
+speed = 1.0
+
+[modules.net]
+stage = "communications"
+plugin = "radio-network"
+[modules.net.params]
+carrier_hz = 3.5e9
+bandwidth_hz = 20e6
+subcarrier_spacing_hz = 30e3
+tx_power_dbm = 46.0
+array = [1, 8]
+uplink = {uplink}
+[[modules.net.params.sites]]
+name = "A"
+position = [0.0, 0.0, 25.0]
+azimuths_deg = [0.0]
+downtilt_deg = 0.0
+[[modules.net.params.sites]]
+name = "B"
+position = [400.0, 0.0, 25.0]
+azimuths_deg = [180.0]
+downtilt_deg = 0.0
+"""
+
+
+def _gain(site, azimuth, ue):
+    """Friis × the TR 38.901 element on the horizon (linear), from a site toward a UE."""
+    d = np.asarray(ue) - np.asarray(site)
+    phi = (math.degrees(math.atan2(d[1], d[0])) - azimuth + 180) % 360 - 180
+    element_db = 8.0 - min(12 * (phi / 65) ** 2, 30.0)
+    return (LAMBDA / (4 * math.pi * np.linalg.norm(d))) ** 2 * 10 ** (element_db / 10)
+
+
+def test_the_uplink_sinr_is_the_hand_budget_with_the_other_cells_ue_interfering(tmp_path):
+    cfg = tmp_path / "net.toml"
+    cfg.write_text(UPLINK.format(uplink="{ p0_dbm = -90.0, alpha = 1.0, ue_max_power_dbm = 23.0 }"))
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    last = {m.data["UE_Id"]: m.data for m in log.decoded("network.ue")}
+    assert last["victim"]["serving_cell"] == "A/0" and last["other"]["serving_cell"] == "B/0"
+    a, b = ((0.0, 0.0, 25.0), 0.0), ((400.0, 0.0, 25.0), 180.0)
+    victim, other = (180.0, 60.0, 25.0), (250.0, -120.0, 25.0)
+    array = 10 * math.log10(8)
+    # Each UE's pathloss from its cell's RSRP (array included); α = 1: full compensation.
+    pl_victim = -(10 * math.log10(_gain(*a, victim)) + array)
+    pl_other = -(10 * math.log10(_gain(*b, other)) + array)
+    assert last["victim"]["ul_tx_power_dbm"] == pytest.approx(-90 + pl_victim + 10 * math.log10(51), abs=0.01)
+    assert last["other"]["ul_tx_power_dbm"] == pytest.approx(-90 + pl_other + 10 * math.log10(51), abs=0.01)
+    # At A: P0 per PRB from the victim; the other UE (scheduled by B in every slot) through
+    # A's element pattern (A's array serves the victim), over kT·B_PRB·NF.
+    interference = 10 ** ((-90 + pl_other) / 10) * _gain(*a, other)
+    noise = noise_per_prb_mw(30e3, 5.0)
+    hand = 10 * math.log10(10 ** (-90 / 10) / (noise + interference))
+    assert last["victim"]["ul_sinr_db"] == pytest.approx(hand, abs=0.05)
+    assert last["victim"]["ul_throughput_mbps"] > 0 and 0 <= last["victim"]["ul_mcs"] <= 28
+
+
+def test_power_control_out_of_range_is_refused_before_the_run_naming_the_key(tmp_path):
+    cfg = tmp_path / "net.toml"
+    for bad, key, what in (("{ alpha = 0.75 }", "alpha", "expected one of 0, 0.4"),
+                           ("{ p0_dbm = 30.0 }", "p0_dbm", "expected -202..24 dBm")):
+        cfg.write_text(UPLINK.format(uplink=bad))
+        with pytest.raises(caviar.ConfigError) as e:
+            caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
+        assert "net.toml:" in str(e.value) and f"uplink.{key}" in str(e.value) and what in str(e.value), e.value
+    assert not (tmp_path / "run").exists()
+
+
+def test_with_ssb_beams_the_ue_estimates_its_pathloss_from_the_best_beams_rsrp(tmp_path):
+    cfg = tmp_path / "net.toml"
+    text = UPLINK.format(uplink="{ p0_dbm = -90.0, alpha = 1.0 }").replace("uplink = {", "beams = { horizontal = 8 }\n"
+                                                                            "uplink = {")
+    cfg.write_text(text)
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    for ue in ("victim", "other"):
+        last = [m.data for m in log.decoded("network.ue") if m.data["UE_Id"] == ue][-1]
+        rx = last["rsrp_dbm"][last["serving_cell"]] + 10 * math.log10(12 * 51)  # the best beam's, whole band
+        pathloss = 46.0 - rx
+        assert last["ul_tx_power_dbm"] == pytest.approx(-90 + pathloss + 10 * math.log10(51), abs=0.02)
+        assert math.isfinite(last["ul_sinr_db"]) and last["ul_throughput_mbps"] > 0
