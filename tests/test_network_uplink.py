@@ -105,6 +105,16 @@ def test_the_uplink_sinr_is_the_hand_budget_with_the_other_cells_ue_interfering(
     hand = 10 * math.log10(10 ** (-90 / 10) / (noise + interference))
     assert last["victim"]["ul_sinr_db"] == pytest.approx(hand, abs=0.05)
     assert last["victim"]["ul_throughput_mbps"] > 0 and 0 <= last["victim"]["ul_mcs"] <= 28
+    # caviar-core report adds the uplink's CDFs and percentiles.
+    import json
+
+    from caviar.report import main as report
+
+    assert report([str(tmp_path / "run"), "--out", str(tmp_path / "rep")]) == 0
+    assert (tmp_path / "rep" / "network-cdf.png").stat().st_size > 20_000
+    ul = json.loads((tmp_path / "rep" / "network.json").read_text())["ue_types"]["car"]["ul_sinr_db"]
+    sinrs = [m.data["ul_sinr_db"] for m in log.decoded("network.ue")]
+    assert ul["p50"] == pytest.approx(float(np.percentile(sinrs, 50)), abs=1e-3)
 
 
 def test_power_control_out_of_range_is_refused_before_the_run_naming_the_key(tmp_path):

@@ -1,5 +1,6 @@
 """Figures of a run with the radio network, for ``caviar-core report`` (entry-point group
-``caviar.report``): SINR and throughput CDFs per UE type and the handovers on a map, with
+``caviar.report``): SINR and throughput CDFs per UE type (downlink, and uplink when the run
+has one) and the handovers and serving beams on a map, with
 ``network.json`` holding the numbers the figures show.
 
     caviar-core report runs/network-city-001 --out report/
@@ -83,6 +84,9 @@ def summarize(log) -> dict[str, Any] | None:
             if sinr.size else None,
             "throughput_mbps": {p: round(float(np.percentile(thr, q)), 3)
                                 for p, q in (("p5", 5), ("p50", 50), ("p95", 95))},
+            **({"ul_sinr_db": {p: round(float(np.percentile(ul, q)), 3)
+                               for p, q in (("p5", 5), ("p50", 50), ("p95", 95))}}
+               if (ul := np.array([u["ul_sinr_db"] for u in mine if u.get("ul_sinr_db") is not None])).size else {}),
             "handovers": sum(1 for e in events if e["event"] == "handover" and e["UE_Id"] in ids),
             "rlf": sum(1 for e in events if e["event"] == "rlf" and e["UE_Id"] in ids),
         }
@@ -102,13 +106,16 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
     out.mkdir(parents=True, exist_ok=True)
     ues = [m.data for m in log.decoded(NETWORK_UE)]
     kinds = sorted({u["UE_type"] for u in ues})
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    _cdf(axes[0], {k: np.array([u["sinr_db"] for u in ues if u["UE_type"] == k and u["sinr_db"] is not None])
-                   for k in kinds}, "SINR on the serving cell (dB)")
-    _cdf(axes[1], {k: np.array([u["throughput_mbps"] for u in ues if u["UE_type"] == k]) for k in kinds},
-         "throughput (Mbit/s)")
-    axes[0].set_title("SINR per UE type")
-    axes[1].set_title("throughput per UE type")
+    uplink = any("ul_sinr_db" in u for u in ues)
+    fig, axes = plt.subplots(2 if uplink else 1, 2, figsize=(11, 8 if uplink else 4), squeeze=False)
+    for row, (prefix, link) in enumerate((("", "downlink"), ("ul_", "uplink"))[:2 if uplink else 1]):
+        _cdf(axes[row, 0], {k: np.array([u[f"{prefix}sinr_db"] for u in ues if u["UE_type"] == k
+                                         and u.get(f"{prefix}sinr_db") is not None]) for k in kinds},
+             "SINR on the serving cell (dB)")
+        _cdf(axes[row, 1], {k: np.array([u[f"{prefix}throughput_mbps"] for u in ues if u["UE_type"] == k
+                                         and f"{prefix}throughput_mbps" in u]) for k in kinds}, "throughput (Mbit/s)")
+        axes[row, 0].set_title(f"{link} SINR per UE type")
+        axes[row, 1].set_title(f"{link} throughput per UE type")
     fig.tight_layout()
     cdfs = out / "network-cdf.png"
     fig.savefig(cdfs, dpi=100)
