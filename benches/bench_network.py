@@ -23,6 +23,7 @@ takes minutes.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pathlib
 import time
@@ -35,6 +36,7 @@ from caviar_plugins.network.beams import BeamSettings, all_beam_gains, slot_beam
 from caviar_plugins.network.cells import noise_dbm, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings
+from caviar_plugins.network.uplink import UplinkSettings, uplink
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -83,14 +85,16 @@ def beamformed(cells, codebooks, channels: TracedChannels, pos, freqs, weights, 
     with warnings.catch_warnings():  # (a UE without a cell: all NaN)
         warnings.simplefilter("ignore", RuntimeWarning)
         sinr = 10 * np.log10(np.nanmean(10 ** (per_slot / 10), axis=(0, 2)))
-    return per_slot, sinr, serving
+    return per_slot, sinr, serving, gains, per_beam.argmax(axis=-1), tx + per_beam.max(axis=-1)
 
 
 def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, vel, initial: TracedChannels,
-        processes: int, subbands: int, compiled: bool = False, beams: BeamSettings | None = None) -> dict:
+        processes: int, subbands: int, compiled: bool = False, beams: BeamSettings | None = None,
+        up: UplinkSettings | None = None) -> dict:
     """``refresh`` None: the initial trace's channels held (wideband: the power sum; per
     subband: at the trace's instant); else traced every ``refresh`` s and evolved. ``beams``:
-    the SSB beams' path (L1-RSRP, scheduled interfering beams per slot)."""
+    the SSB beams' path (L1-RSRP, scheduled interfering beams per slot); ``up``: and the
+    uplink (power control, the other cells' scheduled UEs, a second link level on PUSCH)."""
     settings = LinkSettings(num_prb=NUM_PRB, subcarrier_spacing_hz=SCS, harq_processes=processes,
                             subbands=subbands, compile=compiled)
     link = LinkLevel(settings, len(cells), seed=1)
@@ -101,12 +105,23 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
         for _ in range(2):
             warm.run(np.zeros((processes, len(pos0), subbands)), np.zeros(len(pos0), dtype=int))
         compile_s = time.perf_counter() - a
+    ul_link = None
+    if up is not None:
+        ul_settings = dataclasses.replace(settings, direction="uplink", mcs_table=up.mcs_table)
+        ul_link = LinkLevel(ul_settings, len(cells), seed=3)
+        if compiled:
+            a = time.perf_counter()
+            warm = LinkLevel(ul_settings, len(cells), seed=4)
+            for _ in range(2):
+                warm.run(np.zeros((processes, len(pos0), subbands)), np.zeros(len(pos0), dtype=int))
+            compile_s += time.perf_counter() - a
     mm = MobilityManager(HandoverSettings(), [c.name for c in cells])
     slots = round(TS / link.s.slot_s)
     freqs, weights = settings.subband_frequencies_hz, settings.subband_prbs
     channels = initial
     held = initial.power_sum_db[..., None] if subbands == 1 else initial.gain_db(pos0, freqs)
     t_rt, t_evolve, t_sys, t_beams, last_sinr = 0.0, 0.0, 0.0, 0.0, {}
+    t_uplink, t_uplink_sinr = 0.0, 0.0
     steps = round(seconds / TS)
     t0 = time.perf_counter()
     for k in range(steps):
@@ -120,10 +135,17 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
             c = time.perf_counter()
             t_rt = t_rt + b - a
             codebooks = [beams.codebook(cell.array) for cell in cells]
-            per_slot, sinr, serving = beamformed(cells, codebooks, channels, pos0 if refresh is None else pos,
-                                                 freqs, weights, mm, t, last_sinr, slots)
+            per_slot, sinr, serving, gains, best, rx = beamformed(cells, codebooks, channels,
+                                                                  pos0 if refresh is None else pos,
+                                                                  freqs, weights, mm, t, last_sinr, slots)
             t_beams += time.perf_counter() - c
             link.run(per_slot, serving)
+            if up is not None and ul_link is not None:
+                d = time.perf_counter()
+                _, ul_sinr = uplink(cells, up, serving, rx[..., None], gains, best, NUM_PRB, SCS, slots)
+                t_uplink_sinr += time.perf_counter() - d
+                ul_link.run(ul_sinr, serving)
+                t_uplink += time.perf_counter() - d
             last_sinr = {u: float(s) for u, s in enumerate(sinr) if serving[u] >= 0}
             t_sys += time.perf_counter() - c
             continue
@@ -145,7 +167,8 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
     return {"harq_processes": processes, "subbands": subbands, "compiled": compiled,
             "compile_s": round(compile_s, 1), "virtual_s": seconds, "wall_s": round(wall, 3),
             "tp_tv": round(wall / seconds, 3), "rt_s": round(t_rt, 3), "evolve_s": round(t_evolve, 3),
-            "sys_s": round(t_sys - t_beams, 3), "beams_s": round(t_beams, 3), "slots": steps * slots,
+            "sys_s": round(t_sys - t_beams - t_uplink, 3), "beams_s": round(t_beams, 3),
+            "uplink_s": round(t_uplink, 3), "uplink_sinr_s": round(t_uplink_sinr, 3), "slots": steps * slots,
             "ms_per_slot": round(1e3 * t_sys / (steps * slots), 3), "covered_ues": int((serving >= 0).sum())}
 
 
@@ -182,6 +205,13 @@ def main() -> None:
     with_rt_beams = run(args.seconds, args.refresh, tracer, cells, pos0, vel, initial, d, sub, compiled=True,
                         beams=beams)
     print("with rt, beams", with_rt_beams, flush=True)
+    up = UplinkSettings()
+    sys_only_up = run(args.seconds, None, tracer, cells, pos0, vel, initial, d, sub, compiled=True, beams=beams,
+                      up=up)
+    print("sys only, beams, uplink", sys_only_up, flush=True)
+    with_rt_up = run(args.seconds, args.refresh, tracer, cells, pos0, vel, initial, d, sub, compiled=True,
+                     beams=beams, up=up)
+    print("with rt, beams, uplink", with_rt_up, flush=True)
     result = {
         "cells": len(cells), "ues": len(pos0), "ue_types": {k: kinds.count(k) for k in sorted(set(kinds))},
         "slot_s": 1e-3 * 15e3 / SCS, "step_s": TS, "rt_refresh_s": args.refresh, "samples_per_src": args.samples,
@@ -194,20 +224,25 @@ def main() -> None:
         "rt_share_of_step": round(with_rt["rt_s"] / with_rt["wall_s"], 3),
         "evolve_share_of_step": round(with_rt["evolve_s"] / with_rt["wall_s"], 3),
         "tp_tv_sys_only_beams": sys_only_beams["tp_tv"], "tp_tv_with_rt_beams": with_rt_beams["tp_tv"],
+        "tp_tv_sys_only_beams_uplink": sys_only_up["tp_tv"], "tp_tv_with_rt_beams_uplink": with_rt_up["tp_tv"],
+        "uplink": dataclasses.asdict(up),
         "beams": {"horizontal": beams.horizontal, "vertical": beams.vertical},
         "cost_of_beams_sys_only": round(sys_only_beams["wall_s"] / sys_only["wall_s"], 2),
         "cost_of_beams_with_rt": round(with_rt_beams["wall_s"] / with_rt["wall_s"], 2),
-        "targets": {"tp_tv_sys_only": 1.0, "tp_tv_with_rt": 3.0},
+        "targets": {"tp_tv_sys_only": 1.0, "tp_tv_with_rt": 3.0, "tp_tv_sys_only_beams_uplink": 1.5,
+                    "tp_tv_with_rt_beams_uplink": 4.0},
         "runs": {"sys_only_slot_by_slot": baseline, "sys_only_wideband": wideband, "sys_only_eager": eager,
                  "sys_only": sys_only,
-                 "with_rt": with_rt, "sys_only_beams": sys_only_beams, "with_rt_beams": with_rt_beams},
+                 "with_rt": with_rt, "sys_only_beams": sys_only_beams, "with_rt_beams": with_rt_beams,
+                 "sys_only_beams_uplink": sys_only_up, "with_rt_beams_uplink": with_rt_up},
         "first_trace_s": round(first_trace, 2),
         "machine": machine(),
     }
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps({k: result[k] for k in ("tp_tv_sys_only", "tp_tv_with_rt", "tp_tv_sys_only_beams",
-                                             "tp_tv_with_rt_beams", "sys_share_of_step")}))
+                                             "tp_tv_with_rt_beams", "tp_tv_sys_only_beams_uplink",
+                                             "tp_tv_with_rt_beams_uplink", "sys_share_of_step")}))
 
 
 if __name__ == "__main__":
