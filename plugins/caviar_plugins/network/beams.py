@@ -164,15 +164,22 @@ def all_beam_gains(cells: Sequence[Cell], codebooks: Sequence[Codebook], amplitu
     return out
 
 
-def slot_beams(serving: np.ndarray, best_beam: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
-    """[slot, cell]: the beam each cell points in each slot: toward its UEs in turn (UE order),
-    one per slot; -1 for a cell that serves nobody."""
+def scheduled_ues(serving: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
+    """[slot, cell]: the UE (index) each cell schedules in each slot, its UEs in turn (UE
+    order), one per slot; -1 for a cell that serves nobody."""
     out = np.full((slots, n_cells), -1)
     for c in range(n_cells):
         mine = np.flatnonzero(np.asarray(serving) == c)
         if len(mine):
-            out[:, c] = np.asarray(best_beam)[mine[np.arange(slots) % len(mine)]]
+            out[:, c] = mine[np.arange(slots) % len(mine)]
     return out
+
+
+def slot_beams(serving: np.ndarray, best_beam: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
+    """[slot, cell]: the beam each cell points in each slot, toward the UE it schedules then
+    (:func:`scheduled_ues`); -1 for a cell that serves nobody."""
+    ue = scheduled_ues(serving, n_cells, slots)
+    return np.where(ue >= 0, np.asarray(best_beam)[np.maximum(ue, 0)], -1)
 
 
 def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, best_beam: np.ndarray,

@@ -489,12 +489,8 @@ class RadioNetwork(caviar.Plugin):
             sinr = sinr_db(self.cells, wideband, serving, self.p.noise_figure_db, load)
             sir = sinr_db(self.cells, wideband, serving, -np.inf, load)
             per_slot = sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)[None]  # [1, ue, subband]
-        # The link level works on UE columns (stable across steps).
         cols = np.array([self.ues[u]["column"] for u in ids])
-        sinr_cols = np.full((len(per_slot), int(cols.max()) + 1, per_slot.shape[2]), np.nan)
-        serving_cols = np.full(int(cols.max()) + 1, -1)
-        sinr_cols[:, cols], serving_cols[cols] = per_slot, serving
-        res = self.link.run(np.broadcast_to(sinr_cols, (self.slots, *sinr_cols.shape[1:])), serving_cols)
+        res = self.link.run(*self._columns(per_slot, serving, cols))
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         for e in events:
             yield NETWORK_EVENTS, e
@@ -517,16 +513,21 @@ class RadioNetwork(caviar.Plugin):
             {"cell": n, "ues": int((serving == k).sum()), "active_share": round(float(used[k]), 4)}
             for k, n in enumerate(self.names)]}
 
+    def _columns(self, per_slot: np.ndarray, serving: np.ndarray, cols: np.ndarray):
+        """A link level's inputs on UE columns (stable across steps): SINR [slot, column,
+        subband] over the step's slots (one row: every slot), and the serving cells."""
+        sinr_cols = np.full((len(per_slot), int(cols.max()) + 1, per_slot.shape[2]), np.nan)
+        serving_cols = np.full(int(cols.max()) + 1, -1)
+        sinr_cols[:, cols], serving_cols[cols] = per_slot, serving
+        return np.broadcast_to(sinr_cols, (self.slots, *sinr_cols.shape[1:])), serving_cols
+
     def _uplink(self, rx: np.ndarray, serving: np.ndarray, cols: np.ndarray):
         """The step's PUSCH: powers, per-slot SINR, the uplink link level; ``ul(i)``: UE i's."""
         assert self.p.uplink is not None and self.ul_link is not None
         tx, per_slot = uplink(self.cells, self.p.uplink, serving, rx, self.beam_gains,
                               getattr(self, "best_beams", None) if self.p.beams else None, self.p.num_prb,
                               self.p.subcarrier_spacing_hz, self.slots)
-        sinr_cols = np.full((self.slots, int(cols.max()) + 1, per_slot.shape[2]), np.nan)
-        serving_cols = np.full(int(cols.max()) + 1, -1)
-        sinr_cols[:, cols], serving_cols[cols] = per_slot, serving
-        res = self.ul_link.run(sinr_cols, serving_cols)
+        res = self.ul_link.run(*self._columns(per_slot, serving, cols))
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         mean = 10 * np.log10(np.mean(10 ** (per_slot / 10), axis=(0, 2)))
         return lambda i: {"ul_tx_power_dbm": round(float(tx[i]), 3), "ul_sinr_db": round(float(mean[i]), 3),

@@ -65,6 +65,11 @@ def _beams(ax, log, track: dict[str, dict[int, tuple[float, float]]], samples: i
             drawn = True
 
 
+def percentiles(values, digits: int = 3) -> dict[str, float]:
+    """The 5th, 50th and 95th percentiles, as the reports give them."""
+    return {p: round(float(np.percentile(values, q)), digits) for p, q in (("p5", 5), ("p50", 50), ("p95", 95))}
+
+
 def summarize(log) -> dict[str, Any] | None:
     """Per UE type: samples, SINR and throughput percentiles; handover and failure counts.
     None for a run without the radio network."""
@@ -80,12 +85,9 @@ def summarize(log) -> dict[str, Any] | None:
         ids = {u["UE_Id"] for u in mine}
         kinds[kind] = {
             "ues": len(ids), "samples": len(mine),
-            "sinr_db": {p: round(float(np.percentile(sinr, q)), 3) for p, q in (("p5", 5), ("p50", 50), ("p95", 95))}
-            if sinr.size else None,
-            "throughput_mbps": {p: round(float(np.percentile(thr, q)), 3)
-                                for p, q in (("p5", 5), ("p50", 50), ("p95", 95))},
-            **({"ul_sinr_db": {p: round(float(np.percentile(ul, q)), 3)
-                               for p, q in (("p5", 5), ("p50", 50), ("p95", 95))}}
+            "sinr_db": percentiles(sinr) if sinr.size else None,
+            "throughput_mbps": percentiles(thr),
+            **({"ul_sinr_db": percentiles(ul)}
                if (ul := np.array([u["ul_sinr_db"] for u in mine if u.get("ul_sinr_db") is not None])).size else {}),
             "handovers": sum(1 for e in events if e["event"] == "handover" and e["UE_Id"] in ids),
             "rlf": sum(1 for e in events if e["event"] == "rlf" and e["UE_Id"] in ids),

@@ -20,6 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
+from caviar_plugins.network.beams import scheduled_ues
 from caviar_plugins.network.cells import Cell
 
 ALPHAS = (0.0, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
@@ -65,16 +66,6 @@ def tx_power_dbm(s: UplinkSettings, pathloss_db: np.ndarray, num_prb: int) -> np
     return 10 * np.log10(watts.double().cpu().numpy()) + 30
 
 
-def scheduled_ues(serving: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
-    """[slot, cell]: the UE (index) each cell schedules in each slot, its UEs in turn; -1: none."""
-    out = np.full((slots, n_cells), -1)
-    for c in range(n_cells):
-        mine = np.flatnonzero(np.asarray(serving) == c)
-        if len(mine):
-            out[:, c] = mine[np.arange(slots) % len(mine)]
-    return out
-
-
 def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, carrier_of: np.ndarray,
                  prb_power_dbm: np.ndarray, scheduled: np.ndarray, noise_prb_mw: float) -> np.ndarray:
     """[slot, ue, freq]: uplink SINR of every UE at its serving cell.
@@ -82,7 +73,7 @@ def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, car
     ``desired`` [ue, freq]: gain from the UE to its cell (receive beam or array included);
     ``leak`` [ue, ue', freq]: gain from UE ue' into the cell serving ue, through that cell's
     receive beam toward ue; ``prb_power_dbm`` [ue]: power per PRB; ``scheduled`` [slot, cell]
-    (:func:`scheduled_ues`); ``carrier_of`` [cell]. NaN for a UE without a cell."""
+    (:func:`~caviar_plugins.network.beams.scheduled_ues`); ``carrier_of`` [cell]. NaN for a UE without a cell."""
     p = 10 ** (np.asarray(prb_power_dbm, dtype=float) / 10)
     n_slot, n_cell = scheduled.shape
     out = np.full((n_slot, len(serving), desired.shape[1]), np.nan)

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from caviar_plugins.network.report import percentiles
 from caviar_plugins.schema import IMAGE_QUALITY, NS3_LINK
 
 
@@ -35,8 +36,7 @@ def summarize(log) -> dict[str, Any] | None:
             "packets_sent": sum(d["packets_sent"] for d in mine),
             "packets_lost": sum(d["packets_lost"] for d in mine),
             "loss_rate": round(1 - sum(d["bytes_received"] for d in mine) / sent, 4) if sent else None,
-            "delay_s": ({q: round(float(np.percentile(delays, p)), 5) for q, p in (("p5", 5), ("p50", 50), ("p95", 95))}
-                        if len(delays) else None),
+            "delay_s": percentiles(delays, 5) if len(delays) else None,
             "psnr_db_median": round(float(np.median([d["psnr_db"] for d in mine])), 2) if mine else None,
         }
     return {"ran": links[0].data["ran"], "ues": ues}
