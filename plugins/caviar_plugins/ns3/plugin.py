@@ -94,21 +94,12 @@ class Ns3Network(caviar.Plugin):
         ns-3's antennas are isotropic); ``path``: the path gain alone."""
         enb_position: list[float] = dataclasses.field(default_factory=lambda: [-154.0, 64.0, 120.0])
         """Where the eNB stands (the ray tracer's transmitter)."""
-        bandwidth_rb: int = 25
-        """LTE uplink and downlink bandwidth in resource blocks (6, 15, 25, 50, 75 or 100)."""
-        scheduler: str = "ns3::PfFfMacScheduler"
-        backhaul_rate: str = "10Gbps"
-        backhaul_delay_s: float = 0.001
-        attach_loss_db: float = 100.0
-        """The UE–eNB loss while the UEs attach (before the first ``communications.link``)."""
-        rlc_buffer_bytes: int = 131072
-        """LTE: the UE's RLC transmit buffer (RLC UM); a packet that finds it full is
-        dropped. About two images: after an outage new images do not queue behind many
-        stale ones (ns-3's default, 10 kB, would drop most of every image)."""
-        p2p_rate: str = "20Mbps"
-        p2p_delay_s: float = 0.005
-        p2p_queue: str = "100000p"
-        """The point-to-point device's queue (DropTail), in packets (``"100p"``) or bytes."""
+        lte: sim.LteSettings = dataclasses.field(default_factory=sim.LteSettings)
+        """``ran = "lte"``: ``bandwidth_rb``, ``scheduler``, the backhaul, ``rlc_buffer_bytes``
+        (see :class:`~caviar_plugins.ns3.simulator.LteSettings`)."""
+        p2p: sim.P2pSettings = dataclasses.field(default_factory=sim.P2pSettings)
+        """``ran = "p2p"``: ``rate``, ``delay_s``, ``queue`` (see
+        :class:`~caviar_plugins.ns3.simulator.P2pSettings`)."""
         attributes: dict[str, Any] = dataclasses.field(default_factory=dict)
         """ns-3 attribute defaults, set before the network is built:
         ``{"ns3::LteUePhy::TxPower" = 23, "ns3::LteEnbPhy::NoiseFigure" = 5}``."""
@@ -126,10 +117,6 @@ class Ns3Network(caviar.Plugin):
                 raise ValueError(f"loss_from: expected 'pair' or 'path', got {self.loss_from!r}")
             if not 64 <= self.payload_bytes <= 65000:
                 raise ValueError(f"payload_bytes: expected 64..65000, got {self.payload_bytes}")
-            if self.bandwidth_rb not in (6, 15, 25, 50, 75, 100):
-                raise ValueError(f"bandwidth_rb: expected 6, 15, 25, 50, 75 or 100, got {self.bandwidth_rb}")
-            if self.rlc_buffer_bytes < 10240:
-                raise ValueError(f"rlc_buffer_bytes: expected >= 10240, got {self.rlc_buffer_bytes}")
             if self.deadline_s < 0:
                 raise ValueError(f"deadline_s: expected >= 0 (0: one step), got {self.deadline_s}")
             if len(self.enb_position) != 3:
@@ -150,9 +137,7 @@ class Ns3Network(caviar.Plugin):
         self.index = {ue: i for i, ue in enumerate(p.ues)}
         self.net = sim.Ns3Simulation(
             len(p.ues), p.ran, tcp=p.transport == "tcp", seed=ctx.seed,
-            lte=sim.LteSettings(p.bandwidth_rb, p.scheduler, p.backhaul_rate, p.backhaul_delay_s,
-                                p.attach_loss_db, p.rlc_buffer_bytes),
-            p2p=sim.P2pSettings(p.p2p_rate, p.p2p_delay_s, p.p2p_queue),
+            lte=p.lte, p2p=p.p2p,
             attributes=p.attributes)
         self.net.set_enb_position(p.enb_position)
         self.pending: dict[int, PendingImage] = {}

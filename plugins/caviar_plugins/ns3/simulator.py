@@ -153,22 +153,38 @@ class UplinkStep:
     """Transport-block bytes granted."""
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class LteSettings:
+    """``[modules.NAME.params.lte]``: the LTE network (``ran = "lte"``)."""
+
     bandwidth_rb: int = 25
+    """Uplink and downlink bandwidth in resource blocks (6, 15, 25, 50, 75 or 100)."""
     scheduler: str = "ns3::PfFfMacScheduler"
     backhaul_rate: str = "10Gbps"
+    """The point-to-point link from the PGW to the ground station."""
     backhaul_delay_s: float = 0.001
     attach_loss_db: float = 100.0
+    """The UE–eNB loss while the UEs attach (before the first loss is set)."""
     rlc_buffer_bytes: int = 131072
-    """The UE's RLC transmit buffer: a packet that finds it full is dropped."""
+    """The UE's RLC transmit buffer (RLC UM); a packet that finds it full is dropped. About
+    two camera images: after an outage new images do not queue behind many stale ones
+    (ns-3's default, 10 kB, would drop most of every image)."""
+
+    def __post_init__(self):
+        if self.bandwidth_rb not in (6, 15, 25, 50, 75, 100):
+            raise ValueError(f"bandwidth_rb: expected 6, 15, 25, 50, 75 or 100, got {self.bandwidth_rb}")
+        if self.rlc_buffer_bytes < 10240:
+            raise ValueError(f"rlc_buffer_bytes: expected >= 10240, got {self.rlc_buffer_bytes}")
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class P2pSettings:
+    """``[modules.NAME.params.p2p]``: one point-to-point link per UE (``ran = "p2p"``)."""
+
     rate: str = "20Mbps"
     delay_s: float = 0.005
     queue: str = "100000p"
+    """The device's DropTail queue, in packets (``"100p"``) or bytes."""
 
 
 class Ns3Simulation:
