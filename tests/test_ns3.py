@@ -61,20 +61,33 @@ def _cqi_edges(amc) -> list[float]:
     return edges
 
 
-def test_lte_uplink_at_a_fixed_loss_runs_at_the_rate_of_the_mcs_ns3_amc_picks():
-    tx_dbm, nrb, nf_db = 23.0, 25, 5.0  # UE power, uplink RBs, the eNB's noise figure (ns-3's default)
-    s = sim.Ns3Simulation(1, "lte", lte=sim.LteSettings(bandwidth_rb=nrb, rlc_buffer_bytes=64 << 20),
+NRB = 25  # uplink RBs
+
+
+def _lte_at_mid_cqi8(ues: int):
+    """An LTE network whose UEs (23 dBm, no power control, 200 m from the eNB) each reach it
+    at the SINR in the middle of ns-3's CQI 8, far from either decision edge: the network,
+    ns-3's AMC and that SINR (dB)."""
+    tx_dbm, nf_db = 23.0, 5.0  # UE power, the eNB's noise figure (ns-3's default)
+    s = sim.Ns3Simulation(ues, "lte", lte=sim.LteSettings(bandwidth_rb=NRB, rlc_buffer_bytes=64 << 20),
                           attributes={"ns3::LteUePhy::EnableUplinkPowerControl": False,
                                       "ns3::LteUePhy::TxPower": tx_dbm})
+    amc = s.ns.CreateObject[s.ns.LteAmc]()
+    edges = _cqi_edges(amc)
+    target = (edges[8] + edges[9]) / 2
+    # The UE's power spread over the uplink band, against kT·B·NF at the eNB.
+    loss = tx_dbm - target - (KT_DBM_HZ + nf_db + 10 * math.log10(NRB * 180e3))
+    s.set_enb_position([0, 0, 25])
+    for ue in range(ues):
+        s.set_position(ue, [200, 50 * ue, 1.5])
+        s.set_loss(ue, loss)
+    return s, amc, target
+
+
+def test_lte_uplink_at_a_fixed_loss_runs_at_the_rate_of_the_mcs_ns3_amc_picks():
+    s, amc, target = _lte_at_mid_cqi8(1)
+    nrb = NRB
     try:
-        amc = s.ns.CreateObject[s.ns.LteAmc]()
-        edges = _cqi_edges(amc)
-        target = (edges[8] + edges[9]) / 2  # mid-CQI 8: far from either decision edge
-        # The UE's power spread over the uplink band, against kT·B·NF at the eNB.
-        loss = tx_dbm - target - (KT_DBM_HZ + nf_db + 10 * math.log10(nrb * 180e3))
-        s.set_enb_position([0, 0, 25])
-        s.set_position(0, [200, 0, 1.5])
-        s.set_loss(0, loss)
         s.uplink(), s.arrivals()
         t0 = s.now()
         s.send(0, 1, 4_000_000, 1400)  # more than a second's worth: the buffer never empties
@@ -100,19 +113,9 @@ def test_lte_uplink_at_a_fixed_loss_runs_at_the_rate_of_the_mcs_ns3_amc_picks():
 def test_two_ues_share_the_uplink_each_at_its_half_of_the_rbs():
     """ns-3's proportional-fair uplink scheduler gives each of two backlogged UEs half the
     band (12 of 25 RBs); the MCS still comes from the SRS SINR over the whole band."""
-    tx_dbm, nrb, nf_db = 23.0, 25, 5.0
-    s = sim.Ns3Simulation(2, "lte", lte=sim.LteSettings(bandwidth_rb=nrb, rlc_buffer_bytes=64 << 20),
-                          attributes={"ns3::LteUePhy::EnableUplinkPowerControl": False,
-                                      "ns3::LteUePhy::TxPower": tx_dbm})
+    s, amc, target = _lte_at_mid_cqi8(2)
+    nrb = NRB
     try:
-        amc = s.ns.CreateObject[s.ns.LteAmc]()
-        edges = _cqi_edges(amc)
-        target = (edges[8] + edges[9]) / 2
-        loss = tx_dbm - target - (KT_DBM_HZ + nf_db + 10 * math.log10(nrb * 180e3))
-        s.set_enb_position([0, 0, 25])
-        for ue in (0, 1):
-            s.set_position(ue, [200, 50 * ue, 1.5])
-            s.set_loss(ue, loss)
         s.uplink(), s.arrivals()
         t0 = s.now()
         for ue in (0, 1):
@@ -177,7 +180,7 @@ def test_point_to_point_image_delay_is_propagation_plus_serialisation_plus_queue
     """Each 57.6 kB image takes longer than a step to serialise at 0.8 Mbit/s: the next
     one waits behind it, and the wait grows image after image."""
     rate, delay, payload = 0.8e6, 0.004, 1400
-    log = _fly(tmp_path, f'ran = "p2p"\np2p_rate = "800kbps"\np2p_delay_s = {delay}\ndeadline_s = 10.0\n'
+    log = _fly(tmp_path, f'ran = "p2p"\np2p = {{ rate = "800kbps", delay_s = {delay} }}\ndeadline_s = 10.0\n'
                          f"payload_bytes = {payload}", [[0, 0, 40], [60, 0, 40]], speed=10.0)
     images = [m.data for m in log.decoded("ai.image_quality")]
     assert len(images) >= 10 and all(d["complete"] and d["packets_lost"] == 0 for d in images)
