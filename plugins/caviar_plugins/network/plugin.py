@@ -526,7 +526,7 @@ class RadioNetwork(caviar.Plugin):
         assert self.p.uplink is not None and self.ul_link is not None
         tx, per_slot = uplink(self.cells, self.p.uplink, serving, rx, self.beam_gains,
                               getattr(self, "best_beams", None) if self.p.beams else None, self.p.num_prb,
-                              self.p.subcarrier_spacing_hz, self.slots)
+                              self.p.subcarrier_spacing_hz, self.slots, self.p.device)
         res = self.ul_link.run(*self._columns(per_slot, serving, cols))
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         mean = 10 * np.log10(np.mean(10 ** (per_slot / 10), axis=(0, 2)))

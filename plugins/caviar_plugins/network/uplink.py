@@ -54,16 +54,21 @@ class UplinkSettings:
             raise ValueError(f"mcs_table: expected an NR PUSCH MCS table index 1-2, got {self.mcs_table!r}")
 
 
-def tx_power_dbm(s: UplinkSettings, pathloss_db: np.ndarray, num_prb: int) -> np.ndarray:
+def tx_power_dbm(s: UplinkSettings, pathloss_db: np.ndarray, num_prb: int, device: str = "auto") -> np.ndarray:
     """[ue]: each UE's PUSCH power over ``num_prb`` PRBs, by Sionna SYS's open-loop power
-    control (``pathloss_db`` [ue] from the serving cell's RSRP)."""
+    control (``pathloss_db`` [ue] from the serving cell's RSRP), on the torch ``device`` of
+    the link level (:mod:`caviar_plugins.torch_device`)."""
     import torch
     from sionna.sys import open_loop_uplink_power_control
 
-    pl = torch.as_tensor(10 ** (np.asarray(pathloss_db, dtype=float) / 10), dtype=torch.float64)
-    watts = open_loop_uplink_power_control(pl, torch.full_like(pl, 12 * num_prb), alpha=s.alpha, p0_dbm=s.p0_dbm,
+    from caviar_plugins.torch_device import resolve, to_numpy, to_torch
+
+    where = resolve(device)
+    pl = to_torch(10 ** (np.asarray(pathloss_db, dtype=float) / 10), where, torch.float32)
+    subcarriers = to_torch(np.full(pl.shape, 12 * num_prb), where, torch.int32)
+    watts = open_loop_uplink_power_control(pl, subcarriers, alpha=s.alpha, p0_dbm=s.p0_dbm,
                                            ut_max_power_dbm=s.ue_max_power_dbm)
-    return 10 * np.log10(watts.double().cpu().numpy()) + 30
+    return 10 * np.log10(to_numpy(watts).astype(float)) + 30
 
 
 def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, carrier_of: np.ndarray,
@@ -100,7 +105,7 @@ def pathloss_db(tx_power_dbm: np.ndarray, rx_dbm: np.ndarray) -> np.ndarray:
 
 def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm: np.ndarray,
            beam_gains: np.ndarray | None, best_beams: np.ndarray | None, num_prb: int,
-           subcarrier_spacing_hz: float, slots: int) -> tuple[np.ndarray, np.ndarray]:
+           subcarrier_spacing_hz: float, slots: int, device: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Every UE's PUSCH power (dBm, [ue]) and SINR ([slot, ue, freq]) from the downlink's
     measurements: ``rx_dbm`` [ue, cell, freq] the cells' received power (power, array gain
     and channel), and with SSB beams their gains [ue, cell, freq, beam] and each UE's best
@@ -121,7 +126,7 @@ def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm
         channel = 10 ** ((np.asarray(rx_dbm) - (power + array)[None, :, None]) / 10)  # [ue, cell, freq]
         desired = channel[ue, sv] * 10 ** (array[sv] / 10)[:, None]
         leak = channel[ue[None, :], sv[:, None]]  # element pattern only (the array serves u)
-    tx = tx_power_dbm(s, pl, num_prb)
+    tx = tx_power_dbm(s, pl, num_prb, device)
     scheduled = scheduled_ues(serving, len(cells), slots)
     carriers = np.array([c.carrier_hz for c in cells])
     sinr = slot_sinr_db(desired, leak, serving, carriers, tx - 10 * np.log10(num_prb), scheduled,
