@@ -129,8 +129,9 @@ def _keyed(e: Exception, fields: typing.Iterable[str], path: str = "params") -> 
 
 def check_params(cls: type[Plugin], params: dict[str, Any]) -> Any:
     """Builds the plugin's ``Params`` dataclass from the config table, or explains why not.
-    A field typed as a dataclass (or ``X | None``) is a table of its own, checked the same
-    way, recursively: an error names the whole key path (``params.handover.time_to_trigger_s``)."""
+    A field typed as a dataclass (or ``X | None``) is a table of its own, and one typed
+    ``list[X]`` an array of such tables, checked the same way, recursively: an error names
+    the whole key path (``params.handover.time_to_trigger_s``, ``params.traffic.carry.0.topic``)."""
     schema = cls.Params
     if schema is None:
         return params
@@ -149,6 +150,15 @@ def _table_of(hint: Any) -> Any:
     return None
 
 
+def _rows_of(hint: Any) -> Any:
+    """The dataclass of a field typed as a list of tables (``list[X]``), else None."""
+    if typing.get_origin(hint) is list:
+        args = typing.get_args(hint)
+        if len(args) == 1 and dataclasses.is_dataclass(args[0]) and isinstance(args[0], type):
+            return args[0]
+    return None
+
+
 def _build(schema: Any, params: dict[str, Any], path: str, owner: str) -> Any:
     """``schema(**params)`` with every key, type and nested table checked; errors name
     ``path.key`` (``path`` is ``params`` or the key path of a nested table)."""
@@ -164,6 +174,13 @@ def _build(schema: Any, params: dict[str, Any], path: str, owner: str) -> Any:
         table = _table_of(hint)
         if table is not None and isinstance(value, dict):
             values[key] = _build(table, value, where, f"{owner}.{key}")
+            continue
+        rows = _rows_of(hint)
+        if rows is not None and isinstance(value, list):  # an array of tables, each checked
+            for i, row in enumerate(value):
+                if not isinstance(row, dict):
+                    raise ConfigError(_mismatch(row, rows), f"{where}.{i}")
+            values[key] = [_build(rows, row, f"{where}.{i}", f"{owner}.{key}") for i, row in enumerate(value)]
             continue
         if not _type_ok(value, hint):
             raise ConfigError(_mismatch(value, hint), where)
@@ -278,10 +295,11 @@ def declared_publishes(cls: type[Plugin]) -> list[str]:
     return list(declared)
 
 
-def load_plugin(name: str, spec: str, params_json: str,
-                config_dir: str) -> tuple[Hosted, list[str], list[str], list[str]]:
-    """The hosted plugin, its default subscriptions, what it declares publishing and which
-    of its default subscriptions are optional inputs."""
+def load_plugin(name: str, spec: str, params_json: str, config_dir: str
+                ) -> tuple[Hosted, list[str], list[str], list[str], list[tuple[str, str]]]:
+    """The hosted plugin, its default subscriptions, what it declares publishing, which of
+    its default subscriptions are optional inputs, and the inputs its parameters name
+    (pattern, key)."""
     cls = resolve_plugin(spec)
     params = check_params(cls, json.loads(params_json))
     plugin_cls = cls
@@ -292,7 +310,11 @@ def load_plugin(name: str, spec: str, params_json: str,
         fields = [f.name for f in dataclasses.fields(schema)] if dataclasses.is_dataclass(schema) else params
         raise _keyed(e, fields) from None
     publishes = declared_publishes(cls)
+    required = [(pattern, key) for pattern, key in cls.inputs(params).items()]
+    subscribe = list(dict.fromkeys([*cls.subscribe, *(p for p, _ in required)]))
+    if publishes:
+        publishes = list(dict.fromkeys([*publishes, *cls.outputs(params)]))
     # (A subclass that narrows ``subscribe`` keeps the optional inputs it still has.)
     optional = [o for o in cls.optional if o in cls.subscribe]
     plugin = cls()
-    return Hosted(name, plugin, params), list(cls.subscribe), publishes, optional
+    return Hosted(name, plugin, params), subscribe, publishes, optional, required

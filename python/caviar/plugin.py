@@ -264,6 +264,19 @@ class Plugin:
     The pieces' messages are merged in shard order."""
 
     @classmethod
+    def inputs(cls, params: Any) -> dict[str, str]:
+        """Inputs the parameters name, beyond ``subscribe``: ``{pattern: key}``, the key of
+        ``[modules.NAME.params]`` that names it (``"params.traffic.carry.0.topic"``). The
+        module subscribes to them too, and a configuration in which no other module publishes
+        one is refused before anything runs, naming that key."""
+        return {}
+
+    @classmethod
+    def outputs(cls, params: Any) -> tuple[str, ...]:
+        """Topics (or patterns) the parameters add to ``publishes``."""
+        return ()
+
+    @classmethod
     def check_params(cls, params: Any, config_dir: pathlib.Path) -> None:
         """Checks the parameters at ``validate`` time (and before a run directory
         exists), beyond what their types say: ranges, files that must exist.

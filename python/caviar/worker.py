@@ -168,14 +168,14 @@ class Worker:
         assert self.hosted is not None, "plugin requests arrive only after the plugin is loaded"
         return self.hosted
 
-    def _load(self) -> tuple[Hosted, list[str], list[str], list[str]]:
+    def _load(self) -> tuple[Hosted, list[str], list[str], list[str], list[tuple[str, str]]]:
         s = self.spec
-        hosted, subscribe, publishes, optional = load_plugin(self.module, s["plugin"], json.dumps(s["params"]),
-                                                             s["config_dir"])
+        hosted, subscribe, publishes, optional, required = load_plugin(
+            self.module, s["plugin"], json.dumps(s["params"]), s["config_dir"])
         if s.get("shards", 1) > 1 and not type(hosted.plugin).shardable:
             raise ConfigError(f"{type(hosted.plugin).__name__} cannot split a step into shards "
                               f"(it does not declare shardable = True)", "shards")
-        return hosted, subscribe, publishes, optional
+        return hosted, subscribe, publishes, optional, required
 
     async def serve(self) -> int:
         await self.connect()
@@ -189,7 +189,7 @@ class Worker:
             return 2
         loaded = f"{self.prefix}.loaded"
         try:
-            self.hosted, subscribe, publishes, optional = self._load()
+            self.hosted, subscribe, publishes, optional, required = self._load()
         except Exception as e:  # the core reports it as a configuration error
             await self.nc.publish(loaded, self.guard.seal(loaded, json.dumps({"worker": self.id,
                                                                                 **error_reply(e)}).encode()))
@@ -203,7 +203,8 @@ class Worker:
         await self.nc.subscribe(f"{me}.resume", cb=self.on_resume)
         await self.nc.subscribe(f"{self.prefix}.stop", cb=self.on_stop)
         await self.nc.publish(loaded, self.guard.seal(loaded, json.dumps(
-            {"worker": self.id, "subscribe": subscribe, "publishes": publishes, "optional": optional}).encode()))
+            {"worker": self.id, "subscribe": subscribe, "publishes": publishes, "optional": optional,
+             "required": required}).encode()))
         await self.nc.flush()
         stop_beating = threading.Event()
         beat = threading.Thread(target=self.heartbeat, args=(stop_beating,), name="heartbeat", daemon=True)

@@ -97,6 +97,62 @@ fn patterns(texts: &[String]) -> Vec<Pattern> {
     texts.iter().filter_map(|t| Pattern::new(t).ok()).collect()
 }
 
+/// Refuses a configuration with an input that modules' parameters name and no module
+/// publishes ([`unfed_inputs`]): always an error, the first with the others appended.
+pub fn refuse_unfed(
+    cfg: &LoadedConfig,
+    specs: &[ModuleSpec],
+    unbuilt: Unbuilt,
+) -> Result<(), ConfigError> {
+    let mut errors = unfed_inputs(cfg, specs, unbuilt).into_iter();
+    let Some(mut first) = errors.next() else {
+        return Ok(());
+    };
+    for more in errors {
+        first.message.push_str(&format!("\n  and {more}"));
+    }
+    Err(first)
+}
+
+/// Errors: an input that a module's parameters name (its [`AnyModule::required_inputs`])
+/// and that no module declares publishing, each naming the key that asked for it (only when
+/// every module declared what it publishes: one that did not may publish anything).
+pub fn unfed_inputs(
+    cfg: &LoadedConfig,
+    specs: &[ModuleSpec],
+    unbuilt: Unbuilt,
+) -> Vec<ConfigError> {
+    let modules = wiring(cfg, specs, unbuilt);
+    if !modules.iter().all(|m| m.publishes.is_some()) {
+        return Vec::new();
+    }
+    let published: Vec<(String, Pattern)> = modules
+        .iter()
+        .flat_map(|m| {
+            patterns(m.publishes.as_deref().unwrap_or_default())
+                .into_iter()
+                .map(|p| (m.name.clone(), p))
+        })
+        .collect();
+    let mut errors = Vec::new();
+    for spec in specs {
+        for (input, key) in spec.module.required_inputs() {
+            let Ok(wanted) = Pattern::new(&input) else {
+                continue;
+            };
+            if published
+                .iter()
+                .any(|(name, p)| *name != spec.name && p.overlaps(&wanted))
+            {
+                continue;
+            }
+            let key = format!("modules.{}.{key}", spec.name);
+            errors.push(cfg.error_at(&key, format!("'{input}' — no other module publishes it")));
+        }
+    }
+    errors
+}
+
 /// Warnings about how the modules connect, for `validate` and the start of `run` (not
 /// errors, unless `episode.strict_wiring`: a module may well publish only for the
 /// recording). `unbuilt`: what modules missing from `specs` publish.
@@ -199,6 +255,14 @@ mod tests {
         fn optional_subscriptions(&self) -> Vec<String> {
             self.optional.clone()
         }
+        /// (a default subscription named "req.*" is an input its parameters name)
+        fn required_inputs(&self) -> Vec<(String, String)> {
+            self.subscribe
+                .iter()
+                .filter(|s| s.starts_with("req."))
+                .map(|s| (s.clone(), "params.wants".to_string()))
+                .collect()
+        }
         fn step(
             &mut self,
             _: StepInfo,
@@ -214,6 +278,11 @@ mod tests {
 
     /// Warnings of a config whose modules are `fakes`.
     fn warnings(text: &str, fakes: &[FakeSpec]) -> Vec<String> {
+        let (cfg, specs) = fake_modules(text, fakes);
+        wiring_warnings(&cfg, &specs, &|_| None)
+    }
+
+    fn fake_modules(text: &str, fakes: &[FakeSpec]) -> (LoadedConfig, Vec<ModuleSpec>) {
         let cfg =
             crate::config::parse(text, "config.toml", std::path::Path::new("."), &[]).unwrap();
         let strings = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
@@ -230,7 +299,34 @@ mod tests {
             })))
         })
         .unwrap();
-        wiring_warnings(&cfg, &specs, &|_| None)
+        (cfg, specs)
+    }
+
+    #[test]
+    fn an_input_the_parameters_name_that_no_other_module_publishes_is_an_error_naming_its_key() {
+        let text = format!(
+            "{HEAD}[modules.a]\nstage = \"s\"\nplugin = \"x\"\n\
+             [modules.b]\nstage = \"s\"\nplugin = \"x\"\n"
+        );
+        let fed: &[FakeSpec] = &[
+            ("a", &[], Some(&["req.one"])),
+            ("b", &["req.*"], Some(&["req.two"])),
+        ];
+        let (cfg, specs) = fake_modules(&text, fed);
+        assert!(refuse_unfed(&cfg, &specs, &|_| None).is_ok());
+        // Its own publication does not feed it; the error names the module's key and line.
+        let unfed: &[FakeSpec] = &[("a", &[], Some(&["x.one"])), fed[1]];
+        let (cfg, specs) = fake_modules(&text, unfed);
+        let e = refuse_unfed(&cfg, &specs, &|_| None).unwrap_err();
+        assert_eq!(e.key.as_deref(), Some("modules.b.params.wants"));
+        assert!(
+            e.message.contains("'req.*' — no other module publishes it"),
+            "{e}"
+        );
+        // A module that does not declare what it publishes may publish it: no error.
+        let open: &[FakeSpec] = &[("a", &[], None), fed[1]];
+        let (cfg, specs) = fake_modules(&text, open);
+        assert!(refuse_unfed(&cfg, &specs, &|_| None).is_ok());
     }
 
     const HEAD: &str = "[episode]\nts = 1.0\nsteps = 1\nstages = [\"s\"]\n";

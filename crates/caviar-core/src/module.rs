@@ -132,6 +132,12 @@ pub trait Module: Send {
         Vec::new()
     }
 
+    /// Inputs its parameters name, as (pattern, key of the module's table that names it):
+    /// a configuration in which no module publishes one is refused before anything runs.
+    fn required_inputs(&self) -> Vec<(String, String)> {
+        Vec::new()
+    }
+
     fn setup(&mut self, _ctx: &SetupContext) -> Result<(), ModuleError> {
         Ok(())
     }
@@ -198,6 +204,11 @@ pub trait RemoteModule: Send {
 
     /// As [`Module::optional_subscriptions`].
     fn optional_subscriptions(&self) -> Vec<String> {
+        Vec::new()
+    }
+
+    /// As [`Module::required_inputs`].
+    fn required_inputs(&self) -> Vec<(String, String)> {
         Vec::new()
     }
 
@@ -268,6 +279,13 @@ impl AnyModule {
         match self {
             AnyModule::Local(m) => m.optional_subscriptions(),
             AnyModule::Remote(m) => m.optional_subscriptions(),
+        }
+    }
+
+    pub fn required_inputs(&self) -> Vec<(String, String)> {
+        match self {
+            AnyModule::Local(m) => m.required_inputs(),
+            AnyModule::Remote(m) => m.required_inputs(),
         }
     }
 

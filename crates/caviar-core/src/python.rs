@@ -71,6 +71,7 @@ struct PyPlugin {
     /// Empty: not declared.
     publishes: Vec<String>,
     optional: Vec<String>,
+    required: Vec<(String, String)>,
 }
 
 impl Module for PyPlugin {
@@ -84,6 +85,10 @@ impl Module for PyPlugin {
 
     fn optional_subscriptions(&self) -> Vec<String> {
         self.optional.clone()
+    }
+
+    fn required_inputs(&self) -> Vec<(String, String)> {
+        self.required.clone()
     }
 
     fn setup(&mut self, ctx: &SetupContext) -> Result<(), ModuleError> {
@@ -241,8 +246,14 @@ impl PluginLoader for PyLoader {
             });
             match result {
                 Ok(tuple) => {
-                    type Loaded = (Py<PyAny>, Vec<String>, Vec<String>, Vec<String>);
-                    let (hosted, subscriptions, publishes, optional): Loaded =
+                    type Loaded = (
+                        Py<PyAny>,
+                        Vec<String>,
+                        Vec<String>,
+                        Vec<String>,
+                        Vec<(String, String)>,
+                    );
+                    let (hosted, subscriptions, publishes, optional, required): Loaded =
                         tuple.extract().map_err(|e| {
                             cfg.error_at(&format!("modules.{name}.plugin"), e.to_string())
                         })?;
@@ -251,6 +262,7 @@ impl PluginLoader for PyLoader {
                         subscriptions,
                         publishes,
                         optional,
+                        required,
                     }) as Box<dyn Module>)
                 }
                 Err(e) => {

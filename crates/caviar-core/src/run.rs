@@ -10,7 +10,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::assembly::{build_modules, wiring_warnings, PrepareError, REPLAY_PLUGIN};
+use crate::assembly::{build_modules, refuse_unfed, wiring_warnings, PrepareError, REPLAY_PLUGIN};
 use crate::checkpoint::{Checkpoint, SavedState};
 use crate::config::{ConfigError, LoadedConfig};
 use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec, StepReport};
@@ -81,7 +81,9 @@ pub fn check(cfg: &LoadedConfig, loader: &dyn PluginLoader) -> Result<Vec<String
     transport::check(cfg)?;
     check_paths(cfg)?;
     let specs = load_modules(cfg, loader)?;
-    let warnings = wiring_warnings(cfg, &specs, &|name| transport::builtin_publishes(cfg, name));
+    let unbuilt = |name: &str| transport::builtin_publishes(cfg, name);
+    refuse_unfed(cfg, &specs, &unbuilt)?;
+    let warnings = wiring_warnings(cfg, &specs, &unbuilt);
     strict_wiring(cfg, &warnings)?;
     Ok(warnings)
 }
@@ -201,6 +203,7 @@ impl RunSession {
         // directory exists; a transport knows it once its workers loaded the plugins.
         let mut warnings = Vec::new();
         if let Some(specs) = &local {
+            refuse_unfed(&cfg, specs, &|_| None)?;
             warnings = wiring_warnings(&cfg, specs, &|_| None);
             strict_wiring(&cfg, &warnings)?;
         }
@@ -219,6 +222,7 @@ impl RunSession {
                 let prepared = t
                     .prepare(&cfg, loader.worker_launcher().as_ref(), &run_dir)
                     .and_then(|p| {
+                        refuse_unfed(&cfg, &p.modules, &|_| None)?;
                         warnings = wiring_warnings(&cfg, &p.modules, &|_| None);
                         strict_wiring(&cfg, &warnings)?;
                         Ok(p)

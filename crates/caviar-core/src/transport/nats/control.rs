@@ -34,6 +34,8 @@ pub struct LoadedPlugin {
     pub publishes: Option<Vec<String>>,
     /// Default subscriptions it works without.
     pub optional: Vec<String>,
+    /// Inputs its parameters name: (pattern, key).
+    pub required: Vec<(String, String)>,
 }
 
 /// The module description a worker receives in reply to its hello.
@@ -64,6 +66,8 @@ struct Loaded {
     publishes: Option<Vec<String>>,
     #[serde(default)]
     optional: Vec<String>,
+    #[serde(default)]
+    required: Vec<(String, String)>,
     #[serde(default)]
     error: Option<WireError>,
 }
@@ -236,6 +240,7 @@ impl Listener {
                 subscribe: l.subscribe,
                 publishes: l.publishes.filter(|p| !p.is_empty()),
                 optional: l.optional,
+                required: l.required,
             };
             info.loaded = Some(l.error.map_or(Ok(plugin), Err));
         }

@@ -186,6 +186,10 @@ impl RemoteModule for WorkerModule {
         self.plugin.optional.clone()
     }
 
+    fn required_inputs(&self) -> Vec<(String, String)> {
+        self.plugin.required.clone()
+    }
+
     fn setup(&mut self, ctx: &SetupContext) -> Result<(), ModuleError> {
         self.link.control.mark_started();
         let body = serde_json::json!({

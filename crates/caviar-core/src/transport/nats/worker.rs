@@ -163,7 +163,8 @@ impl Worker {
         let mut stop = self.subscribe(format!("{}.stop", self.prefix)).await?;
         let loaded = json!({"worker": self.id, "subscribe": self.module.default_subscriptions(),
                             "publishes": self.module.publishes(),
-                            "optional": self.module.optional_subscriptions()});
+                            "optional": self.module.optional_subscriptions(),
+                            "required": self.module.required_inputs()});
         let subject = format!("{}.loaded", self.prefix);
         let body = self.seal(&subject, loaded.to_string().into_bytes());
         self.client
