@@ -25,7 +25,7 @@ from caviar_plugins.network.cells import (
     sinr_db,
 )
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
-from caviar_plugins.network.plugin import jain_index
+from caviar_plugins.network.report import jain_index
 from caviar_plugins.radio.link_level import DATA_SYMBOLS_PER_SLOT, LinkLevel, LinkSettings
 from conftest import write_config
 

@@ -99,6 +99,11 @@ NS3_LINK = "network.ns3.link"
 in ns-3 from the channel), "delivered_bytes", "throughput_mbps" (at the ground station),
 "sinr_db", "mcs", "grants", "tb_bytes"}``, the last four what the eNB saw of the uplink (LTE:
 mean SRS SINR, mean granted MCS; None on point-to-point)."""
+NETWORK_TRANSFERS = "network.transfers"
+"""Per completed file or carried message (the radio network's ``traffic``): ``{"UE_Id",
+"direction", "source" ("ftp" or the message's topic), "bytes", "queued_s", "delivered_s",
+"delay_s", "upt_mbps"}`` (``"lost": true`` and no ``delivered_s`` for one its UE left
+unfinished)."""
 NETWORK_CELLS = "network.cells"
 """Per step: ``{"cells": [{"cell", "ues", "active_share"}]}``, the UEs a cell serves and the
 share of the step's slots in which it scheduled someone."""
@@ -121,6 +126,9 @@ LINK_REPORT = "ai.link.report"
 # The search-and-rescue mission
 HOVER = "mission.hover"
 """``{"UE_Id", "seconds"}``: the UAV stops for this long."""
+UPLOAD = "mission.upload"
+"""``{"UE_Id", "bytes", "rescue"}``: the images of a rescue, for the network to carry uplink
+(the mission's ``upload = "network"``)."""
 RESCUE = "mission.rescue"
 """One rescued target: ``{"UE_Id", "x", "y", "time", "throughput", "hover_s"}``."""
 RESULT = "mission.result"

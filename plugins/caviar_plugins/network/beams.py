@@ -208,3 +208,13 @@ def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, 
         with np.errstate(divide="ignore"):
             out[:, u] = 10 * np.log10(signal / (noise_mw[u] + interference))
     return out
+
+
+def beam_report(cell: Cell, codebook: Codebook, beam: int) -> dict[str, float | int]:
+    """A serving SSB beam for ``network.ue``: its index and where it points (azimuth from +x
+    and elevation, scene frame; the codebook's direction, not the UE's)."""
+    u, v = codebook.pointing()[beam]
+    elevation = math.degrees(math.asin(max(-1.0, min(1.0, v)))) - cell.downtilt_deg
+    across = math.degrees(math.asin(max(-1.0, min(1.0, u / max(math.cos(math.radians(elevation)), 1e-9)))))
+    return {"ssb_beam": beam, "beam_azimuth_deg": round((cell.azimuth_deg + across) % 360.0, 2),
+            "beam_elevation_deg": round(elevation, 2)}

@@ -31,23 +31,23 @@ from typing import Any
 import numpy as np
 
 import caviar
-from caviar_plugins.network.beams import BeamSettings, all_beam_gains, line_of_sight, slot_beams, slot_sinr_db
-from caviar_plugins.network.cells import (
-    Cell,
-    Column,
-    line_of_sight_gain_db,
-    noise_dbm,
-    parse_sites,
-    rsrp_dbm,
-    rx_power_dbm,
-    sinr_db,
+from caviar_plugins.network.beams import (
+    BeamSettings,
+    all_beam_gains,
+    beam_report,
+    line_of_sight,
+    slot_beams,
+    slot_sinr_db,
 )
+from caviar_plugins.network.cells import Cell, Column, line_of_sight_gain_db, noise_dbm, rsrp_dbm, rx_power_dbm, sinr_db
+from caviar_plugins.network.deployment import carrier_key, deployment, nr_prbs
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
-from caviar_plugins.network.layout import LayoutSettings, Wraparound, drop_ues, layout_cells
+from caviar_plugins.network.layout import LayoutSettings, Wraparound, drop_ues
 from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, layer_message, save
 from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings
 from caviar_plugins.network.tr38901 import CHANNELS as STOCHASTIC
-from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings, check_carrier
+from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings
+from caviar_plugins.network.traffic import Queues, TrafficSettings, in_columns, transfer_record
 from caviar_plugins.network.uplink import UplinkSettings, uplink
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.schema import (
@@ -55,6 +55,7 @@ from caviar_plugins.schema import (
     NETWORK_CELLS,
     NETWORK_EVENTS,
     NETWORK_RADIO_MAP,
+    NETWORK_TRANSFERS,
     NETWORK_UE,
     POSITIONS,
     THROUGHPUT,
@@ -63,70 +64,30 @@ from caviar_plugins.schema import (
     throughput_payload,
 )
 
-# TS 38.101-1 Table 5.3.2-1 (FR1) and 38.101-2 Table 5.3.2-1 (FR2): PRBs per bandwidth (MHz).
-NR_PRBS = {
-    15e3: {5: 25, 10: 52, 15: 79, 20: 106, 25: 133, 30: 160, 40: 216, 50: 270},
-    30e3: {5: 11, 10: 24, 15: 38, 20: 51, 25: 65, 30: 78, 40: 106, 50: 133, 60: 162, 70: 189, 80: 217,
-           90: 245, 100: 273},
-    60e3: {10: 11, 15: 18, 20: 24, 25: 31, 30: 38, 40: 51, 50: 65, 60: 79, 70: 93, 80: 107, 90: 121,
-           100: 135, 200: 264},
-    120e3: {50: 32, 100: 66, 200: 132, 400: 264},
-}
 INTERFERENCE = ("full-buffer", "scheduled")
 CHANNELS = ("free-space", "ray-traced", *STOCHASTIC)
 MAX_REDROPS = 50
 """Fresh drops a ray-traced layout tries for a UE that fell under a roof."""
 
 
-def carrier_key(p: Any, cell: Cell) -> str:
-    """The key that gave ``cell`` its carrier: ``carrier_hz`` or its site's ``sites.N.carrier_hz``."""
-    if cell.carrier_hz == p.carrier_hz or p.layout is not None:
-        return "carrier_hz"
-    return f"sites.{[s.get('name') for s in p.sites].index(cell.site)}.carrier_hz"
-
-
-def deployment(p: Any) -> list[Cell]:
-    """The cells of the network's ``Params``: its standard ``layout`` or its hand-placed
-    ``sites`` (not both), with the ``column`` behind each port; checked against the 38.901
-    channel's carrier range."""
-    if p.layout is not None and p.sites:
-        given = getattr(p.layout, "given", None) or frozenset()
-        if "wraparound" in given and p.layout.wraparound and "kind" not in given:
-            raise ValueError("layout.wraparound: wraparound needs the hexagonal layout (layout.kind = \"hex\"); "
-                             "hand-placed sites have no repeating pattern to wrap")
-        raise ValueError("layout: conflicts with sites: give a standard layout or hand-placed "
-                         "[[...params.sites]], not both")
-    defaults = {k: getattr(p, k) for k in ("tx_power_dbm", "carrier_hz", "bandwidth_hz", "array")}
-    if p.layout is not None:
-        if p.channel == "ray-traced":
-            if p.layout.wraparound:
-                raise ValueError("layout.wraparound: a ray-traced scene is finite and does not repeat; set "
-                                 "wraparound = false (the UEs at the layout's edge then see fewer interferers)")
-            if p.layout.ues_per_sector and p.layout.indoor_share > 0:
-                raise ValueError(f"layout.indoor_share: the ray tracer traces outdoor UEs only (no building "
-                                 f"entry loss); set indoor_share = 0, got {p.layout.indoor_share!r}")
-        cells = layout_cells(p.layout, defaults, p.column)
-    else:
-        cells = [dataclasses.replace(c, column=p.column) for c in parse_sites(p.sites, defaults)]
-    if p.channel in STOCHASTIC:
-        for c in cells:
-            check_carrier(STOCHASTIC[p.channel], c.carrier_hz, carrier_key(p, c))
-        if len({c.carrier_hz for c in cells}) > 1:
-            raise ValueError(f"carrier_hz: the 38.901 channel models one carrier; the sites give "
-                             f"{sorted({c.carrier_hz for c in cells})}")
-    return cells
-
-
-def nr_prbs(bandwidth_hz: float, scs_hz: float) -> int | None:
-    table = NR_PRBS.get(scs_hz, {})
-    mhz = bandwidth_hz / 1e6
-    return table.get(int(mhz)) if float(mhz).is_integer() else None
-
-
 class RadioNetwork(caviar.Plugin):
     subscribe = [POSITIONS, ARRIVED]
     optional = (ARRIVED,)  # (UEs that leave: SUMO's arrivals, when traffic runs)
     publishes = (THROUGHPUT, NETWORK_UE, NETWORK_EVENTS, NETWORK_CELLS, NETWORK_RADIO_MAP, VIEW_RADIO_MAP)
+
+    @classmethod
+    def inputs(cls, params):
+        """The topics ``traffic.carry`` names: their messages go over the network."""
+        if params.traffic is None:
+            return {}
+        return {c.topic: f"params.traffic.carry.{i}.topic" for i, c in enumerate(params.traffic.carry)}
+
+    @classmethod
+    def outputs(cls, params):
+        """``network.transfers`` with a load, and where delivered messages go on."""
+        if params.traffic is None:
+            return ()
+        return (NETWORK_TRANSFERS, *(f"{c.deliver_to}.*" for c in params.traffic.carry if c.deliver_to))
 
     @dataclasses.dataclass
     class Params:
@@ -196,6 +157,12 @@ class RadioNetwork(caviar.Plugin):
         ``alpha``, ``ue_max_power_dbm``), interference from the UEs other cells schedule in the
         slot, Sionna SYS on the PUSCH tables (:mod:`~caviar_plugins.network.uplink`);
         ``network.ue`` adds ``ul_*``."""
+        traffic: TrafficSettings | None = None
+        """The load (a table turns it on; without it, full buffer): per direction each UE's
+        ``full-buffer``, ``ftp3`` (``ftp = { file_bytes, arrival_rate_hz }``) or ``none``, and
+        the twin's messages it carries (``carry = [{ topic, direction, deliver_to }]``); the
+        scheduler serves queued bytes only, and each completed transfer goes on
+        ``network.transfers`` (:mod:`~caviar_plugins.network.traffic`)."""
         radio_map: RadioMapSettings | None = None
         """A best-server SINR map of ``raytracing.scene`` at setup (a table turns it on):
         ``cell_size_m``, ``height_m``, ``margin_m``, ``samples_per_tx``, ``max_depth`` (see
@@ -249,6 +216,8 @@ class RadioNetwork(caviar.Plugin):
         self.ul_link = None if p.uplink is None else LinkLevel(
             dataclasses.replace(p.link, direction="uplink", mcs_table=p.uplink.mcs_table), len(self.cells),
             seed=ctx.seed + 1)
+        self.queues = None if p.traffic is None or p.traffic.full_buffer else Queues(p.traffic, ctx.seed)
+        self.lost: list = []  # transfers of UEs that left, to report
         self.ues: dict[str, dict[str, Any]] = {}  # UE_Id -> {type, position, column}
         self.free: list[int] = []
         self.last_sinr: dict[str, float] = {}
@@ -343,7 +312,8 @@ class RadioNetwork(caviar.Plugin):
                 "ul_link": None if self.ul_link is None else self.ul_link.state(),
                 "traced": self.traced, "refreshed_at": self.refreshed_at, "drops": self.drops,
                 "stochastic": None if self.stochastic is None else self.stochastic.snapshot(),
-                "cache_seen": self.tracer is not None and self.tracer.cache_seen()}
+                "cache_seen": self.tracer is not None and self.tracer.cache_seen(),
+                "queues": None if self.queues is None else self.queues.state(), "lost": self.lost}
 
     def restore(self, state):
         self.map_files = [self.ctx.run_dir / f for f in state["map_files"]]
@@ -353,7 +323,9 @@ class RadioNetwork(caviar.Plugin):
         if self.ul_link is not None:
             self.ul_link.restore(state["ul_link"])
         self.channels, self.traced, self.refreshed_at = state["channels"], state["traced"], state["refreshed_at"]
-        self.drops = state["drops"]
+        self.drops, self.lost = state["drops"], state["lost"]
+        if self.queues is not None:
+            self.queues.restore(state["queues"])
         if self.stochastic is not None:
             self.stochastic.restore(state["stochastic"])
         if state.get("cache_seen") and self.tracer is not None and self.channels is not None:
@@ -407,12 +379,14 @@ class RadioNetwork(caviar.Plugin):
             gains = gains.mean(axis=2, keepdims=True)
         return gains
 
-    def _beamformed_sinr(self, serving: np.ndarray):
-        """Per slot and subband, and wideband (the slots' mean), SINR and SIR with beams."""
+    def _beamformed_sinr(self, serving: np.ndarray, talking: np.ndarray | None):
+        """Per slot and subband, and wideband (the slots' mean), SINR and SIR with beams;
+        the other cells point at the UEs they schedule among ``talking`` (None: all)."""
         assert self.beam_gains is not None
         ue = np.arange(len(serving))
         best = np.where(serving >= 0, self.best_beams[ue, np.maximum(serving, 0)], 0)
-        beams = slot_beams(serving, best, len(self.cells), self.slots)
+        pointed = serving if talking is None else np.where(talking, serving, -1)
+        beams = slot_beams(pointed, best, len(self.cells), self.slots)
         bandwidth = np.array([self.cells[max(int(s), 0)].bandwidth_hz for s in serving])
         noise = 10 ** (noise_dbm(bandwidth, self.p.noise_figure_db) / 10)
         silent = self.p.interference == "scheduled"
@@ -427,10 +401,13 @@ class RadioNetwork(caviar.Plugin):
     def _column(self) -> int:
         return self.free.pop(0) if self.free else len(self.ues)
 
-    def _read(self, inbox) -> None:
-        """UEs that left free their column; positions update (and add) UEs."""
+    def _read(self, t: float, inbox) -> None:
+        """UEs that left free their column; positions update (and add) UEs; the messages the
+        UEs carry are queued."""
         for m in inbox.on(ARRIVED):
             if m.data["UE_Id"] in self.ues:
+                if self.queues is not None:
+                    self.lost += self.queues.forget(m.data["UE_Id"])
                 self._forget(m.data["UE_Id"])
                 ue = self.ues.pop(m.data["UE_Id"])
                 self.free.append(ue["column"])
@@ -440,6 +417,14 @@ class RadioNetwork(caviar.Plugin):
             if ue_id not in self.ues:
                 self.ues[ue_id] = {"type": m.data["UE_type"], "column": self._column()}
             self.ues[ue_id]["position"] = read_position(m.data)
+        if self.queues is not None:
+            for c in self.p.traffic.carry:
+                for m in inbox.on(c.topic):
+                    ue = m.data["UE_Id"] if isinstance(m.data, dict) and "UE_Id" in m.data else m.topic.rsplit(".")[-1]
+                    if ue not in self.ues:
+                        raise ValueError(f"traffic.carry: a message on {m.topic} is for UE {ue!r}, which has no "
+                                         f"position on {POSITIONS} (a UE must be placed to carry it)")
+                    self.queues.queue_message(t if m.time is None else m.time, ue, m.topic, m.data, c)
 
     def _measure(self, t: float, ids: list[str]):
         """Received power of every cell at every UE (per subband, and wideband) and RSRP;
@@ -473,28 +458,25 @@ class RadioNetwork(caviar.Plugin):
         if self.layer is not None:
             yield VIEW_RADIO_MAP, self.layer
             self.layer = None
-        self._read(inbox)
+        self._read(t, inbox)
         if self.drops and t > 0 and self.p.layout is not None and self.p.layout.redrop == "every-step":
             self._drop()
         if not self.ues:
             return
         ids = list(self.ues)
         rx, wideband, rsrp, serving, events = self._measure(t, ids)
-        load = None
-        if self.p.interference == "scheduled":
-            load = np.isin(np.arange(len(self.cells)), serving).astype(float)
-        if self.p.beams is not None:
-            per_slot, sinr, sir = self._beamformed_sinr(serving)  # [slot, ue, subband], [ue], [ue]
-        else:
-            sinr = sinr_db(self.cells, wideband, serving, self.p.noise_figure_db, load)
-            sir = sinr_db(self.cells, wideband, serving, -np.inf, load)
-            per_slot = sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)[None]  # [1, ue, subband]
+        backlog, talking = self._backlog(t, ids, "downlink")
+        per_slot, sinr, sir = self._downlink_sinr(rx, wideband, serving, talking)
         cols = np.array([self.ues[u]["column"] for u in ids])
-        res = self.link.run(*self._columns(per_slot, serving, cols))
+        sinr_cols, serving_cols = self._columns(per_slot, serving, cols)
+        res = self.link.run(sinr_cols, serving_cols, backlog=in_columns(backlog, cols))
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         for e in events:
             yield NETWORK_EVENTS, e
-        ul = self._uplink(rx, serving, cols) if self.ul_link is not None else None
+        yield from self._delivered(t, ids, "downlink", res.delivered_bits[:, cols])
+        ul = None
+        if self.ul_link is not None:
+            ul = yield from self._uplink(t, ids, rx, serving, cols)
         for i, u in enumerate(ids):
             covered = serving[i] >= 0
             if covered:
@@ -502,16 +484,39 @@ class RadioNetwork(caviar.Plugin):
             else:
                 self.last_sinr.pop(u, None)
             loss = self.cells[serving[i]].tx_power_dbm - wideband[i, serving[i]] if covered else math.nan
-            link = res.summary(cols[i])
-            if ul is not None and covered:
-                link = {**link, **ul(i)}
-            if self.p.beams is not None and covered:
-                link = {**link, **self._beam(int(serving[i]), int(self.best_beams[i, serving[i]]))}
+            link = {**res.summary(cols[i]), **self._extras(i, u, int(serving[i]), ul)}
             yield from self._report(u, serving[i], sinr[i], sir[i], loss, rsrp[i], float(mbps[cols[i]]), link)
         used = res.cells_active.mean(axis=0)
         yield NETWORK_CELLS, {"cells": [
             {"cell": n, "ues": int((serving == k).sum()), "active_share": round(float(used[k]), 4)}
             for k, n in enumerate(self.names)]}
+
+    def _downlink_sinr(self, rx: np.ndarray, wideband: np.ndarray, serving: np.ndarray, talking: np.ndarray | None):
+        """Per slot and subband [slot or 1, ue, subband], and wideband [ue], SINR and SIR; with
+        ``interference = "scheduled"`` only cells with data for someone (``talking``) send."""
+        if self.p.interference != "scheduled":
+            talking = None  # (full buffer: every cell transmits, whatever its queues)
+        if self.p.beams is not None:
+            return self._beamformed_sinr(serving, talking)
+        load = None
+        if self.p.interference == "scheduled":
+            on = serving if talking is None else serving[talking]
+            load = np.isin(np.arange(len(self.cells)), on).astype(float)
+        sinr = sinr_db(self.cells, wideband, serving, self.p.noise_figure_db, load)
+        sir = sinr_db(self.cells, wideband, serving, -np.inf, load)
+        return sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)[None], sinr, sir
+
+    def _extras(self, i: int, u: str, serving: int, ul) -> dict[str, Any]:
+        """UE ``i``'s ``network.ue`` fields beyond the downlink's: uplink, beam, queues."""
+        extras: dict[str, Any] = {}
+        if ul is not None and serving >= 0:
+            extras.update(ul(i))
+        if self.p.beams is not None and serving >= 0:
+            extras.update(beam_report(self.cells[serving], self.p.codebooks[serving],
+                                      int(self.best_beams[i, serving])))
+        if self.queues is not None:
+            extras.update(self.queues.report(u, ("downlink", "uplink") if self.ul_link else ("downlink",)))
+        return extras
 
     def _columns(self, per_slot: np.ndarray, serving: np.ndarray, cols: np.ndarray):
         """A link level's inputs on UE columns (stable across steps): SINR [slot, column,
@@ -521,28 +526,45 @@ class RadioNetwork(caviar.Plugin):
         sinr_cols[:, cols], serving_cols[cols] = per_slot, serving
         return np.broadcast_to(sinr_cols, (self.slots, *sinr_cols.shape[1:])), serving_cols
 
-    def _uplink(self, rx: np.ndarray, serving: np.ndarray, cols: np.ndarray):
-        """The step's PUSCH: powers, per-slot SINR, the uplink link level; ``ul(i)``: UE i's."""
+    def _backlog(self, t: float, ids: list[str], direction: str):
+        """The step's queued and arriving bits of ``ids`` in ``direction`` (None: full buffer)
+        and which UEs have any ([ue] bool; None: all)."""
+        if self.queues is None or self.queues.model(direction) == "full-buffer":
+            return None, None
+        backlog = self.queues.backlog(t, ids, direction, self.slots, self.slot_s)
+        return backlog, (backlog.queued_bits > 0) | (backlog.arrivals_bits > 0).any(axis=0)
+
+    def _delivered(self, t: float, ids: list[str], direction: str, delivered_bits: np.ndarray):
+        """Takes the step's delivered bits ([slot, ue]) off the queues: every transfer completed
+        (and what its UEs left unfinished) on ``network.transfers``, and each carried message
+        delivered on its ``deliver_to`` topic."""
+        if self.queues is None:
+            return
+        for x in self.lost:
+            yield NETWORK_TRANSFERS, transfer_record(x, None)
+        self.lost = []
+        for x, done in self.queues.serve(t, ids, direction, delivered_bits, self.slot_s):
+            yield NETWORK_TRANSFERS, transfer_record(x, done)
+            if x.deliver_to is not None:
+                yield f"{x.deliver_to}.{x.ue}", x.payload
+
+    def _uplink(self, t: float, ids: list[str], rx: np.ndarray, serving: np.ndarray, cols: np.ndarray):
+        """The step's PUSCH: powers, per-slot SINR, the uplink link level, the transfers it
+        completed (yielded); returns ``ul(i)``: UE i's."""
         assert self.p.uplink is not None and self.ul_link is not None
+        backlog, talking = self._backlog(t, ids, "uplink")
         tx, per_slot = uplink(self.cells, self.p.uplink, serving, rx, self.beam_gains,
                               getattr(self, "best_beams", None) if self.p.beams else None, self.p.num_prb,
-                              self.p.subcarrier_spacing_hz, self.slots, self.p.device)
-        res = self.ul_link.run(*self._columns(per_slot, serving, cols))
+                              self.p.subcarrier_spacing_hz, self.slots, self.p.device,
+                              talking if self.p.interference == "scheduled" else None)
+        sinr_cols, serving_cols = self._columns(per_slot, serving, cols)
+        res = self.ul_link.run(sinr_cols, serving_cols, backlog=in_columns(backlog, cols))
+        yield from self._delivered(t, ids, "uplink", res.delivered_bits[:, cols])
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         mean = 10 * np.log10(np.mean(10 ** (per_slot / 10), axis=(0, 2)))
         return lambda i: {"ul_tx_power_dbm": round(float(tx[i]), 3), "ul_sinr_db": round(float(mean[i]), 3),
                           "ul_throughput_mbps": round(float(mbps[cols[i]]), 6),
                           **{f"ul_{k}": v for k, v in res.summary(int(cols[i])).items()}}
-
-    def _beam(self, cell: int, beam: int) -> dict[str, Any]:
-        """The serving SSB beam: its index and where it points (azimuth from +x and elevation,
-        scene frame; the codebook's direction, not the UE's)."""
-        c = self.cells[cell]
-        u, v = self.p.codebooks[cell].pointing()[beam]
-        elevation = math.degrees(math.asin(max(-1.0, min(1.0, v)))) - c.downtilt_deg
-        across = math.degrees(math.asin(max(-1.0, min(1.0, u / max(math.cos(math.radians(elevation)), 1e-9)))))
-        return {"ssb_beam": beam, "beam_azimuth_deg": round((c.azimuth_deg + across) % 360.0, 2),
-                "beam_elevation_deg": round(elevation, 2)}
 
     def _report(self, u: str, serving: int, sinr: float, sir: float, coupling_loss: float, rsrp: np.ndarray,
                 mbps: float, link: dict):
@@ -563,12 +585,6 @@ class RadioNetwork(caviar.Plugin):
         if self.p.link_model == "sys":
             report.update(link)
         else:
-            report.update({k: v for k, v in link.items() if k.startswith(("ssb_beam", "beam_", "ul_"))})
+            report.update({k: v for k, v in link.items() if k.startswith(("ssb_beam", "beam_", "ul_", "dl_queue"))})
         yield NETWORK_UE, report
 
-
-def jain_index(x: np.ndarray) -> float:
-    """Jain's fairness index (Σx)² / (n·Σx²): 1 when all are equal, 1/n when one gets all."""
-    x = np.asarray(x, dtype=float)
-    s2 = float((x ** 2).sum())
-    return float(x.sum() ** 2 / (x.size * s2)) if s2 > 0 else math.nan

@@ -1,6 +1,7 @@
 """Figures of a run with the radio network, for ``caviar-core report`` (entry-point group
 ``caviar.report``): SINR and throughput CDFs per UE type (downlink, and uplink when the run
-has one) and the handovers and serving beams on a map, with
+has one), the handovers and serving beams on a map and, with a load (``traffic``), the
+delay and user-perceived throughput CDFs of files and carried messages, with
 ``network.json`` holding the numbers the figures show.
 
     caviar-core report runs/network-city-001 --out report/
@@ -16,7 +17,7 @@ from typing import Any
 import numpy as np
 import tomllib
 
-from caviar_plugins.schema import NETWORK_EVENTS, NETWORK_UE, POSITIONS
+from caviar_plugins.schema import NETWORK_EVENTS, NETWORK_TRANSFERS, NETWORK_UE, POSITIONS
 
 
 def _cdf(ax, values: dict[str, np.ndarray], xlabel: str) -> None:
@@ -92,7 +93,31 @@ def summarize(log) -> dict[str, Any] | None:
             "handovers": sum(1 for e in events if e["event"] == "handover" and e["UE_Id"] in ids),
             "rlf": sum(1 for e in events if e["event"] == "rlf" and e["UE_Id"] in ids),
         }
-    return {"ue_types": kinds, "events": len(events)}
+    summary: dict[str, Any] = {"ue_types": kinds, "events": len(events)}
+    transfers = transfer_groups(log)
+    if transfers:
+        summary["transfers"] = {
+            name: {"delivered": len(done), "lost": lost, "bytes_mean": round(float(np.mean([x["bytes"] for x in done])))
+                   if done else None,
+                   "delay_s": percentiles([x["delay_s"] for x in done], 6) if done else None,
+                   "upt_mbps": percentiles([x["upt_mbps"] for x in done]) if done else None}
+            for name, (done, lost) in transfers.items()}
+    return summary
+
+
+def transfer_groups(log) -> dict[str, tuple[list[dict], int]]:
+    """``network.transfers`` by kind and direction (``ftp downlink``, ``3D.camera.* uplink``: a
+    carried topic with its UE as ``*``): (the completed transfers, how many were lost)."""
+    groups: dict[str, tuple[list[dict], int]] = {}
+    for m in log.decoded(NETWORK_TRANSFERS):
+        x = m.data
+        source = x["source"]
+        head, _, last = source.rpartition(".")
+        if last == x["UE_Id"]:
+            source = f"{head}.*"
+        done, lost = groups.get(f"{source} {x['direction']}", ([], 0))
+        groups[f"{source} {x['direction']}"] = (done, lost + 1) if x.get("lost") else ([*done, x], lost)
+    return groups
 
 
 def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
@@ -156,6 +181,27 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
     hmap = out / "network-handovers.png"
     fig.savefig(hmap, dpi=100)
     plt.close(fig)
+    made = [cdfs, hmap]
+    groups = {k: v[0] for k, v in transfer_groups(log).items() if v[0]}
+    if groups:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4), squeeze=False)
+        _cdf(axes[0, 0], {k: np.array([x["delay_s"] for x in v]) for k, v in groups.items()},
+             "delay from queued to delivered (s)")
+        _cdf(axes[0, 1], {k: np.array([x["upt_mbps"] for x in v]) for k, v in groups.items()},
+             "user-perceived throughput (Mbit/s)")
+        axes[0, 0].set(xscale="log", title="file and message delay")
+        axes[0, 1].set(xscale="log", title="user-perceived throughput")
+        fig.tight_layout()
+        made.append(out / "network-transfers.png")
+        fig.savefig(made[-1], dpi=100)
+        plt.close(fig)
     numbers = out / "network.json"
     numbers.write_text(json.dumps(summary, indent=2) + "\n")
-    return [cdfs, hmap, numbers]
+    return [*made, numbers]
+
+
+def jain_index(x: np.ndarray) -> float:
+    """Jain's fairness index (Σx)² / (n·Σx²): 1 when all are equal, 1/n when one gets all."""
+    x = np.asarray(x, dtype=float)
+    s2 = float((x ** 2).sum())
+    return float(x.sum() ** 2 / (x.size * s2)) if s2 > 0 else math.nan

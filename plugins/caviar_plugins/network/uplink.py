@@ -105,11 +105,13 @@ def pathloss_db(tx_power_dbm: np.ndarray, rx_dbm: np.ndarray) -> np.ndarray:
 
 def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm: np.ndarray,
            beam_gains: np.ndarray | None, best_beams: np.ndarray | None, num_prb: int,
-           subcarrier_spacing_hz: float, slots: int, device: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+           subcarrier_spacing_hz: float, slots: int, device: str = "auto",
+           talking: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Every UE's PUSCH power (dBm, [ue]) and SINR ([slot, ue, freq]) from the downlink's
     measurements: ``rx_dbm`` [ue, cell, freq] the cells' received power (power, array gain
     and channel), and with SSB beams their gains [ue, cell, freq, beam] and each UE's best
-    beam per cell [ue, cell]. The channel is reciprocal: the same gains both ways."""
+    beam per cell [ue, cell]. The channel is reciprocal: the same gains both ways.
+    ``talking`` [ue]: the UEs with data to send, the only ones other cells schedule (None: all)."""
     n = len(serving)
     ue, sv = np.arange(n), np.maximum(np.asarray(serving), 0)
     power = np.array([c.tx_power_dbm for c in cells])
@@ -127,7 +129,7 @@ def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm
         desired = channel[ue, sv] * 10 ** (array[sv] / 10)[:, None]
         leak = channel[ue[None, :], sv[:, None]]  # element pattern only (the array serves u)
     tx = tx_power_dbm(s, pl, num_prb, device)
-    scheduled = scheduled_ues(serving, len(cells), slots)
+    scheduled = scheduled_ues(serving if talking is None else np.where(talking, serving, -1), len(cells), slots)
     carriers = np.array([c.carrier_hz for c in cells])
     sinr = slot_sinr_db(desired, leak, serving, carriers, tx - 10 * np.log10(num_prb), scheduled,
                         noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db))

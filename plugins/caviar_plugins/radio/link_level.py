@@ -151,6 +151,7 @@ class SlotResults:
     tbler: np.ndarray  # [n_ue] mean TBLER over scheduled slots (NaN: none)
     sinr_eff_db: np.ndarray  # [n_ue] the last effective SINR (NaN: none)
     cells_active: np.ndarray  # [n_slots, n_cell] cells that scheduled someone
+    delivered_bits: np.ndarray  # [n_slots, n_ue] bits decoded per slot (of the UE's queue)
 
     def bler(self, ue: int) -> float:
         return self.nacks[ue] / max(self.acks[ue] + self.nacks[ue], 1)
@@ -273,10 +274,14 @@ class LinkLevel:
             adapter.reset_link_adaptation(self.olla, u)
             self.harq[:, u] = -1
 
-    def run(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
+    def run(self, sinr_db: np.ndarray, serving: np.ndarray, backlog: Any = None) -> SlotResults:
         """Runs ``sinr_db.shape[0]`` slots. ``sinr_db``: SINR of each UE on its serving
         cell, [n_slots, n_ue] (wideband) or [n_slots, n_ue, subbands]; ``serving``: [n_ue]
-        cell index (-1: no service)."""
+        cell index (-1: no service). ``backlog``: the bits each UE has to receive
+        (:class:`~caviar_plugins.network.traffic.Backlog`: queued at the first slot, and
+        arriving per slot); None: full buffer. With a backlog a UE is scheduled only in slots
+        (groups of ``harq_processes`` slots) that begin with bits queued, and what it decodes
+        beyond its queue is padding: ``delivered_bits`` counts only the queue's bits."""
         sinr_db = np.asarray(sinr_db, dtype=float)
         if sinr_db.ndim == 2:
             sinr_db = np.broadcast_to(sinr_db[..., None], (*sinr_db.shape, self.s.subbands))
@@ -285,25 +290,32 @@ class LinkLevel:
                              f"got shape {sinr_db.shape}")
         n_slots, n_ue, _ = sinr_db.shape
         self.ensure(n_ue)
+        queue = _Queue(n_slots, n_ue, backlog)
         if self._sys is None:
-            return self._shannon(sinr_db, serving)
-        return self._sys_slots(sinr_db, serving)
+            return self._shannon(sinr_db, serving, queue)
+        return self._sys_slots(sinr_db, serving, queue)
 
-    def _shannon(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
+    def _shannon(self, sinr_db: np.ndarray, serving: np.ndarray, queue: _Queue) -> SlotResults:
         n_slots, n_ue, _ = sinr_db.shape
         band = self.s.subband_prbs * self.s.prb_bandwidth_hz  # [subbands]
-        counts = np.bincount(serving[serving >= 0], minlength=self.n_cell)
-        share = np.where(serving >= 0, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
         se = np.log2(1 + 10 ** (np.nan_to_num(sinr_db, nan=-np.inf) / 10))
-        bits = ((se * band).sum(axis=2) * share[None, :] * self.s.slot_s).sum(axis=0)
+        rate = (se * band).sum(axis=2) * self.s.slot_s  # [slot, ue] bits with the whole cell
         active = np.zeros((n_slots, self.n_cell), dtype=bool)
-        active[:, counts > 0] = True
+        sched = np.zeros(n_ue)
+        for k in range(n_slots):
+            eligible = (serving >= 0) & queue.eligible(k)
+            counts = np.bincount(serving[eligible], minlength=self.n_cell)
+            share = np.where(eligible, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
+            queue.take(k, rate[k] * share)
+            active[k, counts > 0] = True
+            sched += eligible
         zeros = np.zeros(n_ue, dtype=int)
-        return SlotResults(bits, np.where(serving >= 0, n_slots, 0), zeros, zeros, zeros,
+        return SlotResults(queue.delivered.sum(axis=0), sched.astype(int), zeros, zeros, zeros,
                            np.full(n_ue, -1), np.full(n_ue, np.nan),
-                           np.nanmean(sinr_db, axis=(0, 2)) if n_slots else np.full(n_ue, np.nan), active)
+                           np.nanmean(sinr_db, axis=(0, 2)) if n_slots else np.full(n_ue, np.nan), active,
+                           queue.delivered)
 
-    def _sys_slots(self, sinr_db: np.ndarray, serving: np.ndarray) -> SlotResults:
+    def _sys_slots(self, sinr_db: np.ndarray, serving: np.ndarray, queue: _Queue) -> SlotResults:
         torch = self._torch
         n_slots, n_ue, n_sub = sinr_db.shape
         d, cap, n_cell = self.s.harq_processes, self.capacity, self.n_cell
@@ -313,15 +325,20 @@ class LinkLevel:
         for u, c in enumerate(serving):
             if c >= 0:
                 member[c, u] = True
-        member_t = to_torch(member, self.device)
+        member_all, member_t = member, to_torch(member, self.device)
         re_per_prb = 12 * DATA_SYMBOLS_PER_SLOT
-        acc = {k: np.zeros(n_ue) for k in ("bits", "sched", "prbs", "acks", "nacks", "tbler")}
+        acc = {k: np.zeros(n_ue) for k in ("sched", "prbs", "acks", "nacks", "tbler")}
         mcs_last = np.full(n_ue, -1)
         sinr_eff_last = np.full(n_ue, np.nan)
         active = np.zeros((n_slots, n_cell), dtype=bool)
         lin = np.zeros((d, n_sub, cap))
         served = (serving >= 0)[None, None, :]
         for k in range(0, n_slots, d):
+            if queue.finite:  # (only UEs with bits queued at the group's first slot)
+                member = member_all & np.pad(queue.eligible(k), (0, cap - n_ue))[None, :]
+                if not member.any():
+                    continue  # nothing to send: no call (no transmission, no loop updates)
+                member_t = to_torch(member, self.device)
             block = np.nan_to_num(sinr_db[k:k + d], nan=-300.0).transpose(0, 2, 1)  # [D, S, n_ue]
             lin[:, :, :n_ue] = np.where(served, 10 ** (block / 10), 0.0)
             lin_t = to_torch(lin, self.device, torch.float32)  # [D, S, cap]
@@ -344,7 +361,8 @@ class LinkLevel:
                 to_numpy(t) for t in (n_re, harq, bits, prbs, tbler, mcs, sinr_eff, granted.any(dim=3).any(dim=2)))
             sched = (n_re_np > 0)[:, :n_ue]
             h = harq_np[:, :n_ue]
-            acc["bits"] += bits_np[:, :n_ue].sum(axis=0)
+            for j in range(d):
+                queue.take(k + j, bits_np[j, :n_ue])
             acc["sched"] += sched.sum(axis=0)
             acc["prbs"] += prbs_np[:, :n_ue].sum(axis=0)
             acc["acks"] += (h == 1).sum(axis=0)
@@ -357,9 +375,9 @@ class LinkLevel:
             active[k:k + d] = active_np
         with np.errstate(invalid="ignore", divide="ignore"):
             tbler_mean = np.where(acc["sched"] > 0, acc["tbler"] / acc["sched"], np.nan)
-        return SlotResults(acc["bits"], acc["sched"].astype(int), acc["prbs"].astype(int),
+        return SlotResults(queue.delivered.sum(axis=0), acc["sched"].astype(int), acc["prbs"].astype(int),
                            acc["acks"].astype(int), acc["nacks"].astype(int), mcs_last, tbler_mean,
-                           sinr_eff_last, active)
+                           sinr_eff_last, active, queue.delivered)
 
     def _adapt_and_decode(self, n_re, harq_last, csi, sinr_in):
         """One call's link adaptation and PHY abstraction: (MCS, decoded bits, HARQ,
@@ -408,3 +426,35 @@ class LinkLevel:
                 else:  # round-robin: one UE per slot, in turn
                     granted[j, c, :, int(ues[(first_slot + j) % ues.size])] = True
         return granted
+
+
+class _Queue:
+    """One call's bits per UE: what is queued (full buffer: unbounded), what arrives at each
+    slot, and what each slot delivered."""
+
+    def __init__(self, n_slots: int, n_ue: int, backlog: Any):
+        self.finite = backlog is not None
+        self.left = np.full(n_ue, np.inf) if backlog is None else np.asarray(backlog.queued_bits, float).copy()
+        self.arrivals = None if backlog is None else np.asarray(backlog.arrivals_bits, float)
+        if self.arrivals is not None and self.arrivals.shape != (n_slots, n_ue):
+            raise ValueError(f"backlog: expected arrivals of shape {(n_slots, n_ue)}, got {self.arrivals.shape}")
+        self.arrived_to = -1  # the last slot whose arrivals are in self.left
+        self.delivered = np.zeros((n_slots, n_ue))
+
+    def _arrive(self, slot: int) -> None:
+        if self.arrivals is not None:
+            while self.arrived_to < slot:
+                self.arrived_to += 1
+                self.left += self.arrivals[self.arrived_to]
+
+    def eligible(self, slot: int) -> np.ndarray:
+        """[n_ue]: UEs with bits queued at the start of ``slot``."""
+        self._arrive(slot)
+        return self.left > 0
+
+    def take(self, slot: int, bits: np.ndarray) -> None:
+        """``slot`` decoded ``bits`` per UE: those of the queue are delivered."""
+        self._arrive(slot)
+        got = np.minimum(np.asarray(bits, float), self.left)
+        self.left -= got
+        self.delivered[slot] = got

@@ -1,0 +1,265 @@
+"""Load on the radio network: what each UE has to send and receive, queued and served.
+
+Per UE and direction (downlink, and the uplink when it is on) the traffic is
+
+- ``full-buffer``: always data to send (the default; the 3GPP calibration's assumption);
+- ``ftp3``: 3GPP FTP model 3, files of ``ftp.file_bytes`` (0.5 MB by default) arriving as
+  a Poisson process of rate ``ftp.arrival_rate_hz`` per UE (TR 36.872 Annex A, the
+  system-level evaluation assumptions of TR 36.814 / 38.802);
+- ``none``: nothing of its own, only what it carries (below).
+
+A UE also carries **messages the twin publishes**: each ``carry`` entry names a topic pattern
+(``3D.camera.*``: the camera images) whose messages are queued, bytes and all, at the UE that
+published them (the payload's ``UE_Id``, else the topic's last token) as they are produced.
+Once the network has delivered a message's last byte it is published again on
+``deliver_to.<UE_Id>`` (``ai.images.uav1``), unchanged, for the module that reads it there:
+the detector sees an image only once the uplink has carried it.
+
+Each UE's queue is first in, first out. The link level serves only UEs with bytes queued
+(:class:`Backlog`); what it decodes in a slot leaves the head of the queue. A transfer that
+completes is published on ``network.transfers``: its delay from queued to fully delivered
+and its user-perceived throughput (bits over that delay, TR 36.814's definition).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from typing import Any
+
+import numpy as np
+
+from caviar.topics import matches
+
+MODELS = ("full-buffer", "ftp3", "none")
+DIRECTIONS = ("downlink", "uplink")
+
+
+@dataclasses.dataclass
+class FtpSettings:
+    """3GPP FTP model 3: files of one size, arriving per UE as a Poisson process."""
+
+    file_bytes: float = 512_000.0
+    """File size in bytes: 0.5 Mbyte, the 3GPP evaluations' size."""
+    arrival_rate_hz: float = 1.0
+    """λ, files per second per UE and direction (the offered load is λ · file size)."""
+
+    def __post_init__(self):
+        if not self.file_bytes > 0:
+            raise ValueError(f"file_bytes: expected a file size > 0 bytes, got {self.file_bytes!r}")
+        if not self.arrival_rate_hz > 0:
+            raise ValueError(f"arrival_rate_hz: expected a Poisson arrival rate > 0 per second, "
+                             f"got {self.arrival_rate_hz!r}")
+
+
+@dataclasses.dataclass
+class Carried:
+    """Messages of the twin that a UE sends (uplink) or receives (downlink) over the network."""
+
+    topic: str
+    """A topic pattern (``3D.camera.*``); its messages are queued at the UE that published them."""
+    direction: str = "uplink"
+    deliver_to: str | None = None
+    """Republish each delivered message on ``deliver_to.<UE_Id>`` (None: only account for it)."""
+    size_field: str | None = None
+    """A payload field giving the message's size in bytes (``bytes``); by default its own size
+    (an array's bytes, a byte string's length, a JSON payload's text)."""
+
+    def __post_init__(self):
+        try:
+            matches(self.topic, "x")
+        except ValueError as e:
+            raise ValueError(f"topic: {e}") from None
+        if self.direction not in DIRECTIONS:
+            raise ValueError(f"direction: expected one of {list(DIRECTIONS)}, got {self.direction!r}")
+        if self.deliver_to is not None:
+            try:
+                matches(self.deliver_to + ".x", "x")
+            except ValueError as e:
+                raise ValueError(f"deliver_to: expected a topic prefix, {e}") from None
+
+
+@dataclasses.dataclass
+class TrafficSettings:
+    """Each UE's own load per direction (``full-buffer``, ``ftp3`` or ``none``) and the twin's
+    messages the UEs carry."""
+
+    downlink: str = "full-buffer"
+    uplink: str = "full-buffer"
+    """The uplink's load, when the network simulates the uplink (``uplink = {...}``)."""
+    ftp: FtpSettings = dataclasses.field(default_factory=FtpSettings)
+    carry: list[Carried] = dataclasses.field(default_factory=list)
+    """Topics whose messages go over the network (``[{ topic = "3D.camera.*", deliver_to =
+    "ai.images" }]``)."""
+
+    def __post_init__(self):
+        for key in DIRECTIONS:
+            if getattr(self, key) not in MODELS:
+                raise ValueError(f"{key}: expected one of {list(MODELS)}, got {getattr(self, key)!r}")
+
+    @property
+    def full_buffer(self) -> bool:
+        """Every UE has data at all times in both directions (no queues to keep)."""
+        return self.downlink == self.uplink == "full-buffer" and not self.carry
+
+
+def payload_bytes(data: Any, size_field: str | None) -> int:
+    """A message's size in bytes: its ``size_field``, else the payload's own size."""
+    if size_field is not None:
+        if not isinstance(data, dict) or size_field not in data:
+            raise ValueError(f"size_field: the payload has no field {size_field!r}")
+        return int(data[size_field])
+    if isinstance(data, np.ndarray):
+        return int(data.nbytes)
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        return len(data)
+    return len(json.dumps(data, separators=(",", ":")).encode())
+
+
+@dataclasses.dataclass
+class Transfer:
+    """One file or message in a UE's queue."""
+
+    ue: str
+    direction: str
+    source: str
+    """``ftp`` or the topic it was published on."""
+    queued_s: float
+    size_bytes: int
+    left_bits: float
+    payload: Any = None
+    deliver_to: str | None = None
+    arrival_slot: int = -1
+    """The slot of the current step it arrives in (-1: queued before the step's first slot)."""
+
+
+@dataclasses.dataclass
+class Backlog:
+    """What a link level may serve in one call, per UE column: bits queued at the first
+    slot (``inf``: full buffer) and bits arriving at the start of each slot."""
+
+    queued_bits: np.ndarray  # [n_ue]
+    arrivals_bits: np.ndarray  # [n_slots, n_ue]
+
+
+class Queues:
+    """Every UE's transfers per direction, FTP arrivals drawn from its own stream."""
+
+    def __init__(self, settings: TrafficSettings, seed: int):
+        self.s = settings
+        self.rng = np.random.default_rng([seed, 36872])
+        self.queues: dict[tuple[str, str], list[Transfer]] = {}
+        self.next_file: dict[tuple[str, str], float] = {}  # (UE, direction) -> next FTP arrival (s)
+
+    def state(self) -> dict[str, Any]:
+        return {"rng": self.rng.bit_generator.state, "queues": self.queues, "next_file": self.next_file}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.rng.bit_generator.state = state["rng"]
+        self.queues, self.next_file = state["queues"], state["next_file"]
+
+    def model(self, direction: str) -> str:
+        return getattr(self.s, direction)
+
+    def carried(self, topic: str) -> Carried | None:
+        return next((c for c in self.s.carry if matches(c.topic, topic)), None)
+
+    def queue_message(self, t: float, ue: str, topic: str, data: Any, carried: Carried) -> None:
+        size = payload_bytes(data, carried.size_field)
+        self.queues.setdefault((ue, carried.direction), []).append(
+            Transfer(ue, carried.direction, topic, t, size, 8.0 * size, data, carried.deliver_to))
+
+    def forget(self, ue: str) -> list[Transfer]:
+        """Drops a UE that left; returns the transfers it had not finished."""
+        left = []
+        for d in DIRECTIONS:
+            left += self.queues.pop((ue, d), [])
+            self.next_file.pop((ue, d), None)
+        return left
+
+    def backlog(self, t: float, ids: list[str], direction: str, slots: int, slot_s: float) -> Backlog:
+        """The step's :class:`Backlog` of UEs ``ids`` (rows) in ``direction``: queued bits,
+        and FTP files arriving in the step's slots [t, t + slots·slot_s) (queued as they arrive)."""
+        queued = np.zeros(len(ids))
+        arrivals = np.zeros((slots, len(ids)))
+        full = self.model(direction) == "full-buffer"
+        end = t + slots * slot_s
+        for i, u in enumerate(ids):
+            key = (u, direction)
+            if full:
+                queued[i] = math.inf
+                continue
+            if self.model(direction) == "ftp3":
+                rate, size = self.s.ftp.arrival_rate_hz, self.s.ftp.file_bytes
+                at = self.next_file.setdefault(key, t + self.rng.exponential(1 / rate))
+                while at < end:
+                    slot = min(max(int((at - t) // slot_s), 0), slots - 1)
+                    self.queues.setdefault(key, []).append(
+                        Transfer(u, direction, "ftp", at, int(size), 8.0 * int(size), arrival_slot=slot))
+                    at += self.rng.exponential(1 / rate)
+                self.next_file[key] = at
+            for x in self.queues.get(key, []):
+                if x.arrival_slot < 0:
+                    queued[i] += x.left_bits
+                else:
+                    arrivals[x.arrival_slot, i] += x.left_bits
+        return Backlog(queued, arrivals)
+
+    def serve(self, t: float, ids: list[str], direction: str, delivered_bits: np.ndarray,
+              slot_s: float) -> list[tuple[Transfer, float]]:
+        """Takes what the link level delivered ([slot, UE row] bits) off the queues' heads;
+        returns the transfers completed and when (the end of the slot their last bit was in)."""
+        done = []
+        for i, u in enumerate(ids):
+            queue = self.queues.get((u, direction))
+            if not queue:
+                continue
+            for k in range(delivered_bits.shape[0]):
+                bits = float(delivered_bits[k, i])
+                while bits > 0 and queue:
+                    head = queue[0]
+                    if head.arrival_slot > k:
+                        break  # (it had not arrived yet: the link level did not count it either)
+                    taken = min(bits, head.left_bits)
+                    head.left_bits -= taken
+                    bits -= taken
+                    if head.left_bits <= 1e-6:
+                        queue.pop(0)
+                        done.append((head, t + (k + 1) * slot_s))
+            for x in queue:  # (waiting at the next step's first slot)
+                x.arrival_slot = -1
+        return done
+
+    def report(self, ue: str, directions: tuple[str, ...]) -> dict[str, int]:
+        """``network.ue``'s ``dl_queue_bytes`` / ``ul_queue_bytes`` (none for a full buffer)."""
+        queued = {d[0] + "l_queue_bytes": self.queued_bytes(ue, d) for d in directions}
+        return {k: v for k, v in queued.items() if v is not None}
+
+    def queued_bytes(self, ue: str, direction: str) -> int | None:
+        """Bytes waiting at ``ue`` in ``direction`` (None: full buffer)."""
+        if self.model(direction) == "full-buffer":
+            return None
+        return int(round(sum(x.left_bits for x in self.queues.get((ue, direction), [])) / 8))
+
+
+def in_columns(backlog: Backlog | None, cols: np.ndarray) -> Backlog | None:
+    """A backlog of UE rows on a link level's UE columns ``cols`` (no bits in the others)."""
+    if backlog is None:
+        return None
+    width = int(cols.max()) + 1
+    queued, arrivals = np.zeros(width), np.zeros((backlog.arrivals_bits.shape[0], width))
+    queued[cols], arrivals[:, cols] = backlog.queued_bits, backlog.arrivals_bits
+    return Backlog(queued, arrivals)
+
+
+def transfer_record(x: Transfer, done_s: float | None) -> dict[str, Any]:
+    """``network.transfers``: a completed file or message, its delay and user-perceived
+    throughput; or (``done_s`` None) one its UE left unfinished, with the bytes it still had."""
+    record = {"UE_Id": x.ue, "direction": x.direction, "source": x.source, "bytes": x.size_bytes,
+              "queued_s": round(x.queued_s, 6)}
+    if done_s is None:
+        return {**record, "lost": True, "bytes_left": int(math.ceil(x.left_bits / 8))}
+    delay = max(done_s - x.queued_s, 1e-12)
+    return {**record, "delivered_s": round(done_s, 6), "delay_s": round(delay, 6),
+            "upt_mbps": round(8 * x.size_bytes / delay / 1e6, 6)}
