@@ -386,3 +386,39 @@ class CarAt(caviar.Plugin):
         yield "3D.mobility.positions", {"UE_type": "passenger", "UE_Id": "car1",
                                         "position": {"x": x, "y": 0.0, "z": 0.0}, "heading": 0.0,
                                         "dimensions": {"length": 4.5, "width": 1.8, "height": p.height}}
+
+
+class Payloads(caviar.Plugin):
+    """Publishes ``bytes`` of ``size`` on ``payload.<UE>`` at the listed steps (a message
+    the network carries)."""
+
+    publishes = ("payload.*",)
+    stateless = True
+
+    @dataclasses.dataclass
+    class Params:
+        ue: str = "u1"
+        size: int = 1000
+        steps: list[int] = dataclasses.field(default_factory=lambda: [0])
+
+    def step(self, t, inbox):
+        p = self.ctx.params
+        if self.ctx.step in p.steps:
+            yield f"payload.{p.ue}", bytes([self.ctx.step % 256]) * p.size
+
+
+class OneDetection(caviar.Plugin):
+    """A person seen on the ground at step ``at`` (none at the others): ``ai.detections``."""
+
+    publishes = ("ai.detections",)
+    stateless = True
+
+    @dataclasses.dataclass
+    class Params:
+        at: int = 2
+        ue: str = "uav1"
+
+    def step(self, t, inbox):
+        p = self.ctx.params
+        found = [{"ground": {"x": 1.0, "y": 2.0}}] if self.ctx.step == p.at else []
+        yield "ai.detections", {"UE_Id": p.ue, "count": len(found), "detections": found}

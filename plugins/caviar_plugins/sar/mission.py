@@ -2,7 +2,13 @@
 the rescue is counted, and the flight continues.
 
 The stop lasts S = B / throughput with B = 10 images of 4 MB (the paper's), at the
-UAV's latest throughput.
+UAV's latest throughput. With ``upload = "network"`` the B bytes go to the network instead
+(``mission.upload``, carried uplink by ``radio-network``'s ``traffic.carry``), and the UAV
+hovers, a step at a time, until ``network.transfers`` says they were delivered: the stop is
+what the uplink took, queueing behind the camera's images included. ``mission.rescue`` is
+then published when the upload completes, with its delay as ``hover_s`` and its
+user-perceived throughput as ``throughput`` (``uploaded: false`` at the end for one still
+under way).
 
 With ``uav-energy`` in the loop (``uav.energy``), a UAV whose battery would not last the
 way home (``must_return``) is sent home (``mission.return``, at the speed the energy
@@ -26,13 +32,33 @@ import math
 
 import caviar
 from caviar_plugins import protocol as paper
-from caviar_plugins.schema import DETECTIONS, ENERGY, HOVER, RESCUE, RESULT, RETURN_HOME, THROUGHPUT
+from caviar_plugins.schema import (
+    DETECTIONS,
+    ENERGY,
+    HOVER,
+    NETWORK_TRANSFERS,
+    RESCUE,
+    RESULT,
+    RETURN_HOME,
+    THROUGHPUT,
+    UPLOAD,
+)
+
+UPLOADS = ("throughput", "network")
 
 
 class Mission(caviar.Plugin):
     subscribe = [DETECTIONS, THROUGHPUT, ENERGY, caviar.END_TOPIC]
     optional = (ENERGY,)  # (a battery model, when there is one)
     publishes = (HOVER, RESCUE, RESULT, RETURN_HOME)
+
+    @classmethod
+    def inputs(cls, params):
+        return {NETWORK_TRANSFERS: "params.upload"} if params.upload == "network" else {}
+
+    @classmethod
+    def outputs(cls, params):
+        return (UPLOAD,) if params.upload == "network" else ()
 
     @dataclasses.dataclass
     class Params:
@@ -44,9 +70,17 @@ class Mission(caviar.Plugin):
         """Upper bound of one stop, for links with (almost) no throughput (physical only)."""
         protocol: str = "physical"
         """``physical`` or ``paper`` (see the module docstring)."""
+        upload: str = "throughput"
+        """``throughput``: hover S = B / throughput (the paper's); ``network``: hover until the
+        network has delivered the B bytes (see the module docstring)."""
 
         def __post_init__(self):
             paper.check_protocol(self.protocol)
+            if self.upload not in UPLOADS:
+                raise ValueError(f"upload: expected one of {list(UPLOADS)}, got {self.upload!r}")
+            if self.upload == "network" and self.protocol == "paper":
+                raise ValueError("upload: the paper's protocol times the stop from the throughput; "
+                                 "upload = \"network\" needs protocol = \"physical\"")
 
     def setup(self, ctx):
         self.ctx = ctx
@@ -54,14 +88,16 @@ class Mission(caviar.Plugin):
         self.rescues: list[dict] = []
         self.energy: dict[str, dict] = {}  # UE_Id -> its latest uav.energy
         self.returning: list[str] = []
+        self.uploading: dict[str, list[dict]] = {}  # UE_Id -> its rescues whose images are on the way
 
     def state(self):
         return {"throughput": self.throughput, "rescues": self.rescues, "energy": self.energy,
-                "returning": self.returning}
+                "returning": self.returning, "uploading": self.uploading}
 
     def restore(self, state):
         self.throughput, self.rescues = state["throughput"], state["rescues"]
         self.energy, self.returning = state.get("energy", {}), state.get("returning", [])  # (older checkpoints)
+        self.uploading = state.get("uploading", {})
 
     def step(self, t, inbox):
         p = self.ctx.params
@@ -71,6 +107,9 @@ class Mission(caviar.Plugin):
             if m.topic == THROUGHPUT:
                 self.throughput[m.data["UE_Id"]] = float(m.data["throughput"])
         yield from self._send_home(inbox, is_paper)
+        networked = p.upload == "network"
+        if networked:
+            yield from self._uploaded(inbox)
         end = inbox.latest(caviar.END_TOPIC)
         detections = [] if (is_paper and end is not None) else inbox.on(DETECTIONS)
         for m in detections:
@@ -81,6 +120,9 @@ class Mission(caviar.Plugin):
                 g = d.get("ground")
                 if g is None or any(math.dist((g["x"], g["y"]), (r["x"], r["y"])) < p.same_target_m
                                     for r in self.rescues):
+                    continue
+                if networked:
+                    yield from self._upload(ue, g, t)
                     continue
                 stop = self._stop(ue, previous if is_paper else self.throughput)
                 if stop is None:
@@ -93,8 +135,43 @@ class Mission(caviar.Plugin):
                 yield RESCUE, rescue
                 if is_paper:
                     break  # 2023: one detection event per frame, whatever the number of boxes
+        yield from self._hold(end)
         if end is not None:
             yield RESULT, self._result(end, is_paper)
+
+    def _upload(self, ue: str, ground: dict, t: float):
+        """A rescue whose images go to the network: ``mission.upload``, and the UAV waits."""
+        p = self.ctx.params
+        rescue = {"UE_Id": ue, "x": ground["x"], "y": ground["y"], "time": t}
+        self.rescues.append(rescue)
+        self.uploading.setdefault(ue, []).append(rescue)
+        yield UPLOAD, {"UE_Id": ue, "bytes": int(p.images * p.image_mb * 1e6), "rescue": len(self.rescues) - 1}
+
+    def _hold(self, end):
+        """Holds each UAV one more step while an upload of its lasts; at the end, the rescues
+        whose uploads were still under way."""
+        for ue, pending in self.uploading.items():
+            if pending and end is None:
+                yield HOVER, {"UE_Id": ue, "seconds": self.ctx.ts * self.ctx.every}
+            if end is not None:
+                for rescue in pending:
+                    rescue.update(throughput=None, hover_s=round(end.time - rescue["time"], 6), uploaded=False)
+                    yield RESCUE, rescue
+
+    def _uploaded(self, inbox):
+        """The rescues whose images the network delivered (each UE's uploads in order)."""
+        for m in inbox.on(NETWORK_TRANSFERS):
+            x = m.data
+            pending = self.uploading.get(x["UE_Id"])
+            if x.get("source") != UPLOAD or not pending:
+                continue
+            rescue = pending.pop(0)
+            if x.get("lost"):
+                rescue.update(throughput=None, hover_s=None, uploaded=False)
+            else:
+                rescue.update(throughput=x["upt_mbps"], hover_s=round(x["delivered_s"] - rescue["time"], 6),
+                              uploaded=True)
+            yield RESCUE, rescue
 
     def _send_home(self, inbox, is_paper: bool):
         """``mission.return`` for a UAV whose battery would not last the way home."""
