@@ -11,7 +11,11 @@ Runs of the same virtual time, in one process:
   and the last through ``torch.compile`` (``LinkSettings.compile``);
 - ``with rt``: the last, and every UE's paths are ray traced again every ``--refresh``
   seconds of virtual time (all sites in one solve), the channel evolving in between as
-  the UEs move (each path's phase at its Doppler shift), evaluated every step.
+  the UEs move (each path's phase at its Doppler shift), evaluated every step;
+- ``plugin``: the ``radio-network`` plugin itself, stepped on the same UEs' positions, with
+  ray tracing, beams and the uplink, ``interference = "scheduled"``: with full buffers, and
+  with FTP model 3 load both ways (queues, buffer-aware scheduling, ``network.transfers``).
+  The delays of its files go in the results too.
 
 Writes ``docs/results/network.json`` with T_p/T_v of each, the split of a step between
 ray tracing, the channel's evolution and the SYS layer, and the machine. Not a test: it
@@ -172,6 +176,60 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
             "ms_per_slot": round(1e3 * t_sys / (steps * slots), 3), "covered_ues": int((serving >= 0).sum())}
 
 
+def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], pos0, vel,
+               traffic: dict | None) -> dict:
+    """The ``radio-network`` plugin stepped on the UEs' positions (its messages collected):
+    T_p/T_v of its steps after the first (the first traces and compiles), and, with a load,
+    its completed files' delays."""
+    import tempfile
+
+    from caviar._host import Hosted, check_params
+    from caviar.plugin import Inbox, Message
+    from caviar_plugins.network.plugin import RadioNetwork
+    from caviar_plugins.schema import position_payload
+
+    params = {"sites": sites(), "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "tx_power_dbm": 43.0, "array": [4, 4],
+              "subcarrier_spacing_hz": SCS, "harq_processes": 8, "subbands": 8, "compile": True,
+              "channel": "ray-traced", "interference": "scheduled", "antenna_height_m": 0.0,
+              "raytracing": {"scene": str(SCENE), "max_depth": 2, "samples_per_src": samples, "refresh_s": refresh},
+              "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
+    if traffic is not None:
+        params["traffic"] = traffic
+    hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, params))
+    with tempfile.TemporaryDirectory() as run_dir:
+        hosted.setup(seed=1, ts=TS, steps=None, every=1, offset=0, run_dir=run_dir, config_dir=str(ROOT))
+        assert hosted.ctx is not None
+        out: list[tuple[str, object]] = []
+        steps = round(seconds / TS)
+        first = 0.0
+        t0 = time.perf_counter()
+        for k in range(steps + 1):
+            t = k * TS
+            pos = pos0 + vel * t
+            inbox = Inbox([Message("3D.mobility.positions", position_payload(f"{kinds[u]}{u}", pos[u], kinds[u]),
+                                   step=k, time=t) for u in range(len(pos))])
+            hosted.ctx.step = k
+            out += [(m[0], m[1]) for m in hosted.plugin.step(t, inbox) or ()]
+            if k == 0:
+                first = time.perf_counter() - t0
+                t0 = time.perf_counter()
+        wall = time.perf_counter() - t0
+    files = [d for topic, d in out if topic == "network.transfers" and isinstance(d, dict) and not d.get("lost")]
+    ues = [d for topic, d in out if topic == "network.ue" and isinstance(d, dict)]
+    result = {"virtual_s": seconds, "wall_s": round(wall, 3), "tp_tv": round(wall / seconds, 3),
+              "first_step_s": round(first, 1), "ue_reports": len(ues),
+              "dl_throughput_mbps_mean": round(float(np.mean([u["throughput_mbps"] for u in ues])), 3)}
+    for direction in ("downlink", "uplink"):
+        mine = [f for f in files if f["direction"] == direction]
+        if mine:
+            delay = np.array([f["delay_s"] for f in mine])
+            result[f"{direction}_files"] = {
+                "delivered": len(mine), "delay_s": {p: round(float(np.percentile(delay, q)), 4)
+                                                    for p, q in (("p5", 5), ("p50", 50), ("p95", 95))},
+                "upt_mbps_p50": round(float(np.median([f["upt_mbps"] for f in mine])), 3)}
+    return result
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=4.0, help="virtual seconds per run")
@@ -212,6 +270,11 @@ def main() -> None:
     with_rt_up = run(args.seconds, args.refresh, tracer, cells, pos0, vel, initial, d, sub, compiled=True,
                      beams=beams, up=up)
     print("with rt, beams, uplink", with_rt_up, flush=True)
+    plugin_full = plugin_run(args.seconds, args.refresh, args.samples, kinds, pos0, vel, None)
+    print("plugin, rt, beams, uplink, full buffer", plugin_full, flush=True)
+    ftp = {"downlink": "ftp3", "uplink": "ftp3", "ftp": {"file_bytes": 512000, "arrival_rate_hz": 1.0}}
+    plugin_ftp = plugin_run(args.seconds, args.refresh, args.samples, kinds, pos0, vel, ftp)
+    print("plugin, rt, beams, uplink, FTP model 3", plugin_ftp, flush=True)
     result = {
         "cells": len(cells), "ues": len(pos0), "ue_types": {k: kinds.count(k) for k in sorted(set(kinds))},
         "slot_s": 1e-3 * 15e3 / SCS, "step_s": TS, "rt_refresh_s": args.refresh, "samples_per_src": args.samples,
@@ -229,12 +292,15 @@ def main() -> None:
         "beams": {"horizontal": beams.horizontal, "vertical": beams.vertical},
         "cost_of_beams_sys_only": round(sys_only_beams["wall_s"] / sys_only["wall_s"], 2),
         "cost_of_beams_with_rt": round(with_rt_beams["wall_s"] / with_rt["wall_s"], 2),
+        "tp_tv_plugin_full_buffer": plugin_full["tp_tv"], "tp_tv_plugin_ftp": plugin_ftp["tp_tv"],
+        "cost_of_ftp_load": round(plugin_ftp["wall_s"] / plugin_full["wall_s"], 2), "ftp": ftp,
         "targets": {"tp_tv_sys_only": 1.0, "tp_tv_with_rt": 3.0, "tp_tv_sys_only_beams_uplink": 1.5,
                     "tp_tv_with_rt_beams_uplink": 4.0},
         "runs": {"sys_only_slot_by_slot": baseline, "sys_only_wideband": wideband, "sys_only_eager": eager,
                  "sys_only": sys_only,
                  "with_rt": with_rt, "sys_only_beams": sys_only_beams, "with_rt_beams": with_rt_beams,
-                 "sys_only_beams_uplink": sys_only_up, "with_rt_beams_uplink": with_rt_up},
+                 "sys_only_beams_uplink": sys_only_up, "with_rt_beams_uplink": with_rt_up,
+                 "plugin_full_buffer": plugin_full, "plugin_ftp": plugin_ftp},
         "first_trace_s": round(first_trace, 2),
         "machine": machine(),
     }
@@ -242,7 +308,8 @@ def main() -> None:
     OUT.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps({k: result[k] for k in ("tp_tv_sys_only", "tp_tv_with_rt", "tp_tv_sys_only_beams",
                                              "tp_tv_with_rt_beams", "tp_tv_sys_only_beams_uplink",
-                                             "tp_tv_with_rt_beams_uplink", "sys_share_of_step")}))
+                                             "tp_tv_with_rt_beams_uplink", "tp_tv_plugin_full_buffer",
+                                             "tp_tv_plugin_ftp", "sys_share_of_step")}))
 
 
 if __name__ == "__main__":

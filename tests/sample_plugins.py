@@ -422,3 +422,19 @@ class OneDetection(caviar.Plugin):
         p = self.ctx.params
         found = [{"ground": {"x": 1.0, "y": 2.0}}] if self.ctx.step == p.at else []
         yield "ai.detections", {"UE_Id": p.ue, "count": len(found), "detections": found}
+
+
+class Leaves(caviar.Plugin):
+    """UE ``ue`` leaves the scene at step ``at``: ``3D.mobility.arrived``."""
+
+    publishes = ("3D.mobility.arrived",)
+    stateless = True
+
+    @dataclasses.dataclass
+    class Params:
+        ue: str = "u1"
+        at: int = 1
+
+    def step(self, t, inbox):
+        if self.ctx.step == self.ctx.params.at:
+            yield "3D.mobility.arrived", {"UE_type": "car", "UE_Id": self.ctx.params.ue}

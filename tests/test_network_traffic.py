@@ -292,3 +292,18 @@ def test_with_the_network_option_the_uav_hovers_until_its_upload_is_delivered(tm
     p = cli("validate", "bad.toml", check=2)  # (a configuration error)
     assert "bad.toml:" in p.stderr and "modules.mission.params.upload" in p.stderr, p.stderr
     assert "'network.transfers' — no other module publishes it" in p.stderr, p.stderr
+
+
+def test_a_ue_that_leaves_reports_what_it_had_not_sent_as_lost(tmp_path):
+    """Nothing is lost silently: 2 MB queued at step 0 at a UE that leaves at step 2 come out
+    on network.transfers as lost, with the bytes still waiting; what it delivered before counts."""
+    text = CARRY.format(x=200.0, size=2_000_000, topic="payload.*").replace("steps = [0, 1, 2]", "steps = [0]")
+    text = text.replace("[modules.net]", '[modules.leave]\nstage = "mobility"\nplugin = "sample_plugins:Leaves"\n'
+                                         'params = { ue = "u1", at = 2 }\n\n[modules.net]')
+    (tmp_path / "net.toml").write_text(text)
+    log = caviar.Simulation.from_toml(tmp_path / "net.toml", out=tmp_path / "run").run()
+    (lost,) = [m.data for m in log.decoded("network.transfers")]
+    sent = sum(m.data["ul_throughput_mbps"] * 0.01 * 1e6 / 8 for m in log.decoded("network.ue"))
+    assert lost["lost"] and lost["bytes"] == 2_000_000 and "delivered_s" not in lost
+    assert 0 < sent < 2_000_000 and lost["bytes_left"] == pytest.approx(2_000_000 - sent, abs=1)
+    assert not log.decoded("delivered.u1")

@@ -80,7 +80,9 @@ NETWORK_UE = "network.ue"
 the network's layout dropped, and, with the Sionna SYS link model, ``"mcs", "tbler",
 "harq_ack", "harq_nack", "prbs"`` (over the step's slots); with SSB beams (``beams``),
 ``"ssb_beam", "beam_azimuth_deg", "beam_elevation_deg"``: the serving beam and where it points; with
-the uplink (``uplink``), ``"ul_tx_power_dbm", "ul_sinr_db", "ul_throughput_mbps", "ul_mcs", "ul_tbler"...``."""
+the uplink (``uplink``), ``"ul_tx_power_dbm", "ul_sinr_db", "ul_throughput_mbps", "ul_mcs", "ul_tbler"...``;
+with a load (``traffic``), ``"dl_queue_bytes"`` and ``"ul_queue_bytes"``: the bytes waiting (none for a
+full buffer). With a load the throughputs count the queues' bytes delivered, not padding."""
 NETWORK_EVENTS = "network.events"
 """``{"event": "attach" | "handover" | "rlf", "UE_Id", "time", "to_cell", "rsrp_to_dbm"}``
 (and ``"from_cell", "rsrp_from_dbm"`` for a handover or a radio-link failure)."""

@@ -258,5 +258,6 @@ def sinr_db(cells: Sequence[Cell], rx_dbm: np.ndarray, serving: np.ndarray, nois
         co = (carrier == carrier[s]) & (np.arange(n_cell) != s)
         interference = (rx_mw[u, co] * load[co].reshape(-1, *extra)).sum(axis=0)
         noise = 10 ** (noise_dbm(bandwidth[s], noise_figure_db) / 10)
-        out[u] = 10 * np.log10(rx_mw[u, s] / (noise + interference))
+        with np.errstate(divide="ignore"):  # (the SIR of a UE alone on its carrier: +inf)
+            out[u] = 10 * np.log10(rx_mw[u, s] / (noise + interference))
     return out

@@ -258,9 +258,14 @@ class RadioNetwork(caviar.Plugin):
 
     def _forget(self, u: str) -> None:
         """What the network knew of UE ``u``'s radio: its handover state, its link level's
-        column (the column itself stays ``u``'s) and its 38.901 draw."""
+        column (the column itself stays ``u``'s), its 38.901 draw and its queues (their
+        unfinished transfers are reported lost)."""
         self.mm.forget(u)
-        self.link.released(self.ues[u]["column"])
+        if self.queues is not None:
+            self.lost += self.queues.forget(u)
+        for link in (self.link, self.ul_link):
+            if link is not None:
+                link.released(self.ues[u]["column"])
         self.traced.pop(u, None)  # (traced again where it next is)
         if self.stochastic is not None:
             self.stochastic.forget(u)
@@ -406,8 +411,6 @@ class RadioNetwork(caviar.Plugin):
         UEs carry are queued."""
         for m in inbox.on(ARRIVED):
             if m.data["UE_Id"] in self.ues:
-                if self.queues is not None:
-                    self.lost += self.queues.forget(m.data["UE_Id"])
                 self._forget(m.data["UE_Id"])
                 ue = self.ues.pop(m.data["UE_Id"])
                 self.free.append(ue["column"])
@@ -449,7 +452,9 @@ class RadioNetwork(caviar.Plugin):
             old = self.mm.serving(u)
             events += self.mm.update(t, u, list(rsrp[i]), self.last_sinr.get(u))
             if old >= 0 and self.mm.serving(u) not in (old, -1):
-                self.link.moved(self.ues[u]["column"], self.mm.serving(u))
+                for link in (self.link, self.ul_link):
+                    if link is not None:
+                        link.moved(self.ues[u]["column"], self.mm.serving(u))
         return rx, wideband, rsrp, np.array([self.mm.serving(u) for u in ids]), events
 
     def step(self, t, inbox):
