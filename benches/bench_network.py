@@ -199,6 +199,11 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
     with tempfile.TemporaryDirectory() as run_dir:
         hosted.setup(seed=1, ts=TS, steps=None, every=1, offset=0, run_dir=run_dir, config_dir=str(ROOT))
         assert hosted.ctx is not None
+        net = hosted.plugin
+        for link in (net.link, net.ul_link):  # compiled outside the timed steps, on link levels of their own
+            warm = LinkLevel(link.s, len(net.cells), seed=9)
+            for _ in range(2):
+                warm.run(np.zeros((8, len(pos0), 8)), np.zeros(len(pos0), dtype=int))
         out: list[tuple[str, object]] = []
         steps = round(seconds / TS)
         first = 0.0

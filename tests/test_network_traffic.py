@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import caviar
-from caviar_plugins.network.traffic import Backlog, FtpSettings, Queues, TrafficSettings, Transfer
+from caviar_plugins.network.traffic import Backlog, Carried, FtpSettings, Queues, TrafficSettings, Transfer
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
 
 SLOT_S = 0.5e-3  # 30 kHz
@@ -307,3 +307,27 @@ def test_a_ue_that_leaves_reports_what_it_had_not_sent_as_lost(tmp_path):
     assert lost["lost"] and lost["bytes"] == 2_000_000 and "delivered_s" not in lost
     assert 0 < sent < 2_000_000 and lost["bytes_left"] == pytest.approx(2_000_000 - sent, abs=1)
     assert not log.decoded("delivered.u1")
+
+
+def test_a_higher_priority_message_overtakes_a_bulk_transfer_queued_before_it():
+    """Strict priority per UE: a 60 kB frame (priority 1) queued after a 4 MB upload (0) at
+    10 dB (Shannon) goes first, the cell's other UE having nothing to send, in ⌈frame bits / bits per slot⌉ slots; the upload finishes
+    when both are through; two frames keep their order."""
+    link, per_slot = _one_ue_shannon(10.0)
+    upload = Carried(topic="mission.upload", size_field="bytes")
+    frame = Carried(topic="3D.camera.*", priority=1)
+    q = Queues(TrafficSettings(uplink="none", carry=[upload, frame]), seed=0)
+    q.queue_message(0.0, "u", "mission.upload", {"bytes": 4_000_000}, upload)
+    q.queue_message(0.0, "u", "3D.camera.u", np.zeros(60_000, np.uint8), frame)
+    q.queue_message(0.0, "u", "3D.camera.u", np.ones(60_000, np.uint8), frame)
+    done = []
+    for k in range(7):
+        t = k * 0.1
+        b = q.backlog(t, ["v", "u"], "uplink", 200, SLOT_S)  # (v, in the same cell, has nothing to send)
+        res = link.run(np.full((200, 2), 10.0), np.array([0, 0]), backlog=b)
+        assert res.delivered_bits[:, 0].sum() == 0
+        done += q.serve(t, ["v", "u"], "uplink", res.delivered_bits, SLOT_S)
+    assert [x.source for x, _ in done] == ["3D.camera.u", "3D.camera.u", "mission.upload"]
+    assert done[0][0].payload[0] == 0 and done[1][0].payload[0] == 1
+    for n, bits in ((0, 480_000), (1, 960_000), (2, 960_000 + 32e6)):
+        assert done[n][1] == pytest.approx(math.ceil(bits / per_slot) * SLOT_S, abs=1e-9)

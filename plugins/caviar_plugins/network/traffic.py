@@ -15,7 +15,9 @@ Once the network has delivered a message's last byte it is published again on
 ``deliver_to.<UE_Id>`` (``ai.images.uav1``), unchanged, for the module that reads it there:
 the detector sees an image only once the uplink has carried it.
 
-Each UE's queue is first in, first out. The link level serves only UEs with bytes queued
+Each UE's queue is served by strict priority (a ``carry`` entry's ``priority``, higher first;
+FTP files 0), first in, first out within a priority, as a MAC serves its logical channels
+by priority (TS 38.321 §5.4.3.1, without prioritised bit rates). The link level serves only UEs with bytes queued
 (:class:`Backlog`); what it decodes in a slot leaves the head of the queue. A transfer that
 completes is published on ``network.transfers``: its delay from queued to fully delivered
 and its user-perceived throughput (bits over that delay, TR 36.814's definition).
@@ -65,6 +67,8 @@ class Carried:
     size_field: str | None = None
     """A payload field giving the message's size in bytes (``bytes``); by default its own size
     (an array's bytes, a byte string's length, a JSON payload's text)."""
+    priority: int = 0
+    """Served before the UE's queued transfers of lower priority (FTP files: 0)."""
 
     def __post_init__(self):
         try:
@@ -132,6 +136,7 @@ class Transfer:
     deliver_to: str | None = None
     arrival_slot: int = -1
     """The slot of the current step it arrives in (-1: queued before the step's first slot)."""
+    priority: int = 0
 
 
 @dataclasses.dataclass
@@ -167,8 +172,14 @@ class Queues:
 
     def queue_message(self, t: float, ue: str, topic: str, data: Any, carried: Carried) -> None:
         size = payload_bytes(data, carried.size_field)
-        self.queues.setdefault((ue, carried.direction), []).append(
-            Transfer(ue, carried.direction, topic, t, size, 8.0 * size, data, carried.deliver_to))
+        self._enqueue(Transfer(ue, carried.direction, topic, t, size, 8.0 * size, data, carried.deliver_to,
+                               priority=carried.priority))
+
+    def _enqueue(self, x: Transfer) -> None:
+        """Behind the transfers of its priority and above, ahead of those below."""
+        queue = self.queues.setdefault((x.ue, x.direction), [])
+        at = next((i for i, y in enumerate(queue) if y.priority < x.priority), len(queue))
+        queue.insert(at, x)
 
     def forget(self, ue: str) -> list[Transfer]:
         """Drops a UE that left; returns the transfers it had not finished."""
@@ -195,8 +206,7 @@ class Queues:
                 at = self.next_file.setdefault(key, t + self.rng.exponential(1 / rate))
                 while at < end:
                     slot = min(max(int((at - t) // slot_s), 0), slots - 1)
-                    self.queues.setdefault(key, []).append(
-                        Transfer(u, direction, "ftp", at, int(size), 8.0 * int(size), arrival_slot=slot))
+                    self._enqueue(Transfer(u, direction, "ftp", at, int(size), 8.0 * int(size), arrival_slot=slot))
                     at += self.rng.exponential(1 / rate)
                 self.next_file[key] = at
             for x in self.queues.get(key, []):
@@ -217,15 +227,17 @@ class Queues:
                 continue
             for k in range(delivered_bits.shape[0]):
                 bits = float(delivered_bits[k, i])
-                while bits > 0 and queue:
-                    head = queue[0]
-                    if head.arrival_slot > k:
-                        break  # (it had not arrived yet: the link level did not count it either)
+                while bits > 0:
+                    # the first in priority order that has arrived (the link level counted no other)
+                    at = next((j for j, x in enumerate(queue) if x.arrival_slot <= k), None)
+                    if at is None:
+                        break
+                    head = queue[at]
                     taken = min(bits, head.left_bits)
                     head.left_bits -= taken
                     bits -= taken
                     if head.left_bits <= 1e-6:
-                        queue.pop(0)
+                        queue.pop(at)
                         done.append((head, t + (k + 1) * slot_s))
             for x in queue:  # (waiting at the next step's first slot)
                 x.arrival_slot = -1
