@@ -311,8 +311,8 @@ def test_a_ue_that_leaves_reports_what_it_had_not_sent_as_lost(tmp_path):
 
 def test_a_higher_priority_message_overtakes_a_bulk_transfer_queued_before_it():
     """Strict priority per UE: a 60 kB frame (priority 1) queued after a 4 MB upload (0) at
-    10 dB (Shannon) goes first, the cell's other UE having nothing to send, in ⌈frame bits / bits per slot⌉ slots; the upload finishes
-    when both are through; two frames keep their order."""
+    10 dB (Shannon) goes first, in ⌈frame bits / bits per slot⌉ slots (the cell's other UE has
+    nothing to send); the upload finishes when both are through; two frames keep their order."""
     link, per_slot = _one_ue_shannon(10.0)
     upload = Carried(topic="mission.upload", size_field="bytes")
     frame = Carried(topic="3D.camera.*", priority=1)
