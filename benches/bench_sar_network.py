@@ -77,7 +77,8 @@ def outcome(run_dir: pathlib.Path, process_s: float | None) -> dict:
                          "upt_mbps_p50": round(float(np.median([x["upt_mbps"] for x in done])), 3)}
     ue = [m.data for m in log.decoded("network.ue")]
     if ue:
-        out["ul_sinr_db_p50"] = round(float(np.median([u["ul_sinr_db"] for u in ue if "ul_sinr_db" in u])), 2)
+        ul = [u["ul_sinr_db"] for u in ue if u.get("ul_sinr_db") is not None]
+        out["ul_sinr_db_p50"] = round(float(np.median(ul)), 2)
         out["ul_queue_bytes_max"] = max(u.get("ul_queue_bytes", 0) for u in ue)
     return out
 

@@ -363,3 +363,28 @@ params = {{ model = "{model.as_posix()}", workers = 3 }}
     bad = write_config(tmp_path, cfg.read_text().replace("workers = 3", "workers = -1"), "bad.toml")
     with pytest.raises(Exception, match="workers"):
         caviar.Simulation.from_toml(bad, out=tmp_path / "bad").run()
+
+
+def test_the_camera_rides_only_on_the_ue_types_it_is_given(tmp_path):
+    """``ue_types = ["UAV"]``: a city's cars publish positions too, but only the UAV gets a
+    camera (and an image a step)."""
+    (tmp_path / "cam.toml").write_text("""
+[episode]
+ts = 0.5
+steps = 2
+stages = ["mobility", "camera"]
+[output]
+analysis = ["3D.camera.*", "3D.camera.*.file", "3D.camera.*.depth"]
+[modules.ues]
+stage = "mobility"
+plugin = "sample_plugins:LineMover"
+params = { ues = [{ id = "uav1", type = "UAV", start = [0.0, 0.0, 40.0], end = [10.0, 0.0, 40.0], speed = 5.0 },
+                  { id = "car1", type = "car", start = [5.0, 5.0, 0.0], end = [5.0, 25.0, 0.0], speed = 5.0 }] }
+[modules.camera]
+stage = "camera"
+plugin = "camera"
+params = { ue_types = ["UAV"], distractors = 0 }
+""")
+    log = caviar.Simulation.from_toml(tmp_path / "cam.toml", out=tmp_path / "run").run()
+    assert sorted(set(log.messages["topic"].to_list()) - {"3D.mobility.positions"}) == ["3D.camera.uav1"]
+    assert len(log.decoded("3D.camera.uav1")) == 2

@@ -205,7 +205,7 @@ def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, 
         others = (carrier == carrier[s]) & (np.arange(n_cell) != s)
         interference = received[:, u, others].sum(axis=1)  # [slot, freq]
         signal = power[s] * gains[u, s, :, best_beam[u]]
-        with np.errstate(divide="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore"):  # (no signal: -inf; its SIR alone: NaN)
             out[:, u] = 10 * np.log10(signal / (noise_mw[u] + interference))
     return out
 

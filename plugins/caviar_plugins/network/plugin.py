@@ -45,6 +45,7 @@ from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.layout import LayoutSettings, Wraparound, drop_ues
 from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, layer_message, save
 from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings
+from caviar_plugins.network.report import finite
 from caviar_plugins.network.tr38901 import CHANNELS as STOCHASTIC
 from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings
 from caviar_plugins.network.traffic import Queues, TrafficSettings, in_columns, transfer_record
@@ -398,9 +399,10 @@ class RadioNetwork(caviar.Plugin):
         per_slot = slot_sinr_db(self.cells, self.beam_gains, serving, best, beams, noise, silent)
         weights = self.p.link.subband_prbs if self.beam_gains.shape[2] > 1 else np.ones(1)
         flat = np.average(self.beam_gains, axis=2, weights=weights)[:, :, None, :]
-        sinr, sir = (10 * np.log10(np.mean(10 ** (slot_sinr_db(self.cells, flat, serving, best, beams, n, silent)
-                                                  [:, :, 0] / 10), axis=0))
-                     for n in (noise, np.zeros(len(serving))))
+        with np.errstate(divide="ignore"):  # (no signal: -inf, reported as None)
+            sinr, sir = (10 * np.log10(np.mean(10 ** (slot_sinr_db(self.cells, flat, serving, best, beams, n, silent)
+                                                      [:, :, 0] / 10), axis=0))
+                         for n in (noise, np.zeros(len(serving))))
         return per_slot, sinr, sir
 
     def _column(self) -> int:
@@ -566,8 +568,9 @@ class RadioNetwork(caviar.Plugin):
         res = self.ul_link.run(sinr_cols, serving_cols, backlog=in_columns(backlog, cols))
         yield from self._delivered(t, ids, "uplink", res.delivered_bits[:, cols])
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
-        mean = 10 * np.log10(np.mean(10 ** (per_slot / 10), axis=(0, 2)))
-        return lambda i: {"ul_tx_power_dbm": round(float(tx[i]), 3), "ul_sinr_db": round(float(mean[i]), 3),
+        with np.errstate(divide="ignore"):  # (a UE whose paths to its cell are gone: no signal)
+            mean = 10 * np.log10(np.mean(10 ** (per_slot / 10), axis=(0, 2)))
+        return lambda i: {"ul_tx_power_dbm": round(float(tx[i]), 3), "ul_sinr_db": finite(mean[i]),
                           "ul_throughput_mbps": round(float(mbps[cols[i]]), 6),
                           **{f"ul_{k}": v for k, v in res.summary(int(cols[i])).items()}}
 
@@ -580,7 +583,7 @@ class RadioNetwork(caviar.Plugin):
         if self.p.report_cells:
             listed = sorted(int(k) for k in np.argsort(-rsrp, kind="stable")[:self.p.report_cells])
         report = {"UE_type": ue_type, "UE_Id": u, "serving_cell": self.names[serving] if covered else None,
-                  "sinr_db": round(float(sinr), 3) if covered else None,
+                  "sinr_db": finite(sinr) if covered else None,  # (None: no signal, paths gone)
                   "sir_db": round(float(sir), 3) if covered and math.isfinite(sir) else None,
                   "coupling_loss_db": round(float(coupling_loss), 3) if covered else None,
                   "rsrp_dbm": {self.names[k]: round(float(rsrp[k]), 2) for k in listed},
@@ -592,4 +595,3 @@ class RadioNetwork(caviar.Plugin):
         else:
             report.update({k: v for k, v in link.items() if k.startswith(("ssb_beam", "beam_", "ul_", "dl_queue"))})
         yield NETWORK_UE, report
-

@@ -66,6 +66,11 @@ def _beams(ax, log, track: dict[str, dict[int, tuple[float, float]]], samples: i
             drawn = True
 
 
+def finite(x: float, digits: int = 3) -> float | None:
+    """``x`` rounded for a report, or None where it is not finite (JSON has no infinities)."""
+    return round(float(x), digits) if math.isfinite(x) else None
+
+
 def percentiles(values, digits: int = 3) -> dict[str, float]:
     """The 5th, 50th and 95th percentiles, as the reports give them."""
     return {p: round(float(np.percentile(values, q)), digits) for p, q in (("p5", 5), ("p50", 50), ("p95", 95))}

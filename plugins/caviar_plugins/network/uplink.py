@@ -89,7 +89,8 @@ def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, car
         v = scheduled[:, others]  # [slot, other cell]
         gain = np.where((v >= 0)[..., None], leak[u, np.maximum(v, 0)], 0.0)  # [slot, other, freq]
         interference = (p[np.maximum(v, 0)][..., None] * gain).sum(axis=1)
-        out[:, u] = 10 * np.log10(p[u] * desired[u] / (noise_prb_mw + interference))
+        with np.errstate(divide="ignore"):  # (no path to its cell: -inf)
+            out[:, u] = 10 * np.log10(p[u] * desired[u] / (noise_prb_mw + interference))
     return out
 
 

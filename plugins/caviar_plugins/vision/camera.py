@@ -440,6 +440,9 @@ class Camera(caviar.Plugin):
         a hovering UAV costs nothing); ``false``: every image rendered."""
         depth: bool = False
         """Also publish each image's depth image (``3D.camera.<UE_Id>.depth``)."""
+        ue_types: list[str] = dataclasses.field(default_factory=list)
+        """The UE types that carry a camera (``["UAV"]``: not the cars and pedestrians of a
+        city); empty: every UE that publishes a position."""
 
     def setup(self, ctx):
         self.ctx = ctx
@@ -462,9 +465,10 @@ class Camera(caviar.Plugin):
 
     def step(self, t, inbox):
         latest = {}
-        for m in inbox.on(POSITIONS):
-            latest[m.data["UE_Id"]] = read_position(m.data)
         p = self.ctx.params
+        for m in inbox.on(POSITIONS):
+            if not p.ue_types or m.data.get("UE_type") in p.ue_types:
+                latest[m.data["UE_Id"]] = read_position(m.data)
         frames = {ue: self.last[ue][1:] for ue, pos in latest.items()
                   if p.still_frames and ue in self.last and np.array_equal(self.last[ue][0], pos)}
         todo = [ue for ue in latest if ue not in frames]
