@@ -181,7 +181,8 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
             ax.scatter(a[:, 0], a[:, 1], marker=marker, color=color, label=f"{kind} ({len(where)})", zorder=3)
     ax.set(xlabel="x (m)", ylabel="y (m)", title="handovers", aspect="equal")
     ax.grid(True)
-    ax.legend(loc="upper right")
+    if ax.get_legend_handles_labels()[0]:  # (nothing to name in a run without handovers or beams)
+        ax.legend(loc="upper right")
     fig.tight_layout()
     hmap = out / "network-handovers.png"
     fig.savefig(hmap, dpi=100)

@@ -310,10 +310,11 @@ class LinkLevel:
             active[k, counts > 0] = True
             sched += eligible
         zeros = np.zeros(n_ue, dtype=int)
+        known = ~np.isnan(sinr_db)
+        count = known.sum(axis=(0, 2))  # (a UE without a cell has no SINR: NaN, without a warning)
+        mean = np.where(count > 0, np.where(known, sinr_db, 0.0).sum(axis=(0, 2)) / np.maximum(count, 1), np.nan)
         return SlotResults(queue.delivered.sum(axis=0), sched.astype(int), zeros, zeros, zeros,
-                           np.full(n_ue, -1), np.full(n_ue, np.nan),
-                           np.nanmean(sinr_db, axis=(0, 2)) if n_slots else np.full(n_ue, np.nan), active,
-                           queue.delivered)
+                           np.full(n_ue, -1), np.full(n_ue, np.nan), mean, active, queue.delivered)
 
     def _sys_slots(self, sinr_db: np.ndarray, serving: np.ndarray, queue: _Queue) -> SlotResults:
         torch = self._torch
