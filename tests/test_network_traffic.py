@@ -22,7 +22,7 @@ def test_ftp3_files_arrive_as_a_poisson_process_of_the_given_rate():
     counts, times = [], []
     for k in range(steps):
         before = len(q.queues.get(("u", "downlink"), []))
-        q.backlog(k * step_s, ["u"], "downlink", 200, SLOT_S)
+        q.backlog(k * step_s, ["u"], ["car"], "downlink", 200, SLOT_S)
         queue = q.queues.get(("u", "downlink"), [])
         counts.append(len(queue) - before)
         times += [x.queued_s for x in queue[before:]]
@@ -55,7 +55,7 @@ def test_file_delay_and_user_perceived_throughput_match_a_hand_computation():
     done = []
     for k in range(3):
         t = k * slots * SLOT_S
-        b = q.backlog(t, ["u"], "downlink", slots, SLOT_S)
+        b = q.backlog(t, ["u"], ["car"], "downlink", slots, SLOT_S)
         res = link.run(np.full((slots, 1), 10.0), np.array([0]), backlog=b)
         assert np.all(res.delivered_bits <= per_slot + 1e-6)
         done += q.serve(t, ["u"], "downlink", res.delivered_bits, SLOT_S)
@@ -182,6 +182,26 @@ def test_traffic_naming_a_topic_no_module_publishes_is_refused_before_the_run(tm
     with pytest.raises(caviar.ConfigError) as e:
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
     assert "traffic.uplink" in str(e.value) and "full-buffer" in str(e.value), e.value
+    cfg.write_text(CARRY.format(x=200.0, size=100, topic="payload.*").replace(
+        'uplink = "none"', 'uplink = "none", by_type = { car = { downlink = "ftp4" } }'))
+    with pytest.raises(caviar.ConfigError) as e:
+        caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
+    assert "traffic.by_type.car.downlink" in str(e.value) and "ftp3" in str(e.value), e.value
+
+
+def test_each_ue_type_may_have_a_load_of_its_own():
+    """``by_type``: the cars download FTP files while the UAV downloads nothing; in the uplink
+    the cars keep the default full buffer and the UAV sends nothing of its own."""
+    q = Queues(TrafficSettings(downlink="ftp3", ftp=FtpSettings(file_bytes=1000, arrival_rate_hz=50.0),
+                               by_type={"UAV": {"downlink": "none", "uplink": "none"}}), seed=1)
+    ids, types = ["car1", "uav1", "car2"], ["car", "UAV", "car"]
+    dl = [q.backlog(k * 0.1, ids, types, "downlink", 200, SLOT_S) for k in range(10)]
+    files = sum(b.arrivals_bits for b in dl).sum(axis=0) / 8000
+    assert files[1] == 0 and files[0] > 20 and files[2] > 20  # λT = 50 per UE
+    ul = q.backlog(0.0, ids, types, "uplink", 200, SLOT_S)
+    assert list(ul.queued_bits) == [math.inf, 0.0, math.inf] and not ul.arrivals_bits.any()
+    assert q.report("uav1", "UAV", ("downlink", "uplink")) == {"dl_queue_bytes": 0, "ul_queue_bytes": 0}
+    assert q.report("car1", "car", ("downlink", "uplink")).keys() == {"dl_queue_bytes"}
 
 
 def test_a_loaded_network_resumes_to_the_same_messages(tmp_path, cli):
@@ -323,7 +343,7 @@ def test_a_higher_priority_message_overtakes_a_bulk_transfer_queued_before_it():
     done = []
     for k in range(7):
         t = k * 0.1
-        b = q.backlog(t, ["v", "u"], "uplink", 200, SLOT_S)  # (v, in the same cell, has nothing to send)
+        b = q.backlog(t, ["v", "u"], ["car", "UAV"], "uplink", 200, SLOT_S)  # (v, in the same cell: nothing to send)
         res = link.run(np.full((200, 2), 10.0), np.array([0, 0]), backlog=b)
         assert res.delivered_bits[:, 0].sum() == 0
         done += q.serve(t, ["v", "u"], "uplink", res.delivered_bits, SLOT_S)

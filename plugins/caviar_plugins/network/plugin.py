@@ -522,7 +522,8 @@ class RadioNetwork(caviar.Plugin):
             extras.update(beam_report(self.cells[serving], self.p.codebooks[serving],
                                       int(self.best_beams[i, serving])))
         if self.queues is not None:
-            extras.update(self.queues.report(u, ("downlink", "uplink") if self.ul_link else ("downlink",)))
+            extras.update(self.queues.report(u, self.ues[u]["type"], ("downlink", "uplink") if self.ul_link
+                                             else ("downlink",)))
         return extras
 
     def _columns(self, per_slot: np.ndarray, serving: np.ndarray, cols: np.ndarray):
@@ -536,9 +537,10 @@ class RadioNetwork(caviar.Plugin):
     def _backlog(self, t: float, ids: list[str], direction: str):
         """The step's queued and arriving bits of ``ids`` in ``direction`` (None: full buffer)
         and which UEs have any ([ue] bool; None: all)."""
-        if self.queues is None or self.queues.model(direction) == "full-buffer":
+        types = [self.ues[u]["type"] for u in ids]
+        if self.queues is None or all(self.queues.model(direction, k) == "full-buffer" for k in set(types)):
             return None, None
-        backlog = self.queues.backlog(t, ids, direction, self.slots, self.slot_s)
+        backlog = self.queues.backlog(t, ids, types, direction, self.slots, self.slot_s)
         return backlog, (backlog.queued_bits > 0) | (backlog.arrivals_bits > 0).any(axis=0)
 
     def _delivered(self, t: float, ids: list[str], direction: str, delivered_bits: np.ndarray):

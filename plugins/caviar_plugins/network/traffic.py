@@ -96,16 +96,31 @@ class TrafficSettings:
     carry: list[Carried] = dataclasses.field(default_factory=list)
     """Topics whose messages go over the network (``[{ topic = "3D.camera.*", deliver_to =
     "ai.images" }]``)."""
+    by_type: dict[str, dict[str, str]] = dataclasses.field(default_factory=dict)
+    """Another load for the UEs of a type (``{ UAV = { downlink = "none" } }``: the UAVs
+    download nothing while the cars run FTP); a direction not named keeps the default."""
 
     def __post_init__(self):
         for key in DIRECTIONS:
             if getattr(self, key) not in MODELS:
                 raise ValueError(f"{key}: expected one of {list(MODELS)}, got {getattr(self, key)!r}")
+        for ue_type, models in self.by_type.items():
+            if not isinstance(models, dict):
+                raise ValueError(f"by_type.{ue_type}: expected a table of downlink and uplink, got {models!r}")
+            for key, model in models.items():
+                if key not in DIRECTIONS or model not in MODELS:
+                    raise ValueError(f"by_type.{ue_type}.{key}: expected downlink or uplink set to one of "
+                                     f"{list(MODELS)}, got {key} = {model!r}")
+
+    def model(self, direction: str, ue_type: str | None = None) -> str:
+        """The load of a UE of ``ue_type`` in ``direction``."""
+        return self.by_type.get(ue_type or "", {}).get(direction, getattr(self, direction))
 
     @property
     def full_buffer(self) -> bool:
         """Every UE has data at all times in both directions (no queues to keep)."""
-        return self.downlink == self.uplink == "full-buffer" and not self.carry
+        models = {self.downlink, self.uplink} | {m for t in self.by_type.values() for m in t.values()}
+        return models == {"full-buffer"} and not self.carry
 
 
 def payload_bytes(data: Any, size_field: str | None) -> int:
@@ -164,8 +179,8 @@ class Queues:
         self.rng.bit_generator.state = state["rng"]
         self.queues, self.next_file = state["queues"], state["next_file"]
 
-    def model(self, direction: str) -> str:
-        return getattr(self.s, direction)
+    def model(self, direction: str, ue_type: str | None = None) -> str:
+        return self.s.model(direction, ue_type)
 
     def carried(self, topic: str) -> Carried | None:
         return next((c for c in self.s.carry if matches(c.topic, topic)), None)
@@ -189,19 +204,21 @@ class Queues:
             self.next_file.pop((ue, d), None)
         return left
 
-    def backlog(self, t: float, ids: list[str], direction: str, slots: int, slot_s: float) -> Backlog:
-        """The step's :class:`Backlog` of UEs ``ids`` (rows) in ``direction``: queued bits,
-        and FTP files arriving in the step's slots [t, t + slots·slot_s) (queued as they arrive)."""
+    def backlog(self, t: float, ids: list[str], types: list[str], direction: str, slots: int,
+                slot_s: float) -> Backlog:
+        """The step's :class:`Backlog` of UEs ``ids`` (rows, of ``types``) in ``direction``:
+        queued bits (a full buffer: unbounded), and FTP files arriving in the step's slots
+        [t, t + slots·slot_s) (queued as they arrive)."""
         queued = np.zeros(len(ids))
         arrivals = np.zeros((slots, len(ids)))
-        full = self.model(direction) == "full-buffer"
         end = t + slots * slot_s
-        for i, u in enumerate(ids):
+        for i, (u, ue_type) in enumerate(zip(ids, types, strict=True)):
             key = (u, direction)
-            if full:
+            model = self.model(direction, ue_type)
+            if model == "full-buffer":
                 queued[i] = math.inf
                 continue
-            if self.model(direction) == "ftp3":
+            if model == "ftp3":
                 rate, size = self.s.ftp.arrival_rate_hz, self.s.ftp.file_bytes
                 at = self.next_file.setdefault(key, t + self.rng.exponential(1 / rate))
                 while at < end:
@@ -243,14 +260,14 @@ class Queues:
                 x.arrival_slot = -1
         return done
 
-    def report(self, ue: str, directions: tuple[str, ...]) -> dict[str, int]:
+    def report(self, ue: str, ue_type: str, directions: tuple[str, ...]) -> dict[str, int]:
         """``network.ue``'s ``dl_queue_bytes`` / ``ul_queue_bytes`` (none for a full buffer)."""
-        queued = {d[0] + "l_queue_bytes": self.queued_bytes(ue, d) for d in directions}
+        queued = {d[0] + "l_queue_bytes": self.queued_bytes(ue, d, ue_type) for d in directions}
         return {k: v for k, v in queued.items() if v is not None}
 
-    def queued_bytes(self, ue: str, direction: str) -> int | None:
+    def queued_bytes(self, ue: str, direction: str, ue_type: str | None = None) -> int | None:
         """Bytes waiting at ``ue`` in ``direction`` (None: full buffer)."""
-        if self.model(direction) == "full-buffer":
+        if self.model(direction, ue_type) == "full-buffer":
             return None
         return int(round(sum(x.left_bits for x in self.queues.get((ue, direction), [])) / 8))
 
