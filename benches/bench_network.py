@@ -92,6 +92,16 @@ def beamformed(cells, codebooks, channels: TracedChannels, pos, freqs, weights, 
     return per_slot, sinr, serving, gains, per_beam.argmax(axis=-1), tx + per_beam.max(axis=-1)
 
 
+def compile_outside(settings: LinkSettings, n_cell: int, n_ue: int) -> float:
+    """Compiles a link level of these settings outside the timed loop (once per process), on
+    a link level of its own; returns the seconds it took."""
+    a = time.perf_counter()
+    warm = LinkLevel(settings, n_cell, seed=9)
+    for _ in range(2):
+        warm.run(np.zeros((settings.harq_processes, n_ue, settings.subbands)), np.zeros(n_ue, dtype=int))
+    return time.perf_counter() - a
+
+
 def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, vel, initial: TracedChannels,
         processes: int, subbands: int, compiled: bool = False, beams: BeamSettings | None = None,
         up: UplinkSettings | None = None) -> dict:
@@ -102,23 +112,13 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
     settings = LinkSettings(num_prb=NUM_PRB, subcarrier_spacing_hz=SCS, harq_processes=processes,
                             subbands=subbands, compile=compiled)
     link = LinkLevel(settings, len(cells), seed=1)
-    compile_s = 0.0
-    if compiled:  # compile outside the timed loop (once per process), on a link level of its own
-        a = time.perf_counter()
-        warm = LinkLevel(settings, len(cells), seed=2)
-        for _ in range(2):
-            warm.run(np.zeros((processes, len(pos0), subbands)), np.zeros(len(pos0), dtype=int))
-        compile_s = time.perf_counter() - a
+    compile_s = compile_outside(settings, len(cells), len(pos0)) if compiled else 0.0
     ul_link = None
     if up is not None:
         ul_settings = dataclasses.replace(settings, direction="uplink", mcs_table=up.mcs_table)
         ul_link = LinkLevel(ul_settings, len(cells), seed=3)
         if compiled:
-            a = time.perf_counter()
-            warm = LinkLevel(ul_settings, len(cells), seed=4)
-            for _ in range(2):
-                warm.run(np.zeros((processes, len(pos0), subbands)), np.zeros(len(pos0), dtype=int))
-            compile_s += time.perf_counter() - a
+            compile_s += compile_outside(ul_settings, len(cells), len(pos0))
     mm = MobilityManager(HandoverSettings(), [c.name for c in cells])
     slots = round(TS / link.s.slot_s)
     freqs, weights = settings.subband_frequencies_hz, settings.subband_prbs
@@ -200,10 +200,8 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
         hosted.setup(seed=1, ts=TS, steps=None, every=1, offset=0, run_dir=run_dir, config_dir=str(ROOT))
         assert hosted.ctx is not None
         net = hosted.plugin
-        for link in (net.link, net.ul_link):  # compiled outside the timed steps, on link levels of their own
-            warm = LinkLevel(link.s, len(net.cells), seed=9)
-            for _ in range(2):
-                warm.run(np.zeros((8, len(pos0), 8)), np.zeros(len(pos0), dtype=int))
+        for link in (net.link, net.ul_link):
+            compile_outside(link.s, len(net.cells), len(pos0))
         out: list[tuple[str, object]] = []
         steps = round(seconds / TS)
         first = 0.0

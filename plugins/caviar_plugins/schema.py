@@ -191,7 +191,7 @@ def every_ue(prefix: str) -> str:
 
 def ue_of(topic: str) -> str:
     """The UE's id in a per-UE topic (its last token)."""
-    return topic.rsplit(".", 1)[1]
+    return topic.rsplit(".", 1)[-1]
 
 
 def position_payload(ue_id: str, xyz: Sequence[float] | np.ndarray, ue_type: str = "UAV") -> dict[str, Any]:

@@ -63,6 +63,7 @@ from caviar_plugins.schema import (
     VIEW_RADIO_MAP,
     read_position,
     throughput_payload,
+    ue_of,
 )
 
 INTERFERENCE = ("full-buffer", "scheduled")
@@ -425,11 +426,11 @@ class RadioNetwork(caviar.Plugin):
         if self.queues is not None:
             for c in self.p.traffic.carry:
                 for m in inbox.on(c.topic):
-                    ue = m.data["UE_Id"] if isinstance(m.data, dict) and "UE_Id" in m.data else m.topic.rsplit(".")[-1]
-                    if ue not in self.ues:
-                        raise ValueError(f"traffic.carry: a message on {m.topic} is for UE {ue!r}, which has no "
+                    sender = m.data["UE_Id"] if isinstance(m.data, dict) and "UE_Id" in m.data else ue_of(m.topic)
+                    if sender not in self.ues:
+                        raise ValueError(f"traffic.carry: a message on {m.topic} is for UE {sender!r}, which has no "
                                          f"position on {POSITIONS} (a UE must be placed to carry it)")
-                    self.queues.queue_message(t if m.time is None else m.time, ue, m.topic, m.data, c)
+                    self.queues.queue_message(t if m.time is None else m.time, sender, m.topic, m.data, c)
 
     def _measure(self, t: float, ids: list[str]):
         """Received power of every cell at every UE (per subband, and wideband) and RSRP;
@@ -501,8 +502,6 @@ class RadioNetwork(caviar.Plugin):
     def _downlink_sinr(self, rx: np.ndarray, wideband: np.ndarray, serving: np.ndarray, talking: np.ndarray | None):
         """Per slot and subband [slot or 1, ue, subband], and wideband [ue], SINR and SIR; with
         ``interference = "scheduled"`` only cells with data for someone (``talking``) send."""
-        if self.p.interference != "scheduled":
-            talking = None  # (full buffer: every cell transmits, whatever its queues)
         if self.p.beams is not None:
             return self._beamformed_sinr(serving, talking)
         load = None
@@ -536,11 +535,14 @@ class RadioNetwork(caviar.Plugin):
 
     def _backlog(self, t: float, ids: list[str], direction: str):
         """The step's queued and arriving bits of ``ids`` in ``direction`` (None: full buffer)
-        and which UEs have any ([ue] bool; None: all)."""
+        and, with ``interference = "scheduled"``, which UEs have any: the only ones their cells
+        transmit to or receive from ([ue] bool; None: all, as under full-buffer interference)."""
         types = [self.ues[u]["type"] for u in ids]
         if self.queues is None or all(self.queues.model(direction, k) == "full-buffer" for k in set(types)):
             return None, None
         backlog = self.queues.backlog(t, ids, types, direction, self.slots, self.slot_s)
+        if self.p.interference != "scheduled":
+            return backlog, None  # (every cell transmits, whatever its queues)
         return backlog, (backlog.queued_bits > 0) | (backlog.arrivals_bits > 0).any(axis=0)
 
     def _delivered(self, t: float, ids: list[str], direction: str, delivered_bits: np.ndarray):
@@ -564,8 +566,7 @@ class RadioNetwork(caviar.Plugin):
         backlog, talking = self._backlog(t, ids, "uplink")
         tx, per_slot = uplink(self.cells, self.p.uplink, serving, rx, self.beam_gains,
                               getattr(self, "best_beams", None) if self.p.beams else None, self.p.num_prb,
-                              self.p.subcarrier_spacing_hz, self.slots, self.p.device,
-                              talking if self.p.interference == "scheduled" else None)
+                              self.p.subcarrier_spacing_hz, self.slots, self.p.device, talking)
         sinr_cols, serving_cols = self._columns(per_slot, serving, cols)
         res = self.ul_link.run(sinr_cols, serving_cols, backlog=in_columns(backlog, cols))
         yield from self._delivered(t, ids, "uplink", res.delivered_bits[:, cols])
@@ -586,7 +587,7 @@ class RadioNetwork(caviar.Plugin):
             listed = sorted(int(k) for k in np.argsort(-rsrp, kind="stable")[:self.p.report_cells])
         report = {"UE_type": ue_type, "UE_Id": u, "serving_cell": self.names[serving] if covered else None,
                   "sinr_db": finite(sinr) if covered else None,  # (None: no signal, paths gone)
-                  "sir_db": round(float(sir), 3) if covered and math.isfinite(sir) else None,
+                  "sir_db": finite(sir) if covered else None,
                   "coupling_loss_db": round(float(coupling_loss), 3) if covered else None,
                   "rsrp_dbm": {self.names[k]: round(float(rsrp[k]), 2) for k in listed},
                   "throughput_mbps": round(mbps, 6)}

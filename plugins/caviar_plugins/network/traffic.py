@@ -182,9 +182,6 @@ class Queues:
     def model(self, direction: str, ue_type: str | None = None) -> str:
         return self.s.model(direction, ue_type)
 
-    def carried(self, topic: str) -> Carried | None:
-        return next((c for c in self.s.carry if matches(c.topic, topic)), None)
-
     def queue_message(self, t: float, ue: str, topic: str, data: Any, carried: Carried) -> None:
         size = payload_bytes(data, carried.size_field)
         self._enqueue(Transfer(ue, carried.direction, topic, t, size, 8.0 * size, data, carried.deliver_to,

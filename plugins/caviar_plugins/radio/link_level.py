@@ -302,19 +302,30 @@ class LinkLevel:
         rate = (se * band).sum(axis=2) * self.s.slot_s  # [slot, ue] bits with the whole cell
         active = np.zeros((n_slots, self.n_cell), dtype=bool)
         sched = np.zeros(n_ue)
-        for k in range(n_slots):
-            eligible = (serving >= 0) & queue.eligible(k)
-            counts = np.bincount(serving[eligible], minlength=self.n_cell)
-            share = np.where(eligible, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
-            queue.take(k, rate[k] * share)
-            active[k, counts > 0] = True
-            sched += eligible
+        if not queue.finite:  # a full buffer: every slot alike, one share for all (no slot loop)
+            counts, share = self._time_shares(serving >= 0, serving)
+            queue.delivered[:] = rate * share
+            active[:, counts > 0] = True
+            sched += np.where(serving >= 0, n_slots, 0)
+        else:  # queues: slot by slot, among the UEs with bits
+            for k in range(n_slots):
+                eligible = (serving >= 0) & queue.eligible(k)
+                counts, share = self._time_shares(eligible, serving)
+                queue.take(k, rate[k] * share)
+                active[k, counts > 0] = True
+                sched += eligible
         zeros = np.zeros(n_ue, dtype=int)
         known = ~np.isnan(sinr_db)
         count = known.sum(axis=(0, 2))  # (a UE without a cell has no SINR: NaN, without a warning)
         mean = np.where(count > 0, np.where(known, sinr_db, 0.0).sum(axis=(0, 2)) / np.maximum(count, 1), np.nan)
         return SlotResults(queue.delivered.sum(axis=0), sched.astype(int), zeros, zeros, zeros,
                            np.full(n_ue, -1), np.full(n_ue, np.nan), mean, active, queue.delivered)
+
+    def _time_shares(self, eligible: np.ndarray, serving: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Shannon's equal time shares: the UEs each cell serves among ``eligible`` [n_cell],
+        and each UE's share of its cell's time [n_ue] (0: not eligible)."""
+        counts = np.bincount(serving[eligible], minlength=self.n_cell)
+        return counts, np.where(eligible, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
 
     def _sys_slots(self, sinr_db: np.ndarray, serving: np.ndarray, queue: _Queue) -> SlotResults:
         torch = self._torch
