@@ -9,15 +9,23 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from caviar_plugins.network.traffic import Backlog  # noqa: E402
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings  # noqa: E402
 from caviar_plugins.torch_device import DeviceGuard, check_setting, resolve, to_numpy, to_torch  # noqa: E402
 
 
-def slots(level: LinkLevel, n_ue: int, n_slots: int, subbands: int, seed: int = 0):
+def slots(level: LinkLevel, n_ue: int, n_slots: int, subbands: int, seed: int = 0, queued: bool = False):
+    """``n_slots`` slots of random SINRs; ``queued``: a backlog (some UEs with bits at the
+    start, one whose bits arrive halfway), else full buffers."""
     rng = np.random.default_rng(seed)
     sinr = rng.uniform(-5.0, 25.0, (n_slots, n_ue, subbands))
     serving = np.arange(n_ue) % level.n_cell
-    return level.run(sinr, serving)
+    backlog = None
+    if queued:
+        arrivals = np.zeros((n_slots, n_ue))
+        arrivals[n_slots // 2, 0] = 40e3
+        backlog = Backlog(queued_bits=np.where(np.arange(n_ue) % 2 == 1, 1e5, 0.0), arrivals_bits=arrivals)
+    return level.run(sinr, serving, backlog=backlog)
 
 
 @pytest.mark.parametrize("scheduler, subbands", [("proportional-fair", 4), ("round-robin", 1), ("max-rate", 2)])
@@ -28,6 +36,7 @@ def test_the_link_level_keeps_every_tensor_on_its_device_and_crosses_numpy_in_on
     assert level.device == torch.device("cpu")
     with DeviceGuard("cpu") as guard:
         first = slots(level, n_ue=3, n_slots=4, subbands=subbands)
+        queued = slots(level, n_ue=3, n_slots=8, subbands=subbands, queued=True)
         level.moved(0, 1)
         level.released(2)
         grown = slots(level, n_ue=6, n_slots=4, subbands=subbands)  # more UEs than capacity: it grows
@@ -35,6 +44,7 @@ def test_the_link_level_keeps_every_tensor_on_its_device_and_crosses_numpy_in_on
         level.restore(state)
     assert guard.operations > 100
     assert level.capacity >= 6 and first.decoded_bits.sum() > 0 and grown.decoded_bits.sum() > 0
+    assert queued.decoded_bits[0] > 0 and queued.delivered_bits[:4, 0].sum() == 0  # its bits came halfway
     # The same slots without the guard: the guard changes nothing.
     again = LinkLevel(settings, n_cell=3, seed=1, capacity=2)
     np.testing.assert_array_equal(slots(again, 3, 4, subbands).decoded_bits, first.decoded_bits)
@@ -96,3 +106,54 @@ def test_the_link_levels_checkpoint_holds_the_schedulers_rate_history(monkeypatc
         k: v.clone() for k, v in vars(block).items() if isinstance(v, torch.Tensor)})
     going_on, back = resumed(LinkLevel.state)
     assert not np.array_equal(back.prbs, going_on.prbs)
+
+
+@pytest.mark.parametrize("scheduler", ["proportional-fair", "round-robin", "max-rate"])
+@pytest.mark.parametrize("queued", [False, True])
+def test_the_slots_cross_between_numpy_and_torch_once_per_call_not_once_per_slot(monkeypatch, scheduler, queued):
+    """Sionna SYS on the GPU (#39 part 3): a call's SINRs enter torch once and its results
+    leave once, however many slots it runs; a crossing per slot would copy to and from a GPU,
+    and wait for it, at every slot. The schedulers and the queues work on the device."""
+    import caviar_plugins.radio.link_level as link_level
+
+    crossings = {"in": 0, "out": 0}
+
+    def counted(helper, way):
+        def crossing(*args, **kwargs):
+            crossings[way] += 1
+            return helper(*args, **kwargs)
+        return crossing
+
+    monkeypatch.setattr(link_level, "to_torch", counted(to_torch, "in"))
+    monkeypatch.setattr(link_level, "to_numpy", counted(to_numpy, "out"))
+    settings = LinkSettings(num_prb=24, subcarrier_spacing_hz=30e3, scheduler=scheduler, harq_processes=2,
+                            subbands=2, device="cpu")
+    level = LinkLevel(settings, n_cell=2, seed=1, capacity=4)
+    per_call = []
+    for n_slots in (4, 40):
+        crossings.update({"in": 0, "out": 0})
+        result = slots(level, n_ue=4, n_slots=n_slots, subbands=2, queued=queued)
+        assert result.decoded_bits.sum() > 0 and result.delivered_bits.shape == (n_slots, 4)
+        per_call.append(dict(crossings))
+    assert per_call[0] == per_call[1], f"crossings grow with the slots: {per_call}"
+    assert per_call[1]["in"] <= 4 and per_call[1]["out"] <= 10
+
+
+def test_round_robin_and_max_rate_grant_as_their_definitions_say():
+    """The device-side schedulers against their definitions, computed by hand: round-robin
+    gives slot k of a cell to its members in turn (the (k mod n)-th), max-rate each subband
+    to the member of best SINR; a cell without members grants nothing."""
+    sinr = np.array([[10.0, 20.0, 5.0, 0.0], [30.0, 1.0, 2.0, 3.0]])  # [subband, UE] dB, every slot
+    serving = np.array([0, 0, 0, -1])  # three UEs in cell 0, one without a cell; cell 1 empty
+    for scheduler in ("round-robin", "max-rate"):
+        settings = LinkSettings(num_prb=24, subcarrier_spacing_hz=30e3, scheduler=scheduler, harq_processes=2,
+                                subbands=2, device="cpu")
+        level = LinkLevel(settings, n_cell=2, seed=1, capacity=4)
+        res = level.run(np.broadcast_to(sinr.T[None], (6, 4, 2)).copy(), serving)
+        assert res.cells_active[:, 0].all() and not res.cells_active[:, 1].any()
+        if scheduler == "round-robin":  # slots 0..5: UEs 0, 1, 2, 0, 1, 2, all 24 PRBs each
+            np.testing.assert_array_equal(res.scheduled_slots, [2, 2, 2, 0])
+            np.testing.assert_array_equal(res.prbs, [48, 48, 48, 0])
+        else:  # subband 0 (12 PRBs) to UE 1 (20 dB), subband 1 (12 PRBs) to UE 0 (30 dB), 6 slots
+            np.testing.assert_array_equal(res.scheduled_slots, [6, 6, 0, 0])
+            np.testing.assert_array_equal(res.prbs, [72, 72, 0, 0])

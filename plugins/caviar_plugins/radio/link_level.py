@@ -328,35 +328,38 @@ class LinkLevel:
         return counts, np.where(eligible, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
 
     def _sys_slots(self, sinr_db: np.ndarray, serving: np.ndarray, queue: _Queue) -> SlotResults:
+        """The slots through Sionna SYS. Everything stays on the link level's device from the
+        first slot to the last: the call's SINRs enter torch once, the scheduler, the loops,
+        the queues and the tallies work there, and the results leave once, at the end (on a
+        GPU, no copy and no wait per slot; with queues, one flag per group of slots says
+        whether anyone has bits)."""
         torch = self._torch
         n_slots, n_ue, n_sub = sinr_db.shape
-        d, cap, n_cell = self.s.harq_processes, self.capacity, self.n_cell
+        d, cap, n_cell, dev = self.s.harq_processes, self.capacity, self.n_cell, self.device
         if n_slots % d:
             raise ValueError(f"{n_slots} slots are not whole groups of harq_processes = {d}")
         member = np.zeros((n_cell, cap), dtype=bool)
         for u, c in enumerate(serving):
             if c >= 0:
                 member[c, u] = True
-        member_all, member_t = member, to_torch(member, self.device)
+        lin = np.zeros((n_slots, n_sub, cap))
+        block = np.nan_to_num(sinr_db, nan=-300.0).transpose(0, 2, 1)  # [slot, S, n_ue]
+        lin[:, :, :n_ue] = np.where((serving >= 0)[None, None, :], 10 ** (block / 10), 0.0)
+        # (the call's one way in)
+        member_all, lin_all = to_torch(member, dev), to_torch(lin, dev, torch.float32)
+        queue.on_device(dev, torch, cap)
         re_per_prb = 12 * DATA_SYMBOLS_PER_SLOT
-        acc = {k: np.zeros(n_ue) for k in ("sched", "prbs", "acks", "nacks", "tbler")}
-        mcs_last = np.full(n_ue, -1)
-        sinr_eff_last = np.full(n_ue, np.nan)
-        active = np.zeros((n_slots, n_cell), dtype=bool)
-        lin = np.zeros((d, n_sub, cap))
-        served = (serving >= 0)[None, None, :]
+        groups: list[tuple] = []  # each group's slots, as tensors: tallied once, after the loop
+        member_t = member_all
         for k in range(0, n_slots, d):
             if queue.finite:  # (only UEs with bits queued at the group's first slot)
-                member = member_all & np.pad(queue.eligible(k), (0, cap - n_ue))[None, :]
-                if not member.any():
+                member_t = member_all & queue.eligible(k)[None, :]
+                if not bool(member_t.any()):
                     continue  # nothing to send: no call (no transmission, no loop updates)
-                member_t = to_torch(member, self.device)
-            block = np.nan_to_num(sinr_db[k:k + d], nan=-300.0).transpose(0, 2, 1)  # [D, S, n_ue]
-            lin[:, :, :n_ue] = np.where(served, 10 ** (block / 10), 0.0)
-            lin_t = to_torch(lin, self.device, torch.float32)  # [D, S, cap]
+            lin_t = lin_all[k:k + d]  # [D, S, cap]
             # Achievable rate per PRB of each UE in its own cell (bit/s/Hz); 0 elsewhere.
             rate = torch.log2(1 + lin_t)[:, None, :, :] * member_t[None, :, None, :]  # [D, C, S, cap]
-            granted = self._schedule(rate, member, k)  # [D, C, S, cap] bool
+            granted = self._schedule(rate, member_t, k)  # [D, C, S, cap] bool
             alloc = granted.any(dim=1)  # [D, S, cap]: a UE is in one cell
             prbs = (alloc * self._prb_weights[None, :, None]).sum(dim=1).to(torch.int32)  # [D, cap]
             n_re = prbs * re_per_prb
@@ -368,28 +371,42 @@ class LinkLevel:
             self.harq = harq
             # The rate each cell achieved for each UE, for the PF history.
             self.rate_last = bits.to(torch.float32)[:, None, :] / self.s.slot_s * member_t
-            # (the step's results leave the device here, once each)
-            n_re_np, harq_np, bits_np, prbs_np, tbler_np, mcs_np, sinr_eff_np, active_np = (
-                to_numpy(t) for t in (n_re, harq, bits, prbs, tbler, mcs, sinr_eff, granted.any(dim=3).any(dim=2)))
-            sched = (n_re_np > 0)[:, :n_ue]
-            h = harq_np[:, :n_ue]
-            for j in range(d):
-                queue.take(k + j, bits_np[j, :n_ue])
-            acc["sched"] += sched.sum(axis=0)
-            acc["prbs"] += prbs_np[:, :n_ue].sum(axis=0)
-            acc["acks"] += (h == 1).sum(axis=0)
-            acc["nacks"] += (h == 0).sum(axis=0)
-            acc["tbler"] += np.where(sched, tbler_np[:, :n_ue], 0.0).sum(axis=0)
-            for j in range(d):  # the last scheduled slot's MCS and effective SINR
-                mcs_last = np.where(sched[j], mcs_np[j, :n_ue], mcs_last)
-                sinr_eff_last = np.where(
-                    sched[j], 10 * np.log10(np.maximum(sinr_eff_np[j, :n_ue], 1e-30)), sinr_eff_last)
-            active[k:k + d] = active_np
+            if queue.finite:
+                queue.take_group(k, bits.to(torch.float64))
+            groups.append((k, prbs, harq, tbler, mcs, sinr_eff, granted.any(dim=3).any(dim=2), bits))
+        return self._tallied(groups, queue, n_slots, n_ue)
+
+    def _tallied(self, groups: list[tuple], queue: _Queue, n_slots: int, n_ue: int) -> SlotResults:
+        """The call's results from its groups of slots (tallied on the device, then the
+        call's one way out)."""
+        torch, dev = self._torch, self.device
+        active = torch.zeros((n_slots, self.n_cell), dtype=torch.bool, device=dev)
+        if not groups:
+            zeros = np.zeros(n_ue, dtype=int)
+            return SlotResults(np.zeros(n_ue), zeros, zeros, zeros, zeros, np.full(n_ue, -1), np.full(n_ue, np.nan),
+                               np.full(n_ue, np.nan), to_numpy(active), np.zeros((n_slots, n_ue)))
+        slots = torch.cat([torch.arange(g[0], g[0] + len(g[1]), device=dev) for g in groups])
+        prbs, harq, tbler, mcs, sinr_eff, cells, bits = (torch.cat([g[i] for g in groups]) for i in range(1, 8))
+        active[slots] = cells
+        if not queue.finite:  # (a full buffer delivers all it decodes)
+            queue.delivered[slots] = bits.to(torch.float64)
+        sched = prbs > 0  # [slots run, cap]
+        # the last scheduled slot's MCS and effective SINR
+        last = (len(slots) - 1 - torch.argmax(torch.flip(sched, (0,)).to(torch.uint8), dim=0))[None]  # [1, cap]
+        anyone = sched.any(dim=0)
+        mcs_last = torch.where(anyone, mcs.to(torch.int64).gather(0, last)[0], -1)
+        eff_db = 10 * torch.log10(torch.clamp(sinr_eff.to(torch.float64).gather(0, last)[0], min=1e-30))
+        sinr_eff_last = torch.where(anyone, eff_db, float("nan"))
+        tbler_sum = torch.where(sched, tbler.to(torch.float64), 0.0).sum(dim=0)
+        sched_n, prbs_n, acks_n, nacks_n, tbler_n, mcs_n, eff_n, active_n, delivered = (
+            to_numpy(t) for t in (sched.sum(dim=0), prbs.to(torch.int64).sum(dim=0), (harq == 1).sum(dim=0),
+                                  (harq == 0).sum(dim=0), tbler_sum, mcs_last, sinr_eff_last, active,
+                                  queue.delivered))
+        sched_n, delivered = sched_n[:n_ue], delivered[:, :n_ue]
         with np.errstate(invalid="ignore", divide="ignore"):
-            tbler_mean = np.where(acc["sched"] > 0, acc["tbler"] / acc["sched"], np.nan)
-        return SlotResults(queue.delivered.sum(axis=0), acc["sched"].astype(int), acc["prbs"].astype(int),
-                           acc["acks"].astype(int), acc["nacks"].astype(int), mcs_last, tbler_mean,
-                           sinr_eff_last, active, queue.delivered)
+            tbler_mean = np.where(sched_n > 0, tbler_n[:n_ue] / sched_n, np.nan)
+        return SlotResults(delivered.sum(axis=0), sched_n, prbs_n[:n_ue], acks_n[:n_ue], nacks_n[:n_ue],
+                           mcs_n[:n_ue], tbler_mean, eff_n[:n_ue], active_n, delivered)
 
     def _adapt_and_decode(self, n_re, harq_last, csi, sinr_in):
         """One call's link adaptation and PHY abstraction: (MCS, decoded bits, HARQ,
@@ -417,27 +434,26 @@ class LinkLevel:
         per_prb = torch.repeat_interleave(lin_t * alloc, self._prb_weights.to(torch.int64), dim=1)
         return csi, per_prb[:, None, :, :, None]
 
-    def _schedule(self, rate, member: np.ndarray, first_slot: int):
-        """[D, C, S, cap]: which UE gets each subband of each cell in each slot of the group."""
+    def _schedule(self, rate, member, first_slot: int):
+        """[D, C, S, cap]: which UE gets each subband of each cell in each slot of the group.
+        ``member`` [C, cap]: the UEs each cell may schedule (a tensor on the device)."""
         torch = self._torch
-        n_cell, cap = member.shape
         d, n_sub = self.s.harq_processes, self.s.subbands
         if self.s.scheduler == "proportional-fair":
             granted = self.pf(self.rate_last, rate[:, :, None, :, :])[:, :, 0, :, :, 0]  # [D, C, S, cap]
             # A cell without UEs: the argmax picked column 0, which is not its UE.
-            return granted & to_torch(member, self.device)[None, :, None, :]
-        granted = torch.zeros((d, n_cell, n_sub, cap), dtype=torch.bool, device=self.device)
-        for j in range(d):
-            for c in range(n_cell):
-                ues = np.flatnonzero(member[c])
-                if ues.size == 0:
-                    continue
-                if self.s.scheduler == "max-rate":  # per subband, the UE with the best rate
-                    best = torch.argmax(rate[j, c][:, ues], dim=1)
-                    granted[j, c, torch.arange(n_sub, device=self.device), to_torch(ues, self.device)[best]] = True
-                else:  # round-robin: one UE per slot, in turn
-                    granted[j, c, :, int(ues[(first_slot + j) % ues.size])] = True
-        return granted
+            return granted & member[None, :, None, :]
+        cells = member[None, :, None, :]  # [1, C, 1, cap]
+        if self.s.scheduler == "max-rate":  # per subband, the member with the best rate (the first of equals)
+            best = torch.argmax(torch.where(cells, rate, -1.0), dim=3)  # [D, C, S]
+            pick = torch.arange(member.shape[1], device=self.device) == best[..., None]
+            return pick & cells & member.any(dim=1)[None, :, None, None]
+        # round-robin: one UE per slot, the cell's members in turn
+        rank = torch.cumsum(member.to(torch.int64), dim=1) - 1  # [C, cap]: place among the cell's members
+        count = torch.clamp(member.sum(dim=1), min=1)  # [C]
+        turn = (first_slot + torch.arange(d, device=self.device))[:, None] % count[None, :]  # [D, C]
+        pick = member[None] & (rank[None] == turn[..., None])  # [D, C, cap]
+        return pick[:, :, None, :].expand(d, member.shape[0], n_sub, member.shape[1])
 
 
 class _Queue:
@@ -452,6 +468,18 @@ class _Queue:
             raise ValueError(f"backlog: expected arrivals of shape {(n_slots, n_ue)}, got {self.arrivals.shape}")
         self.arrived_to = -1  # the last slot whose arrivals are in self.left
         self.delivered = np.zeros((n_slots, n_ue))
+        self._minimum: Any = lambda bits, left: np.minimum(np.asarray(bits, float), left)
+
+    def on_device(self, device: Any, torch: Any, cap: int) -> None:
+        """The queue's arrays as float64 tensors on ``device``, ``cap`` columns wide (the SYS
+        loop's; the columns past the call's UEs have nothing queued)."""
+        n_slots, n_ue = self.delivered.shape
+        pad = ((0, cap - n_ue),)
+        self.left = to_torch(np.pad(self.left, pad), device, torch.float64)
+        if self.arrivals is not None:
+            self.arrivals = to_torch(np.pad(self.arrivals, ((0, 0), *pad)), device, torch.float64)
+        self.delivered = torch.zeros((n_slots, cap), dtype=torch.float64, device=device)
+        self._minimum = torch.minimum
 
     def _arrive(self, slot: int) -> None:
         if self.arrivals is not None:
@@ -464,9 +492,14 @@ class _Queue:
         self._arrive(slot)
         return self.left > 0
 
+    def take_group(self, first: int, bits: Any) -> None:
+        """Slots ``first``, ``first + 1``, ... decoded ``bits`` [slots, n_ue] per UE."""
+        for j in range(len(bits)):
+            self.take(first + j, bits[j])
+
     def take(self, slot: int, bits: np.ndarray) -> None:
         """``slot`` decoded ``bits`` per UE: those of the queue are delivered."""
         self._arrive(slot)
-        got = np.minimum(np.asarray(bits, float), self.left)
+        got = self._minimum(bits, self.left)
         self.left -= got
         self.delivered[slot] = got
