@@ -84,6 +84,20 @@ def test_numbered_run_directories_and_overrides(tmp_path, cli):
     assert b.status["overrides"] == ["episode.steps=7", "output.name=short"]
 
 
+def test_validate_says_what_the_wiring_lets_run_at_once(cli):
+    """The SAR loop is closed (the mission's decision of step k moves the UAV of step k+1):
+    nothing of step k+1 may start before step k ends, and within a step only modules no data
+    path joins could share a stage. The quickstart's flight of step k+1 depends on nothing
+    its link computes."""
+    sar = cli("validate", str(ROOT / "blueprints/sar/config.toml"), check=0).stdout
+    assert "within a step, no data path between (they could share a stage): camera and beams; camera and comm" in sar
+    assert "across steps: nothing could overlap; step k+1 waits for step k, e.g. mission ('mission.hover') → uav @k+1" \
+        in sar
+    quick = cli("validate", str(QUICKSTART), check=0).stdout
+    assert "within a step: each module depends on every earlier stage" in quick
+    assert "across steps, could overlap: uav of step k+1 during comm of step k;" in quick
+
+
 def test_validate_reports_errors_without_running(tmp_path, cli):
     good = write_config(tmp_path, CRASHING)
     assert "ok (2 modules in 1 stages, Ts = 0.1 s, 100 steps)" in cli("validate", good, check=0).stdout

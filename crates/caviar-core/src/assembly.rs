@@ -56,21 +56,21 @@ pub fn build_modules(
 }
 
 /// How one module connects: what it subscribes to and what it says it publishes.
-struct Wiring {
-    name: String,
-    subscribe: Vec<String>,
+pub(crate) struct Wiring {
+    pub(crate) name: String,
+    pub(crate) subscribe: Vec<String>,
     /// The subscriptions are the plugin's defaults (the table has no `subscribe`).
     default_subs: bool,
     /// Default subscriptions the plugin works without.
     optional: Vec<String>,
     /// `None`: not declared (the module may publish anything).
-    publishes: Option<Vec<String>>,
+    pub(crate) publishes: Option<Vec<String>>,
 }
 
 /// What a module that was not built (it needs a live connection) declares publishing.
 pub type Unbuilt<'a> = &'a dyn Fn(&str) -> Option<Vec<String>>;
 
-fn wiring(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuilt) -> Vec<Wiring> {
+pub(crate) fn wiring(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuilt) -> Vec<Wiring> {
     let mut out = Vec::new();
     for (name, m) in &cfg.config.modules {
         let spec = specs.iter().find(|s| s.name == *name);
@@ -93,7 +93,7 @@ fn wiring(cfg: &LoadedConfig, specs: &[ModuleSpec], unbuilt: Unbuilt) -> Vec<Wir
     out
 }
 
-fn patterns(texts: &[String]) -> Vec<Pattern> {
+pub(crate) fn patterns(texts: &[String]) -> Vec<Pattern> {
     texts.iter().filter_map(|t| Pattern::new(t).ok()).collect()
 }
 

@@ -59,7 +59,8 @@ enum Command {
         #[arg(long)]
         strict: bool,
     },
-    /// Check a configuration and load its plugins without running anything.
+    /// Check a configuration and load its plugins without running anything; say what the
+    /// wiring lets run at once (modules no data path joins, and across steps).
     Validate {
         config: PathBuf,
         #[arg(long = "set", value_name = "KEY=VALUE")]
@@ -134,7 +135,7 @@ fn with_strict(mut set: Vec<String>, strict: bool) -> Vec<String> {
 fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
     let result = config::load(path, set).and_then(|cfg| Ok((run::check(&cfg, loader)?, cfg)));
     match result {
-        Ok((warnings, cfg)) => {
+        Ok(((warnings, concurrency), cfg)) => {
             for w in warnings {
                 eprintln!("warning: {w}");
             }
@@ -150,6 +151,9 @@ fn validate(path: &Path, set: &[String], loader: &dyn PluginLoader) -> i32 {
                 cfg.config.episode.stages.len(),
                 cfg.config.episode.ts
             );
+            for line in concurrency {
+                println!("  {line}");
+            }
             0
         }
         Err(e) => {

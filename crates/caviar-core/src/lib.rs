@@ -40,6 +40,7 @@
 pub mod assembly;
 pub mod checkpoint;
 pub mod cli;
+pub mod concurrency;
 pub mod config;
 pub mod engine;
 pub mod inspect;

@@ -76,8 +76,12 @@ pub fn load_modules(
 
 /// Everything `validate` checks, nothing run: the transport's section, the paths, every
 /// module loaded with its parameters. Returns the wiring warnings (errors where
-/// `episode.strict_wiring`).
-pub fn check(cfg: &LoadedConfig, loader: &dyn PluginLoader) -> Result<Vec<String>, ConfigError> {
+/// `episode.strict_wiring`) and what the wiring allows to run at once
+/// ([`crate::concurrency`]).
+pub fn check(
+    cfg: &LoadedConfig,
+    loader: &dyn PluginLoader,
+) -> Result<(Vec<String>, Vec<String>), ConfigError> {
     transport::check(cfg)?;
     check_paths(cfg)?;
     let specs = load_modules(cfg, loader)?;
@@ -85,7 +89,10 @@ pub fn check(cfg: &LoadedConfig, loader: &dyn PluginLoader) -> Result<Vec<String
     refuse_unfed(cfg, &specs, &unbuilt)?;
     let warnings = wiring_warnings(cfg, &specs, &unbuilt);
     strict_wiring(cfg, &warnings)?;
-    Ok(warnings)
+    Ok((
+        warnings,
+        crate::concurrency::concurrency(cfg, &specs, &unbuilt),
+    ))
 }
 
 /// With `episode.strict_wiring`, wiring warnings are an error (as mosaik refuses a bad
