@@ -60,15 +60,16 @@ def sites() -> list[dict]:
     return out
 
 
-def ues(rng: np.random.Generator):
-    """100 UEs: start positions and velocities (cars 10 m/s, pedestrians 1.4 m/s, UAVs 8 m/s
-    at 40 m)."""
-    kinds = ["car"] * 60 + ["pedestrian"] * 30 + ["uav"] * 10
+def ues(rng: np.random.Generator, n: int = 100):
+    """``n`` UEs (60 % cars, 30 % pedestrians, 10 % UAVs): start positions and velocities
+    (cars 10 m/s, pedestrians 1.4 m/s, UAVs 8 m/s at 40 m)."""
+    kinds = ["car"] * (6 * n // 10) + ["pedestrian"] * (3 * n // 10)
+    kinds += ["uav"] * (n - len(kinds))
     speed = {"car": 10.0, "pedestrian": 1.4, "uav": 8.0}
-    pos = np.column_stack([rng.uniform(-380, 380, 100), rng.uniform(-380, 380, 100),
+    pos = np.column_stack([rng.uniform(-380, 380, n), rng.uniform(-380, 380, n),
                            [40.0 if k == "uav" else 1.5 for k in kinds]])
-    heading = rng.uniform(0, 2 * np.pi, 100)
-    vel = np.column_stack([np.cos(heading), np.sin(heading), np.zeros(100)]) * [[speed[k]] for k in kinds]
+    heading = rng.uniform(0, 2 * np.pi, n)
+    vel = np.column_stack([np.cos(heading), np.sin(heading), np.zeros(n)]) * [[speed[k]] for k in kinds]
     return kinds, pos, vel
 
 
@@ -177,7 +178,7 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
 
 
 def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], pos0, vel,
-               traffic: dict | None) -> dict:
+               traffic: dict | None, compiled: bool = True) -> dict:
     """The ``radio-network`` plugin stepped on the UEs' positions (its messages collected):
     T_p/T_v of its steps after the first (the first traces and compiles), and, with a load,
     its completed files' delays."""
@@ -189,7 +190,7 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
     from caviar_plugins.schema import position_payload
 
     params = {"sites": sites(), "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "tx_power_dbm": 43.0, "array": [4, 4],
-              "subcarrier_spacing_hz": SCS, "harq_processes": 8, "subbands": 8, "compile": True,
+              "subcarrier_spacing_hz": SCS, "harq_processes": 8, "subbands": 8, "compile": compiled,
               "channel": "ray-traced", "interference": "scheduled", "antenna_height_m": 0.0,
               "raytracing": {"scene": str(SCENE), "max_depth": 2, "samples_per_src": samples, "refresh_s": refresh},
               "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
@@ -200,8 +201,9 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
         hosted.setup(seed=1, ts=TS, steps=None, every=1, offset=0, run_dir=run_dir, config_dir=str(ROOT))
         assert hosted.ctx is not None
         net = hosted.plugin
-        for link in (net.link, net.ul_link):
-            compile_outside(link.s, len(net.cells), len(pos0))
+        if compiled:
+            for link in (net.link, net.ul_link):
+                compile_outside(link.s, len(net.cells), len(pos0))
         out: list[tuple[str, object]] = []
         steps = round(seconds / TS)
         first = 0.0
@@ -240,7 +242,16 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=20000, help="rays per site")
     ap.add_argument("--harq-processes", type=int, default=8, help="slots per call (1: the slot-by-slot baseline)")
     ap.add_argument("--subbands", type=int, default=8, help="frequencies of the channel (PF per subband, EESM)")
+    ap.add_argument("--plugin-only", type=int, metavar="N_UE",
+                    help="only the plugin, full buffers, with N_UE UEs; prints its result as JSON (the GPU check)")
+    ap.add_argument("--eager", action="store_true", help="with --plugin-only: without torch.compile")
     args = ap.parse_args()
+    if args.plugin_only:
+        kinds, pos0, vel = ues(np.random.default_rng(7), args.plugin_only)
+        result = plugin_run(args.seconds, args.refresh, args.samples, kinds, pos0, vel, None, compiled=not args.eager)
+        print(json.dumps({"cells": 21, "ues": args.plugin_only, "compiled": not args.eager, **result,
+                          "machine": machine()}))
+        return
     cells = parse_sites(sites(), {"tx_power_dbm": 43.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6,
                                   "array": [4, 4]})
     kinds, pos0, vel = ues(np.random.default_rng(7))

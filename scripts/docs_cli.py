@@ -49,7 +49,7 @@ same program (`[project.scripts]` in `pyproject.toml`).
 caviar-core run config.toml                    # progress bar with virtual time, RTF and ETA
 caviar-core run config.toml --view             # the same, watched live in the browser
 caviar-core run config.toml --set episode.steps=100 --set modules.uav.params.speed=3
-caviar-core validate config.toml               # config + plugin parameters + wiring (and what may run at once), nothing runs
+caviar-core validate config.toml               # config, parameters, wiring, what may run at once
 caviar-core run config.toml --strict           # refuse a run whose modules are not wired together
 caviar-core inspect runs/quickstart-001        # steps, topics, message counts, time per module, RTF
 caviar-core run --resume runs/quickstart-001   # go on from the last checkpoint after a crash
