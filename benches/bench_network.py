@@ -35,7 +35,7 @@ import warnings
 
 import numpy as np
 
-from bench_perf_steps import machine
+from bench_common import machine
 from caviar_plugins.network.beams import BeamSettings, all_beam_gains, slot_beams, slot_sinr_db
 from caviar_plugins.network.cells import noise_dbm, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager

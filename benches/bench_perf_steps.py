@@ -37,7 +37,7 @@ from caviar_plugins.rt import configure_drjit
 
 configure_drjit()
 
-from bench_common import accuracy_summary, interleaved, machine  # noqa: E402, F401 (machine: bench_network, bench_realtime)
+from bench_common import accuracy_summary, interleaved, machine  # noqa: E402, F401 (machine: bench_realtime)
 from perf_runs import ISSUE_24_FILED_AT, bench_main_job, bench_sar, bench_traffic_step, radio_gains  # noqa: E402, F401
 
 OUT = pathlib.Path("docs/results")
