@@ -189,24 +189,30 @@ def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, 
     ``gains`` [ue, cell, freq, beam] (linear). A cell serving nobody is silent with
     ``silent_idle``, and otherwise sends over its codebook evenly (its mean beam gain).
     ``noise_mw`` [ue] (0: the SIR); NaN for a UE without a cell."""
-    n_ue, n_cell, n_f, _ = gains.shape
+    n_ue, n_cell, n_f, n_beam = gains.shape
+    n_slot = len(beams)
     power = 10 ** (np.array([c.tx_power_dbm for c in cells]) / 10)
     carrier = np.array([c.carrier_hz for c in cells])
     serving = np.asarray(serving)
-    ue, cell = np.arange(n_ue)[None, :, None, None], np.arange(n_cell)[None, None, :, None]
-    freq = np.arange(n_f)[None, None, None, :]
-    pointed = gains[ue, cell, freq, np.maximum(beams, 0)[:, None, :, None]]  # [slot, ue, cell, freq]
-    idle = 0.0 if silent_idle else gains.mean(axis=-1)[None]  # (over the codebook's beams)
-    received = power[None, None, :, None] * np.where((beams >= 0)[:, None, :, None], pointed, idle)
-    out = np.full((len(beams), n_ue, n_f), np.nan)
-    for u, s in enumerate(serving):
-        if s < 0:
-            continue
-        others = (carrier == carrier[s]) & (np.arange(n_cell) != s)
-        interference = received[:, u, others].sum(axis=1)  # [slot, freq]
-        signal = power[s] * gains[u, s, :, best_beam[u]]
-        with np.errstate(divide="ignore", invalid="ignore"):  # (no signal: -inf; its SIR alone: NaN)
-            out[:, u] = 10 * np.log10(signal / (noise_mw[u] + interference))
+    served = serving >= 0
+    s = np.maximum(serving, 0)
+    # Who interferes with whom: the other cells on the victim's carrier, weighted by power.
+    heard = (carrier[None, :] == carrier[s][:, None]) & (np.arange(n_cell)[None, :] != s[:, None])  # [ue, cell]
+    weighted = gains * (power[None, :] * heard)[:, :, None, None]  # [ue, cell, freq, beam]
+    # A cell's beam in a slot as a one-hot row: the interference is one matrix product over
+    # (cell, beam), not a gather of [slot, ue, cell, freq].
+    beams = np.asarray(beams)
+    pointing = (beams[:, :, None] == np.arange(n_beam)[None, None, :]).reshape(n_slot, n_cell * n_beam)
+    by_beam = weighted.transpose(1, 3, 0, 2).reshape(n_cell * n_beam, n_ue * n_f)
+    interference = (pointing @ by_beam).reshape(n_slot, n_ue, n_f)
+    if not silent_idle:  # a cell serving nobody sends over its codebook evenly
+        idle = (beams < 0).astype(float)  # [slot, cell]
+        interference += (idle @ weighted.mean(axis=-1).transpose(1, 0, 2).reshape(n_cell, n_ue * n_f)).reshape(
+            n_slot, n_ue, n_f)
+    signal = power[s][:, None] * gains[np.arange(n_ue), s, :, np.asarray(best_beam)[np.arange(n_ue)]]  # [ue, freq]
+    with np.errstate(divide="ignore", invalid="ignore"):  # (no signal: -inf; its SIR alone: NaN)
+        out = 10 * np.log10(signal[None] / (np.asarray(noise_mw, dtype=float)[None, :, None] + interference))
+    out[:, ~served] = np.nan
     return out
 
 
