@@ -177,17 +177,67 @@ def solve_times(n_uav: int, samples: int = 1_000_000, reps: int = 5) -> float:
     return statistics.median(times[2:])
 
 
-def main_job(timeout_s: float, work: pathlib.Path) -> dict:
-    """The SAR blueprint to its end: wall time from the command's start, T_p/T_v, outcome."""
-    import pyarrow.parquet as pq  # (not polars: the lent GPU machine lacks it)
+REFERENCE = ROOT / "docs/results/sar-links-cpu.json"
+"""The main job's links by place and its outcome from a CPU run (``--write-reference``)."""
 
+
+def recorded(run_dir: pathlib.Path) -> dict:
+    """What the main job's comparison needs from a SAR run: each step's UAV place and best
+    beam pair (``[x, y, z, best_pair]``, from ``3D.mobility.positions`` and
+    ``communications.link``), and the last ``mission.result``. Read with pyarrow (the lent
+    GPU machine has no polars)."""
+    import pyarrow.parquet as pq
+
+    from caviar.rundir import RunDir
+
+    table = pq.read_table([str(f) for f in RunDir(run_dir).table_files("messages")],
+                          columns=["step", "topic", "text"])
+    places: dict[int, list[float]] = {}
+    pairs: dict[int, int] = {}
+    result = None
+    for step, topic, text in zip(*(table.column(c).to_pylist() for c in ("step", "topic", "text")), strict=True):
+        if topic == "3D.mobility.positions" and text:
+            p = json.loads(text)["position"]
+            places[step] = [p["x"], p["y"], p["z"]]
+        elif topic == "communications.link" and text:
+            pairs[step] = json.loads(text)["best_pair"]
+        elif topic == "mission.result" and text:
+            result = json.loads(text)
+    links = [[*places[k], pairs[k]] for k in sorted(pairs) if k in places]
+    return {"links": links, "mission_result": result}
+
+
+def agreement(reference: dict, run: dict, tolerance_m: float = 0.25) -> dict:
+    """The issue's accuracy criterion: the same mission outcome, and the same best pair in
+    ≥ 95 % of links by place (each link against the reference's link nearest to where the UAV
+    was, within ``tolerance_m``)."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    ref, got = np.asarray(reference["links"], float), np.asarray(run["links"], float)
+    if not len(ref) or not len(got):
+        return {"links": len(got), "matched_by_place": 0, "same_best_pair": None, "same_outcome": None}
+    distance, nearest = cKDTree(ref[:, :3]).query(got[:, :3])
+    close = distance <= tolerance_m
+    same = float(np.mean(got[close, 3] == ref[nearest[close], 3])) if close.any() else None
+    a, b = reference.get("mission_result") or {}, run.get("mission_result") or {}
+    key = ("rescued", "mission_time_s")
+    outcome = None if not b else [a.get(k) for k in key] == [b.get(k) for k in key]
+    return {"links": len(got), "matched_by_place": int(close.sum()),
+            "same_best_pair": None if same is None else round(same, 4), "same_outcome": outcome,
+            "ok": bool(outcome) and same is not None and same >= 0.95}
+
+
+def main_job(timeout_s: float, work: pathlib.Path, sets: tuple[str, ...] = ()) -> dict:
+    """The SAR blueprint to its end: wall time from the command's start, T_p/T_v, outcome,
+    and its links and outcome against the CPU reference (:data:`REFERENCE`)."""
     from caviar.rundir import RunDir
 
     out = work / "main-job"
     t0 = time.perf_counter()
     try:
-        p = subprocess.run([*CORE, "run", str(BLUEPRINTS / "sar/config.toml"), "--out", str(out), "-q"],
-                           capture_output=True, text=True, timeout=timeout_s, cwd=ROOT)
+        p = subprocess.run([*CORE, "run", str(BLUEPRINTS / "sar/config.toml"), *[x for s in sets for x in ("--set", s)],
+                            "--out", str(out), "-q"], capture_output=True, text=True, timeout=timeout_s, cwd=ROOT)
         error = None if p.returncode == 0 else (p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1]
     except subprocess.TimeoutExpired:
         error = f"timed out after {timeout_s:.0f} s"
@@ -197,14 +247,12 @@ def main_job(timeout_s: float, work: pathlib.Path) -> dict:
         status = run.status()
         row["steps"], row["tp_tv"] = status.get("steps_done"), status.get("rtf")
         try:
-            table = pq.read_table([str(f) for f in run.table_files("messages")], columns=["topic", "text"])
-            results = [json.loads(t) for topic, t in zip(table.column("topic").to_pylist(),
-                                                          table.column("text").to_pylist(), strict=True)
-                       if topic == "mission.result" and t]
-            if results:
-                row["mission_result"] = results[-1]
+            row["recorded"] = recorded(out)
+            row["mission_result"] = row["recorded"]["mission_result"]
+            if REFERENCE.exists():
+                row["against_cpu"] = agreement(json.loads(REFERENCE.read_text()), row["recorded"])
         except (OSError, ValueError) as e:
-            row["mission_result_error"] = str(e)
+            row["recorded_error"] = str(e)
     return row
 
 
@@ -240,8 +288,21 @@ def main() -> int:
     ap.add_argument("--network-seconds", type=float, default=2.0,
                     help="virtual seconds of each network item (its first step not counted)")
     ap.add_argument("--no-main-job", action="store_true", help="without the main job (a CPU check)")
+    ap.add_argument("--write-reference", action="store_true",
+                    help=f"run the main job here and write its links and outcome to {REFERENCE.relative_to(ROOT)} "
+                         "(on the CPU, with one Dr.Jit thread), then stop")
     args = ap.parse_args()
     dev = device()
+    if args.write_reference:
+        with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
+            job = main_job(3600.0, pathlib.Path(tmp), ("modules.comm.params.threads=1",))
+        if job["error"] is not None:
+            print(f"main job failed: {job['error']}")
+            return 1
+        REFERENCE.write_text(json.dumps({"device": dev["name"], "config": "blueprints/sar/config.toml",
+                                         "set": ["modules.comm.params.threads=1"], **job["recorded"]}) + "\n")
+        print(f"wrote {REFERENCE}: {len(job['recorded']['links'])} links, {job['mission_result']}")
+        return 0
     print(f"device: {dev['name']}; Dr.Jit variant {dev['drjit_variant']}", flush=True)
     rows: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
@@ -274,6 +335,7 @@ def main() -> int:
         if not args.no_main_job:
             with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
                 job = main_job(args.item_timeout, pathlib.Path(tmp))
+            job.pop("recorded", None)  # (thousands of rows: the comparison is what counts)
             result["main_job"] = job
             result["main_job_wall_s"] = job["wall_s"] if job["error"] is None else None
             print(f"main job: {job}", flush=True)

@@ -32,3 +32,30 @@ def test_a_short_check_writes_gpu_json_with_the_issues_keys(tmp_path):
     row = result["blueprints"]["quickstart"]
     assert row["ok"] is True and row["error"] is None and row["steps"] == 2 and row["tp_tv"] > 0
     assert result["device"] == result["machine"]["name"]
+
+
+def test_the_comparison_by_place_counts_equal_best_pairs_at_the_nearest_place():
+    reference = {"links": [[0.0, 0.0, 10.0, 5], [10.0, 0.0, 10.0, 7], [20.0, 0.0, 10.0, 9]],
+                 "mission_result": {"rescued": 6, "mission_time_s": 100.0}}
+    run = {"links": [[0.1, 0.0, 10.0, 5], [10.0, 0.1, 10.0, 7], [19.9, 0.0, 10.0, 8], [50.0, 0.0, 10.0, 1]],
+           "mission_result": {"rescued": 6, "mission_time_s": 100.0}}
+    a = gpu_check.agreement(reference, run)
+    assert a == {"links": 4, "matched_by_place": 3, "same_best_pair": round(2 / 3, 4), "same_outcome": True,
+                 "ok": False}  # (one place 30 m from any reference place is not compared)
+    run["links"][2][3] = 9
+    assert gpu_check.agreement(reference, run)["ok"] is True
+    run["mission_result"]["rescued"] = 5
+    assert gpu_check.agreement(reference, run)["same_outcome"] is False
+
+
+def test_a_cpu_run_of_the_main_job_agrees_with_the_reference_by_place(tmp_path):
+    """The first 20 steps of the main job on this machine against the committed CPU run's
+    links (``--write-reference``): the same best pair at ≥ 95 % of the places, the GPU run's
+    criterion."""
+    reference = json.loads(gpu_check.REFERENCE.read_text())
+    assert len(reference["links"]) > 2000 and reference["mission_result"]["rescued"] == 6
+    job = gpu_check.main_job(600, tmp_path, ("episode.steps=20", "modules.comm.params.threads=1"))
+    assert job["error"] is None, job["error"]
+    against = job["against_cpu"]
+    assert against["links"] == 20 and against["matched_by_place"] == 20, against
+    assert against["same_best_pair"] >= 0.95, against
