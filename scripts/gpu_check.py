@@ -7,8 +7,10 @@ the timing items; prints one table and writes ``docs/results/gpu.json`` with the
 machine it checks the same blueprints on Dr.Jit's LLVM backend and names that device. Per
 blueprint: steps done, ``ok`` or the error (the run's own words, from run.json), T_p/T_v, and
 the GPU's mean utilisation and peak memory over the run's modules (the core samples them with
-nvidia-ml-py; empty without a GPU). A blueprint whose packages are missing (SUMO's, on a machine
-they cannot travel to) is reported as skipped, with the reason. Timing items:
+nvidia-ml-py; empty without a GPU). Where SUMO is missing (it cannot travel to the lent GPU
+machine), a blueprint with SUMO traffic runs on that traffic as recorded here
+(``--record-traffic``, replayed with ``caviar.replay``), and its row says so; a blueprint whose
+other packages are missing is reported as skipped, with the reason. Timing items:
 
 - one solve of the SAR route with 1 and 10 UAVs at 1e6 samples (median of 5, after 2 that
   compile), with the shoot cache as the backend's default chooses it;
@@ -64,6 +66,75 @@ def blueprint_runs(steps: int) -> dict[str, tuple[pathlib.Path, list[str], list[
     }
     # Not here: legacy (a module of the original CAVIAR over an outside NATS server: nothing
     # of it runs on a GPU).
+
+
+TRAFFIC_RUNS = ROOT / "docs/results/gpu-check-traffic"
+"""Recorded runs of the blueprints with SUMO traffic (``--record-traffic``, 12 steps each): on
+a machine without SUMO (it cannot travel to the lent GPU machine) the check replays their
+``sumo-traffic`` module's messages with ``caviar.replay`` instead, and says so."""
+
+
+def sumo_module(config: pathlib.Path) -> tuple[str, str] | None:
+    """(name, stage) of the configuration's ``sumo-traffic`` module, if it has one."""
+    import tomllib
+
+    for name, table in tomllib.loads(config.read_text()).get("modules", {}).items():
+        if table.get("plugin") == "sumo-traffic":
+            return name, table["stage"]
+    return None
+
+
+def replaying_traffic(config: pathlib.Path, name: str, stage: str, run: pathlib.Path) -> pathlib.Path:
+    """A copy of ``config`` beside it (its relative paths hold) whose module ``name`` replays
+    what that module published in the recorded ``run``, in place of SUMO."""
+    keep, skipping = [], False
+    for line in config.read_text().splitlines():
+        if line.lstrip().startswith("["):
+            table = line.strip().strip("[]").strip()
+            skipping = table == f"modules.{name}" or table.startswith(f"modules.{name}.")
+        if not skipping:
+            keep.append(line)
+    keep += ["", f"[modules.{name}]", f'stage = "{stage}"', 'plugin = "caviar.replay"', f"[modules.{name}.params]",
+             f"run = {json.dumps(str(run))}", f'sources = ["{name}"]', ""]
+    out = config.with_name(f".gpu-check-{config.stem}-replay.toml")
+    out.write_text("\n".join(keep))
+    return out
+
+
+def keep_only_traffic(run: pathlib.Path, module: str) -> None:
+    """Of a recorded run, only what a replay of ``module`` reads: its messages (and run.json,
+    the run's own account): the rest (other modules' messages, artifacts) would only weigh."""
+    import shutil
+
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(run / "messages.parquet")
+    pq.write_table(table.filter(pc.equal(table["source"], module)), run / "messages.parquet")
+    for f in run.iterdir():
+        if f.name not in ("messages.parquet", "run.json"):
+            shutil.rmtree(f) if f.is_dir() else f.unlink()
+
+
+def record_traffic(steps: int = 12) -> int:
+    """Records each SUMO blueprint's first ``steps`` steps to :data:`TRAFFIC_RUNS` (here, where
+    SUMO is installed), for :func:`replaying_traffic` on a machine without it."""
+    import shutil
+
+    for name, (config, _, _) in blueprint_runs(steps).items():
+        if sumo_module(config) is None:
+            continue
+        out = TRAFFIC_RUNS / name
+        shutil.rmtree(out, ignore_errors=True)
+        p = subprocess.run([*CORE, "run", str(config), *length(config, steps), "--out", str(out), "-q"],
+                           capture_output=True, text=True, cwd=ROOT)
+        if p.returncode != 0:
+            print(f"{name}: {p.stderr.strip().splitlines()[-1:]}")
+            return 1
+        keep_only_traffic(out, sumo_module(config)[0])
+        size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+        print(f"{name}: {steps} steps recorded in {out.relative_to(ROOT)} ({size / 1024:.0f} KiB)")
+    return 0
 
 
 def device() -> dict:
@@ -277,6 +348,61 @@ def network(n_ue: int, seconds: float, timeout_s: float) -> dict:
     raise AssertionError("unreachable")
 
 
+def check_blueprints(steps: int, only: list[str] | None, timeout_s: float) -> dict[str, dict]:
+    """Every blueprint (``only`` these) for ``steps`` steps: the table's rows, printed as they come."""
+    rows: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
+        for name, (config, sets, needs) in blueprint_runs(steps).items():
+            if only and name not in only:
+                continue
+            why = missing(needs)
+            sumo, recorded_run = sumo_module(config), TRAFFIC_RUNS / name
+            replayed = None
+            if why is not None and "libsumo" in why and sumo is not None and recorded_run.is_dir():
+                config = replayed = replaying_traffic(config, *sumo, recorded_run)
+                why = missing([m for m in needs if m != "libsumo"])
+            if why is not None:
+                rows[name] = {"ok": False, "error": f"skipped: {why}", "steps": 0, "tp_tv": None,
+                              "gpu_util_pct": None, "gpu_mem_mib": None}
+            else:
+                try:
+                    rows[name] = run_blueprint(name, config, sets, steps, pathlib.Path(tmp), timeout_s)
+                finally:
+                    if replayed is not None:
+                        replayed.unlink()
+                if replayed is not None:
+                    rows[name]["traffic"] = "replayed from a recorded SUMO run (SUMO is not installed here)"
+            r = rows[name]
+            print(f"{name:14s} {r['steps']:>3} steps  {'ok' if r['ok'] else 'FAIL':4s}  "
+                  f"T_p/T_v {r['tp_tv'] if r['tp_tv'] is not None else '-'}  GPU {r['gpu_util_pct']} %  "
+                  f"{r['gpu_mem_mib']} MiB  {r['error'] or ''}{r.get('traffic', '')}", flush=True)
+    return rows
+
+
+def timings(result: dict, item_timeout_s: float, network_seconds: float, main_job_too: bool) -> None:
+    """The timing items, into ``result``, printed as they come."""
+    for key, n in (("solve_1uav_1e6_s", 1), ("solve_10uav_1e6_s", 10)):
+        try:
+            result[key] = round(solve_times(n), 4)
+        except Exception as e:  # noqa: BLE001 - reported, not fatal: the table matters more
+            result[key] = None
+            result[f"{key}_error"] = str(e)
+        print(f"{key}: {result[key]}", flush=True)
+    if main_job_too:
+        with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
+            job = main_job(item_timeout_s, pathlib.Path(tmp))
+        job.pop("recorded", None)  # (thousands of rows: the comparison is what counts)
+        result["main_job"] = job
+        result["main_job_wall_s"] = job["wall_s"] if job["error"] is None else None
+        print(f"main job: {job}", flush=True)
+    for n in (100, 1000):
+        net = network(n, network_seconds, item_timeout_s)
+        result[f"network_21x{n}"] = net
+        result[f"network_21x{n}_tp_tv"] = net.get("tp_tv")
+        print(f"network 21x{n}: T_p/T_v {net.get('tp_tv')} (first step {net.get('first_step_s')} s) "
+              f"{net.get('error') or ''}", flush=True)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--steps", type=int, default=6, help="steps each blueprint runs")
@@ -288,11 +414,16 @@ def main() -> int:
     ap.add_argument("--network-seconds", type=float, default=2.0,
                     help="virtual seconds of each network item (its first step not counted)")
     ap.add_argument("--no-main-job", action="store_true", help="without the main job (a CPU check)")
+    ap.add_argument("--record-traffic", action="store_true",
+                    help=f"record the SUMO blueprints' first steps to {TRAFFIC_RUNS.relative_to(ROOT)} "
+                         "(where SUMO is installed), for machines without it; then stop")
     ap.add_argument("--write-reference", action="store_true",
                     help=f"run the main job here and write its links and outcome to {REFERENCE.relative_to(ROOT)} "
                          "(on the CPU, with one Dr.Jit thread), then stop")
     args = ap.parse_args()
     dev = device()
+    if args.record_traffic:
+        return record_traffic()
     if args.write_reference:
         with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
             job = main_job(3600.0, pathlib.Path(tmp), ("modules.comm.params.threads=1",))
@@ -304,47 +435,15 @@ def main() -> int:
         print(f"wrote {REFERENCE}: {len(job['recorded']['links'])} links, {job['mission_result']}")
         return 0
     print(f"device: {dev['name']}; Dr.Jit variant {dev['drjit_variant']}", flush=True)
-    rows: dict[str, dict] = {}
-    with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
-        for name, (config, sets, needs) in blueprint_runs(args.steps).items():
-            if args.only and name not in args.only:
-                continue
-            why = missing(needs)
-            if why is not None:
-                rows[name] = {"ok": False, "error": f"skipped: {why}", "steps": 0, "tp_tv": None,
-                              "gpu_util_pct": None, "gpu_mem_mib": None}
-            else:
-                rows[name] = run_blueprint(name, config, sets, args.steps, pathlib.Path(tmp), args.timeout)
-            r = rows[name]
-            print(f"{name:14s} {r['steps']:>3} steps  {'ok' if r['ok'] else 'FAIL':4s}  "
-                  f"T_p/T_v {r['tp_tv'] if r['tp_tv'] is not None else '-'}  GPU {r['gpu_util_pct']} %  "
-                  f"{r['gpu_mem_mib']} MiB  {r['error'] or ''}", flush=True)
+    rows = check_blueprints(args.steps, args.only, args.timeout)
     result: dict = {"device": dev["name"], "machine": dev, "steps_per_blueprint": args.steps,
                     "blueprints": {k: {"ok": v["ok"], "tp_tv": v["tp_tv"], "error": v["error"], "steps": v["steps"],
-                                       "gpu_util_pct": v["gpu_util_pct"], "gpu_mem_mib": v["gpu_mem_mib"]}
+                                       "gpu_util_pct": v["gpu_util_pct"], "gpu_mem_mib": v["gpu_mem_mib"],
+                                       **({"traffic": v["traffic"]} if "traffic" in v else {})}
                                    for k, v in rows.items()},
                     "main_job_wall_s": None, "network_21x100_tp_tv": None, "network_21x1000_tp_tv": None}
     if not args.no_timings:
-        for key, n in (("solve_1uav_1e6_s", 1), ("solve_10uav_1e6_s", 10)):
-            try:
-                result[key] = round(solve_times(n), 4)
-            except Exception as e:  # noqa: BLE001 - reported, not fatal: the table matters more
-                result[key] = None
-                result[f"{key}_error"] = str(e)
-            print(f"{key}: {result[key]}", flush=True)
-        if not args.no_main_job:
-            with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
-                job = main_job(args.item_timeout, pathlib.Path(tmp))
-            job.pop("recorded", None)  # (thousands of rows: the comparison is what counts)
-            result["main_job"] = job
-            result["main_job_wall_s"] = job["wall_s"] if job["error"] is None else None
-            print(f"main job: {job}", flush=True)
-        for n in (100, 1000):
-            net = network(n, args.network_seconds, args.item_timeout)
-            result[f"network_21x{n}"] = net
-            result[f"network_21x{n}_tp_tv"] = net.get("tp_tv")
-            print(f"network 21x{n}: T_p/T_v {net.get('tp_tv')} (first step {net.get('first_step_s')} s) "
-                  f"{net.get('error') or ''}", flush=True)
+        timings(result, args.item_timeout, args.network_seconds, main_job_too=not args.no_main_job)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.out}")

@@ -59,3 +59,26 @@ def test_a_cpu_run_of_the_main_job_agrees_with_the_reference_by_place(tmp_path):
     against = job["against_cpu"]
     assert against["links"] == 20 and against["matched_by_place"] == 20, against
     assert against["same_best_pair"] >= 0.95, against
+
+
+def test_a_sumo_blueprint_runs_on_its_recorded_traffic_where_sumo_is_missing(tmp_path):
+    """SUMO cannot travel to the lent GPU machine: there the check replays the traffic
+    recorded here (``--record-traffic``) with ``caviar.replay`` in place of the ``sumo-traffic``
+    module, and the rest of the blueprint runs as it is."""
+    import pyarrow.parquet as pq
+
+    config = ROOT / "blueprints/osm-traffic/config.toml"
+    name, stage = gpu_check.sumo_module(config)
+    recorded = gpu_check.TRAFFIC_RUNS / "osm-traffic"
+    variant = gpu_check.replaying_traffic(config, name, stage, recorded)
+    try:
+        assert "sumo-traffic" not in variant.read_text() and "caviar.replay" in variant.read_text()
+        row = gpu_check.run_blueprint("osm-traffic", variant, [], 3, tmp_path, 300)
+    finally:
+        variant.unlink()
+    assert row["ok"] and row["steps"] == 3, row
+    def positions(run):
+        t = pq.read_table(str(run / "messages.parquet"), columns=["step", "source", "topic", "text"]).to_pylist()
+        return [(m["step"], m["topic"], m["text"]) for m in t if m["source"] == name and m["step"] < 3]
+    replayed, original = positions(tmp_path / "osm-traffic"), positions(recorded)
+    assert replayed and replayed == original  # the recorded vehicles, step by step
