@@ -44,7 +44,7 @@ from caviar_plugins.network.deployment import carrier_key, deployment, nr_prbs
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.layout import LayoutSettings, Wraparound, drop_ues
 from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, layer_message, save
-from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings
+from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings, summed_db
 from caviar_plugins.network.report import finite
 from caviar_plugins.network.tr38901 import CHANNELS as STOCHASTIC
 from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings
@@ -360,15 +360,15 @@ class RadioNetwork(caviar.Plugin):
         ch = self.channels.rows(np.array([self.traced[u] for u in ids]))
         if self.p.raytracing.evolve == "hold":
             return ch.power_sum_db[..., None]
-        gains = ch.gain_db(pos, self.frequencies)
+        self.amplitude = ch.amplitudes(pos, self.frequencies)  # (the beams' too: computed once a step)
+        gains = summed_db(self.amplitude)
         if self.band_average:
             return 10 * np.log10(np.mean(10 ** (gains / 10), axis=-1, keepdims=True))
         return gains
 
     def _beam_gains(self, ids: list[str], pos: np.ndarray) -> np.ndarray:
         """[ue, cell, subband, beam]: every cell's SSB beams toward the UEs (linear), from the
-        channel's paths: the straight line, or the last trace's paths moved with the UEs as
-        :meth:`TracedChannels.gain_db` moves them (run after :meth:`_channel_gains`)."""
+        channel's paths: the straight line, or the paths :meth:`_channel_gains` just moved."""
         if self.tracer is None:
             amplitude, departure = line_of_sight(self.cells, pos)
             amplitude = amplitude[..., None]
@@ -380,7 +380,7 @@ class RadioNetwork(caviar.Plugin):
             if self.p.raytracing.evolve == "hold":
                 amplitude = ch.amplitude[..., None]
             else:
-                amplitude = ch.amplitudes(pos, self.frequencies)
+                amplitude = self.amplitude
         gains = all_beam_gains(self.cells, self.p.codebooks, amplitude, departure)
         if self.tracer is not None and self.band_average:
             gains = gains.mean(axis=2, keepdims=True)

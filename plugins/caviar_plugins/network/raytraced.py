@@ -125,13 +125,18 @@ class TracedChannels:
     def gain_db(self, position: np.ndarray, frequencies_hz: np.ndarray) -> np.ndarray:
         """[ue, cell, freq]: |H|² (dB) with the UEs at ``position`` [ue, 3], at baseband
         ``frequencies_hz`` (offsets from the carrier)."""
-        h = self.amplitudes(position, frequencies_hz).sum(axis=-2)
-        return 10 * np.log10(np.maximum(np.abs(h) ** 2, 10 ** (NO_PATH_DB / 10)))
+        return summed_db(self.amplitudes(position, frequencies_hz))
 
     def rows(self, index: np.ndarray) -> TracedChannels:
         return TracedChannels(self.amplitude[index], self.delay_s[index], self.arrival[index],
                               self.position[index], self.carrier_hz, self.power_sum_db[index],
                               None if self.departure is None else self.departure[index])
+
+
+def summed_db(amplitudes: np.ndarray) -> np.ndarray:
+    """[ue, cell, freq]: |Σ_paths a|² (dB) of path coefficients [ue, cell, path, freq]
+    (:meth:`TracedChannels.amplitudes`), floored at ``NO_PATH_DB``."""
+    return 10 * np.log10(np.maximum(np.abs(amplitudes.sum(axis=-2)) ** 2, 10 ** (NO_PATH_DB / 10)))
 
 
 class SiteTracer:
