@@ -157,3 +157,22 @@ def test_round_robin_and_max_rate_grant_as_their_definitions_say():
         else:  # subband 0 (12 PRBs) to UE 1 (20 dB), subband 1 (12 PRBs) to UE 0 (30 dB), 6 slots
             np.testing.assert_array_equal(res.scheduled_slots, [6, 6, 0, 0])
             np.testing.assert_array_equal(res.prbs, [72, 72, 0, 0])
+
+
+def test_numpy_products_beside_torch_run_on_one_blas_thread_and_the_setting_comes_back():
+    """The radio network's numpy products run under ``one_blas_thread``: OpenBLAS's idle
+    threads would otherwise spin on the cores Sionna SYS needs next (1.3x slower SYS calls on
+    2 cores). Inside, every BLAS library has one thread; after, what it had."""
+    from threadpoolctl import threadpool_info
+
+    from caviar_plugins.torch_device import one_blas_thread
+
+    def blas_threads():
+        return [(i["filepath"], i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"]
+
+    before = blas_threads()
+    assert before, "numpy has a BLAS library"
+    with one_blas_thread():
+        assert {n for _, n in blas_threads()} == {1}
+        np.ones((64, 64)) @ np.ones((64, 64))
+    assert blas_threads() == before

@@ -33,6 +33,7 @@ import numpy as np
 
 from caviar_plugins.constants import SPEED_OF_LIGHT
 from caviar_plugins.network.cells import Cell, pattern_gain_db
+from caviar_plugins.torch_device import one_blas_thread
 
 
 @dataclasses.dataclass(frozen=True)
@@ -156,11 +157,12 @@ def all_beam_gains(cells: Sequence[Cell], codebooks: Sequence[Codebook], amplitu
     n_ue, n_cell, _, n_f = amplitude.shape
     width = max(cb.size for cb in codebooks)
     out = np.zeros((n_ue, n_cell, n_f, width))
-    for c, (cell, cb) in enumerate(zip(cells, codebooks, strict=True)):
-        u, v = panel_frequencies(cell, departure[:, c])
-        e = steering(cb.rows, cb.cols, u, v)  # [ue, path, element]
-        h = np.einsum("upf,upe->ufe", amplitude[:, c], e)
-        out[:, c, :, :cb.size] = np.abs(h @ cb.weights().T) ** 2
+    with one_blas_thread():  # (see slot_sinr_db)
+        for c, (cell, cb) in enumerate(zip(cells, codebooks, strict=True)):
+            u, v = panel_frequencies(cell, departure[:, c])
+            e = steering(cb.rows, cb.cols, u, v)  # [ue, path, element]
+            h = np.einsum("upf,upe->ufe", amplitude[:, c], e)
+            out[:, c, :, :cb.size] = np.abs(h @ cb.weights().T) ** 2
     return out
 
 
@@ -204,11 +206,12 @@ def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, 
     beams = np.asarray(beams)
     pointing = (beams[:, :, None] == np.arange(n_beam)[None, None, :]).reshape(n_slot, n_cell * n_beam)
     by_beam = weighted.transpose(1, 3, 0, 2).reshape(n_cell * n_beam, n_ue * n_f)
-    interference = (pointing @ by_beam).reshape(n_slot, n_ue, n_f)
-    if not silent_idle:  # a cell serving nobody sends over its codebook evenly
-        idle = (beams < 0).astype(float)  # [slot, cell]
-        interference += (idle @ weighted.mean(axis=-1).transpose(1, 0, 2).reshape(n_cell, n_ue * n_f)).reshape(
-            n_slot, n_ue, n_f)
+    with one_blas_thread():  # (BLAS threads would spin on the cores Sionna SYS needs next)
+        interference = (pointing @ by_beam).reshape(n_slot, n_ue, n_f)
+        if not silent_idle:  # a cell serving nobody sends over its codebook evenly
+            idle = (beams < 0).astype(float)  # [slot, cell]
+            interference += (idle @ weighted.mean(axis=-1).transpose(1, 0, 2).reshape(n_cell, n_ue * n_f)).reshape(
+                n_slot, n_ue, n_f)
     signal = power[s][:, None] * gains[np.arange(n_ue), s, :, np.asarray(best_beam)[np.arange(n_ue)]]  # [ue, freq]
     with np.errstate(divide="ignore", invalid="ignore"):  # (no signal: -inf; its SIR alone: NaN)
         out = 10 * np.log10(signal[None] / (np.asarray(noise_mw, dtype=float)[None, :, None] + interference))
