@@ -160,9 +160,8 @@ def all_beam_gains(cells: Sequence[Cell], codebooks: Sequence[Codebook], amplitu
     with one_blas_thread():  # (see slot_sinr_db)
         for c, (cell, cb) in enumerate(zip(cells, codebooks, strict=True)):
             u, v = panel_frequencies(cell, departure[:, c])
-            e = steering(cb.rows, cb.cols, u, v)  # [ue, path, element]
-            h = np.einsum("upf,upe->ufe", amplitude[:, c], e)
-            out[:, c, :, :cb.size] = np.abs(h @ cb.weights().T) ** 2
+            beam = steering(cb.rows, cb.cols, u, v) @ cb.weights().T  # [ue, path, beam]: e(k_p)ᵀ w_b
+            out[:, c, :, :cb.size] = np.abs(np.matmul(amplitude[:, c].transpose(0, 2, 1), beam)) ** 2
     return out
 
 
