@@ -126,10 +126,9 @@ def record_traffic(steps: int = 12) -> int:
             continue
         out = TRAFFIC_RUNS / name
         shutil.rmtree(out, ignore_errors=True)
-        p = subprocess.run([*CORE, "run", str(config), *length(config, steps), "--out", str(out), "-q"],
-                           capture_output=True, text=True, cwd=ROOT)
-        if p.returncode != 0:
-            print(f"{name}: {p.stderr.strip().splitlines()[-1:]}")
+        _, error = command([*CORE, "run", str(config), *length(config, steps), "--out", str(out), "-q"], None)
+        if error is not None:
+            print(f"{name}: {error}")
             return 1
         keep_only_traffic(out, sumo_module(config)[0])
         size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
@@ -175,24 +174,33 @@ def missing(modules: list[str]) -> str | None:
     return None
 
 
-def run_blueprint(name: str, config: pathlib.Path, sets: list[str], steps: int, work: pathlib.Path,
-                  timeout_s: float) -> dict:
-    """One blueprint for ``steps`` steps: its row of the table."""
+def command(cmd: list[str], timeout_s: float | None) -> tuple[str, str | None]:
+    """Runs ``cmd`` in the checkout under a time limit: (its output, None) when it succeeds,
+    else (its output, its own last line of error, or the time limit it ran past)."""
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=ROOT)
+    except subprocess.TimeoutExpired:
+        return "", f"timed out after {timeout_s:.0f} s"
+    if p.returncode == 0:
+        return p.stdout, None
+    return p.stdout, (p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1]
+
+
+def run_blueprint(name: str, config: pathlib.Path, sets: list[str] | tuple[str, ...], steps: int | None,
+                  work: pathlib.Path, timeout_s: float) -> dict:
+    """One blueprint for ``steps`` steps (None: to its end): its row of the table."""
     from caviar.rundir import RunDir
 
     out = work / name
-    cmd = [*CORE, "run", str(config), *length(config, steps), *[x for s in sets for x in ("--set", s)],
-           "--out", str(out), "-q"]
+    cmd = [*CORE, "run", str(config), *([] if steps is None else length(config, steps)),
+           *[x for s in sets for x in ("--set", s)], "--out", str(out), "-q"]
     sender = None
     if name == "live-uav":  # its vehicle: the scripted MAVLink sender
         sender = subprocess.Popen([sys.executable, str(BLUEPRINTS / "live-uav/send_mavlink.py")],
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     t0 = time.perf_counter()
     try:
-        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=ROOT)
-        error = None if p.returncode == 0 else (p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1]
-    except subprocess.TimeoutExpired:
-        error = f"timed out after {timeout_s:.0f} s"
+        _, error = command(cmd, timeout_s)
     finally:
         if sender is not None:
             sender.terminate()
@@ -302,21 +310,9 @@ def agreement(reference: dict, run: dict, tolerance_m: float = 0.25) -> dict:
 def main_job(timeout_s: float, work: pathlib.Path, sets: tuple[str, ...] = ()) -> dict:
     """The SAR blueprint to its end: wall time from the command's start, T_p/T_v, outcome,
     and its links and outcome against the CPU reference (:data:`REFERENCE`)."""
-    from caviar.rundir import RunDir
-
     out = work / "main-job"
-    t0 = time.perf_counter()
-    try:
-        p = subprocess.run([*CORE, "run", str(BLUEPRINTS / "sar/config.toml"), *[x for s in sets for x in ("--set", s)],
-                            "--out", str(out), "-q"], capture_output=True, text=True, timeout=timeout_s, cwd=ROOT)
-        error = None if p.returncode == 0 else (p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1]
-    except subprocess.TimeoutExpired:
-        error = f"timed out after {timeout_s:.0f} s"
-    row: dict = {"wall_s": round(time.perf_counter() - t0, 2), "error": error}
-    run = RunDir(out)
-    if run.exists():
-        status = run.status()
-        row["steps"], row["tp_tv"] = status.get("steps_done"), status.get("rtf")
+    row = run_blueprint("main-job", BLUEPRINTS / "sar/config.toml", sets, None, work, timeout_s)
+    if row["steps"]:
         try:
             row["recorded"] = recorded(out)
             row["mission_result"] = row["recorded"]["mission_result"]
@@ -333,19 +329,15 @@ def network(n_ue: int, seconds: float, timeout_s: float) -> dict:
     fails (no Triton for the GPU, say), again without, with the compiled run's error kept."""
     cmd = [sys.executable, str(ROOT / "benches/bench_network.py"), "--plugin-only", str(n_ue),
            "--seconds", str(seconds)]
-    compile_error = None
-    for extra in ([], ["--eager"]):
-        try:
-            p = subprocess.run([*cmd, *extra], capture_output=True, text=True, timeout=timeout_s, cwd=ROOT)
-        except subprocess.TimeoutExpired:
-            return {"error": f"timed out after {timeout_s:.0f} s", "compile_error": compile_error}
-        if p.returncode == 0:
-            return {**json.loads(p.stdout.strip().splitlines()[-1]), "compile_error": compile_error}
-        error = (p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1]
-        if compile_error is not None:
-            return {"error": error, "compile_error": compile_error}
-        compile_error = error
-    raise AssertionError("unreachable")
+    stdout, compile_error = command(cmd, timeout_s)
+    if compile_error is None:
+        return {**json.loads(stdout.strip().splitlines()[-1]), "compile_error": None}
+    if compile_error.startswith("timed out"):  # (slow, not broken: no second try)
+        return {"error": compile_error, "compile_error": None}
+    stdout, error = command([*cmd, "--eager"], timeout_s)
+    if error is not None:
+        return {"error": error, "compile_error": compile_error}
+    return {**json.loads(stdout.strip().splitlines()[-1]), "compile_error": compile_error}
 
 
 def check_blueprints(steps: int, only: list[str] | None, timeout_s: float) -> dict[str, dict]:

@@ -447,7 +447,7 @@ class LinkLevel:
         if self.s.scheduler == "max-rate":  # per subband, the member with the best rate (the first of equals)
             best = torch.argmax(torch.where(cells, rate, -1.0), dim=3)  # [D, C, S]
             pick = torch.arange(member.shape[1], device=self.device) == best[..., None]
-            return pick & cells & member.any(dim=1)[None, :, None, None]
+            return pick & cells  # (a cell without members grants nothing)
         # round-robin: one UE per slot, the cell's members in turn
         rank = torch.cumsum(member.to(torch.int64), dim=1) - 1  # [C, cap]: place among the cell's members
         count = torch.clamp(member.sum(dim=1), min=1)  # [C]
