@@ -154,6 +154,16 @@ def test_outer_loop_link_adaptation_reaches_its_bler_target(processes):
         assert res.bler(0) == pytest.approx(target, abs=0.02), (target, processes, res.bler(0))
 
 
+def top_level_torch_ops(call) -> int:
+    """The torch operations ``call`` runs that no other torch operation called."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        call()
+    return sum(1 for e in prof.events() if e.name.startswith("aten::")
+               and (e.cpu_parent is None or not e.cpu_parent.name.startswith("aten::")))
+
+
 def test_the_compiled_link_level_decides_as_eager_and_reaches_the_bler_target():
     """``compile = true`` (torch.compile): on the same frequency-selective SINRs the first
     call's MCS, effective SINR, TBLER and PRBs are eager's exactly; the HARQ outcomes come
@@ -170,6 +180,15 @@ def test_the_compiled_link_level_decides_as_eager_and_reaches_the_bler_target():
     np.testing.assert_array_equal(compiled.prbs, eager.prbs)
     np.testing.assert_allclose(compiled.sinr_eff_db, eager.sinr_eff_db, atol=1e-4)
     np.testing.assert_allclose(compiled.tbler, eager.tbler, atol=1e-5)
+    # The whole group of slots is one compiled program: few torch operations run outside it
+    # (on a GPU, each would be a kernel launch), where eager runs hundreds: the operations
+    # a group adds, from calls of 1 and 11 groups.
+    compiled_ll.run(sinr, serving)  # (its second call compiles once more: the blocks are built)
+    longer = np.concatenate([sinr] * 11)
+    per_group = {name: (top_level_torch_ops(lambda ll=ll: ll.run(longer, serving))
+                        - top_level_torch_ops(lambda ll=ll: ll.run(sinr, serving))) / 10
+                 for name, ll in (("eager", LinkLevel(settings, n_cell=1, seed=11)), ("compiled", compiled_ll))}
+    assert per_group["compiled"] <= 20 < 300 <= per_group["eager"], per_group
     slots = 8000  # each of the 8 processes' loops sees 1000
     res = compiled_ll.run(12.0 + rng.normal(0.0, 1.0, size=(slots, 3, sub)), serving)
     assert (res.acks + res.nacks).sum() >= slots  # someone is served in every slot

@@ -110,8 +110,8 @@ class RadioNetwork(caviar.Plugin):
         """Slots computed together, one per HARQ process (see
         :class:`~caviar_plugins.radio.link_level.LinkSettings`): 8 is about 5x faster."""
         compile: bool = False
-        """``torch.compile`` the link level (Sionna SYS): about 3x faster a step, after
-        about 30 s of compilation at the first step (see
+        """``torch.compile`` the link level (Sionna SYS): about 4x faster a step, after
+        about 20 s of compilation at the first step (see
         :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
         device: str = "auto"
         """The torch device of the link level (Sionna SYS): ``auto`` (Sionna's choice, a GPU
