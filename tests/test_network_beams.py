@@ -235,3 +235,58 @@ def test_in_an_empty_scene_the_ray_traced_beams_give_the_free_space_sinr(tmp_pat
         log = caviar.Simulation.from_toml(cfg, out=tmp_path / channel).run()
         sinr[channel] = {m.data["UE_Id"]: m.data["sinr_db"] for m in log.decoded("network.ue")}
     assert sinr["ray-traced"] == pytest.approx(sinr["free-space"], abs=0.05)
+
+
+def test_the_kept_beam_responses_give_each_cells_beam_gains_per_frequency():
+    """``gains_of_responses`` on ``beam_responses`` (the responses kept from one trace to the
+    next, one batched product a step) equals :func:`beam_gains` (the channel across the
+    panel, then the beams), cell by cell and frequency by frequency, with codebooks of
+    different sizes (the smaller one's missing beams: 0)."""
+    from caviar_plugins.network.beams import all_beam_gains, beam_responses, gains_of_responses
+
+    rng = np.random.default_rng(12)
+    cells = [_cell("a", 0, (0.0, 0.0, 25.0), 0.0), _cell("b", 1, (300.0, 0.0, 25.0), 120.0)]
+    codebooks = [Codebook(1, N, N), Codebook(1, N, 4)]
+    n_ue, n_path, n_f = 5, 6, 3
+    departure = rng.normal(size=(n_ue, 2, n_path, 3))
+    departure /= np.linalg.norm(departure, axis=-1, keepdims=True)
+    amplitude = (rng.normal(size=(n_ue, 2, n_path, n_f)) + 1j * rng.normal(size=(n_ue, 2, n_path, n_f))) * 1e-6
+    amplitude[0, 1, 3:] = 0.0  # (fewer paths: zeros)
+    kept = gains_of_responses(amplitude, beam_responses(cells, codebooks, departure))
+    assert kept.shape == (n_ue, 2, n_f, N)
+    np.testing.assert_array_equal(kept, all_beam_gains(cells, codebooks, amplitude, departure))
+    for c, (cell, cb) in enumerate(zip(cells, codebooks, strict=True)):
+        for f in range(n_f):
+            np.testing.assert_allclose(kept[:, c, f, :cb.size], beam_gains(cell, cb, amplitude[:, c, :, f],
+                                                                           departure[:, c]), rtol=1e-10)
+        assert not kept[:, c, :, cb.size:].any()
+
+
+def test_the_plugin_computes_the_beam_responses_once_per_trace(tmp_path, monkeypatch):
+    """The paths' beam responses change only with a trace: over 6 steps with a trace every
+    3, the plugin computes them twice, however often the gains are evaluated."""
+    import caviar
+    from caviar_plugins.network import plugin as network_plugin
+    from caviar_plugins.network.raytraced import SiteTracer
+
+    calls = {"responses": 0, "traces": 0}
+    responses, trace = network_plugin.beam_responses, SiteTracer.trace
+
+    def counted_responses(*args, **kwargs):
+        calls["responses"] += 1
+        return responses(*args, **kwargs)
+
+    def counted_trace(self, *args, **kwargs):
+        calls["traces"] += 1
+        return trace(self, *args, **kwargs)
+
+    monkeypatch.setattr(network_plugin, "beam_responses", counted_responses)
+    monkeypatch.setattr(SiteTracer, "trace", counted_trace)
+    text = BEAMS.format(other=[250.0, -120.0, 25.0], beams=N).replace("steps = 3", "steps = 6")
+    extra = ('channel = "ray-traced"\n'
+             'raytracing = { scene = "empty", max_depth = 0, samples_per_src = 1000, refresh_s = 0.03 }\n')
+    cfg = tmp_path / "traced.toml"
+    cfg.write_text(text.replace("beams = {", extra + "beams = {"))
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    assert len(log.decoded("network.ue")) == 6 * 2  # every step measured both UEs
+    assert calls == {"responses": 2, "traces": 2}

@@ -154,15 +154,28 @@ def all_beam_gains(cells: Sequence[Cell], codebooks: Sequence[Codebook], amplitu
                    departure: np.ndarray) -> np.ndarray:
     """[ue, cell, freq, beam]: :func:`beam_gains` of every cell, for path amplitudes
     [ue, cell, path, freq] (per frequency) leaving along ``departure`` [ue, cell, path, 3]."""
-    n_ue, n_cell, _, n_f = amplitude.shape
+    return gains_of_responses(amplitude, beam_responses(cells, codebooks, departure))
+
+
+def beam_responses(cells: Sequence[Cell], codebooks: Sequence[Codebook], departure: np.ndarray) -> np.ndarray:
+    """[ue, cell, path, beam]: each path's response to each beam of its cell's codebook,
+    ``e(k_p)ᵀ w_b`` for paths leaving along ``departure`` [ue, cell, path, 3] (0 past a
+    smaller codebook's beams). It changes only where the paths are traced again, so a caller
+    keeps it from one trace to the next (:func:`gains_of_responses` per step)."""
     width = max(cb.size for cb in codebooks)
-    out = np.zeros((n_ue, n_cell, n_f, width))
+    out = np.zeros((*departure.shape[:3], width), dtype=complex)
     with one_blas_thread():  # (see slot_sinr_db)
         for c, (cell, cb) in enumerate(zip(cells, codebooks, strict=True)):
             u, v = panel_frequencies(cell, departure[:, c])
-            beam = steering(cb.rows, cb.cols, u, v) @ cb.weights().T  # [ue, path, beam]: e(k_p)ᵀ w_b
-            out[:, c, :, :cb.size] = np.abs(np.matmul(amplitude[:, c].transpose(0, 2, 1), beam)) ** 2
+            out[:, c, :, :cb.size] = steering(cb.rows, cb.cols, u, v) @ cb.weights().T
     return out
+
+
+def gains_of_responses(amplitude: np.ndarray, responses: np.ndarray) -> np.ndarray:
+    """[ue, cell, freq, beam]: ``|Σ_p a_p e(k_p)ᵀ w_b|²`` for path amplitudes [ue, cell, path,
+    freq] and the paths' :func:`beam_responses` [ue, cell, path, beam]: one batched product."""
+    with one_blas_thread():  # (see slot_sinr_db)
+        return np.abs(np.matmul(np.asarray(amplitude).transpose(0, 1, 3, 2), responses)) ** 2
 
 
 def scheduled_ues(serving: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
