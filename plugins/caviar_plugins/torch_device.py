@@ -39,11 +39,13 @@ def one_blas_thread() -> Any:
     return _blas_controller().limit(limits=1, user_api="blas")
 
 
-def resolve(setting: str = "auto") -> Any:
+def resolve(setting: Any = "auto") -> Any:
     """The ``torch.device`` of a setting: ``auto`` (Sionna's, ``sionna.phy.config.device``),
-    ``cpu``, ``cuda``, ``cuda:1``..."""
+    ``cpu``, ``cuda``, ``cuda:1``... (a ``torch.device`` is its own)."""
     import torch
 
+    if isinstance(setting, torch.device):
+        return setting
     if setting == "auto":
         import sionna.phy
 

@@ -27,13 +27,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
 from caviar_plugins.constants import SPEED_OF_LIGHT
 from caviar_plugins.network.cells import Cell, pattern_gain_db
-from caviar_plugins.torch_device import one_blas_thread
+from caviar_plugins.torch_device import one_blas_thread, resolve, to_numpy, to_torch
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,18 +164,22 @@ def beam_responses(cells: Sequence[Cell], codebooks: Sequence[Codebook], departu
     keeps it from one trace to the next (:func:`gains_of_responses` per step)."""
     width = max(cb.size for cb in codebooks)
     out = np.zeros((*departure.shape[:3], width), dtype=complex)
-    with one_blas_thread():  # (see slot_sinr_db)
+    with one_blas_thread():  # (numpy's BLAS threads would spin on the cores torch needs next)
         for c, (cell, cb) in enumerate(zip(cells, codebooks, strict=True)):
             u, v = panel_frequencies(cell, departure[:, c])
             out[:, c, :, :cb.size] = steering(cb.rows, cb.cols, u, v) @ cb.weights().T
     return out
 
 
-def gains_of_responses(amplitude: np.ndarray, responses: np.ndarray) -> np.ndarray:
+def gains_of_responses(amplitude: Any, responses: Any) -> np.ndarray:
     """[ue, cell, freq, beam]: ``|Σ_p a_p e(k_p)ᵀ w_b|²`` for path amplitudes [ue, cell, path,
-    freq] and the paths' :func:`beam_responses` [ue, cell, path, beam]: one batched product."""
-    with one_blas_thread():  # (see slot_sinr_db)
-        return np.abs(np.matmul(np.asarray(amplitude).transpose(0, 1, 3, 2), responses)) ** 2
+    freq] and the paths' :func:`beam_responses` [ue, cell, path, beam]: one batched product,
+    on the device of whichever is a tensor (the amplitudes', where both are)."""
+    import torch
+
+    dev = next((x.device for x in (amplitude, responses) if isinstance(x, torch.Tensor)), torch.device("cpu"))
+    a, r = (x if isinstance(x, torch.Tensor) else to_torch(x, dev) for x in (amplitude, responses))
+    return to_numpy(torch.abs(torch.matmul(a.transpose(2, 3), r.to(dev))) ** 2)
 
 
 def scheduled_ues(serving: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
@@ -197,38 +201,42 @@ def slot_beams(serving: np.ndarray, best_beam: np.ndarray, n_cells: int, slots: 
 
 
 def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, best_beam: np.ndarray,
-                 beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool) -> np.ndarray:
+                 beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool, device: Any = "cpu") -> np.ndarray:
     """[slot, ue, freq]: the SINR of every UE on its serving cell's best beam, the other cells
     on its carrier pointing ``beams`` [slot, cell] (:func:`slot_beams`), on the victim's channel
     ``gains`` [ue, cell, freq, beam] (linear). A cell serving nobody is silent with
     ``silent_idle``, and otherwise sends over its codebook evenly (its mean beam gain).
-    ``noise_mw`` [ue] (0: the SIR); NaN for a UE without a cell."""
+    ``noise_mw`` [ue] (0: the SIR); NaN for a UE without a cell. Computed on the torch
+    ``device`` (a setting or a ``torch.device``; at scale, tens of millions of products)."""
+    import torch
+
+    dev = resolve(device)
     n_ue, n_cell, n_f, n_beam = gains.shape
     n_slot = len(beams)
     power = 10 ** (np.array([c.tx_power_dbm for c in cells]) / 10)
     carrier = np.array([c.carrier_hz for c in cells])
     serving = np.asarray(serving)
-    served = serving >= 0
     s = np.maximum(serving, 0)
     # Who interferes with whom: the other cells on the victim's carrier, weighted by power.
     heard = (carrier[None, :] == carrier[s][:, None]) & (np.arange(n_cell)[None, :] != s[:, None])  # [ue, cell]
-    weighted = gains * (power[None, :] * heard)[:, :, None, None]  # [ue, cell, freq, beam]
+    g = to_torch(gains, dev, torch.float64)
+    weighted = g * to_torch((power[None, :] * heard)[:, :, None, None], dev, torch.float64)  # [ue, cell, freq, beam]
     # A cell's beam in a slot as a one-hot row: the interference is one matrix product over
     # (cell, beam), not a gather of [slot, ue, cell, freq].
     beams = np.asarray(beams)
     pointing = (beams[:, :, None] == np.arange(n_beam)[None, None, :]).reshape(n_slot, n_cell * n_beam)
-    by_beam = weighted.transpose(1, 3, 0, 2).reshape(n_cell * n_beam, n_ue * n_f)
-    with one_blas_thread():  # (BLAS threads would spin on the cores Sionna SYS needs next)
-        interference = (pointing @ by_beam).reshape(n_slot, n_ue, n_f)
-        if not silent_idle:  # a cell serving nobody sends over its codebook evenly
-            idle = (beams < 0).astype(float)  # [slot, cell]
-            interference += (idle @ weighted.mean(axis=-1).transpose(1, 0, 2).reshape(n_cell, n_ue * n_f)).reshape(
-                n_slot, n_ue, n_f)
-    signal = power[s][:, None] * gains[np.arange(n_ue), s, :, np.asarray(best_beam)[np.arange(n_ue)]]  # [ue, freq]
-    with np.errstate(divide="ignore", invalid="ignore"):  # (no signal: -inf; its SIR alone: NaN)
-        out = 10 * np.log10(signal[None] / (np.asarray(noise_mw, dtype=float)[None, :, None] + interference))
-    out[:, ~served] = np.nan
-    return out
+    by_beam = weighted.permute(1, 3, 0, 2).reshape(n_cell * n_beam, n_ue * n_f)
+    interference = (to_torch(pointing, dev, torch.float64) @ by_beam).reshape(n_slot, n_ue, n_f)
+    if not silent_idle:  # a cell serving nobody sends over its codebook evenly
+        idle = to_torch(beams < 0, dev, torch.float64)  # [slot, cell]
+        mean = weighted.mean(dim=-1).permute(1, 0, 2).reshape(n_cell, n_ue * n_f)
+        interference = interference + (idle @ mean).reshape(n_slot, n_ue, n_f)
+    ue = np.arange(n_ue)
+    signal = to_torch(power[s][:, None] * gains[ue, s, :, np.asarray(best_beam)[ue]], dev, torch.float64)  # [ue, freq]
+    noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
+    out = 10 * torch.log10(signal[None] / (noise[None, :, None] + interference))  # (no signal: -inf; SIR alone: NaN)
+    out[:, to_torch(serving < 0, dev)] = float("nan")
+    return to_numpy(out)
 
 
 def beam_report(cell: Cell, codebook: Codebook, beam: int) -> dict[str, float | int]:

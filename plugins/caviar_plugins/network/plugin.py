@@ -363,7 +363,7 @@ class RadioNetwork(caviar.Plugin):
         ch = self.channels.rows(np.array([self.traced[u] for u in ids]))
         if self.p.raytracing.evolve == "hold":
             return ch.power_sum_db[..., None]
-        self.amplitude = ch.amplitudes(pos, self.frequencies)  # (the beams' too: computed once a step)
+        self.amplitude = ch.amplitudes_on(self.p.device, pos, self.frequencies)  # (the beams' too; once a step)
         gains = summed_db(self.amplitude)
         if self.band_average:
             return 10 * np.log10(np.mean(10 ** (gains / 10), axis=-1, keepdims=True))
@@ -397,12 +397,12 @@ class RadioNetwork(caviar.Plugin):
         bandwidth = np.array([self.cells[max(int(s), 0)].bandwidth_hz for s in serving])
         noise = 10 ** (noise_dbm(bandwidth, self.p.noise_figure_db) / 10)
         silent = self.p.interference == "scheduled"
-        per_slot = slot_sinr_db(self.cells, self.beam_gains, serving, best, beams, noise, silent)
+        per_slot = slot_sinr_db(self.cells, self.beam_gains, serving, best, beams, noise, silent, self.p.device)
         weights = self.p.link.subband_prbs if self.beam_gains.shape[2] > 1 else np.ones(1)
         flat = np.average(self.beam_gains, axis=2, weights=weights)[:, :, None, :]
         with np.errstate(divide="ignore"):  # (no signal: -inf, reported as None)
-            sinr, sir = (10 * np.log10(np.mean(10 ** (slot_sinr_db(self.cells, flat, serving, best, beams, n, silent)
-                                                      [:, :, 0] / 10), axis=0))
+            sinr, sir = (10 * np.log10(np.mean(10 ** (slot_sinr_db(self.cells, flat, serving, best, beams, n, silent,
+                                                                   self.p.device)[:, :, 0] / 10), axis=0))
                          for n in (noise, np.zeros(len(serving))))
         return per_slot, sinr, sir
 

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -37,6 +37,7 @@ from caviar_plugins.constants import SPEED_OF_LIGHT
 from caviar_plugins.network.cells import Cell, pattern_gain_db
 from caviar_plugins.rt.drjit_setup import configure_drjit, set_thread_count
 from caviar_plugins.rt.scene import load_scene
+from caviar_plugins.torch_device import resolve, to_numpy, to_torch
 
 NO_PATH_DB = -250.0
 """The gain of a cell no traced path connects to a UE: far below any noise floor."""
@@ -116,11 +117,20 @@ class TracedChannels:
     def amplitudes(self, position: np.ndarray, frequencies_hz: np.ndarray) -> np.ndarray:
         """[ue, cell, path, freq]: each path's coefficient with the UEs at ``position`` [ue, 3],
         at baseband ``frequencies_hz`` (offsets from the carrier)."""
-        f = np.asarray(frequencies_hz, dtype=float)
-        shorter = np.einsum("ucpk,uk->ucp", self.arrival, np.asarray(position) - self.position)  # m
-        phase = 2 * np.pi * ((self.carrier_hz + f) * (shorter / SPEED_OF_LIGHT)[..., None]
-                             - self.delay_s[..., None] * f)
-        return self.amplitude[..., None] * np.exp(1j * phase)
+        return to_numpy(self.amplitudes_on("cpu", position, frequencies_hz))
+
+    def amplitudes_on(self, device: Any, position: np.ndarray, frequencies_hz: np.ndarray) -> Any:
+        """:meth:`amplitudes` as a complex128 tensor on the torch ``device`` (a setting or a
+        ``torch.device``), computed there: a step's channel at scale is millions of phases."""
+        import torch
+
+        dev = resolve(device)
+        f = to_torch(frequencies_hz, dev, torch.float64)
+        arrival, delay = to_torch(self.arrival, dev, torch.float64), to_torch(self.delay_s, dev, torch.float64)
+        moved = to_torch(np.asarray(position, dtype=float) - self.position, dev, torch.float64)
+        shorter = torch.einsum("ucpk,uk->ucp", arrival, moved)  # m
+        phase = 2 * np.pi * ((self.carrier_hz + f) * (shorter / SPEED_OF_LIGHT)[..., None] - delay[..., None] * f)
+        return to_torch(self.amplitude, dev, torch.complex128)[..., None] * torch.polar(torch.ones_like(phase), phase)
 
     def gain_db(self, position: np.ndarray, frequencies_hz: np.ndarray) -> np.ndarray:
         """[ue, cell, freq]: |H|² (dB) with the UEs at ``position`` [ue, 3], at baseband
@@ -133,10 +143,15 @@ class TracedChannels:
                               None if self.departure is None else self.departure[index])
 
 
-def summed_db(amplitudes: np.ndarray) -> np.ndarray:
+def summed_db(amplitudes: Any) -> np.ndarray:
     """[ue, cell, freq]: |Σ_paths a|² (dB) of path coefficients [ue, cell, path, freq]
-    (:meth:`TracedChannels.amplitudes`), floored at ``NO_PATH_DB``."""
-    return 10 * np.log10(np.maximum(np.abs(amplitudes.sum(axis=-2)) ** 2, 10 ** (NO_PATH_DB / 10)))
+    (:meth:`TracedChannels.amplitudes`, numpy, or :meth:`TracedChannels.amplitudes_on`, a
+    tensor, summed where it is), floored at ``NO_PATH_DB``."""
+    import torch
+
+    a = amplitudes if isinstance(amplitudes, torch.Tensor) else to_torch(amplitudes, "cpu")
+    power = torch.abs(a.sum(dim=-2)) ** 2
+    return to_numpy(10 * torch.log10(torch.clamp(power, min=10 ** (NO_PATH_DB / 10))))
 
 
 class SiteTracer:

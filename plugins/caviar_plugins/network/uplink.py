@@ -16,7 +16,7 @@ outer-loop link adaptation.
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -71,27 +71,43 @@ def tx_power_dbm(s: UplinkSettings, pathloss_db: np.ndarray, num_prb: int, devic
     return 10 * np.log10(to_numpy(watts).astype(float)) + 30
 
 
+SLOTS_AT_ONCE = 25
+"""Slots of the uplink's interference gathered at once ([ue, slot, cell, freq] each time)."""
+
+
 def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, carrier_of: np.ndarray,
-                 prb_power_dbm: np.ndarray, scheduled: np.ndarray, noise_prb_mw: float) -> np.ndarray:
+                 prb_power_dbm: np.ndarray, scheduled: np.ndarray, noise_prb_mw: float,
+                 device: Any = "cpu") -> np.ndarray:
     """[slot, ue, freq]: uplink SINR of every UE at its serving cell.
 
     ``desired`` [ue, freq]: gain from the UE to its cell (receive beam or array included);
     ``leak`` [ue, ue', freq]: gain from UE ue' into the cell serving ue, through that cell's
     receive beam toward ue; ``prb_power_dbm`` [ue]: power per PRB; ``scheduled`` [slot, cell]
-    (:func:`~caviar_plugins.network.beams.scheduled_ues`); ``carrier_of`` [cell]. NaN for a UE without a cell."""
-    p = 10 ** (np.asarray(prb_power_dbm, dtype=float) / 10)
+    (:func:`~caviar_plugins.network.beams.scheduled_ues`); ``carrier_of`` [cell]. NaN for a UE
+    without a cell. Computed on the torch ``device`` (a setting or a ``torch.device``)."""
+    import torch
+
+    from caviar_plugins.torch_device import resolve, to_numpy, to_torch
+
+    dev = resolve(device)
+    serving = np.asarray(serving)
     n_slot, n_cell = scheduled.shape
-    out = np.full((n_slot, len(serving), desired.shape[1]), np.nan)
-    for u, s in enumerate(np.asarray(serving)):
-        if s < 0:
-            continue
-        others = [c for c in range(n_cell) if c != s and carrier_of[c] == carrier_of[s]]
-        v = scheduled[:, others]  # [slot, other cell]
-        gain = np.where((v >= 0)[..., None], leak[u, np.maximum(v, 0)], 0.0)  # [slot, other, freq]
-        interference = (p[np.maximum(v, 0)][..., None] * gain).sum(axis=1)
-        with np.errstate(divide="ignore"):  # (no path to its cell: -inf)
-            out[:, u] = 10 * np.log10(p[u] * desired[u] / (noise_prb_mw + interference))
-    return out
+    served = np.flatnonzero(serving >= 0)
+    s = serving[served]
+    # The cells each victim hears: the others on its serving cell's carrier.
+    heard = (carrier_of[None, :] == carrier_of[s][:, None]) & (np.arange(n_cell)[None, :] != s[:, None])
+    p = to_torch(10 ** (np.asarray(prb_power_dbm, dtype=float) / 10), dev, torch.float64)
+    heard_t, leak_t = to_torch(heard, dev), to_torch(leak[served], dev, torch.float64)  # [u, cell], [u, ue', freq]
+    signal = p[to_torch(served, dev)][:, None] * to_torch(desired[served], dev, torch.float64)  # [u, freq]
+    out = torch.full((n_slot, len(serving), desired.shape[1]), float("nan"), dtype=torch.float64, device=dev)
+    for a in range(0, n_slot, SLOTS_AT_ONCE):
+        v = to_torch(scheduled[a:a + SLOTS_AT_ONCE], dev, torch.int64)  # [slot, cell]: the UE each cell hears
+        who = torch.clamp(v, min=0)
+        weight = (heard_t[:, None, :] & (v >= 0)[None]) * p[who][None]  # [u, slot, cell]
+        interference = torch.einsum("usc,uscf->suf", weight, leak_t[:, who])
+        # (no path to its cell: -inf)
+        out[a:a + SLOTS_AT_ONCE, to_torch(served, dev)] = 10 * torch.log10(signal[None] / (noise_prb_mw + interference))
+    return to_numpy(out)
 
 
 def noise_per_prb_mw(subcarrier_spacing_hz: float, noise_figure_db: float) -> float:
@@ -133,5 +149,5 @@ def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm
     scheduled = scheduled_ues(serving if talking is None else np.where(talking, serving, -1), len(cells), slots)
     carriers = np.array([c.carrier_hz for c in cells])
     sinr = slot_sinr_db(desired, leak, serving, carriers, tx - 10 * np.log10(num_prb), scheduled,
-                        noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db))
+                        noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db), device)
     return tx, sinr
