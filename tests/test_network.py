@@ -180,9 +180,8 @@ def test_the_compiled_link_level_decides_as_eager_and_reaches_the_bler_target():
     np.testing.assert_array_equal(compiled.prbs, eager.prbs)
     np.testing.assert_allclose(compiled.sinr_eff_db, eager.sinr_eff_db, atol=1e-4)
     np.testing.assert_allclose(compiled.tbler, eager.tbler, atol=1e-5)
-    # The whole group of slots is one compiled program: few torch operations run outside it
-    # (on a GPU, each would be a kernel launch), where eager runs hundreds: the operations
-    # a group adds, from calls of 1 and 11 groups.
+    # The whole group of slots is one compiled program: few torch operations run outside it (on a
+    # GPU, each a kernel launch), where eager runs hundreds: what a group adds, calls of 1 and 11 groups.
     compiled_ll.run(sinr, serving)  # (its second call compiles once more: the blocks are built)
     longer = np.concatenate([sinr] * 11)
     per_group = {name: (top_level_torch_ops(lambda ll=ll: ll.run(longer, serving))

@@ -39,6 +39,11 @@ def one_blas_thread() -> Any:
     return _blas_controller().limit(limits=1, user_api="blas")
 
 
+HOST = "cpu"
+"""The host's device, where numpy's arrays are: the default of the functions that take numpy
+and compute in torch on a ``device`` (the link level's, where they run in the loop)."""
+
+
 def resolve(setting: Any = "auto") -> Any:
     """The ``torch.device`` of a setting: ``auto`` (Sionna's, ``sionna.phy.config.device``),
     ``cpu``, ``cuda``, ``cuda:1``... (a ``torch.device`` is its own)."""

@@ -33,7 +33,7 @@ import numpy as np
 
 from caviar_plugins.constants import SPEED_OF_LIGHT
 from caviar_plugins.network.cells import Cell, pattern_gain_db
-from caviar_plugins.torch_device import one_blas_thread, resolve, to_numpy, to_torch
+from caviar_plugins.torch_device import HOST, one_blas_thread, resolve, to_numpy, to_torch
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,9 +177,10 @@ def gains_of_responses(amplitude: Any, responses: Any) -> np.ndarray:
     on the device of whichever is a tensor (the amplitudes', where both are)."""
     import torch
 
-    dev = next((x.device for x in (amplitude, responses) if isinstance(x, torch.Tensor)), torch.device("cpu"))
-    a, r = (x if isinstance(x, torch.Tensor) else to_torch(x, dev) for x in (amplitude, responses))
-    return to_numpy(torch.abs(torch.matmul(a.transpose(2, 3), r.to(dev))) ** 2)
+    dev = next((x.device for x in (amplitude, responses) if isinstance(x, torch.Tensor)), resolve(HOST))
+    a, r = (x.to(dev, torch.complex128) if isinstance(x, torch.Tensor) else to_torch(x, dev, torch.complex128)
+            for x in (amplitude, responses))
+    return to_numpy(torch.abs(torch.matmul(a.transpose(2, 3), r)) ** 2)
 
 
 def scheduled_ues(serving: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
@@ -201,7 +202,7 @@ def slot_beams(serving: np.ndarray, best_beam: np.ndarray, n_cells: int, slots: 
 
 
 def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, best_beam: np.ndarray,
-                 beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool, device: Any = "cpu") -> np.ndarray:
+                 beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool, device: Any = HOST) -> np.ndarray:
     """[slot, ue, freq]: the SINR of every UE on its serving cell's best beam, the other cells
     on its carrier pointing ``beams`` [slot, cell] (:func:`slot_beams`), on the victim's channel
     ``gains`` [ue, cell, freq, beam] (linear). A cell serving nobody is silent with

@@ -37,7 +37,7 @@ from caviar_plugins.constants import SPEED_OF_LIGHT
 from caviar_plugins.network.cells import Cell, pattern_gain_db
 from caviar_plugins.rt.drjit_setup import configure_drjit, set_thread_count
 from caviar_plugins.rt.scene import load_scene
-from caviar_plugins.torch_device import resolve, to_numpy, to_torch
+from caviar_plugins.torch_device import HOST, resolve, to_numpy, to_torch
 
 NO_PATH_DB = -250.0
 """The gain of a cell no traced path connects to a UE: far below any noise floor."""
@@ -117,7 +117,7 @@ class TracedChannels:
     def amplitudes(self, position: np.ndarray, frequencies_hz: np.ndarray) -> np.ndarray:
         """[ue, cell, path, freq]: each path's coefficient with the UEs at ``position`` [ue, 3],
         at baseband ``frequencies_hz`` (offsets from the carrier)."""
-        return to_numpy(self.amplitudes_on("cpu", position, frequencies_hz))
+        return to_numpy(self.amplitudes_on(HOST, position, frequencies_hz))
 
     def amplitudes_on(self, device: Any, position: np.ndarray, frequencies_hz: np.ndarray) -> Any:
         """:meth:`amplitudes` as a complex128 tensor on the torch ``device`` (a setting or a
@@ -149,7 +149,7 @@ def summed_db(amplitudes: Any) -> np.ndarray:
     tensor, summed where it is), floored at ``NO_PATH_DB``."""
     import torch
 
-    a = amplitudes if isinstance(amplitudes, torch.Tensor) else to_torch(amplitudes, "cpu")
+    a = amplitudes if isinstance(amplitudes, torch.Tensor) else to_torch(amplitudes, HOST)
     power = torch.abs(a.sum(dim=-2)) ** 2
     return to_numpy(10 * torch.log10(torch.clamp(power, min=10 ** (NO_PATH_DB / 10))))
 

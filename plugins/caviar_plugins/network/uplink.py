@@ -22,6 +22,7 @@ import numpy as np
 
 from caviar_plugins.network.beams import scheduled_ues
 from caviar_plugins.network.cells import Cell
+from caviar_plugins.torch_device import HOST
 
 ALPHAS = (0.0, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 """TS 38.213's pathloss compensation factors (``msg3-Alpha``/``alpha``)."""
@@ -77,7 +78,7 @@ SLOTS_AT_ONCE = 25
 
 def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, carrier_of: np.ndarray,
                  prb_power_dbm: np.ndarray, scheduled: np.ndarray, noise_prb_mw: float,
-                 device: Any = "cpu") -> np.ndarray:
+                 device: Any = HOST) -> np.ndarray:
     """[slot, ue, freq]: uplink SINR of every UE at its serving cell.
 
     ``desired`` [ue, freq]: gain from the UE to its cell (receive beam or array included);
