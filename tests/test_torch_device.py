@@ -178,64 +178,92 @@ def test_numpy_products_beside_torch_run_on_one_blas_thread_and_the_setting_come
     assert blas_threads() == before
 
 
-def test_the_networks_per_step_channel_arithmetic_stays_on_its_device_and_equals_the_sums_by_hand():
-    """A step's channel at scale (the paths moved, their beam gains, the downlink's and the
-    uplink's per-slot SINR) is computed on the link level's device: under the guard, every
-    operation on that device and every crossing through the helpers; and the results are the
-    sums written out by hand, UE by UE and cell by cell."""
+def network_step(device, n_slot: int = 30):
+    """A step's channel arithmetic of the radio network on ``device``: 4 cells (3 on one
+    carrier, one of them serving nobody; 1 on another), 7 UEs (one unserved; one with nothing
+    to send, so its cell hears nobody in the uplink). Returns the inputs and the results."""
     from caviar_plugins.network.beams import Codebook, beam_responses, gains_of_responses, scheduled_ues, slot_sinr_db
     from caviar_plugins.network.cells import Cell
     from caviar_plugins.network.raytraced import TracedChannels, summed_db
     from caviar_plugins.network.uplink import slot_sinr_db as uplink_sinr_db
 
     rng = np.random.default_rng(5)
-    n_ue, n_cell, n_path, n_f, n_slot = 7, 3, 4, 2, 30
+    n_ue, n_cell, n_path, n_f = 7, 4, 4, 2
     cells = [Cell(name=f"c{k}", site=f"s{k}", index=k, position=(100.0 * k, 0.0, 25.0), azimuth_deg=60.0 * k,
-                  downtilt_deg=4.0, tx_power_dbm=40.0 + k, carrier_hz=3.5e9 if k < 2 else 2.1e9, bandwidth_hz=20e6,
+                  downtilt_deg=4.0, tx_power_dbm=40.0 + k, carrier_hz=3.5e9 if k < 3 else 2.1e9, bandwidth_hz=20e6,
                   array=(2, 4)) for k in range(n_cell)]
-    codebooks = [Codebook(2, 4, 4)] * n_cell
     arrival = rng.normal(size=(n_ue, n_cell, n_path, 3))
     arrival /= np.linalg.norm(arrival, axis=-1, keepdims=True)
     channels = TracedChannels(amplitude=(rng.normal(size=(n_ue, n_cell, n_path)) + 1j) * 1e-5,
                               delay_s=rng.uniform(0, 1e-6, (n_ue, n_cell, n_path)), arrival=arrival,
                               position=rng.uniform(-50, 50, (n_ue, 3)), carrier_hz=3.5e9,
                               power_sum_db=np.zeros((n_ue, n_cell)), departure=-arrival)
-    moved, f = channels.position + rng.normal(size=(n_ue, 3)), np.array([-5e6, 5e6])
-    serving = np.array([0, 1, 2, -1, 0, 1, 0])
-    best = rng.integers(0, 4, n_ue)
-    pointed = scheduled_ues(serving, n_cell, n_slot)
-    beams_of = np.where(pointed >= 0, best[np.maximum(pointed, 0)], -1)
-    noise = np.full(n_ue, 1e-12)
-    desired, leak = rng.exponential(1e-9, (n_ue, n_f)), rng.exponential(1e-11, (n_ue, n_ue, n_f))
-    power = rng.uniform(-10.0, 10.0, n_ue)
-    carriers = np.array([c.carrier_hz for c in cells])
-    with DeviceGuard("cpu") as guard:
-        amplitude = channels.amplitudes_on("cpu", moved, f)
-        gains_db = summed_db(amplitude)
-        gains = gains_of_responses(amplitude, beam_responses(cells, codebooks, channels.departure))
-        downlink = slot_sinr_db(cells, gains, serving, best, beams_of, noise, silent_idle=False, device="cpu")
-        uplink = uplink_sinr_db(desired, leak, serving, carriers, power, pointed, 1e-13, device="cpu")
+    x = {"channels": channels, "cells": cells, "moved": channels.position + rng.normal(size=(n_ue, 3)),
+         "f": np.array([-5e6, 5e6]), "serving": np.array([0, 1, 3, -1, 0, 1, 0]), "best": rng.integers(0, 4, n_ue),
+         "noise": np.full(n_ue, 1e-12), "desired": rng.exponential(1e-9, (n_ue, n_f)),
+         "leak": rng.exponential(1e-11, (n_ue, n_ue, n_f)), "power": rng.uniform(-10.0, 10.0, n_ue),
+         "carriers": np.array([c.carrier_hz for c in cells])}
+    x["pointed"] = scheduled_ues(x["serving"], n_cell, n_slot)  # (cell 2 serves nobody: -1)
+    x["beams_of"] = np.where(x["pointed"] >= 0, x["best"][np.maximum(x["pointed"], 0)], -1)
+    x["heard"] = scheduled_ues(np.where(np.arange(n_ue) == 1, -1, x["serving"]), n_cell, n_slot)  # UE 1: silent
+    amplitude = channels.amplitudes_on(device, x["moved"], x["f"])
+    gains = gains_of_responses(amplitude, beam_responses(cells, [Codebook(2, 4, 4)] * n_cell, -arrival, device))
+    return x, {"amplitude": amplitude, "gains_db": summed_db(amplitude), "gains": gains,
+               "downlink": slot_sinr_db(cells, gains, x["serving"], x["best"], x["beams_of"], x["noise"],
+                                        silent_idle=False, device=device),
+               "uplink": uplink_sinr_db(x["desired"], x["leak"], x["serving"], x["carriers"], x["power"], x["heard"],
+                                        1e-13, device=device)}
+
+
+def test_the_networks_per_step_channel_arithmetic_stays_on_a_second_device(monkeypatch):
+    """On a device that is not the host's (``meta``: shapes without values), every operation
+    of a step's channel arithmetic stays there and numpy crosses only through the helpers:
+    the mistakes that would stop it on a GPU fail here."""
+    from caviar_plugins import torch_device
+    from caviar_plugins.network import beams, raytraced
+
+    def shaped(tensor):  # (a meta tensor has no values to read)
+        assert tensor.device.type == "meta"
+        return np.zeros(tuple(tensor.shape))
+
+    for module in (torch_device, beams, raytraced):
+        monkeypatch.setattr(module, "to_numpy", shaped)
+    with DeviceGuard("meta") as guard:
+        _, out = network_step(torch.device("meta"))
     assert guard.operations > 20
+    assert out["amplitude"].device.type == "meta" and out["downlink"].shape == (30, 7, 2) == out["uplink"].shape
+
+
+def test_the_networks_per_step_channel_arithmetic_equals_the_sums_by_hand():
+    """A step's channel at scale (the paths moved, their beam gains, the downlink's and the
+    uplink's per-slot SINR) as torch computes it on the link level's device, against the sums
+    written out by hand, UE by UE and cell by cell."""
+    with DeviceGuard("cpu") as guard:
+        x, out = network_step(torch.device("cpu"))
+    assert guard.operations > 20
+    ch, f, serving, best, gains = x["channels"], x["f"], x["serving"], x["best"], out["gains"]
     # By hand: each path's phase, summed over paths.
-    shorter = np.einsum("ucpk,uk->ucp", arrival, moved - channels.position)
-    a = channels.amplitude[..., None] * np.exp(2j * np.pi * ((3.5e9 + f) * shorter[..., None] / 299_792_458.0
-                                                             - channels.delay_s[..., None] * f))
-    np.testing.assert_allclose(to_numpy(amplitude), a, rtol=1e-9)
-    np.testing.assert_allclose(gains_db, 10 * np.log10(np.abs(a.sum(axis=2)) ** 2), rtol=1e-9)
+    shorter = np.einsum("ucpk,uk->ucp", ch.arrival, x["moved"] - ch.position)
+    a = ch.amplitude[..., None] * np.exp(2j * np.pi * ((3.5e9 + f) * shorter[..., None] / 299_792_458.0
+                                                       - ch.delay_s[..., None] * f))
+    np.testing.assert_allclose(to_numpy(out["amplitude"]), a, rtol=1e-9)
+    np.testing.assert_allclose(out["gains_db"], 10 * np.log10(np.abs(a.sum(axis=2)) ** 2), rtol=1e-9)
     # By hand: the downlink, victim by victim, the other cells on its carrier pointing their beam (or
     # sending over their codebook evenly when they serve nobody); the uplink, the UE each other cell hears.
-    p_cell = 10 ** (np.array([c.tx_power_dbm for c in cells]) / 10)
-    p_ue = 10 ** (power / 10)
-    for u in range(n_ue):
+    p_cell = 10 ** (np.array([c.tx_power_dbm for c in x["cells"]]) / 10)
+    p_ue, carriers, beams_of, heard = 10 ** (x["power"] / 10), x["carriers"], x["beams_of"], x["heard"]
+    assert (beams_of[:, 2] == -1).all() and (heard == -1).any()  # (an idle cell; a cell hearing nobody)
+    for u in range(len(serving)):
         s = serving[u]
         if s < 0:
-            assert np.isnan(downlink[:, u]).all() and np.isnan(uplink[:, u]).all()
+            assert np.isnan(out["downlink"][:, u]).all() and np.isnan(out["uplink"][:, u]).all()
             continue
-        for k in range(n_slot):
-            others = [c for c in range(n_cell) if c != s and carriers[c] == carriers[s]]
+        for k in range(len(beams_of)):
+            others = [c for c in range(len(carriers)) if c != s and carriers[c] == carriers[s]]
             dl_i = sum(p_cell[c] * (gains[u, c, :, beams_of[k, c]] if beams_of[k, c] >= 0 else gains[u, c].mean(-1))
                        for c in others)
-            np.testing.assert_allclose(downlink[k, u], 10 * np.log10(p_cell[s] * gains[u, s, :, best[u]]
-                                                                     / (noise[u] + dl_i)), rtol=1e-9)
-            ul_i = sum(p_ue[pointed[k, c]] * leak[u, pointed[k, c]] for c in others if pointed[k, c] >= 0)
-            np.testing.assert_allclose(uplink[k, u], 10 * np.log10(p_ue[u] * desired[u] / (1e-13 + ul_i)), rtol=1e-9)
+            np.testing.assert_allclose(out["downlink"][k, u], 10 * np.log10(p_cell[s] * gains[u, s, :, best[u]]
+                                                                            / (x["noise"][u] + dl_i)), rtol=1e-9)
+            ul_i = sum(p_ue[heard[k, c]] * x["leak"][u, heard[k, c]] for c in others if heard[k, c] >= 0)
+            np.testing.assert_allclose(out["uplink"][k, u], 10 * np.log10(p_ue[u] * x["desired"][u] / (1e-13 + ul_i)),
+                                       rtol=1e-9)

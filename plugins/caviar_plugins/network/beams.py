@@ -157,29 +157,34 @@ def all_beam_gains(cells: Sequence[Cell], codebooks: Sequence[Codebook], amplitu
     return gains_of_responses(amplitude, beam_responses(cells, codebooks, departure))
 
 
-def beam_responses(cells: Sequence[Cell], codebooks: Sequence[Codebook], departure: np.ndarray) -> np.ndarray:
+def beam_responses(cells: Sequence[Cell], codebooks: Sequence[Codebook], departure: np.ndarray,
+                   device: Any = HOST) -> Any:
     """[ue, cell, path, beam]: each path's response to each beam of its cell's codebook,
     ``e(k_p)ᵀ w_b`` for paths leaving along ``departure`` [ue, cell, path, 3] (0 past a
-    smaller codebook's beams). It changes only where the paths are traced again, so a caller
-    keeps it from one trace to the next (:func:`gains_of_responses` per step)."""
+    smaller codebook's beams), a complex128 tensor on the torch ``device``. It changes only
+    where the paths are traced again, so a caller keeps it there from one trace to the next
+    (:func:`gains_of_responses` per step)."""
+    import torch
+
     width = max(cb.size for cb in codebooks)
     out = np.zeros((*departure.shape[:3], width), dtype=complex)
     with one_blas_thread():  # (numpy's BLAS threads would spin on the cores torch needs next)
         for c, (cell, cb) in enumerate(zip(cells, codebooks, strict=True)):
             u, v = panel_frequencies(cell, departure[:, c])
             out[:, c, :, :cb.size] = steering(cb.rows, cb.cols, u, v) @ cb.weights().T
-    return out
+    return to_torch(out, resolve(device), torch.complex128)
 
 
-def gains_of_responses(amplitude: Any, responses: Any) -> np.ndarray:
+def gains_of_responses(amplitude: Any, responses: Any, rows: np.ndarray | None = None) -> np.ndarray:
     """[ue, cell, freq, beam]: ``|Σ_p a_p e(k_p)ᵀ w_b|²`` for path amplitudes [ue, cell, path,
-    freq] and the paths' :func:`beam_responses` [ue, cell, path, beam]: one batched product,
-    on the device of whichever is a tensor (the amplitudes', where both are)."""
+    freq] (numpy or a tensor) and the paths' :func:`beam_responses` (of the UEs ``rows`` of
+    them, None: all): one batched product, on the responses' device."""
     import torch
 
-    dev = next((x.device for x in (amplitude, responses) if isinstance(x, torch.Tensor)), resolve(HOST))
-    a, r = (x.to(dev, torch.complex128) if isinstance(x, torch.Tensor) else to_torch(x, dev, torch.complex128)
-            for x in (amplitude, responses))
+    dev = responses.device
+    r = responses if rows is None else responses[to_torch(rows, dev)]
+    a = amplitude.to(dev, torch.complex128) if isinstance(amplitude, torch.Tensor) else \
+        to_torch(amplitude, dev, torch.complex128)
     return to_numpy(torch.abs(torch.matmul(a.transpose(2, 3), r)) ** 2)
 
 
@@ -236,8 +241,8 @@ def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, 
     signal = to_torch(power[s][:, None] * gains[ue, s, :, np.asarray(best_beam)[ue]], dev, torch.float64)  # [ue, freq]
     noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
     out = 10 * torch.log10(signal[None] / (noise[None, :, None] + interference))  # (no signal: -inf; SIR alone: NaN)
-    out[:, to_torch(serving < 0, dev)] = float("nan")
-    return to_numpy(out)
+    unserved = to_torch(serving < 0, dev)[None, :, None]
+    return to_numpy(torch.where(unserved, float("nan"), out))  # (a mask, not an indexing: no wait on a GPU)
 
 
 def beam_report(cell: Cell, codebook: Codebook, beam: int) -> dict[str, float | int]:

@@ -249,7 +249,7 @@ class RadioNetwork(caviar.Plugin):
         if self.band_average:
             self.frequencies = dataclasses.replace(p.link, subbands=min(8, p.num_prb)).subband_frequencies_hz
         self.channels: TracedChannels | None = None  # the last trace, rows in self.traced order
-        self.responses: tuple[TracedChannels | None, np.ndarray] = (None, np.zeros(0))  # (trace, its beams')
+        self.responses: tuple[TracedChannels | None, Any] = (None, None)  # (a trace, its paths' beam responses)
         self.traced: dict[str, int] = {}  # UE_Id -> row of self.channels
         self.refreshed_at = -np.inf  # the last refresh on the refresh_s schedule
         self.stochastic: StochasticChannel | None = None
@@ -370,18 +370,18 @@ class RadioNetwork(caviar.Plugin):
         return gains
 
     def _beam_gains(self, ids: list[str], pos: np.ndarray) -> np.ndarray:
-        """[ue, cell, subband, beam]: every cell's SSB beams toward the UEs (linear), from the
-        channel's paths: the straight line, or the paths :meth:`_channel_gains` just moved (their
-        beam responses kept from their trace to the next)."""
+        """[ue, cell, subband, beam]: every cell's SSB beams toward the UEs (linear), from the straight
+        line or the paths :meth:`_channel_gains` just moved (their beam responses kept until the next trace)."""
         if self.tracer is None:
             amplitude, departure = line_of_sight(self.cells, pos)
             return all_beam_gains(self.cells, self.p.codebooks, amplitude[..., None], departure)
-        assert self.channels is not None and self.channels.departure is not None
-        if self.responses[0] is not self.channels:
-            self.responses = (self.channels, beam_responses(self.cells, self.p.codebooks, self.channels.departure))
+        ch = self.channels
+        assert ch is not None and ch.departure is not None
+        if self.responses[0] is not ch:  # (kept on the device, from one trace to the next)
+            self.responses = (ch, beam_responses(self.cells, self.p.codebooks, ch.departure, self.p.device))
         rows = np.array([self.traced[u] for u in ids])
-        amplitude = self.channels.amplitude[rows][..., None] if self.p.raytracing.evolve == "hold" else self.amplitude
-        gains = gains_of_responses(amplitude, self.responses[1][rows])
+        amplitude = ch.amplitude[rows][..., None] if self.p.raytracing.evolve == "hold" else self.amplitude
+        gains = gains_of_responses(amplitude, self.responses[1], rows)
         if self.band_average:
             gains = gains.mean(axis=2, keepdims=True)
         return gains

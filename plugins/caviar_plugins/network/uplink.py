@@ -99,7 +99,8 @@ def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, car
     heard = (carrier_of[None, :] == carrier_of[s][:, None]) & (np.arange(n_cell)[None, :] != s[:, None])
     p = to_torch(10 ** (np.asarray(prb_power_dbm, dtype=float) / 10), dev, torch.float64)
     heard_t, leak_t = to_torch(heard, dev), to_torch(leak[served], dev, torch.float64)  # [u, cell], [u, ue', freq]
-    signal = p[to_torch(served, dev)][:, None] * to_torch(desired[served], dev, torch.float64)  # [u, freq]
+    served_t = to_torch(served, dev)
+    signal = p[served_t][:, None] * to_torch(desired[served], dev, torch.float64)  # [u, freq]
     out = torch.full((n_slot, len(serving), desired.shape[1]), float("nan"), dtype=torch.float64, device=dev)
     for a in range(0, n_slot, SLOTS_AT_ONCE):
         v = to_torch(scheduled[a:a + SLOTS_AT_ONCE], dev, torch.int64)  # [slot, cell]: the UE each cell hears
@@ -107,7 +108,7 @@ def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, car
         weight = (heard_t[:, None, :] & (v >= 0)[None]) * p[who][None]  # [u, slot, cell]
         interference = torch.einsum("usc,uscf->suf", weight, leak_t[:, who])
         # (no path to its cell: -inf)
-        out[a:a + SLOTS_AT_ONCE, to_torch(served, dev)] = 10 * torch.log10(signal[None] / (noise_prb_mw + interference))
+        out[a:a + SLOTS_AT_ONCE, served_t] = 10 * torch.log10(signal[None] / (noise_prb_mw + interference))
     return to_numpy(out)
 
 
