@@ -203,8 +203,7 @@ class LinkLevel:
             self._group = self._torch.compile(self._group_eager, dynamic=False)
             # Each UE capacity and each direction compiles its own entries (two each: before and
             # after Sionna's blocks are built); past torch's limit (8) it would fall back to eager.
-            dynamo = self._torch._dynamo.config
-            dynamo.recompile_limit = max(dynamo.recompile_limit, 64)
+            adapter.allow_recompiles(self._torch, 64)
             capacity = max(capacity, COMPILED_CAPACITY)  # each growth compiles again
             print(f"link level: torch.compile for {capacity} UEs at the first slots (about 20 s, once)",
                   file=sys.stderr, flush=True)

@@ -12,6 +12,9 @@ the moving boxes' Doppler shifts writes ``Paths._doppler``.
 proportional-fair scheduler to more UEs and resets a UE's column: their state tensors
 (``_offset``, ``_sinr_eff_db_last``, ``_rate_achieved_past``) have no public setter.
 
+**PyTorch.** The compiled link level raises dynamo's recompile limit
+(:func:`allow_recompiles`), which has no public setter.
+
 Nothing else in this project touches a private name of Sionna (``tests/test_sionna_adapter.py``
 checks it with an allowlist). :func:`problem` checks, on first use, that the installed
 sionna-rt is the minor version this code was written and tested for
@@ -277,3 +280,10 @@ def set_block_state(block: Any, state: dict[str, Any]) -> None:
     set through the module, as an attribute)."""
     for name, value in state.items():
         setattr(block, name, value.clone())
+
+
+def allow_recompiles(torch: Any, at_least: int) -> None:
+    """Lets ``torch.compile`` keep ``at_least`` compiled entries per function (torch's
+    ``_dynamo.config.recompile_limit``, 8 by default; past it a function runs eager)."""
+    config = torch._dynamo.config
+    config.recompile_limit = max(config.recompile_limit, at_least)
