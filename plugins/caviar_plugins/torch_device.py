@@ -85,10 +85,12 @@ def crossing() -> bool:
 
 
 def to_torch(values: Any, device: Any, dtype: Any = None) -> Any:
-    """A tensor of ``values`` (numpy or Python numbers) on ``device``."""
+    """A tensor of ``values`` (numpy, Python numbers, or a tensor, moved) on ``device``."""
     import torch
 
     with _crossing_here():
+        if isinstance(values, torch.Tensor):
+            return values.to(device=device, dtype=dtype)
         return torch.as_tensor(np.asarray(values), dtype=dtype, device=device)
 
 

@@ -183,8 +183,7 @@ def gains_of_responses(amplitude: Any, responses: Any, rows: np.ndarray | None =
 
     dev = responses.device
     r = responses if rows is None else responses[to_torch(rows, dev)]
-    a = amplitude.to(dev, torch.complex128) if isinstance(amplitude, torch.Tensor) else \
-        to_torch(amplitude, dev, torch.complex128)
+    a = to_torch(amplitude, dev, torch.complex128)
     return to_numpy(torch.abs(torch.matmul(a.transpose(2, 3), r)) ** 2)
 
 

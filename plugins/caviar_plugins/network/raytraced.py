@@ -135,7 +135,7 @@ class TracedChannels:
     def gain_db(self, position: np.ndarray, frequencies_hz: np.ndarray) -> np.ndarray:
         """[ue, cell, freq]: |H|² (dB) with the UEs at ``position`` [ue, 3], at baseband
         ``frequencies_hz`` (offsets from the carrier)."""
-        return summed_db(self.amplitudes(position, frequencies_hz))
+        return summed_db(self.amplitudes_on(HOST, position, frequencies_hz))
 
     def rows(self, index: np.ndarray) -> TracedChannels:
         return TracedChannels(self.amplitude[index], self.delay_s[index], self.arrival[index],
