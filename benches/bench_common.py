@@ -3,8 +3,6 @@ variants in turn, and the accuracy summary of links against a reference."""
 
 from __future__ import annotations
 
-import os
-import platform
 import statistics
 import time
 
@@ -16,19 +14,11 @@ configure_drjit()
 
 
 def machine() -> str:
-    import drjit
+    """The machine this run measured on, as it is (CPU, GPU, Dr.Jit variant, torch device):
+    :func:`caviar_plugins.machine.summary`. (A development machine: nothing else heavy ran.)"""
+    from caviar_plugins.machine import summary
 
-    cpu = "unknown CPU"
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (f"{cpu}, {os.cpu_count()} cores (a development machine: nothing else heavy ran), no GPU; "
-            f"{platform.platform()}; Dr.Jit {getattr(drjit, '__version__', '?')} LLVM, sionna-rt "
-            f"{getattr(__import__('sionna.rt').rt, '__version__', '?')}")
+    return summary()
 
 
 def interleaved(old, new, reps: int) -> tuple[float, float]:

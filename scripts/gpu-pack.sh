@@ -11,11 +11,14 @@
 # `pip install --target --no-deps`: Mitsuba, Dr.Jit, Sionna RT and Sionna SYS at this
 # checkout's versions, importlib_resources and nvidia-ml-py; this checkout's caviar (the
 # abi3 wheel maturin builds) and caviar-plugins (with their entry points, through which
-# plugins are found); and three named stand-ins for the notebook packages Sionna RT imports
-# only for its previewer (ipywidgets, pythreejs, IPython), which the GPU machine lacks. To fit,
+# plugins are found); pymavlink with its `all` dialect only (live-uav); and the three named
+# stand-ins of scripts/gpu-standins for the notebook packages Sionna RT imports only for its
+# previewer (ipywidgets, pythreejs, IPython), which the GPU machine lacks. To fit,
 # the Mitsuba variants other than CUDA's mono-polarized (Sionna's) and RGB (the camera's) and
 # Sionna RT's large example scenes are left out. SUMO cannot travel (its wheels are 148 and
-# 86 MB): the SUMO blueprints are reported as skipped there.
+# 86 MB): the SUMO blueprints replay recorded traffic there. ns-3 cannot travel either: the `ns3`
+# wheel alone (3.44, cp312) is 69 MB packed and 283 MB unpacked, and it needs cppyy's Cling
+# besides, over the 64 MiB that travel; sar-ns3 is reported as skipped there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 py=.venv/bin/python
@@ -31,7 +34,8 @@ echo "== wheels for CPython $pyver"
   --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
   --only-binary=:all: \
   "mitsuba==$(version mitsuba)" "drjit==$(version drjit)" "sionna-rt==$(version sionna-rt)" \
-  "sionna-no-rt==$(version sionna-no-rt)" "importlib_resources" "nvidia-ml-py"
+  "sionna-no-rt==$(version sionna-no-rt)" "importlib_resources" "nvidia-ml-py" \
+  "pymavlink==$(version pymavlink)" "fastcrc==$(version fastcrc)"
 
 echo "== caviar (abi3) and caviar-plugins"
 .venv/bin/maturin build --release --quiet --out "$work/wheels" > /dev/null
@@ -39,47 +43,8 @@ echo "== caviar (abi3) and caviar-plugins"
 rm -rf plugins/build  # (setuptools builds in the tree)
 "$py" -m pip install --quiet --target "$site" --no-deps "$work"/wheels/*.whl
 
-echo "== stand-ins for the notebook packages (Sionna RT's previewer only)"
-mkdir -p "$site/ipywidgets" "$site/ipywidgets/embed" "$site/pythreejs" "$site/IPython/display"
-cat > "$site/ipywidgets/__init__.py" <<'PY'
-"""Stand-in (scripts/gpu-pack.sh): Sionna RT imports ipywidgets for its notebook previewer only."""
-from types import SimpleNamespace as _NS
-
-widgets = _NS()
-
-
-def __getattr__(name):
-    raise ImportError(f"ipywidgets.{name}: a stand-in without widgets (no notebook on this machine)")
-PY
-cat > "$site/ipywidgets/embed/__init__.py" <<'PY'
-"""Stand-in (scripts/gpu-pack.sh)."""
-
-
-def embed_snippet(*args, **kwargs):
-    raise RuntimeError("ipywidgets stand-in: no notebook on this machine")
-PY
-cat > "$site/pythreejs/__init__.py" <<'PY'
-"""Stand-in (scripts/gpu-pack.sh): Sionna RT imports pythreejs for its notebook previewer only."""
-
-
-def __getattr__(name):
-    raise ImportError(f"pythreejs.{name}: a stand-in (no notebook on this machine)")
-PY
-cat > "$site/IPython/__init__.py" <<'PY'
-"""Stand-in (scripts/gpu-pack.sh): Sionna RT imports IPython for its notebook previewer only."""
-version_info = (8, 0, 0)
-
-
-def get_ipython():
-    return None
-PY
-cat > "$site/IPython/display/__init__.py" <<'PY'
-"""Stand-in (scripts/gpu-pack.sh)."""
-
-
-def display(*args, **kwargs):
-    return None
-PY
+echo "== stand-ins for the notebook packages (Sionna RT's previewer only; scripts/gpu-standins)"
+cp -r scripts/gpu-standins/ipywidgets scripts/gpu-standins/pythreejs scripts/gpu-standins/IPython "$site/"
 
 echo "== trimming"
 find "$site/mitsuba" -maxdepth 1 \( -name 'llvm_*' -o -name 'scalar_*' -o -name 'cuda_ad_spectral*' \
@@ -89,6 +54,10 @@ rm -rf "$site/mitsuba/include" "$site/mitsuba/cmake" "$site/drjit/include" "$sit
 for scene in munich florence san_francisco etoile; do
   rm -rf "$site/sionna/rt/scenes/$scene"
 done
+# pymavlink (live-uav): the `all` MAVLink 2 dialect only (it parses MAVLink 1 too), 48 MB -> 3 MB.
+find "$site/pymavlink/dialects/v20" -maxdepth 1 -name '*.py' ! -name 'all.py' ! -name '__init__.py' -delete
+rm -rf "$site/pymavlink/dialects/v10" "$site/pymavlink/generator/C" "$site/pymavlink/generator/java" \
+  "$site/pymavlink/message_definitions"
 find "$site" -name '__pycache__' -type d -prune -exec rm -rf {} +
 
 echo "== packing"

@@ -36,16 +36,46 @@ def test_a_short_check_writes_gpu_json_with_the_issues_keys(tmp_path):
 
 def test_the_comparison_by_place_counts_equal_best_pairs_at_the_nearest_place():
     reference = {"links": [[0.0, 0.0, 10.0, 5], [10.0, 0.0, 10.0, 7], [20.0, 0.0, 10.0, 9]],
-                 "mission_result": {"rescued": 6, "mission_time_s": 100.0}}
+                 "mission_result": {"rescued": 6, "mission_time_s": 100.0},
+                 "mission_time_s_by_seed": {"2": 97.5, "3": 104.0}}
     run = {"links": [[0.1, 0.0, 10.0, 5], [10.0, 0.1, 10.0, 7], [19.9, 0.0, 10.0, 8], [50.0, 0.0, 10.0, 1]],
-           "mission_result": {"rescued": 6, "mission_time_s": 100.0}}
+           "mission_result": {"rescued": 6, "mission_time_s": 102.0}}
     a = gpu_check.agreement(reference, run)
-    assert a == {"links": 4, "matched_by_place": 3, "same_best_pair": round(2 / 3, 4), "same_outcome": True,
+    assert a == {"links": 4, "matched_by_place": 3, "same_best_pair": round(2 / 3, 4), "same_rescued": True,
+                 "mission_time_in_cpu_spread": True, "cpu_mission_time_spread_s": [97.5, 104.0],
                  "ok": False}  # (one place 30 m from any reference place is not compared)
     run["links"][2][3] = 9
     assert gpu_check.agreement(reference, run)["ok"] is True
-    run["mission_result"]["rescued"] = 5
-    assert gpu_check.agreement(reference, run)["same_outcome"] is False
+    run["mission_result"]["mission_time_s"] = 104.5  # (outside what the CPU gave with any seed)
+    assert gpu_check.agreement(reference, run)["mission_time_in_cpu_spread"] is False
+    assert gpu_check.agreement(reference, run)["ok"] is False
+    run["mission_result"].update(mission_time_s=100.0, rescued=5)
+    assert gpu_check.agreement(reference, run)["same_rescued"] is False
+    del reference["mission_time_s_by_seed"]  # (no spread measured: the reference's own time only)
+    assert gpu_check.agreement(reference, run)["cpu_mission_time_spread_s"] == [100.0, 100.0]
+
+
+def test_kernel_caches_all_go_under_one_root(tmp_path):
+    env = gpu_check.kernel_caches(tmp_path)
+    assert set(env) == {"DRJIT_CACHE_DIR", "OPTIX_CACHE_PATH", "CUDA_CACHE_PATH", "TORCHINDUCTOR_CACHE_DIR",
+                        "TRITON_CACHE_DIR"}
+    assert all(v.startswith(str(tmp_path)) for v in env.values())
+
+
+def test_the_machine_is_named_as_it_is():
+    """The bench helper once said "no GPU ... Dr.Jit LLVM" on an H200: it now reads each part."""
+    import torch
+
+    sys.path.insert(0, str(ROOT / "benches"))
+    from bench_common import machine
+    from caviar_plugins.machine import describe
+
+    d = describe()
+    assert (d["gpu"] is None) == (not torch.cuda.is_available())
+    assert d["drjit_variant"].startswith(("llvm_", "cuda_")) and d["torch_device"]
+    line = machine()
+    assert d["processor"] in line and d["drjit_variant"] in line and f"torch device {d['torch_device']}" in line
+    assert ("no GPU" in line) == (d["gpu"] is None)
 
 
 def test_a_cpu_run_of_the_main_job_agrees_with_the_reference_by_place(tmp_path):

@@ -157,3 +157,18 @@ def _tensors(args, kwargs) -> Iterator[Any]:
             yield from a
         else:
             yield a
+
+
+def gpu_or_host() -> Any:
+    """The first CUDA GPU torch sees, else the host: where models that are not Sionna's run
+    (the detector's YOLO) when their ``device`` is ``auto``."""
+    import torch
+
+    return torch.device("cuda", 0) if torch.cuda.is_available() else torch.device(HOST)
+
+
+def is_cuda(device: Any) -> bool:
+    """Whether ``device`` (a ``torch.device`` or its name) is a CUDA GPU."""
+    import torch
+
+    return torch.device(device).type == "cuda"

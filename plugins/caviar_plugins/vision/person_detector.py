@@ -36,6 +36,7 @@ import caviar
 from caviar_plugins.assets import DATA
 from caviar_plugins.mobility.waypoints import Path, read_waypoints
 from caviar_plugins.schema import DETECTIONS, IMAGES, POSITIONS, every_ue, read_position, ue_of
+from caviar_plugins.torch_device import check_setting
 from caviar_plugins.vision.camera import VisualConfig, VisualScene
 from caviar_plugins.vision.image_link import packet_loss
 
@@ -454,6 +455,13 @@ class PersonDetector(caviar.Plugin):
         batch per half of ``workers``' share, side by side; the same detections, ~4x
         faster at 50 UAVs, and ~2x for one UAV: only its distinct feature rows are
         classified); ``false``: image by image on ``workers`` threads, as before issue #18."""
+        runtime: str = "auto"
+        """YOLO: ``auto`` (torch where it sees a GPU, else onnxruntime), ``onnxruntime`` or
+        ``torch`` (the ONNX graph run by PyTorch on ``device``: the whole step's images in one
+        batch, a CUDA graph on a GPU; :mod:`caviar_plugins.vision.onnx_torch`). Both find the same
+        boxes within float32 rounding."""
+        device: str = "auto"
+        """YOLO through torch: ``auto`` (the first GPU, else the host), ``cpu``, ``cuda`` or ``cuda:N``."""
         seen_images: int = 8
         """An image the same as one of the last ``seen_images`` distinct images of its UE,
         bit for bit, gets that image's detections without the model (it would find the
@@ -477,13 +485,22 @@ class PersonDetector(caviar.Plugin):
         if p.model in BUILTIN:
             self.detector = builtin_model(BUILTIN[p.model])
         elif p.model == "yolo" or p.model.endswith(".onnx"):
-            from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx, onnx_session, takes_images
+            from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx, choose_runtime, onnx_session, takes_images
 
             path = BUILTIN_YOLO if p.model == "yolo" else ctx.resolve(p.model)
-            session = onnx_session(path, p.workers)  # loaded once, whichever kind of model it is
-            if takes_images(session):
+            try:
+                runtime = choose_runtime(p.runtime, check_setting(p.device))
+            except ValueError as e:  # ("device: expected ...", "runtime = 'x': expected ...")
+                raise ValueError(f"params.{e}") from None
+            if runtime == "torch" and p.model == "yolo":  # (the builtin model takes images)
                 self.detector = YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class,
-                                                            session=session))
+                                                            runtime="torch", device=p.device))
+            elif takes_images(session := onnx_session(path, p.workers)):  # loaded once, whichever kind
+                self.detector = YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class,
+                                                            session=session, runtime=runtime, device=p.device))
+            elif p.runtime == "torch":
+                raise ValueError(f"params.runtime = 'torch': {path} is a pixel classifier, not an image "
+                                 "model; it runs with onnxruntime")
             else:
                 self.detector = PixelDetector(OnnxPixelModel(path, session))
         else:

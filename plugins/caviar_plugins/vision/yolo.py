@@ -1,4 +1,4 @@
-"""YOLO person detection from an ONNX file, with onnxruntime (no torch at run time).
+"""YOLO person detection from an ONNX file, with onnxruntime, or with torch on its device.
 
 Any YOLOv8 / YOLO11-style detector exported to ONNX (Ultralytics' ``model.export(format=
 "onnx")``, or one trained on real drone footage) runs here. What is read from the file:
@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 import sys
+from typing import Any
 
 import numpy as np
 
@@ -123,41 +124,110 @@ def takes_images(session) -> bool:
     return len(inputs) == 1 and len(inputs[0].shape) == 4
 
 
+RUNTIMES = ("auto", "onnxruntime", "torch")
+"""How a YOLO file runs: ``onnxruntime`` (its CUDA provider where installed, else the CPU),
+``torch`` (the graph through PyTorch on torch's device, :mod:`caviar_plugins.vision.onnx_torch`)
+or ``auto``: torch where it sees a GPU, else onnxruntime."""
+
+
+def torch_sees_gpu() -> bool:
+    try:
+        import torch
+    except ImportError:
+        return False
+    return bool(torch.cuda.is_available())
+
+
+def choose_runtime(runtime: str, device: str = "auto") -> str:
+    """``onnxruntime`` or ``torch`` for a ``runtime`` setting (:data:`RUNTIMES`) and torch
+    ``device`` setting (a device named other than ``auto`` means torch)."""
+    if runtime not in RUNTIMES:
+        raise ValueError(f"runtime = {runtime!r}: expected one of {', '.join(RUNTIMES)}")
+    if runtime == "auto":
+        return "torch" if device != "auto" or torch_sees_gpu() else "onnxruntime"
+    return runtime
+
+
+def torch_device_of(device: str = "auto"):
+    """The ``torch.device`` YOLO runs on: ``auto`` is the first GPU where torch sees one, else the host."""
+    import torch
+
+    from caviar_plugins.torch_device import check_setting, gpu_or_host, is_cuda
+
+    check_setting(device)
+    if device == "auto":
+        return gpu_or_host()
+    if is_cuda(device) and not torch.cuda.is_available():
+        raise ValueError(f"device = {device!r}: torch sees no CUDA GPU here (use 'auto' or the host)")
+    return torch.device(device)
+
+
 class YoloOnnx:
     """A YOLO detector in an ONNX file (layouts in the module's text); ``session``: the file
-    already loaded (:func:`onnx_session`)."""
+    already loaded (:func:`onnx_session`). ``runtime``: ``onnxruntime`` (the default here) or
+    ``torch`` on ``device`` (:data:`RUNTIMES`; :class:`~caviar_plugins.vision.onnx_torch.TorchGraph`:
+    the whole batch in one run, on the GPU as a CUDA graph); both find the same boxes, within
+    float32 rounding on the CPU (``tests/test_yolo_torch.py``)."""
 
     def __init__(self, path, confidence: float = 0.25, iou_threshold: float = 0.45, person_class: int = 0,
-                 imgsz: tuple[int, int] | None = None, threads: int = 0, session=None):
+                 imgsz: tuple[int, int] | None = None, threads: int = 0, session=None,
+                 runtime: str = "onnxruntime", device: str = "auto"):
         path = pathlib.Path(path)
         if person_class < 0:
             raise ValueError(f"{path}: person_class = {person_class}: expected a class index (0 or more)")
         if not 0.0 <= confidence <= 1.0:
             raise ValueError(f"{path}: confidence = {confidence}: expected a score between 0 and 1")
-        self.session = session if session is not None else onnx_session(path, threads, "YOLO ONNX")
-        inputs = self.session.get_inputs()
-        if len(inputs) != 1 or len(inputs[0].shape) != 4 or inputs[0].shape[1] not in (3, "3", None) and \
-                not isinstance(inputs[0].shape[1], str):
-            raise ValueError(f"{path}: expected one image input (N, 3, H, W), got "
-                             f"{[(i.name, i.shape) for i in inputs]}")
-        self.input = inputs[0].name
-        h, w = inputs[0].shape[2:]
-        meta = self.session.get_modelmeta().custom_metadata_map
+        self.runtime = choose_runtime(runtime, device)
+        self.session: Any = None
+        self.graph: Any = None
+        if self.runtime == "torch":
+            from caviar_plugins.vision.onnx_torch import TorchGraph
+
+            self.graph = TorchGraph(path, torch_device_of(device))
+            self.input, input_shape = self.graph.input, self.graph.input_shape
+            output_shape, output_name = self.graph.output_shape, self.graph.output
+            meta = self.graph.metadata
+        else:
+            self.session = session if session is not None else onnx_session(path, threads, "YOLO ONNX")
+            inputs = self.session.get_inputs()
+            if len(inputs) != 1:
+                raise ValueError(f"{path}: expected one image input (N, 3, H, W), got "
+                                 f"{[(i.name, i.shape) for i in inputs]}")
+            self.input, input_shape = inputs[0].name, list(inputs[0].shape)
+            output_shape, output_name = self.session.get_outputs()[0].shape, self.session.get_outputs()[0].name
+            meta = self.session.get_modelmeta().custom_metadata_map
+        if len(input_shape) != 4 or input_shape[1] not in (3, "3", None) and not isinstance(input_shape[1], str):
+            raise ValueError(f"{path}: expected one image input (N, 3, H, W), got {self.input} {input_shape}")
+        self.batch = input_shape[0] if isinstance(input_shape[0], int) else None
+        h, w = input_shape[2:]
         if not (isinstance(h, int) and isinstance(w, int)):
             if imgsz is None and "imgsz" in meta:
                 imgsz = tuple(int(v) for v in meta["imgsz"].strip("[]() ").split(","))  # type: ignore[assignment]
             if imgsz is None:
-                raise ValueError(f"{path}: the input size is dynamic ({inputs[0].shape}) and the file has no "
+                raise ValueError(f"{path}: the input size is dynamic ({input_shape}) and the file has no "
                                  "'imgsz' metadata: give imgsz = [H, W]")
             h, w = imgsz
         self.size = (int(h), int(w))
-        out = self.session.get_outputs()[0].shape
-        if len(out) != 3:
+        if len(output_shape) != 3:
             raise ValueError(f"{path}: expected a detection output (N, 4 + classes, anchors) or (N, K, 6), got "
-                             f"{self.session.get_outputs()[0].name} {out}")
+                             f"{output_name} {output_shape}")
         self.path = path
         self.confidence, self.iou_threshold, self.person_class = confidence, iou_threshold, person_class
         self.names = meta.get("names", "")
+
+    def run(self, batch: np.ndarray) -> np.ndarray:
+        """The model's first output for ``batch`` (N, 3, H, W) float32, as numpy."""
+        if self.graph is not None:  # (any batch size: see onnx_torch)
+            from caviar_plugins.torch_device import to_numpy
+
+            return to_numpy(self.graph(batch))
+        fixed = self.batch
+        if fixed is not None and fixed != len(batch):  # a batch size baked into the file
+            pad = -len(batch) % fixed  # the last chunk filled with grey frames, their outputs dropped
+            padded = np.concatenate([batch, np.full((pad, *batch.shape[1:]), 114 / 255.0, dtype=np.float32)])
+            outs = [self.session.run(None, {self.input: padded[i:i + fixed]})[0] for i in range(0, len(padded), fixed)]
+            return np.concatenate(outs)[:len(batch)]
+        return self.session.run(None, {self.input: batch})[0]
 
     def letterbox(self, image: np.ndarray) -> tuple[np.ndarray, float, tuple[float, float]]:
         """The model's input for ``image`` (H, W, 3 uint8), the scale and the (x, y) padding."""
@@ -180,14 +250,7 @@ class YoloOnnx:
             return []
         prepared = [self.letterbox(im) for im in images]
         batch = np.stack([p[0] for p in prepared]).transpose(0, 3, 1, 2).astype(np.float32) / 255.0
-        fixed = self.session.get_inputs()[0].shape[0]
-        if isinstance(fixed, int) and fixed != len(images):  # a batch size baked into the file
-            pad = -len(batch) % fixed  # the last chunk filled with grey frames, their outputs dropped
-            padded = np.concatenate([batch, np.full((pad, *batch.shape[1:]), 114 / 255.0, dtype=np.float32)])
-            outs = [self.session.run(None, {self.input: padded[i:i + fixed]})[0] for i in range(0, len(padded), fixed)]
-            raw = np.concatenate(outs)[:len(images)]
-        else:
-            raw = self.session.run(None, {self.input: batch})[0]
+        raw = self.run(batch)
         result = []
         for i, (_, r, (left, top)) in enumerate(prepared):
             boxes, scores = self._decode(np.asarray(raw[i], dtype=np.float32))

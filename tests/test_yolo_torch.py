@@ -1,0 +1,127 @@
+"""YOLO through PyTorch (issue #53, part 2): the ONNX graph run by torch finds the same boxes as
+onnxruntime, on whole batches, without reading a device value (so without waiting for a GPU);
+``runtime``/``device`` choose it, and bad settings or files are named. On the GPU it runs as a
+CUDA graph: ``scripts/gpu_check.py`` times it there."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import caviar
+from caviar_plugins.vision import yolo
+from caviar_plugins.vision.onnx_torch import TorchGraph
+from caviar_plugins.vision.twin_frames import write_dataset
+from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx, choose_runtime
+from caviar_plugins.vision.yolo_eval import held_out_frames
+from conftest import write_config
+
+onnx = pytest.importorskip("onnx")
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory):
+    """24 held-out frames of the twin (persons, distractors, lost packets), 160 x 120."""
+    out = tmp_path_factory.mktemp("frames")
+    write_dataset(out, {"test": 24}, progress=False)
+    return held_out_frames(out)[0]
+
+
+def test_torch_runs_the_graph_as_onnxruntime_does_and_finds_the_same_boxes(images):
+    ort = YoloOnnx(BUILTIN_YOLO, confidence=0.05)
+    torch_ = YoloOnnx(BUILTIN_YOLO, confidence=0.05, runtime="torch", device="cpu")
+    assert torch_.runtime == "torch" and torch_.session is None and torch_.size == ort.size == (128, 160)
+    batch = np.stack([ort.letterbox(im)[0] for im in images]).transpose(0, 3, 1, 2).astype(np.float32) / 255
+    a, b = ort.run(batch), torch_.run(batch)  # ONNX: 24 runs of the file's batch of 1; torch: one of 24
+    assert a.shape == b.shape == (24, 5, 1680)
+    # The raw outputs: boxes in input pixels (0-160), scores (sigmoid): float32 rounding apart.
+    np.testing.assert_allclose(b[:, :4], a[:, :4], atol=2e-3)
+    np.testing.assert_allclose(b[:, 4], a[:, 4], atol=2e-5)
+    found_a, found_b = ort.detect_many(images), torch_.detect_many(images)
+    boxes = 0
+    for fa, fb in zip(found_a, found_b, strict=True):
+        assert len(fa) == len(fb)  # (no score within 2e-5 of the threshold in these frames)
+        for x, y in zip(fa, fb, strict=True):
+            assert [y.x0, y.y0, y.x1, y.y1] == pytest.approx([x.x0, x.y0, x.x1, x.y1], abs=2e-3)
+            assert y.score == pytest.approx(x.score, abs=2e-5)
+        boxes += len(fa)
+    assert boxes >= 10  # (persons were found: the comparison is not of empty lists)
+    # One image alone gives what it gives in the batch (the batch the file baked in is not assumed).
+    alone = [v for d in torch_.detect(images[3]) for v in (d.x0, d.y0, d.score)]
+    assert len(alone) >= 3 and alone == pytest.approx([v for d in found_b[3] for v in (d.x0, d.y0, d.score)], abs=1e-4)
+
+
+def test_the_graph_never_reads_a_device_value():
+    """On torch's ``meta`` device tensors hold no values: any read of one (a shape computed on
+    the device, a scale read back) fails. The run ends, with the output's shape for any batch:
+    on a GPU it waits for nothing and can be captured as a CUDA graph."""
+    graph = TorchGraph(BUILTIN_YOLO, device="meta", cuda_graphs=False)
+    for n in (1, 7):
+        out = graph(np.zeros((n, 3, 128, 160), np.float32))
+        assert out.device.type == "meta" and tuple(out.shape) == (n, 5, 1680)
+    assert graph.file_batch == 1 and graph.metadata["imgsz"] == "[128, 160]"
+    with pytest.raises(ValueError, match="cuda_graphs needs a CUDA device"):
+        TorchGraph(BUILTIN_YOLO, device="meta", cuda_graphs=True)
+
+
+def tiny_model(path, op: str) -> None:
+    from onnx import TensorProto, helper
+
+    x = helper.make_tensor_value_info("images", TensorProto.FLOAT, [1, 3, 8, 8])
+    y = helper.make_tensor_value_info("out", TensorProto.FLOAT, [1, 3, 8, 8])
+    graph = helper.make_graph([helper.make_node(op, ["images"], ["out"], name="head")], "g", [x], [y])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), str(path))
+
+
+def test_bad_files_and_settings_are_named(tmp_path):
+    tiny_model(tmp_path / "tanh.onnx", "Tanh")
+    with pytest.raises(ValueError, match=r"tanh.onnx: node 0 \(Tanh 'head'\): the operator Tanh is not one torch "
+                                         r"runs here .* use runtime = \"onnxruntime\""):
+        TorchGraph(tmp_path / "tanh.onnx")
+    tiny_model(tmp_path / "sig.onnx", "Sigmoid")
+    x = np.linspace(-4, 4, 192, dtype=np.float32).reshape(1, 3, 8, 8)
+    np.testing.assert_allclose(TorchGraph(tmp_path / "sig.onnx")(x).numpy(), 1 / (1 + np.exp(-x)), rtol=1e-6)
+    with pytest.raises(ValueError, match="nope.onnx: no such ONNX model file"):
+        TorchGraph(tmp_path / "nope.onnx")
+    (tmp_path / "junk.onnx").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="junk.onnx: cannot load the ONNX model"):
+        YoloOnnx(tmp_path / "junk.onnx", runtime="torch")
+    with pytest.raises(ValueError, match="runtime = 'tensorrt': expected one of auto, onnxruntime, torch"):
+        choose_runtime("tensorrt")
+
+
+def test_auto_is_torch_where_torch_sees_a_gpu_and_onnxruntime_elsewhere(monkeypatch):
+    monkeypatch.setattr(yolo, "torch_sees_gpu", lambda: False)
+    assert choose_runtime("auto") == "onnxruntime"
+    assert choose_runtime("auto", "cpu") == "torch"  # (a device named: torch on it)
+    assert choose_runtime("onnxruntime", "cpu") == "onnxruntime"
+    monkeypatch.setattr(yolo, "torch_sees_gpu", lambda: True)
+    assert choose_runtime("auto") == "torch"
+
+
+DETECTOR = """
+[episode]
+ts = 0.5
+steps = 2
+stages = ["detection"]
+
+[modules.detector]
+stage = "detection"
+plugin = "person-detector"
+params = {{ model = "yolo", {params} }}
+"""
+
+
+@pytest.mark.parametrize("params, expected", [
+    ('runtime = "tensorrt"', "params.runtime = 'tensorrt': expected one of auto, onnxruntime, torch"),
+    ('runtime = "torch", device = "gpu"', "params.device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'gpu'"),
+    ('runtime = "torch", device = "cuda:0"', "device = 'cuda:0': torch sees no CUDA GPU here"),
+])
+def test_the_detectors_bad_runtime_settings_stop_the_run_naming_the_key(tmp_path, params, expected):
+    import torch
+
+    if "cuda:0" in params and torch.cuda.is_available():
+        pytest.skip("this machine has the GPU the setting names")
+    cfg = write_config(tmp_path, DETECTOR.format(params=params))
+    with pytest.raises(caviar.RunError, match=expected.replace("(", r"\(").replace(")", r"\)")):
+        caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
