@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import Any
 
 import numpy as np
@@ -21,7 +21,7 @@ from caviar_plugins.radio.beams import beam_gains, dft_codebook, flat_dft_codebo
 from caviar_plugins.radio.link_report import line_of_sight_paths
 from caviar_plugins.radio.path_data import PathData, receiver_paths
 from caviar_plugins.rt.drjit_setup import configure_drjit, set_thread_count
-from caviar_plugins.rt.scene import MovingObjects, load_scene
+from caviar_plugins.rt.scene import OUT_OF_THE_WAY_M, MovingObjects, load_scene, move_objects
 
 CODEBOOKS = ("kronecker", "flat-dft")
 UAV_BODY = SCENES / "central_park" / "meshes" / "Cube.ply"  # a 2 m cube
@@ -196,6 +196,7 @@ class RadioScene:
         # The scene is static and the solver seeded: the same positions give the same
         # paths, so a step in which no UAV moved (hovering) reuses the last solve.
         self._placed: tuple = ()
+        self._body_at: dict[str, np.ndarray] = {}  # receiver key -> where its body is
         self._where: dict[str, np.ndarray] = {}  # receiver key -> its position (antenna offset added)
         self._solved: tuple[tuple, dict] | None = None
         self.solves = 0
@@ -252,14 +253,19 @@ class RadioScene:
     def n_tx_beams(self) -> int:
         return self.w_tx.shape[1]
 
-    def place(self, positions: dict[str, np.ndarray]) -> None:
+    def place(self, positions: dict[str, np.ndarray], park: Collection[str] = ()) -> None:
         """Moves (creating on first sight) each UAV's receiver and body. One that is
-        where it was is left alone: moving a body updates the scene's geometry (about
-        13 ms in the SAR scene), and a hovering UAV would pay that every step."""
+        where it was is left alone: moving bodies updates the scene's geometry (about
+        12 ms in the SAR scene on the CPU), once for all the bodies that moved
+        (:func:`~caviar_plugins.rt.scene.move_objects`), and a hovering UAV would pay it every step.
+        ``park``: keys whose receivers are placed but whose bodies are put out of the way,
+        :data:`~caviar_plugins.rt.scene.OUT_OF_THE_WAY_M` below (look-ahead: a slot where
+        another slot of the same UE already has the body)."""
         new = [k for k in positions if k not in self.receivers]
         if new and self._bodies_on:
             self._add_bodies(new)
         offset = np.asarray(self.cfg.antenna_offset, dtype=float)
+        bodies = []
         for key, pos in positions.items():
             pos = np.asarray(pos, dtype=float)
             moved = key not in self._where or not np.array_equal(self._where[key], pos + offset)
@@ -270,9 +276,14 @@ class RadioScene:
                 self.receivers[key] = rx
             elif moved:
                 self.receivers[key].position = (pos + offset).tolist()
-            if moved and key in self.bodies:  # (a body is where its receiver is, less the antenna offset)
-                self.bodies[key].position = pos.tolist()
+            if key in self.bodies:  # (a body is where its receiver is, less the antenna offset)
+                body = pos - [0.0, 0.0, OUT_OF_THE_WAY_M] if key in park else pos
+                if key not in self._body_at or not np.array_equal(self._body_at[key], body):
+                    bodies.append((self.bodies[key], body))
+                    self._body_at[key] = body
+                self.movers.set_away(self.bodies[key], key in park)
             self._where[key] = pos + offset
+        move_objects(self.scene, bodies)  # (one geometry update for all)
         self._placed = tuple((k, tuple(np.asarray(p, dtype=float))) for k, p in positions.items())
 
     def snapshot(self) -> dict[str, Any]:
@@ -348,27 +359,23 @@ class RadioScene:
                                   diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
                                   diffraction=c.diffraction, seed=self.seed)
         dropped = self.tracer.dropped
-        # The channel at the carrier: Σ a·exp(−j2π f_c τ). paths.a lacks the carrier phase;
-        # cfr() takes it from cir() and adds exp(−j2π f τ) for baseband offsets f: f = 0 here.
-        cfr = paths.cfr(frequencies=np.array([0.0]), normalize_delays=False, out_type="numpy")
-        valid = np.array(paths.valid).reshape(len(self.receivers), -1)  # [rx, paths] (one tx)
-        tau = np.array(paths.tau).reshape(len(self.receivers), -1)
         # Every receiver of the scene was traced, in the scene's order (which is not the
         # order of the last place(): UEs that joined later come last).
+        h, valid, tau = carrier_channels(paths, len(self.receivers), c.frequency_hz)
         rx_pos = np.array([self._where[key] for key in self.receivers])
         direct = np.linalg.norm(rx_pos - np.asarray(c.tx_position, dtype=float), axis=1)
         los = np.any(line_of_sight_paths(tau, valid, direct[:, None]), axis=1)
         found = receiver_paths(paths, self.scene, c.tx_position, rx_pos, c.frequency_hz) if self.keep_paths else None
+        power = np.mean(np.abs(h) ** 2, axis=(1, 2))
+        if c.normalize:
+            h = np.where(power[:, None, None] > 0, h / np.sqrt(np.where(power > 0, power, 1.0))[:, None, None], h)
+        gains = beam_gains(h, self.w_tx, self.w_rx)  # (every receiver in one product)
+        n_paths = valid.sum(axis=1)
         out = {}
         for i, key in enumerate(self.receivers):
-            h = cfr[i, :, 0, :, 0, 0]
-            if c.normalize:
-                h = normalize_channel(h)
             if found is not None:
-                power = float(np.mean(np.abs(cfr[i, :, 0, :, 0, 0]) ** 2))
-                found[i].h_scale = 1 / np.sqrt(power) if c.normalize and power > 0 else 1.0
-            out[key] = Link(h=h, gains=beam_gains(h, self.w_tx, self.w_rx), los=bool(los[i]),
-                            n_paths=int(valid[i].sum()), paths_dropped=dropped,
+                found[i].h_scale = 1 / np.sqrt(power[i]) if c.normalize and power[i] > 0 else 1.0
+            out[key] = Link(h=h[i], gains=gains[i], los=bool(los[i]), n_paths=int(n_paths[i]), paths_dropped=dropped,
                             paths=None if found is None else found[i])
         placed = {k for k, _ in self._placed}
         out = {k: link for k, link in out.items() if k in placed}
@@ -376,37 +383,98 @@ class RadioScene:
         return out
 
 
+def carrier_channels(paths: Any, n_rx: int, frequency_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The narrowband channel at the carrier of every receiver of a synthetic-array solve
+    from one transmitter, H = Σ a·exp(−j2π f_c τ) (N_rx, N_rx_ant, N_tx_ant) complex64, and
+    the paths' validity and delays (N_rx, P). It is Sionna's ``paths.cfr`` at baseband
+    offset 0 (the carrier phase in float32 as Sionna's ``cir`` computes it, the sum in
+    float64) from one read of the paths' arrays (``frequency_hz``: the scene's; reading
+    the scene's own would evaluate it, and the next solves' kernels, which had it as a
+    literal, would change in the last bits): no Dr.Jit kernel of its own, whose code
+    would change with the number of paths (a compilation per solve), and no sync per array."""
+    import drjit as dr
+
+    a_re, a_im = paths.a
+    dr.eval(a_re, a_im, paths.tau, paths.valid)
+    a_re, a_im = np.asarray(a_re), np.asarray(a_im)  # [rx, rx_ant, tx, tx_ant, P]
+    tau = np.asarray(paths.tau).reshape(n_rx, -1)  # [rx, P] (one transmitter)
+    valid = np.asarray(paths.valid).reshape(n_rx, -1)
+    two_pi = np.float32(2 * np.pi)
+    f = np.float32(frequency_hz)  # (as Sionna keeps the scene's)
+    phase = (-two_pi * f) * np.where(tau == -1, np.float32(0), tau).astype(np.float32)
+    phase = phase - two_pi * np.floor(phase * (np.float32(1) / two_pi))
+    cos, sin = np.cos(phase)[:, None, None, None, :], np.sin(phase)[:, None, None, None, :]
+    h_re = (a_re * cos - a_im * sin).sum(axis=-1, dtype=np.float64)
+    h_im = (a_re * sin + a_im * cos).sum(axis=-1, dtype=np.float64)
+    h = (h_re + 1j * h_im)[:, :, 0, :].astype(np.complex64)
+    return h, valid, tau
+
+
+LOOKAHEAD_AUTO = {"cuda": (40, 19), "llvm": (30, 9)}
+"""``lookahead_steps = "auto"``, by Dr.Jit backend: (about how many receivers one look-ahead
+solve traces, the most steps ahead). On a GPU a solve is bound by host work that grows
+slowly with the receivers (H200: 39 ms for 1, 117 ms for 10), so a solve traces many steps
+ahead; on the CPU the shoot cache's cost grows with them (0.08x of Sionna's loop for 1,
+0.36x for 10), and the depths bench_perf_steps measured best were 9 (1 UAV) and 2 (10)."""
+
+
+def lookahead_depth(steps: int | str, n_ue: int, variant: str | None = None) -> int:
+    """The forecast positions a look-ahead solve traces per UE: ``steps``, or for ``"auto"``
+    the receivers of :data:`LOOKAHEAD_AUTO` for the backend shared by ``n_ue`` UEs (at least
+    1, at most its most steps). ``variant``: the Mitsuba variant (default: the active one)."""
+    if steps != "auto":
+        return int(steps)
+    if variant is None:
+        from caviar_plugins.rt.drjit_setup import mitsuba
+
+        variant = str(mitsuba().variant())
+    budget, most = LOOKAHEAD_AUTO["cuda" if variant.startswith("cuda_") else "llvm"]
+    return max(1, min(most, budget // max(n_ue, 1) - 1))
+
+
+def check_lookahead_steps(value: Any, key: str = "lookahead_steps") -> int | str:
+    """``value`` if it is a look-ahead depth (an integer >= 0 or ``"auto"``), else a
+    ValueError naming ``key``."""
+    if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
+        return value
+    raise ValueError(f'{key}: expected an integer >= 0 or "auto", got {value!r}')
+
+
 class LookaheadTracer:
     """Look-ahead ray tracing: one solve traces every UE's current position and its
-    forecast (the next ``steps`` positions its mobility module expects), and caches each
-    position's :class:`Link`. A later step whose positions are all within
-    ``tolerance_m`` of cached ones (a forecast that came true, a hovering UAV) costs no
-    solve; otherwise (a UE left its forecast, or the forecast is used up) one new
-    solve traces all UEs again. Receivers are ``steps + 1`` per UE in every solve (a
-    missing forecast is padded with the last position): stable shapes, reused kernels.
+    forecast (the next ``steps`` positions its mobility module expects; ``"auto"``:
+    :func:`lookahead_depth`), and caches each position's :class:`Link`. A later step whose
+    positions are all within ``tolerance_m`` of cached ones (a forecast that came true, a
+    hovering UAV) costs no solve; otherwise (a UE left its forecast, or the forecast is used
+    up) one new solve traces all UEs again. Receivers are ``steps + 1`` per UE in every solve
+    (a missing forecast is padded with the last position): stable shapes, reused kernels.
 
-    The static scene makes this exact: a position's paths do not depend on the other
-    receivers of the solve (same rays, same seed). UAV bodies are scatterers that move,
-    and one solve can place a body at one position only, so the radio scene must have
-    ``uav_mesh = false`` (checked)."""
+    Without UAV bodies (``uav_mesh = false``) this is exact: a position's paths do not
+    depend on the other receivers of the solve (same rays, same seed). With them, each
+    forecast position (slot) has a body of its own under its receiver, so every receiver
+    has its own UAV's body where it will be; it also sees the bodies of the other slots
+    (its own UAV a step or more along its route, 2 m cubes below the antenna's height) and
+    of the other UAVs at every slot. A slot at the position of an earlier slot of the same
+    UE (hovering, padding) has its body parked out of the way. Measured against solving
+    step by step in tests/test_solve_lookahead.py."""
 
-    def __init__(self, radio: RadioScene, steps: int, tolerance_m: float = 0.01):
-        if radio.cfg.uav_mesh:
-            raise ValueError("look-ahead needs uav_mesh = false: a solve places each UAV body at one position, "
-                             "so forecast positions would see the bodies where the UAVs are now")
-        if steps < 0 or tolerance_m < 0:
-            raise ValueError("look-ahead steps and tolerance must be >= 0")
+    def __init__(self, radio: RadioScene, steps: int | str, tolerance_m: float = 0.01):
+        check_lookahead_steps(steps)
+        if tolerance_m < 0:
+            raise ValueError(f"cache_tolerance_m: expected >= 0, got {tolerance_m}")
         self.radio, self.steps, self.tolerance_m = radio, steps, tolerance_m
         self.cache: dict[str, list[tuple[np.ndarray, Link]]] = {}
         self.solves = 0
         self.hits = 0
+        self._slots: dict[str, np.ndarray] = {}  # the last solve's receivers: key -> UE position
 
     def state(self) -> dict[str, Any]:
         """The cached links and counters, for a checkpoint (the scene keeps its own)."""
-        return {"cache": self.cache, "solves": self.solves, "hits": self.hits}
+        return {"cache": self.cache, "solves": self.solves, "hits": self.hits, "slots": self._slots}
 
     def restore(self, state: dict[str, Any]) -> None:
         self.cache, self.solves, self.hits = state["cache"], state["solves"], state["hits"]
+        self._slots = state.get("slots", {})
 
     def lookup(self, ue: str, position) -> Link | None:
         p = np.asarray(position, dtype=float)
@@ -424,16 +492,25 @@ class LookaheadTracer:
         if all(link is not None for link in cached.values()):
             self.hits += 1
             return {ue: link for ue, link in cached.items() if link is not None}
+        steps = lookahead_depth(self.steps, len(current))
         slots: dict[str, np.ndarray] = {}
+        park: set[str] = set()
         for ue, p in current.items():
-            ahead = [np.asarray(q, dtype=float) for q in forecast.get(ue, [])][: self.steps]
+            ahead = [np.asarray(q, dtype=float) for q in forecast.get(ue, [])][:steps]
             seq = [np.asarray(p, dtype=float), *ahead]
-            seq += [seq[-1]] * (self.steps + 1 - len(seq))
+            seq += [seq[-1]] * (steps + 1 - len(seq))
             for k, q in enumerate(seq):
                 slots[f"{ue}@{k}"] = q
-        self.radio.place(slots)
+                if any(np.array_equal(q, seq[j]) for j in range(k)):  # (its body is already there)
+                    park.add(f"{ue}@{k}")
+        stale = {key: p for key, p in self._slots.items() if key not in slots}  # (the depth changed)
+        if stale:
+            self.radio.place(stale, park=set(stale))
+            self.radio.remove(stale)
+        self._slots = slots
+        self.radio.place(slots, park=park)
         links = self.radio.solve()
         self.solves += 1
-        self.cache = {ue: [(slots[f"{ue}@{k}"], links[f"{ue}@{k}"]) for k in range(self.steps + 1)]
+        self.cache = {ue: [(slots[f"{ue}@{k}"], links[f"{ue}@{k}"]) for k in range(steps + 1)]
                       for ue in current}
         return {ue: links[f"{ue}@0"] for ue in current}

@@ -28,7 +28,7 @@ from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.radio.link_report import LINK_TOPICS, link_messages
 from caviar_plugins.radio.prediction import Forecaster, prediction_payload
-from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene, radio_config
+from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene, check_lookahead_steps, radio_config
 from caviar_plugins.rt.scene import scene_path
 from caviar_plugins.schema import (
     BEAM_SELECTION,
@@ -75,10 +75,13 @@ class SionnaLinkParams(LinkBudgetParams, RadioConfig):
     one solve traces each UE's current position and the next ``lookahead_steps``
     positions of its ``3D.mobility.forecast`` (waypoint-flight's ``forecast_steps``),
     and later steps whose positions are within ``cache_tolerance_m`` of a traced one
-    reuse its channel without a solve. Needs ``uav_mesh = false`` (moving UAV bodies
-    cannot be at their current and future positions in one solve)."""
-    lookahead_steps: int = 4
-    """Forecast positions traced per UE and solve (receivers per solve: UEs × (1 + this))."""
+    reuse its channel without a solve. With ``uav_mesh`` each traced position has a UAV
+    body of its own (see the tracer: the links agree with solving step by step to the
+    tolerance tests/test_solve_lookahead.py states, not bit for bit)."""
+    lookahead_steps: int | str = "auto"
+    """Forecast positions traced per UE and solve (receivers per solve: UEs × (1 + this));
+    ``"auto"``: by Dr.Jit backend, many on a GPU, fewer on the CPU
+    (:func:`~caviar_plugins.radio.scene.lookahead_depth`)."""
     cache_tolerance_m: float = 0.01
     """A position within this distance of a traced one reuses its channel."""
     link_model: str = "shannon"
@@ -123,11 +126,11 @@ class SionnaLinkParams(LinkBudgetParams, RadioConfig):
         if self.protocol == "paper":
             caviar.apply_preset(self, paper.PAPER_LINK, "protocol = 'paper'")
         super().__post_init__()
-        if self.lookahead and self.uav_mesh:
-            raise ValueError("lookahead = true needs uav_mesh = false (a solve places each UAV body at one "
-                             "position; forecast positions would see the bodies where the UAVs are now)")
-        if self.lookahead_steps < 0 or self.cache_tolerance_m < 0:
-            raise ValueError("lookahead_steps and cache_tolerance_m must be >= 0")
+        if not isinstance(self.lookahead, bool):
+            raise ValueError(f"lookahead: expected true or false, got {self.lookahead!r}")
+        check_lookahead_steps(self.lookahead_steps)
+        if not (isinstance(self.cache_tolerance_m, (int, float)) and self.cache_tolerance_m >= 0):
+            raise ValueError(f"cache_tolerance_m: expected a distance >= 0 (m), got {self.cache_tolerance_m!r}")
         if self.warm_up_ues < 0:
             raise ValueError(f"warm_up_ues: expected >= 0, got {self.warm_up_ues}")
         _check_publish_paths(self)
