@@ -331,6 +331,8 @@ def agreement(reference: dict, run: dict, tolerance_m: float = 0.25) -> dict:
             "same_best_pair": None if same is None else round(same, 4), "same_rescued": rescued,
             "mission_time_in_cpu_spread": within,
             "cpu_mission_time_spread_s": [min(times), max(times)] if times else None,
+            "mission_time_minus_cpu_s": None if not b or b.get("mission_time_s") is None
+            or a.get("mission_time_s") is None else round(b["mission_time_s"] - a["mission_time_s"], 3),
             "ok": bool(rescued) and bool(within) and same is not None and same >= 0.95}
 
 
