@@ -19,7 +19,8 @@ other packages are missing is reported as skipped, with the reason. Timing items
   first run left there; each its wall time from the command's start (Python, plugins and
   kernel compilation included), T_p/T_v and the mission's outcome, held to a CPU run
   (:func:`agreement`);
-- YOLO through onnxruntime and through torch on its device (:func:`yolo_times`);
+- YOLO through onnxruntime and through torch on its device (:func:`yolo_times`), and the main
+  job's own detector, the pixel forest, walked by scikit-learn and by torch (:func:`forest_times`);
 - the radio network at scale: the ``radio-network`` plugin with 21 cells (7 sites × 3
   sectors) and 100, then 1,000 UEs, 0.5 ms slots, 0.1 s steps, ray tracing every 1 s, beams
   and the uplink, full buffers (``benches/bench_network.py --plugin-only``): T_p/T_v of the
@@ -275,6 +276,32 @@ def yolo_times(frames: int = 16, reps: int = 20) -> dict:
     return out
 
 
+def forest_times(frames: int = 20) -> dict:
+    """The main job's own detector (the builtin pixel forest, a step's one frame at a time) per
+    frame: scikit-learn's walk on the CPU and torch's on its device, each warm (median of
+    ``frames`` frames after one), and whether their detections are the same (they must be)."""
+    import numpy as np
+
+    from caviar_plugins.vision.person_detector import PixelDetector, builtin_model
+    from caviar_plugins.vision.yolo import torch_device_of
+
+    rng = np.random.default_rng(1)
+    images = [rng.integers(0, 256, (120, 160, 3), dtype=np.uint8) for _ in range(frames + 1)]
+    cpu = builtin_model()
+    device = PixelDetector(cpu.forest, cpu.min_pixels, cpu.threshold).to_device(torch_device_of("auto"))
+    out: dict = {"device": str(device.on_device.device)}
+    found = {}
+    for name, detector in (("scikit_learn", cpu), ("torch", device)):
+        times, found[name] = [], []
+        for im in images:
+            t0 = time.perf_counter()
+            found[name].append(detector.detect_many([im]))
+            times.append(time.perf_counter() - t0)
+        out[f"{name}_ms_per_frame"] = round(1e3 * statistics.median(times[1:]), 3)
+    out["same_detections"] = found["scikit_learn"] == found["torch"]
+    return out
+
+
 REFERENCE = ROOT / "docs/results/sar-links-cpu.json"
 """The main job's links by place and its outcome from a CPU run (``--write-reference``)."""
 
@@ -464,6 +491,11 @@ def timings(result: dict, item_timeout_s: float, network_seconds: float, main_jo
     except Exception as e:  # noqa: BLE001 - reported, not fatal
         result["yolo"] = {"error": f"{type(e).__name__}: {e}"}
     print(f"yolo: {result['yolo']}", flush=True)
+    try:
+        result["pixel_forest"] = forest_times()
+    except Exception as e:  # noqa: BLE001 - reported, not fatal
+        result["pixel_forest"] = {"error": f"{type(e).__name__}: {e}"}
+    print(f"pixel forest: {result['pixel_forest']}", flush=True)
     for n in (100, 1000):
         net = network(n, network_seconds, item_timeout_s)
         result[f"network_21x{n}"] = net

@@ -43,7 +43,7 @@ def test_the_comparison_by_place_counts_equal_best_pairs_at_the_nearest_place():
     a = gpu_check.agreement(reference, run)
     assert a == {"links": 4, "matched_by_place": 3, "same_best_pair": round(2 / 3, 4), "same_rescued": True,
                  "mission_time_in_cpu_spread": True, "cpu_mission_time_spread_s": [97.5, 104.0],
-                 "mission_time_minus_cpu_s": 2.0, "ok": False}  # (one place 30 m from any reference place is not compared)
+                 "mission_time_minus_cpu_s": 2.0, "ok": False}  # (a place 30 m from any reference one: not compared)
     run["links"][2][3] = 9
     assert gpu_check.agreement(reference, run)["ok"] is True
     run["mission_result"]["mission_time_s"] = 104.5  # (outside what the CPU gave with any seed)

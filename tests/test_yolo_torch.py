@@ -125,3 +125,80 @@ def test_the_detectors_bad_runtime_settings_stop_the_run_naming_the_key(tmp_path
     cfg = write_config(tmp_path, DETECTOR.format(params=params))
     with pytest.raises(caviar.RunError, match=expected.replace("(", r"\(").replace(")", r"\)")):
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+
+
+def test_the_forest_walked_by_torch_gives_scikit_learns_probabilities_bit_for_bit(images):
+    """The main job's detector (the builtin pixel forest) on torch's device: the same float64
+    probabilities as scikit-learn's own walk, so the same detections and the same recording."""
+    from sklearn.ensemble import RandomForestClassifier
+
+    from caviar_plugins.vision.forest_torch import TorchForest
+    from caviar_plugins.vision.person_detector import PixelDetector, builtin_model, features
+
+    cpu = builtin_model()
+    x = np.concatenate([features(im) for im in images[:4]])
+    on_torch = TorchForest(cpu.forest, "cpu")
+    assert on_torch.trees == 40 and on_torch.depth >= 10
+    expected = cpu.forest.predict_proba(x)[:, 1]
+    got = on_torch(x)
+    assert got.dtype == np.float64 and np.array_equal(got, expected)
+    assert 0 < np.count_nonzero(got >= 0.5) < len(got)  # (persons and background both)
+    device = PixelDetector(cpu.forest, cpu.min_pixels, cpu.threshold).to_device("cpu")
+    found_cpu, found_torch = cpu.detect_many(images), device.detect_many(images)
+    assert found_torch == found_cpu and sum(len(f) for f in found_cpu) >= 5
+    # A forest of another shape (bootstrap off, 3 classes, ties at thresholds) too.
+    rng = np.random.default_rng(3)
+    xs = rng.integers(0, 4, (400, 5)).astype(np.float32)
+    ys = (xs[:, 0] + xs[:, 1] > 3).astype(int) + (xs[:, 2] > 2)
+    other = RandomForestClassifier(n_estimators=7, max_depth=6, bootstrap=False, random_state=0).fit(xs, ys)
+    for column in range(3):
+        assert np.array_equal(TorchForest(other, "cpu", column)(xs), other.predict_proba(xs)[:, column])
+    with pytest.raises(ValueError, match=r"expected feature rows \(M, 5\), got \(4, 3\)"):
+        TorchForest(other, "cpu")(np.zeros((4, 3)))
+
+
+LOOP = """
+[episode]
+ts = 0.5
+seed = 2
+steps = 8
+stages = ["mobility", "camera", "communications", "link", "detection"]
+
+[modules.uav]
+stage = "mobility"
+plugin = "waypoint-flight"
+params = {{ waypoints = "route.csv", frame = "scene", speed = 5.0 }}
+
+[modules.camera]
+stage = "camera"
+plugin = "camera"
+
+[modules.comm]
+stage = "communications"
+plugin = "free-space-link"
+
+[modules.link]
+stage = "link"
+plugin = "image-link"
+
+[modules.detector]
+stage = "detection"
+plugin = "person-detector"
+params = {{ {params} }}
+"""
+
+
+def test_the_loops_detections_are_the_same_with_the_forest_on_torch(tmp_path):
+    """runtime = "torch" reaches the main job's detector (the builtin forest) and changes
+    nothing it publishes: the loop's ai.detections are equal, message for message."""
+    from caviar_plugins.vision.camera import default_targets
+
+    tx, ty = default_targets()[1]
+    (tmp_path / "route.csv").write_text(f"X,Y,Z\n{tx - 8:.2f},{ty:.2f},9.23\n{tx + 8:.2f},{ty:.2f},9.23\n")
+    found = {}
+    for name, params in (("cpu", 'runtime = "onnxruntime"'), ("torch", 'runtime = "torch", device = "cpu"')):
+        cfg = write_config(tmp_path, LOOP.format(params=params), f"{name}.toml")
+        log = caviar.Simulation.from_toml(cfg, out=tmp_path / name).run()
+        assert log.status["status"] == "completed"
+        found[name] = log.topic("ai.detections")["detections"].to_list()
+    assert found["torch"] == found["cpu"] and sum(len(d) for d in found["cpu"]) >= 2

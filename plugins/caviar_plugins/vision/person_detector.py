@@ -121,6 +121,19 @@ class PixelDetector:
         self.forest = forest
         self.min_pixels = min_pixels
         self.threshold = threshold
+        self.on_device: Any = None
+        """The forest on torch's device (:class:`~caviar_plugins.vision.forest_torch.TorchForest`,
+        :meth:`to_device`), or None: scikit-learn's tree walk on the CPU. The same numbers."""
+
+    def to_device(self, device) -> PixelDetector:
+        """This detector with its forest walked by torch on ``device`` (the GPU of ``runtime =
+        "torch"``), bit for bit as scikit-learn walks it."""
+        from caviar_plugins.vision.forest_torch import TorchForest
+
+        if getattr(self.forest, "estimators_", None) is None:
+            raise ValueError("runtime = 'torch': this pixel model is not a scikit-learn forest")
+        self.on_device = TorchForest(self.forest, device)
+        return self
 
     def person_probability(self, x: np.ndarray) -> np.ndarray:
         """Each feature row's probability of being a person's pixel: the forest's
@@ -130,6 +143,8 @@ class PixelDetector:
         float64, divided by the number of trees) without joblib's dispatch of one task per
         tree, which cost 7 ms of the 12 ms of a 160 × 120 image. Any other model (an
         ONNX one, a forest with other ``n_jobs``) is asked for ``predict_proba``."""
+        if self.on_device is not None:
+            return self.on_device(x)
         trees = getattr(self.forest, "estimators_", None)
         if trees is None or getattr(self.forest, "n_jobs", None) not in (None, 1) or \
                 np.ndim(self.forest.n_classes_) != 0 or x.ndim != 2 or x.shape[1] != self.forest.n_features_in_:
@@ -456,12 +471,14 @@ class PersonDetector(caviar.Plugin):
         faster at 50 UAVs, and ~2x for one UAV: only its distinct feature rows are
         classified); ``false``: image by image on ``workers`` threads, as before issue #18."""
         runtime: str = "auto"
-        """YOLO: ``auto`` (torch where it sees a GPU, else onnxruntime), ``onnxruntime`` or
-        ``torch`` (the ONNX graph run by PyTorch on ``device``: the whole step's images in one
-        batch, a CUDA graph on a GPU; :mod:`caviar_plugins.vision.onnx_torch`). Both find the same
-        boxes within float32 rounding."""
+        """``auto`` (torch where it sees a GPU, else the model's CPU runtime), ``onnxruntime``
+        (the CPU runtime: onnxruntime for ONNX files, scikit-learn for the builtin forests) or
+        ``torch`` on ``device``: YOLO's ONNX graph run by PyTorch (a step's images in one batch,
+        a CUDA graph on a GPU; :mod:`caviar_plugins.vision.onnx_torch`, the same boxes within
+        float32 rounding), the builtin forests walked by torch
+        (:mod:`caviar_plugins.vision.forest_torch`, bit for bit the same probabilities)."""
         device: str = "auto"
-        """YOLO through torch: ``auto`` (the first GPU, else the host), ``cpu``, ``cuda`` or ``cuda:N``."""
+        """Where torch runs the model: ``auto`` (the first GPU, else the host), ``cpu``, ``cuda`` or ``cuda:N``."""
         seen_images: int = 8
         """An image the same as one of the last ``seen_images`` distinct images of its UE,
         bit for bit, gets that image's detections without the model (it would find the
@@ -481,30 +498,15 @@ class PersonDetector(caviar.Plugin):
             raise ValueError(f"params.person_class = {p.person_class}: expected a class index (0 or more)")
         if p.seen_images < 0:
             raise ValueError(f"params.seen_images = {p.seen_images}: expected a count (0 or more)")
-        self.detector: PixelDetector | YoloPersonDetector
-        if p.model in BUILTIN:
-            self.detector = builtin_model(BUILTIN[p.model])
-        elif p.model == "yolo" or p.model.endswith(".onnx"):
-            from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx, choose_runtime, onnx_session, takes_images
+        from caviar_plugins.vision.yolo import choose_runtime
 
-            path = BUILTIN_YOLO if p.model == "yolo" else ctx.resolve(p.model)
-            try:
-                runtime = choose_runtime(p.runtime, check_setting(p.device))
-            except ValueError as e:  # ("device: expected ...", "runtime = 'x': expected ...")
-                raise ValueError(f"params.{e}") from None
-            if runtime == "torch" and p.model == "yolo":  # (the builtin model takes images)
-                self.detector = YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class,
-                                                            runtime="torch", device=p.device))
-            elif takes_images(session := onnx_session(path, p.workers)):  # loaded once, whichever kind
-                self.detector = YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class,
-                                                            session=session, runtime=runtime, device=p.device))
-            elif p.runtime == "torch":
-                raise ValueError(f"params.runtime = 'torch': {path} is a pixel classifier, not an image "
-                                 "model; it runs with onnxruntime")
-            else:
-                self.detector = PixelDetector(OnnxPixelModel(path, session))
-        else:
-            self.detector = PixelDetector.load(ctx.resolve(p.model))
+        try:
+            runtime = choose_runtime(p.runtime, check_setting(p.device))
+        except ValueError as e:  # ("device: expected ...", "runtime = 'x': expected ...")
+            raise ValueError(f"params.{e}") from None
+        from caviar_plugins.vision.runtimes import detector_model
+
+        self.detector: PixelDetector | YoloPersonDetector = detector_model(ctx, runtime)
         self.positions: dict[str, np.ndarray] = {}
         # UE -> image digest -> detections, oldest first
         self.seen: defaultdict[str, OrderedDict[bytes, list]] = defaultdict(OrderedDict)
