@@ -25,7 +25,6 @@ power sum instead).
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
 import numpy as np
@@ -47,10 +46,10 @@ from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.layout import LayoutSettings, Wraparound, drop_ues
 from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, layer_message, save
 from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings, summed_db
-from caviar_plugins.network.report import finite
 from caviar_plugins.network.tr38901 import CHANNELS as STOCHASTIC
 from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings
 from caviar_plugins.network.traffic import Queues, TrafficSettings, in_columns, transfer_record
+from caviar_plugins.network.ues import UeTable, link_fields, ue_reports, uplink_fields
 from caviar_plugins.network.uplink import UplinkSettings, uplink
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
 from caviar_plugins.schema import (
@@ -63,8 +62,6 @@ from caviar_plugins.schema import (
     POSITIONS,
     THROUGHPUT,
     VIEW_RADIO_MAP,
-    read_position,
-    throughput_payload,
     ue_of,
 )
 
@@ -115,6 +112,9 @@ class RadioNetwork(caviar.Plugin):
         """``torch.compile`` the link level (Sionna SYS): about 4x faster a step, after
         about 20 s of compilation at the first step (see
         :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
+        cuda_graphs: bool | None = None
+        """With ``compile``, replay each compiled group of slots as a CUDA graph (None: on a
+        CUDA device only; see :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
         device: str = "auto"
         """The torch device of the link level (Sionna SYS): ``auto`` (Sionna's choice, a GPU
         where there is one), ``cpu``, ``cuda`` or ``cuda:N``."""
@@ -201,7 +201,7 @@ class RadioNetwork(caviar.Plugin):
                                      bler_target=self.bler_target, mcs_table=self.mcs_table,
                                      scheduler=self.scheduler, link_model=self.link_model,
                                      harq_processes=self.harq_processes, subbands=1 if flat else self.subbands,
-                                     compile=self.compile, device=self.device)
+                                     compile=self.compile, cuda_graphs=self.cuda_graphs, device=self.device)
 
     def setup(self, ctx):
         self.ctx = ctx
@@ -222,9 +222,8 @@ class RadioNetwork(caviar.Plugin):
             seed=ctx.seed + 1)
         self.queues = None if p.traffic is None or p.traffic.full_buffer else Queues(p.traffic, ctx.seed)
         self.lost: list = []  # transfers of UEs that left, to report
-        self.ues: dict[str, dict[str, Any]] = {}  # UE_Id -> {type, position, column}
-        self.free: list[int] = []
-        self.last_sinr: dict[str, float] = {}
+        self.ues = UeTable()  # UE_Id -> column and type; per column, position, last SINR...
+        self.bandwidths = np.array([c.bandwidth_hz for c in self.cells])
         self.tracer = None
         if p.channel == "ray-traced":
             self.tracer = SiteTracer(p.raytracing, self.cells, seed=ctx.seed, base_dir=ctx.config_dir)
@@ -251,6 +250,7 @@ class RadioNetwork(caviar.Plugin):
         self.channels: TracedChannels | None = None  # the last trace, rows in self.traced order
         self.responses: tuple[TracedChannels | None, Any] = (None, None)  # (a trace, its paths' beam responses)
         self.traced: dict[str, int] = {}  # UE_Id -> row of self.channels
+        self._rows: tuple[Any, np.ndarray] = (None, np.zeros(0, dtype=np.int64))  # (ids, their rows) of the trace
         self.refreshed_at = -np.inf  # the last refresh on the refresh_s schedule
         self.stochastic: StochasticChannel | None = None
         if p.channel in STOCHASTIC:
@@ -265,13 +265,15 @@ class RadioNetwork(caviar.Plugin):
         """What the network knew of UE ``u``'s radio: its handover state, its link level's
         column (the column itself stays ``u``'s), its 38.901 draw and its queues (their
         unfinished transfers are reported lost)."""
-        self.mm.forget(u)
+        self.mm.forget_row(self.ues.column(u))
         if self.queues is not None:
             self.lost += self.queues.forget(u)
         for link in (self.link, self.ul_link):
             if link is not None:
-                link.released(self.ues[u]["column"])
+                link.released(self.ues.column(u))
+        self.ues.last_sinr[self.ues.column(u)] = np.nan
         self.traced.pop(u, None)  # (traced again where it next is)
+        self._rows = (None, self._rows[1])
         if self.stochastic is not None:
             self.stochastic.forget(u)
 
@@ -301,24 +303,25 @@ class RadioNetwork(caviar.Plugin):
                                          f"of {self.p.raytracing.scene!r}: move the layout with layout.center_m",
                                          "params.layout.center_m")
         self.drops += 1
-        for k, position in enumerate(drop.positions):
+        cols = np.empty(len(drop.positions), dtype=np.int64)
+        for k in range(len(drop.positions)):
             u = f"drop{k}"
             if u in self.ues:  # a fresh UE in the same column
                 self._forget(u)
-                self.last_sinr.pop(u, None)
+                cols[k] = self.ues.column(u)
             else:
-                self.ues[u] = {"type": "dropped", "column": self._column()}
-            # The drop gives antenna heights (floors): no antenna_height_m on top.
-            self.ues[u].update(position=[float(v) for v in position], antenna_included=True,
-                               indoor=bool(drop.indoor[k]), distance_2d_in=float(drop.distance_2d_in[k]))
+                cols[k] = self.ues.add(u, "dropped")
+        # The drop gives antenna heights (floors): no antenna_height_m on top.
+        self.ues.position[cols], self.ues.lift[cols] = drop.positions, 0.0
+        self.ues.indoor[cols], self.ues.distance_2d_in[cols] = drop.indoor, drop.distance_2d_in
 
     def state(self):
         # Cells, tracer and radio map come from setup (the map's files are written again);
         # what it still had to announce, the UEs, handover state, link level and the last
         # trace (the channels evolve from it until the next refresh) are the state.
         return {"map_files": [f.relative_to(self.ctx.run_dir).as_posix() for f in self.map_files],
-                "layer": self.layer, "ues": self.ues, "free": self.free, "last_sinr": self.last_sinr,
-                "handover": self.mm.ues, "link": self.link.state(), "channels": self.channels,
+                "layer": self.layer, "ues": self.ues.state(),
+                "handover": self.mm.state(), "link": self.link.state(), "channels": self.channels,
                 "ul_link": None if self.ul_link is None else self.ul_link.state(),
                 "traced": self.traced, "refreshed_at": self.refreshed_at, "drops": self.drops,
                 "stochastic": None if self.stochastic is None else self.stochastic.snapshot(),
@@ -327,12 +330,14 @@ class RadioNetwork(caviar.Plugin):
 
     def restore(self, state):
         self.map_files = [self.ctx.run_dir / f for f in state["map_files"]]
-        self.layer, self.ues, self.free = state["layer"], state["ues"], state["free"]
-        self.last_sinr, self.mm.ues = state["last_sinr"], state["handover"]
+        self.layer = state["layer"]
+        self.ues.restore(state["ues"])
+        self.mm.restore(state["handover"])
         self.link.restore(state["link"])
         if self.ul_link is not None:
             self.ul_link.restore(state["ul_link"])
         self.channels, self.traced, self.refreshed_at = state["channels"], state["traced"], state["refreshed_at"]
+        self._rows = (None, self._rows[1])
         self.drops, self.lost = state["drops"], state["lost"]
         if self.queues is not None:
             self.queues.restore(state["queues"])
@@ -343,24 +348,30 @@ class RadioNetwork(caviar.Plugin):
             # it again (its result is not used), so the next trace is served as it would have been.
             self.tracer.trace(self.channels.position)
 
-    def _channel_gains(self, t: float, ids: list[str], pos: np.ndarray) -> np.ndarray:
+    def _traced_rows(self, ids: list[str]) -> np.ndarray:
+        """The rows of the last trace of ``ids`` (looked up again only when the UEs change)."""
+        if self._rows[0] is not ids:
+            self._rows = (ids, np.array([self.traced[u] for u in ids], dtype=np.int64))
+        return self._rows[1]
+
+    def _channel_gains(self, t: float, ids: list[str], cols: np.ndarray, pos: np.ndarray) -> np.ndarray:
         """Channel gains (path and sector pattern, dB) of every cell toward the UEs
         ``ids`` at ``pos``: [n_ue, n_cell, subbands]. Ray-traced paths are refreshed every
         ``raytracing.refresh_s`` (and when a UE appears) and evolve in between."""
         if self.stochastic is not None:
-            indoor = np.array([self.ues[u].get("indoor", False) for u in ids])
-            d_in = np.array([self.ues[u].get("distance_2d_in", 0.0) for u in ids])
-            return self.stochastic.gains_db(ids, pos, indoor, d_in)[..., None]
+            return self.stochastic.gains_db(ids, pos, self.ues.indoor[cols] > 0,
+                                            self.ues.distance_2d_in[cols])[..., None]
         if self.tracer is None:
             return line_of_sight_gain_db(self.cells, pos)[..., None]
         due = t - self.refreshed_at >= self.p.raytracing.refresh_s - 1e-9
-        if due or any(u not in self.traced for u in ids):  # a new UE is traced (with all) at once
-            self.channels = self.tracer.trace(pos)
+        if due or (self._rows[0] is not ids and any(u not in self.traced for u in ids)):
+            self.channels = self.tracer.trace(pos)  # (a new UE is traced, with all, at once)
             self.traced = {u: i for i, u in enumerate(ids)}
+            self._rows = (ids, np.arange(len(ids)))
             if due:
                 self.refreshed_at = t
         assert self.channels is not None
-        ch = self.channels.rows(np.array([self.traced[u] for u in ids]))
+        ch = self.channels.rows(self._traced_rows(ids))
         if self.p.raytracing.evolve == "hold":
             return ch.power_sum_db[..., None]
         self.amplitude = ch.amplitudes_on(self.p.device, pos, self.frequencies)  # (the beams' too; once a step)
@@ -379,7 +390,7 @@ class RadioNetwork(caviar.Plugin):
         assert ch is not None and ch.departure is not None
         if self.responses[0] is not ch:  # (kept on the device, from one trace to the next)
             self.responses = (ch, beam_responses(self.cells, self.p.codebooks, ch.departure, self.p.device))
-        rows = np.array([self.traced[u] for u in ids])
+        rows = self._traced_rows(ids)
         amplitude = ch.amplitude[rows][..., None] if self.p.raytracing.evolve == "hold" else self.amplitude
         gains = gains_of_responses(amplitude, self.responses[1], rows)
         if self.band_average:
@@ -394,7 +405,7 @@ class RadioNetwork(caviar.Plugin):
         best = np.where(serving >= 0, self.best_beams[ue, np.maximum(serving, 0)], 0)
         pointed = serving if talking is None else np.where(talking, serving, -1)
         beams = slot_beams(pointed, best, len(self.cells), self.slots)
-        bandwidth = np.array([self.cells[max(int(s), 0)].bandwidth_hz for s in serving])
+        bandwidth = self.bandwidths[np.maximum(serving, 0)]
         noise = 10 ** (noise_dbm(bandwidth, self.p.noise_figure_db) / 10)
         silent = self.p.interference == "scheduled"
         per_slot = slot_sinr_db(self.cells, self.beam_gains, serving, best, beams, noise, silent, self.p.device)
@@ -406,23 +417,22 @@ class RadioNetwork(caviar.Plugin):
                          for n in (noise, np.zeros(len(serving))))
         return per_slot, sinr, sir
 
-    def _column(self) -> int:
-        return self.free.pop(0) if self.free else len(self.ues)
-
     def _read(self, t: float, inbox) -> None:
         """UEs that left free their column; positions update (and add) UEs; the messages the
         UEs carry are queued."""
         for m in inbox.on(ARRIVED):
             if m.data["UE_Id"] in self.ues:
                 self._forget(m.data["UE_Id"])
-                ue = self.ues.pop(m.data["UE_Id"])
-                self.free.append(ue["column"])
-                self.free.sort()
-        for m in inbox.on(POSITIONS):
+                self.ues.pop(m.data["UE_Id"])
+        position, lift = self.ues.position, self.ues.lift
+        for m in inbox.on(POSITIONS):  # (one message a UE: its numbers into the arrays)
             ue_id = m.data["UE_Id"]
             if ue_id not in self.ues:
-                self.ues[ue_id] = {"type": m.data["UE_type"], "column": self._column()}
-            self.ues[ue_id]["position"] = read_position(m.data)
+                col = self.ues.add(ue_id, m.data["UE_type"])
+                position, lift = self.ues.position, self.ues.lift
+                lift[col] = self.p.antenna_height_m
+            p = m.data["position"]
+            position[self.ues.column(ue_id)] = (p["x"], p["y"], p["z"])
         if self.queues is not None:
             for c in self.p.traffic.carry:
                 for m in inbox.on(c.topic):
@@ -432,13 +442,13 @@ class RadioNetwork(caviar.Plugin):
                                          f"position on {POSITIONS} (a UE must be placed to carry it)")
                     self.queues.queue_message(t if m.time is None else m.time, sender, m.topic, m.data, c)
 
-    def _measure(self, t: float, ids: list[str]):
+    def _measure(self, t: float, ids: list[str], cols: np.ndarray):
         """Received power of every cell at every UE (per subband, and wideband) and RSRP;
-        mobility management on them. Returns (rx dBm [ue, cell, subband], wideband rx dBm
-        [ue, cell], RSRP dBm, serving cell per UE, events)."""
-        pos = np.array([self.ues[u]["position"] for u in ids]) + np.array(
-            [[0.0, 0.0, 0.0 if self.ues[u].get("antenna_included") else self.p.antenna_height_m] for u in ids])
-        gains = self._channel_gains(t, ids, pos)
+        mobility management on them, all UEs at once. Returns (rx dBm [ue, cell, subband],
+        wideband rx dBm [ue, cell], RSRP dBm, serving cell per UE, events)."""
+        pos = self.ues.position[cols]
+        pos[:, 2] += self.ues.lift[cols]
+        gains = self._channel_gains(t, ids, cols, pos)
         rx = rx_power_dbm(self.cells, gains)
         weights = self.p.link.subband_prbs if gains.shape[-1] > 1 else np.ones(1)
         wideband = 10 * np.log10(np.average(10 ** (rx / 10), axis=-1, weights=weights))
@@ -450,15 +460,14 @@ class RadioNetwork(caviar.Plugin):
             wideband = tx + per_beam.max(axis=-1)
             self.best_beams = per_beam.argmax(axis=-1)  # [ue, cell]
         rsrp = rsrp_dbm(self.cells, wideband, [self.p.num_prb] * len(self.cells))
-        events = []
-        for i, u in enumerate(ids):
-            old = self.mm.serving(u)
-            events += self.mm.update(t, u, list(rsrp[i]), self.last_sinr.get(u))
-            if old >= 0 and self.mm.serving(u) not in (old, -1):
-                for link in (self.link, self.ul_link):
-                    if link is not None:
-                        link.moved(self.ues[u]["column"], self.mm.serving(u))
-        return rx, wideband, rsrp, np.array([self.mm.serving(u) for u in ids]), events
+        old = self.mm.serving_cell[cols] if len(self.mm.serving_cell) > cols.max() else np.full(len(cols), -1)
+        events = self.mm.update_rows(t, cols, ids, rsrp, self.ues.last_sinr[cols])
+        serving = self.mm.serving_cell[cols]
+        for k in np.flatnonzero((old >= 0) & (serving >= 0) & (serving != old)).tolist():  # (handed over)
+            for link in (self.link, self.ul_link):
+                if link is not None:
+                    link.moved(int(cols[k]), int(serving[k]))
+        return rx, wideband, rsrp, serving, events
 
     def step(self, t, inbox):
         while self.map_files:
@@ -471,32 +480,32 @@ class RadioNetwork(caviar.Plugin):
             self._drop()
         if not self.ues:
             return
-        ids = list(self.ues)
-        rx, wideband, rsrp, serving, events = self._measure(t, ids)
-        backlog, talking = self._backlog(t, ids, "downlink")
+        ids, cols, types = self.ues.view()
+        rx, wideband, rsrp, serving, events = self._measure(t, ids, cols)
+        backlog, talking = self._backlog(t, ids, types, "downlink")
         per_slot, sinr, sir = self._downlink_sinr(rx, wideband, serving, talking)
-        cols = np.array([self.ues[u]["column"] for u in ids])
         sinr_cols, serving_cols = self._columns(per_slot, serving, cols)
         res = self.link.run(sinr_cols, serving_cols, backlog=in_columns(backlog, cols))
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
-        for e in events:
-            yield NETWORK_EVENTS, e
+        yield from ((NETWORK_EVENTS, e) for e in events)
         yield from self._delivered(t, ids, "downlink", res.delivered_bits[:, cols])
         ul = None
         if self.ul_link is not None:
-            ul = yield from self._uplink(t, ids, rx, serving, cols)
-        for i, u in enumerate(ids):
-            covered = serving[i] >= 0
-            if covered:
-                self.last_sinr[u] = float(sinr[i])
-            else:
-                self.last_sinr.pop(u, None)
-            loss = self.cells[serving[i]].tx_power_dbm - wideband[i, serving[i]] if covered else math.nan
-            link = {**res.summary(cols[i]), **self._extras(i, u, int(serving[i]), ul)}
-            yield from self._report(u, serving[i], sinr[i], sir[i], loss, rsrp[i], float(mbps[cols[i]]), link)
+            ul = yield from self._uplink(t, ids, types, rx, serving, cols)
+        covered = serving >= 0
+        self.ues.last_sinr[cols] = np.where(covered, sinr, np.nan)
+        sv = np.maximum(serving, 0)
+        loss = np.array([c.tx_power_dbm for c in self.cells])[sv] - wideband[np.arange(len(ids)), sv]
+        listed = None
+        if self.p.report_cells:
+            listed = np.sort(np.argsort(-rsrp, axis=1, kind="stable")[:, :self.p.report_cells], axis=1)
+        link = link_fields(res, cols) if self.p.link_model == "sys" else None
+        yield from ue_reports(self.names, ids, types, serving, sinr, sir, loss, rsrp, listed, mbps[cols], link,
+                              self._extras(ids, types, serving, ul), self.ues.position[cols])
         used = res.cells_active.mean(axis=0)
+        counts = np.bincount(serving[covered], minlength=len(self.cells)).tolist()
         yield NETWORK_CELLS, {"cells": [
-            {"cell": n, "ues": int((serving == k).sum()), "active_share": round(float(used[k]), 4)}
+            {"cell": n, "ues": counts[k], "active_share": round(float(used[k]), 4)}
             for k, n in enumerate(self.names)]}
 
     def _downlink_sinr(self, rx: np.ndarray, wideband: np.ndarray, serving: np.ndarray, talking: np.ndarray | None):
@@ -512,17 +521,28 @@ class RadioNetwork(caviar.Plugin):
         sir = sinr_db(self.cells, wideband, serving, -np.inf, load)
         return sinr_db(self.cells, rx, serving, self.p.noise_figure_db, load)[None], sinr, sir
 
-    def _extras(self, i: int, u: str, serving: int, ul) -> dict[str, Any]:
-        """UE ``i``'s ``network.ue`` fields beyond the downlink's: uplink, beam, queues."""
-        extras: dict[str, Any] = {}
-        if ul is not None and serving >= 0:
-            extras.update(ul(i))
-        if self.p.beams is not None and serving >= 0:
-            extras.update(beam_report(self.cells[serving], self.p.codebooks[serving],
-                                      int(self.best_beams[i, serving])))
-        if self.queues is not None:
-            extras.update(self.queues.report(u, self.ues[u]["type"], ("downlink", "uplink") if self.ul_link
-                                             else ("downlink",)))
+    def _extras(self, ids: list[str], types: list[str], serving: np.ndarray, ul):
+        """``extras(i, covered)``: UE ``i``'s ``network.ue`` fields beyond the downlink's (uplink,
+        beam, queues), from the step's arrays."""
+        beams: list[dict] | None = None
+        if self.p.beams is not None:  # (each cell's beams' reports, made once)
+            if not hasattr(self, "_beam_reports"):
+                self._beam_reports = [[beam_report(c, cb, b) for b in range(cb.size)]
+                                      for c, cb in zip(self.cells, self.p.codebooks, strict=True)]
+            sv = np.maximum(serving, 0)
+            beams = [self._beam_reports[s][b] for s, b in
+                     zip(sv.tolist(), self.best_beams[np.arange(len(sv)), sv].tolist(), strict=True)]
+        directions = ("downlink", "uplink") if self.ul_link else ("downlink",)
+
+        def extras(i: int, covered: bool) -> dict[str, Any]:
+            out: dict[str, Any] = {}
+            if ul is not None and covered:
+                out.update(ul[i])
+            if beams is not None and covered:
+                out.update(beams[i])
+            if self.queues is not None:
+                out.update(self.queues.report(ids[i], types[i], directions))
+            return out
         return extras
 
     def _columns(self, per_slot: np.ndarray, serving: np.ndarray, cols: np.ndarray):
@@ -533,11 +553,10 @@ class RadioNetwork(caviar.Plugin):
         sinr_cols[:, cols], serving_cols[cols] = per_slot, serving
         return np.broadcast_to(sinr_cols, (self.slots, *sinr_cols.shape[1:])), serving_cols
 
-    def _backlog(self, t: float, ids: list[str], direction: str):
+    def _backlog(self, t: float, ids: list[str], types: list[str], direction: str):
         """The step's queued and arriving bits of ``ids`` in ``direction`` (None: full buffer)
         and, with ``interference = "scheduled"``, which UEs have any: the only ones their cells
         transmit to or receive from ([ue] bool; None: all, as under full-buffer interference)."""
-        types = [self.ues[u]["type"] for u in ids]
         if self.queues is None or all(self.queues.model(direction, k) == "full-buffer" for k in set(types)):
             return None, None
         backlog = self.queues.backlog(t, ids, types, direction, self.slots, self.slot_s)
@@ -559,11 +578,12 @@ class RadioNetwork(caviar.Plugin):
             if x.deliver_to is not None:
                 yield f"{x.deliver_to}.{x.ue}", x.payload
 
-    def _uplink(self, t: float, ids: list[str], rx: np.ndarray, serving: np.ndarray, cols: np.ndarray):
+    def _uplink(self, t: float, ids: list[str], types: list[str], rx: np.ndarray, serving: np.ndarray,
+                cols: np.ndarray):
         """The step's PUSCH: powers, per-slot SINR, the uplink link level, the transfers it
-        completed (yielded); returns ``ul(i)``: UE i's."""
+        completed (yielded); returns every UE's ``ul_*`` fields, a list."""
         assert self.p.uplink is not None and self.ul_link is not None
-        backlog, talking = self._backlog(t, ids, "uplink")
+        backlog, talking = self._backlog(t, ids, types, "uplink")
         tx, per_slot = uplink(self.cells, self.p.uplink, serving, rx, self.beam_gains,
                               getattr(self, "best_beams", None) if self.p.beams else None, self.p.num_prb,
                               self.p.subcarrier_spacing_hz, self.slots, self.p.device, talking)
@@ -573,28 +593,4 @@ class RadioNetwork(caviar.Plugin):
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         with np.errstate(divide="ignore"):  # (a UE whose paths to its cell are gone: no signal)
             mean = 10 * np.log10(np.mean(10 ** (per_slot / 10), axis=(0, 2)))
-        return lambda i: {"ul_tx_power_dbm": round(float(tx[i]), 3), "ul_sinr_db": finite(mean[i]),
-                          "ul_throughput_mbps": round(float(mbps[cols[i]]), 6),
-                          **{f"ul_{k}": v for k, v in res.summary(int(cols[i])).items()}}
-
-    def _report(self, u: str, serving: int, sinr: float, sir: float, coupling_loss: float, rsrp: np.ndarray,
-                mbps: float, link: dict):
-        ue_type = self.ues[u]["type"]
-        covered = serving >= 0
-        yield THROUGHPUT, throughput_payload(ue_type, u, round(mbps, 6))
-        listed: list[int] = list(range(len(self.names)))
-        if self.p.report_cells:
-            listed = sorted(int(k) for k in np.argsort(-rsrp, kind="stable")[:self.p.report_cells])
-        report = {"UE_type": ue_type, "UE_Id": u, "serving_cell": self.names[serving] if covered else None,
-                  "sinr_db": finite(sinr) if covered else None,  # (None: no signal, paths gone)
-                  "sir_db": finite(sir) if covered else None,
-                  "coupling_loss_db": round(float(coupling_loss), 3) if covered else None,
-                  "rsrp_dbm": {self.names[k]: round(float(rsrp[k]), 2) for k in listed},
-                  "throughput_mbps": round(mbps, 6)}
-        if ue_type == "dropped":  # (no other module publishes where the network dropped it)
-            report["position_m"] = [round(float(v), 2) for v in self.ues[u]["position"]]
-        if self.p.link_model == "sys":
-            report.update(link)
-        else:
-            report.update({k: v for k, v in link.items() if k.startswith(("ssb_beam", "beam_", "ul_", "dl_queue"))})
-        yield NETWORK_UE, report
+        return uplink_fields(tx, mean, mbps[cols], link_fields(res, cols))

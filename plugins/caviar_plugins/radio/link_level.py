@@ -84,6 +84,12 @@ class LinkSettings:
     (on a GPU, kernel launches). The same MCS, effective SINR and BLER as eager; the HARQ
     outcomes are drawn from the compiled kernels' own random stream (deterministic for a
     seed, not eager's draws)."""
+    cuda_graphs: bool | None = None
+    """With ``compile``, capture the compiled group of slots as a CUDA graph
+    (``torch.compile(mode="reduce-overhead")``): one graph launch a group instead of its
+    kernels, its outputs copied out before the next replay overwrites them. None (the
+    default): on where the device is CUDA, off elsewhere (:func:`cuda_graphs_on`); True on a
+    CPU compiles in that mode all the same (torch skips the graphs there: the same numbers)."""
     device: str = "auto"
     """The torch device of the Sionna SYS blocks and every tensor they are given: ``auto``
     (Sionna's choice, a GPU where there is one), ``cpu``, ``cuda`` or ``cuda:N``. numpy
@@ -116,9 +122,17 @@ class LinkSettings:
             raise ValueError(f"harq_processes: expected 1 to 16 (NR's HARQ processes), got {self.harq_processes}")
         if not 1 <= self.subbands <= self.num_prb:
             raise ValueError(f"subbands: expected 1 to num_prb = {self.num_prb}, got {self.subbands}")
+        self._check_cuda_graphs()
         if self.subcarrier_spacing_hz not in NUMEROLOGIES:
             raise ValueError(f"subcarrier_spacing_hz: expected an NR numerology {sorted(NUMEROLOGIES)}, "
                              f"got {self.subcarrier_spacing_hz:g}")
+
+    def _check_cuda_graphs(self) -> None:
+        if self.cuda_graphs not in (None, True, False):
+            raise ValueError(f"cuda_graphs: expected true, false or none (on with a CUDA device), "
+                             f"got {self.cuda_graphs!r}")
+        if self.cuda_graphs and not self.compile:
+            raise ValueError("cuda_graphs: captures the compiled group of slots; it needs compile = true")
 
     @property
     def slot_s(self) -> float:
@@ -139,6 +153,16 @@ class LinkSettings:
         """[subbands]: each subband's centre, as an offset from the carrier (Hz)."""
         prb_centres = (np.arange(self.num_prb) + 0.5 - self.num_prb / 2) * self.prb_bandwidth_hz
         return np.array([a.mean() for a in np.array_split(prb_centres, self.subbands)])
+
+
+def cuda_graphs_on(settings: LinkSettings, device: Any) -> bool:
+    """Whether a link level of ``settings`` on the torch ``device`` captures its compiled
+    group of slots as a CUDA graph: as ``cuda_graphs`` says, and by default (None) where it is
+    compiled on a CUDA device."""
+    if not settings.compile or settings.link_model != "sys":
+        return False
+    return getattr(device, "type", str(device)).startswith("cuda") if settings.cuda_graphs is None \
+        else settings.cuda_graphs
 
 
 @dataclasses.dataclass
@@ -197,10 +221,15 @@ class LinkLevel:
             self._prb_subband = to_torch(np.repeat(np.arange(settings.subbands), settings.subband_prbs),
                                          self.device, self._torch.int64)
         self._group = self._group_eager
+        self.cuda_graphs = False
         if settings.compile and settings.link_model == "sys":
             # The whole group of slots (scheduler, CSI, loops, PHY abstraction) is one
-            # compiled program: on a GPU a handful of kernels a group, not hundreds.
-            self._group = self._torch.compile(self._group_eager, dynamic=False)
+            # compiled program: on a GPU a handful of kernels a group, not hundreds, and with
+            # CUDA graphs one launch.
+            self.cuda_graphs = cuda_graphs_on(settings, self.device)
+            self._compiled = self._torch.compile(self._group_eager, dynamic=False,
+                                                 mode="reduce-overhead" if self.cuda_graphs else None)
+            self._group = self._group_graphed if self.cuda_graphs else self._compiled
             # Each UE capacity and each direction compiles its own entries (two each: before and
             # after Sionna's blocks are built); past torch's limit (8) it would fall back to eager.
             adapter.allow_recompiles(self._torch, 64)
@@ -349,15 +378,19 @@ class LinkLevel:
         d, cap, n_cell, dev = self.s.harq_processes, self.capacity, self.n_cell, self.device
         if n_slots % d:
             raise ValueError(f"{n_slots} slots are not whole groups of harq_processes = {d}")
+        serving = np.asarray(serving)
         member = np.zeros((n_cell, cap), dtype=bool)
-        for u, c in enumerate(serving):
-            if c >= 0:
-                member[c, u] = True
-        lin = np.zeros((n_slots, n_sub, cap))
-        block = np.nan_to_num(sinr_db, nan=-300.0).transpose(0, 2, 1)  # [slot, S, n_ue]
+        on = np.flatnonzero(serving >= 0)
+        member[serving[on], on] = True
+        # Every slot the same SINRs (a broadcast, as a flat channel's): converted once, repeated on the device.
+        same = n_slots > 1 and sinr_db.strides[0] == 0
+        lin = np.zeros((1 if same else n_slots, n_sub, cap))
+        block = np.nan_to_num(sinr_db[:1] if same else sinr_db, nan=-300.0).transpose(0, 2, 1)  # [slot, S, n_ue]
         lin[:, :, :n_ue] = np.where((serving >= 0)[None, None, :], 10 ** (block / 10), 0.0)
         # (the call's one way in)
         member_all, lin_all = to_torch(member, dev), to_torch(lin, dev, torch.float32)
+        if same:
+            lin_all = lin_all.expand(n_slots, n_sub, cap).contiguous()
         queue.on_device(dev, torch, cap)
         groups: list[tuple] = []  # each group's slots, as tensors: tallied once, after the loop
         member_t = member_all
@@ -406,6 +439,12 @@ class LinkLevel:
             tbler_mean = np.where(sched_n > 0, tbler_n[:n_ue] / sched_n, np.nan)
         return SlotResults(delivered.sum(axis=0), sched_n, prbs_n[:n_ue], acks_n[:n_ue], nacks_n[:n_ue],
                            mcs_n[:n_ue], tbler_mean, eff_n[:n_ue], active_n, delivered)
+
+    def _group_graphed(self, *args):
+        """The compiled group replayed as a CUDA graph: a new step of the graph's memory,
+        and its outputs copied out (the next replay writes over the graph's own)."""
+        self._torch.compiler.cudagraph_mark_step_begin()
+        return tuple(o.clone() for o in self._compiled(*args))
 
     def _group_eager(self, lin_t, member_t, first_slot, harq_last, rate_last):
         """One group of D slots, all on the device: scheduling, CSI, link adaptation and PHY

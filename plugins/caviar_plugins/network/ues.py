@@ -1,0 +1,147 @@
+"""The radio network's UEs as arrays (issue #53): each UE has a column, kept while it stays
+(the link levels' and the mobility manager's row too), and what a step needs of it (position,
+antenna height, indoor state, last SINR) sits in arrays indexed by column, so a step gathers
+them at once instead of a Python loop over UEs. The per-UE reports a step publishes are built
+from those arrays in one pass (:func:`ue_reports`), their numbers converted in bulk.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from caviar_plugins.schema import NETWORK_UE, THROUGHPUT
+
+ARRAYS = {"position": (3,), "lift": (), "indoor": (), "distance_2d_in": (), "last_sinr": ()}
+"""Per column: the reported position, the antenna above it (m), indoor (0/1), the 2D distance
+indoors (m), the last SINR on the serving cell (NaN: none)."""
+
+
+class UeTable:
+    """UE_Id -> column and type, and the per-column arrays of :data:`ARRAYS`."""
+
+    def __init__(self) -> None:
+        self.ues: dict[str, dict[str, Any]] = {}  # UE_Id -> {type, column}
+        self.free: list[int] = []
+        self.arrays = {name: np.zeros((8, *shape)) for name, shape in ARRAYS.items()}
+        self._view: tuple[list[str], np.ndarray, list[str]] | None = None
+
+    def __contains__(self, ue: str) -> bool:
+        return ue in self.ues
+
+    def __len__(self) -> int:
+        return len(self.ues)
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        try:
+            return self.__dict__["arrays"][name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def add(self, ue: str, ue_type: str) -> int:
+        """A new UE in the first free column (a column its predecessor left starts afresh)."""
+        col = self.free.pop(0) if self.free else len(self.ues)
+        if col >= len(self.arrays["lift"]):
+            for name, a in self.arrays.items():
+                grown = np.zeros((max(2 * len(a), col + 1), *a.shape[1:]))
+                grown[:len(a)] = a
+                self.arrays[name] = grown
+        for a in self.arrays.values():
+            a[col] = 0.0
+        self.arrays["last_sinr"][col] = np.nan
+        self.ues[ue] = {"type": ue_type, "column": col}
+        self._view = None
+        return col
+
+    def pop(self, ue: str) -> int:
+        """Removes ``ue``; its column is free again."""
+        col = self.ues.pop(ue)["column"]
+        self.free.append(col)
+        self.free.sort()
+        self._view = None
+        return col
+
+    def column(self, ue: str) -> int:
+        return self.ues[ue]["column"]
+
+    def view(self) -> tuple[list[str], np.ndarray, list[str]]:
+        """(UE_Ids, their columns, their types), in the order the UEs came; the same objects
+        until a UE comes or goes."""
+        if self._view is None:
+            ids = list(self.ues)
+            self._view = (ids, np.array([self.ues[u]["column"] for u in ids], dtype=np.int64),
+                          [self.ues[u]["type"] for u in ids])
+        return self._view
+
+    def state(self) -> dict[str, Any]:
+        return {"ues": {u: dict(v) for u, v in self.ues.items()}, "free": list(self.free),
+                "arrays": {k: a.copy() for k, a in self.arrays.items()}}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.ues, self.free = state["ues"], state["free"]
+        self.arrays = {k: a.copy() for k, a in state["arrays"].items()}
+        self._view = None
+
+
+def _finite(values: np.ndarray, digits: int) -> list[float | None]:
+    """Rounded as :func:`~caviar_plugins.network.report.finite` rounds, in bulk (None: not finite)."""
+    return [round(v, digits) if math.isfinite(v) else None for v in values.tolist()]
+
+
+def link_fields(res: Any, cols: np.ndarray) -> dict[str, np.ndarray]:
+    """A link level's results (:class:`~caviar_plugins.radio.link_level.SlotResults`) of the UE
+    columns ``cols``, the fields of ``network.ue`` they give."""
+    return {"mcs": res.mcs[cols], "tbler": res.tbler[cols], "harq_ack": res.acks[cols],
+            "harq_nack": res.nacks[cols], "prbs": res.prbs[cols]}
+
+
+def _summaries(link: dict[str, np.ndarray], prefix: str = "") -> list[dict[str, Any]]:
+    """Every UE's link summary (``mcs``, ``tbler``, ``harq_ack``, ``harq_nack``, ``prbs``)."""
+    columns = [link[k].tolist() for k in ("mcs", "tbler", "harq_ack", "harq_nack", "prbs")]
+    return [{prefix + "mcs": m, prefix + "tbler": None if math.isnan(b) else round(b, 4), prefix + "harq_ack": a,
+             prefix + "harq_nack": n, prefix + "prbs": p} for m, b, a, n, p in zip(*columns, strict=True)]
+
+
+def uplink_fields(tx: np.ndarray, sinr: np.ndarray, mbps: np.ndarray, link: dict[str, np.ndarray]) -> list[dict]:
+    """Every UE's ``ul_*`` fields of ``network.ue``: PUSCH power, mean SINR, throughput [ue] and
+    the uplink link level's :func:`link_fields`."""
+    fields = zip([round(v, 3) for v in tx.tolist()], _finite(sinr, 3), [round(v, 6) for v in mbps.tolist()],
+                 _summaries(link, "ul_"), strict=True)
+    return [{"ul_tx_power_dbm": p, "ul_sinr_db": s, "ul_throughput_mbps": m, **rest} for p, s, m, rest in fields]
+
+
+def ue_reports(names: list[str], ids: list[str], types: list[str], serving: np.ndarray, sinr: np.ndarray,
+               sir: np.ndarray, loss: np.ndarray, rsrp: np.ndarray, listed: np.ndarray | None, mbps: np.ndarray,
+               link: dict[str, np.ndarray] | None, extras: Callable[[int, bool], dict[str, Any]],
+               position: np.ndarray) -> Iterator[tuple[str, dict[str, Any]]]:
+    """Every UE's ``communications.throughput`` and ``network.ue``, in UE order, from the step's
+    arrays ([ue]; ``rsrp`` [ue, cell] and the cells ``listed`` of each UE [ue, k], None: all;
+    ``link`` the link level's ``mcs``, ``tbler``, ``harq_ack``, ``harq_nack``, ``prbs`` [ue],
+    None for a Shannon link); ``extras(i, covered)``: UE i's fields beyond them."""
+    covered = (serving >= 0).tolist()
+    cell = [names[s] if c else None for s, c in zip(serving.tolist(), covered, strict=True)]
+    sinr_l, sir_l, loss_l = _finite(sinr, 3), _finite(sir, 3), [round(v, 3) for v in loss.tolist()]
+    mbps_l = [round(v, 6) for v in mbps.tolist()]
+    rsrp_l = rsrp.tolist()
+    listed_l = None if listed is None else listed.tolist()
+    all_cells = list(enumerate(names))
+    pos_l = position.tolist()
+    summary = None if link is None else _summaries(link)
+    for i, u in enumerate(ids):
+        ue_type, c, r = types[i], covered[i], rsrp_l[i]
+        yield THROUGHPUT, {"UE_type": ue_type, "UE_Id": u, "throughput": mbps_l[i]}
+        cells = all_cells if listed_l is None else [(k, names[k]) for k in listed_l[i]]
+        report = {"UE_type": ue_type, "UE_Id": u, "serving_cell": cell[i],
+                  "sinr_db": sinr_l[i] if c else None,  # (None: no signal, paths gone)
+                  "sir_db": sir_l[i] if c else None,
+                  "coupling_loss_db": loss_l[i] if c else None,
+                  "rsrp_dbm": {n: round(r[k], 2) for k, n in cells},
+                  "throughput_mbps": mbps_l[i]}
+        if ue_type == "dropped":  # (no other module publishes where the network dropped it)
+            report["position_m"] = [round(v, 2) for v in pos_l[i]]
+        if summary is not None:
+            report.update(summary[i])
+        report.update(extras(i, c))
+        yield NETWORK_UE, report

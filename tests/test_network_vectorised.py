@@ -1,0 +1,209 @@
+"""The radio network's step without per-UE host work (issue #53, part 4): the mobility
+manager's one update for all UEs against the per-UE rules written out by hand, the UE table's
+columns, the reports built in bulk against per-UE rounding, a slot-broadcast SINR against its
+copy, and the compiled link level's CUDA-graph option (its resolution, and on the CPU the same
+numbers as eager)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from caviar_plugins.network.handover import HandoverSettings, MobilityManager
+from caviar_plugins.network.report import finite
+from caviar_plugins.network.ues import UeTable, ue_reports, uplink_fields
+from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, cuda_graphs_on
+
+
+def _by_hand(s: HandoverSettings, names, state: dict, t: float, ue: str, rsrp: list[float], sinr):
+    """TS 38.331's rules for one UE, one measurement, as plain Python (the manager's before #53)."""
+    st = state.get(ue)
+    if st is not None:
+        a = 0.5 ** (s.l3_filter_k / 4)
+        rsrp = [(1 - a) * f + a * m for f, m in zip(st["filtered"], rsrp, strict=True)]
+
+    def event(kind, old, new):
+        ev = {"event": kind, "UE_Id": ue, "time": round(t, 9), "to_cell": names[new],
+              "rsrp_to_dbm": round(rsrp[new], 3)}
+        if old is not None:
+            ev.update(from_cell=names[old], rsrp_from_dbm=round(rsrp[old], 3))
+        return ev
+    best = max(range(len(rsrp)), key=lambda c: rsrp[c])
+    if rsrp[best] < s.min_rsrp_dbm:
+        if st is None:
+            return []
+        del state[ue]
+        ev = event("coverage_lost", st["serving"], best)
+        del ev["to_cell"], ev["rsrp_to_dbm"]
+        return [ev]
+    fresh = {"candidate": -1, "since": 0.0, "below": None, "filtered": list(rsrp)}
+    if st is None:
+        state[ue] = {"serving": best, **fresh}
+        return [event("attach", None, best)]
+    st["filtered"] = list(rsrp)
+    if sinr is not None and sinr < s.q_out_db:
+        if st["below"] is None:
+            st["below"] = t
+        elif t - st["below"] >= s.t310_s - 1e-9:
+            state[ue] = {"serving": best, **fresh}
+            return [{**event("rlf", st["serving"], best), "sinr_db": round(sinr, 3)}]
+    else:
+        st["below"] = None
+    entering = [c for c in range(len(rsrp)) if c != st["serving"]
+                and rsrp[c] - s.hysteresis_db > rsrp[st["serving"]] + s.offset_db]
+    if not entering:
+        st["candidate"] = -1
+    elif st["candidate"] != (top := max(entering, key=lambda c: rsrp[c])):
+        st["candidate"], st["since"] = top, t
+    if st["candidate"] >= 0 and t - st["since"] >= s.time_to_trigger_s - 1e-9:
+        state[ue] = {"serving": st["candidate"], **fresh}
+        return [event("handover", st["serving"], st["candidate"])]
+    return []
+
+
+@pytest.mark.parametrize("k", [4.0, 0.0])
+def test_one_update_of_all_ues_is_the_per_ue_rules(k):
+    """60 UEs × 5 cells over 120 measurements (drifting RSRP with noise, a few far enough to
+    lose coverage, SINRs below q_out at times, UEs in shuffled rows): the same events in the
+    same order, and the same serving cells, as the rules applied UE by UE."""
+    rng = np.random.default_rng(3)
+    s = HandoverSettings(offset_db=1.0, hysteresis_db=1.0, time_to_trigger_s=0.08, t310_s=0.2, l3_filter_k=k)
+    names = [f"c{c}" for c in range(5)]
+    n = 60
+    rows = rng.permutation(200)[:n]  # (columns need not be 0..n-1)
+    ids = [f"ue{i}" for i in range(n)]
+    base = rng.uniform(-125, -70, size=(n, 5))
+    drift = rng.normal(0, 0.4, size=(n, 1)) + rng.normal(0, 0.3, size=(n, 5))  # (some fade out, then back)
+    level = rng.uniform(-16, 6, n)  # (each UE's SINR)
+    mm, state = MobilityManager(s, names), dict[str, dict]()
+    kinds = set()
+    for step in range(120):
+        t = step * 0.02
+        rsrp = base + drift * (60 - abs(step - 60)) + rng.normal(0, 2.0, size=(n, 5))
+        sinr = np.where(rng.random(n) < 0.9, level + rng.normal(0, 2, n), np.nan)
+        got = mm.update_rows(t, rows, ids, rsrp, sinr)
+        want = [e for i in range(n) for e in _by_hand(s, names, state, t, ids[i], rsrp[i].tolist(),
+                                                      None if np.isnan(sinr[i]) else float(sinr[i]))]
+        assert got == want, step
+        by_hand = [state[u]["serving"] if u in state else -1 for u in ids]
+        np.testing.assert_array_equal(mm.serving_cell[rows], by_hand)
+        kinds |= {e["event"] for e in got}
+    assert kinds == {"attach", "handover", "rlf", "coverage_lost"}, kinds  # (every rule ran)
+
+
+def test_the_per_name_api_and_the_state_round_trip():
+    mm = MobilityManager(HandoverSettings(), ["A", "B"])
+    assert [e["event"] for e in mm.update(0.0, "u", [-80.0, -90.0])] == ["attach"] and mm.serving("u") == 0
+    saved = mm.state()
+    mm.forget("u")
+    assert mm.serving("u") == -1
+    mm.restore(saved)
+    assert mm.serving("u") == 0 and mm.update(0.1, "u", [-80.0, -90.0]) == []
+
+
+def test_the_ue_table_reuses_columns_and_starts_them_afresh():
+    table = UeTable()
+    cols = [table.add(f"u{i}", "car") for i in range(10)]  # (past the first 8: the arrays grow)
+    assert cols == list(range(10)) and table.position.shape == (16, 3)
+    table.position[3], table.last_sinr[3] = (1.0, 2.0, 3.0), 7.0
+    ids, c, types = table.view()
+    assert table.view()[0] is ids and list(c) == cols and types == ["car"] * 10
+    assert table.pop("u3") == 3 and table.view()[0] is not ids
+    assert table.add("new", "uav") == 3  # the first free column, its numbers reset
+    assert table.position[3].tolist() == [0, 0, 0] and np.isnan(table.last_sinr[3])
+    assert table.view()[0][-1] == "new" and table.view()[2][-1] == "uav"
+
+
+def test_reports_built_in_bulk_round_as_one_by_one():
+    """``network.ue`` and the throughput from arrays: rounding as ``round(float(x), n)`` and
+    ``finite`` give it element by element, None for a UE without a cell or a non-finite SINR."""
+    rng = np.random.default_rng(5)
+    n, names = 4, ["a", "b", "c"]
+    serving = np.array([0, -1, 2, 1])
+    sinr, sir = rng.normal(5, 9, n), rng.normal(9, 9, n)
+    sinr[3] = -np.inf
+    loss, rsrp, mbps = rng.uniform(80, 130, n), rng.uniform(-120, -60, (n, 3)), rng.uniform(0, 40, n)
+    link = {"mcs": np.array([3, -1, 9, 0]), "tbler": np.array([0.123456, np.nan, 0.0, 1.0]),
+            "harq_ack": np.array([4, 0, 5, 0]), "harq_nack": np.array([1, 0, 0, 2]), "prbs": np.array([9, 0, 3, 1])}
+    listed = np.sort(np.argsort(-rsrp, axis=1, kind="stable")[:, :2], axis=1)
+    types = ["car", "uav", "dropped", "car"]
+    out = list(ue_reports(names, ["u0", "u1", "u2", "u3"], types, serving, sinr, sir, loss, rsrp, listed, mbps,
+                          link, lambda i, covered: {"x": i} if covered else {}, rng.uniform(0, 9, (n, 3))))
+    assert [topic for topic, _ in out] == ["communications.throughput", "network.ue"] * n
+    for i in range(n):
+        thr, rep = out[2 * i][1], out[2 * i + 1][1]
+        assert thr == {"UE_type": types[i], "UE_Id": f"u{i}", "throughput": round(float(mbps[i]), 6)}
+        covered = serving[i] >= 0
+        assert rep["serving_cell"] == (names[serving[i]] if covered else None)
+        assert rep["sinr_db"] == (finite(sinr[i]) if covered else None)
+        assert rep["sir_db"] == (finite(sir[i]) if covered else None)
+        assert rep["coupling_loss_db"] == (round(float(loss[i]), 3) if covered else None)
+        assert rep["rsrp_dbm"] == {names[k]: round(float(rsrp[i, k]), 2) for k in sorted(listed[i].tolist())}
+        assert rep["mcs"] == int(link["mcs"][i]) and type(rep["mcs"]) is int
+        assert rep["tbler"] == (None if math.isnan(link["tbler"][i]) else round(float(link["tbler"][i]), 4))
+        assert ("x" in rep) == covered and ("position_m" in rep) == (types[i] == "dropped")
+    assert out[3][1]["sinr_db"] is None and list(out[1][1])[:8] == [
+        "UE_type", "UE_Id", "serving_cell", "sinr_db", "sir_db", "coupling_loss_db", "rsrp_dbm", "throughput_mbps"]
+    ul = uplink_fields(np.array([23.0004, 1.5]), np.array([np.nan, 2.2226]), np.array([1.0, 2.0]),
+                       {k: v[:2] for k, v in link.items()})
+    assert ul[0]["ul_tx_power_dbm"] == 23.0 and ul[0]["ul_sinr_db"] is None and ul[1]["ul_sinr_db"] == 2.223
+    assert ul[0]["ul_tbler"] == 0.1235 and ul[1]["ul_mcs"] == -1
+
+
+def test_a_slot_broadcast_sinr_gives_what_its_copy_gives():
+    """Every slot the same SINRs (a stride-0 view, as a flat channel's): converted once and
+    repeated on the device, the same results as the materialised copy's."""
+    rng = np.random.default_rng(2)
+    settings = LinkSettings(num_prb=24, harq_processes=4, subbands=2)
+    one = 8.0 + rng.normal(0, 4, size=(1, 6, 2))
+    one[0, 5] = np.nan  # (a UE without a cell)
+    serving = np.array([0, 0, 1, 1, 1, -1])
+    view = np.broadcast_to(one, (16, 6, 2))
+    assert view.strides[0] == 0
+    a = LinkLevel(settings, n_cell=2, seed=4).run(view, serving)
+    b = LinkLevel(settings, n_cell=2, seed=4).run(np.ascontiguousarray(view), serving)
+    for field in ("decoded_bits", "prbs", "acks", "nacks", "mcs", "cells_active", "delivered_bits"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+    assert a.prbs[:5].sum() > 0 and a.prbs[5] == 0
+
+
+def test_cuda_graphs_are_on_by_default_only_for_a_compiled_link_level_on_cuda():
+    import torch
+
+    base = LinkSettings(num_prb=24, compile=True)
+    assert cuda_graphs_on(base, torch.device("cuda")) and cuda_graphs_on(base, torch.device("cuda:1"))
+    assert not cuda_graphs_on(base, torch.device("cpu"))
+    assert not cuda_graphs_on(dataclasses.replace(base, compile=False), torch.device("cuda"))
+    assert not cuda_graphs_on(dataclasses.replace(base, cuda_graphs=False), torch.device("cuda"))
+    assert cuda_graphs_on(dataclasses.replace(base, cuda_graphs=True), torch.device("cpu"))
+    with pytest.raises(ValueError, match="cuda_graphs: .*needs compile = true"):
+        LinkSettings(num_prb=24, cuda_graphs=True)
+    with pytest.raises(ValueError, match="cuda_graphs: expected true, false or none"):
+        LinkSettings(num_prb=24, compile=True, cuda_graphs="yes")  # type: ignore[arg-type]
+    assert LinkLevel(LinkSettings(num_prb=24), n_cell=1).cuda_graphs is False
+
+
+def test_the_cuda_graph_mode_on_the_cpu_decides_as_eager():
+    """``cuda_graphs = true`` on the CPU: compiled in ``reduce-overhead`` mode (torch captures
+    no graph there), its outputs copied out; the first call's MCS, PRBs, effective SINR and TBLER
+    are eager's, and a second call's tallies stand apart from the first's."""
+    rng = np.random.default_rng(6)
+    d, sub = 4, 2
+    sinr = 14.0 + rng.normal(0.0, 3.0, size=(d, 3, sub))
+    serving = np.zeros(3, dtype=int)
+    settings = LinkSettings(num_prb=24, harq_processes=d, subbands=sub)
+    eager = LinkLevel(settings, n_cell=1, seed=11).run(sinr, serving)
+    graphed = LinkLevel(dataclasses.replace(settings, compile=True, cuda_graphs=True), n_cell=1, seed=11)
+    assert graphed.cuda_graphs and graphed._group == graphed._group_graphed
+    first = graphed.run(sinr, serving)
+    np.testing.assert_array_equal(first.mcs, eager.mcs)
+    np.testing.assert_array_equal(first.prbs, eager.prbs)
+    np.testing.assert_allclose(first.sinr_eff_db, eager.sinr_eff_db, atol=1e-4)
+    np.testing.assert_allclose(first.tbler, eager.tbler, atol=1e-5)
+    kept = first.decoded_bits.copy()
+    second = graphed.run(np.concatenate([sinr, sinr]), serving)
+    np.testing.assert_array_equal(first.decoded_bits, kept)
+    assert (second.acks + second.nacks).sum() == 2 * d  # one UE of the cell's a slot, both groups
