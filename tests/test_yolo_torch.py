@@ -155,6 +155,16 @@ def test_the_forest_walked_by_torch_gives_scikit_learns_probabilities_bit_for_bi
         assert np.array_equal(TorchForest(other, "cpu", column)(xs), other.predict_proba(xs)[:, column])
     with pytest.raises(ValueError, match=r"expected feature rows \(M, 5\), got \(4, 3\)"):
         TorchForest(other, "cpu")(np.zeros((4, 3)))
+    # On CUDA a frame's rows are padded to a bucket (one CUDA graph each): the padding changes nothing.
+    import torch
+
+    assert [TorchForest.bucket(m) for m in (1, 1024, 1025, 19200)] == [1024, 1024, 2048, 32768]
+    padded = np.zeros((5, TorchForest.bucket(len(xs))))
+    padded[:, :len(xs)] = xs.T
+    walk = TorchForest(other, "cpu", 2)._walk(torch.from_numpy(padded))
+    assert np.array_equal(walk.numpy()[:len(xs)], other.predict_proba(xs)[:, 2])
+    with pytest.raises(ValueError, match="cuda_graphs needs a CUDA device"):
+        TorchForest(other, "cpu", cuda_graphs=True)
 
 
 LOOP = """

@@ -14,17 +14,20 @@ one level down with gathers. It is exact, not approximately equal:
 * the trees' probabilities are summed in float64 one tree after the other in tree order, then
   divided by the number of trees: :meth:`PixelDetector.person_probability`'s order.
 
-``tests/test_yolo_torch.py`` compares it with ``predict_proba`` for equality on the CPU; its
-launches do not depend on the rows, about 6 per level and one per tree.
+``tests/test_yolo_torch.py`` compares it with ``predict_proba`` for equality on the CPU. Its
+launches do not depend on the rows (about 6 per level and one per tree), so on CUDA a frame's
+walk is one CUDA graph, captured once for each :meth:`TorchForest.bucket` of rows.
 """
 
 from __future__ import annotations
 
+import sys
+import threading
 from typing import Any
 
 import numpy as np
 
-from caviar_plugins.torch_device import to_numpy, to_torch
+from caviar_plugins.torch_device import is_cuda, to_numpy, to_torch
 
 
 def leaf_probabilities(tree) -> np.ndarray:
@@ -43,7 +46,7 @@ class TorchForest:
     ``forest.column(x)`` is ``forest.predict_proba(x)[:, column]`` for feature rows ``x``
     (numpy (M, features)), as numpy float64."""
 
-    def __init__(self, forest, device: Any, column: int = 1):
+    def __init__(self, forest, device: Any, column: int = 1, cuda_graphs: bool | None = None):
         import torch
 
         trees = forest.estimators_
@@ -68,6 +71,32 @@ class TorchForest:
         self.trees, self.depth, self.features = n, max(t.tree_.max_depth for t in trees), forest.n_features_in_
         self.left, self.right, self.feature = (to_torch(a, self.device) for a in (left, right, feature))
         self.threshold, self.prob = to_torch(threshold, self.device), to_torch(prob, self.device)
+        self.cuda_graphs = is_cuda(self.device) if cuda_graphs is None else bool(cuda_graphs)
+        if self.cuda_graphs and not is_cuda(self.device):
+            raise ValueError(f"cuda_graphs needs a CUDA device, not {self.device}")
+        self._graphs: dict[int, tuple[Any, Any, Any]] = {}
+        self._lock = threading.Lock()  # (a graph's buffers serve one run at a time: the detector's threads)
+
+    @staticmethod
+    def bucket(rows: int) -> int:
+        """The rows a CUDA graph is captured for: the next power of two, at least 1,024 (a
+        frame's distinct rows vary; a few graphs serve them all, the padding's rows dropped)."""
+        return max(1024, 1 << max(0, rows - 1).bit_length())
+
+    def _walk(self, xt):
+        """The probabilities of the columns of ``xt`` (features, M) float64 on the device."""
+        import torch
+
+        node = torch.zeros((self.trees, xt.shape[1]), dtype=torch.int64, device=self.device)
+        for _ in range(self.depth):
+            value = torch.gather(xt, 0, torch.gather(self.feature, 1, node))
+            node = torch.where(value <= torch.gather(self.threshold, 1, node),
+                               torch.gather(self.left, 1, node), torch.gather(self.right, 1, node))
+        prob = torch.gather(self.prob, 1, node)
+        total = torch.zeros(xt.shape[1], dtype=torch.float64, device=self.device)
+        for k in range(self.trees):  # (in tree order, one add each: scikit-learn's sum)
+            total += prob[k]
+        return total / self.trees
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         import torch
@@ -75,15 +104,25 @@ class TorchForest:
         x = np.asarray(x, dtype=np.float32)
         if x.ndim != 2 or x.shape[1] != self.features:
             raise ValueError(f"expected feature rows (M, {self.features}), got {x.shape}")
-        with torch.inference_mode():
-            xt = to_torch(np.ascontiguousarray(x.T), self.device).to(torch.float64)  # (features, M), exact
-            node = torch.zeros((self.trees, x.shape[0]), dtype=torch.int64, device=self.device)
-            for _ in range(self.depth):
-                value = torch.gather(xt, 0, torch.gather(self.feature, 1, node))
-                node = torch.where(value <= torch.gather(self.threshold, 1, node),
-                                   torch.gather(self.left, 1, node), torch.gather(self.right, 1, node))
-            prob = torch.gather(self.prob, 1, node)
-            total = torch.zeros(x.shape[0], dtype=torch.float64, device=self.device)
-            for k in range(self.trees):  # (in tree order, one add each: scikit-learn's sum)
-                total += prob[k]
-            return to_numpy(total / self.trees)
+        xt = np.ascontiguousarray(x.T, dtype=np.float64)  # (features, M): float32 widened, exactly
+        if not self.cuda_graphs:
+            with torch.inference_mode():
+                return to_numpy(self._walk(to_torch(xt, self.device)))
+        rows = self.bucket(x.shape[0])
+        padded = np.zeros((self.features, rows))
+        padded[:, :x.shape[0]] = xt
+        with self._lock:
+            if rows not in self._graphs:
+                from caviar_plugins.vision.onnx_torch import capture
+
+                try:
+                    self._graphs[rows] = capture(self._walk, to_torch(padded, self.device))
+                except RuntimeError as e:  # (a CUDA set-up that cannot capture: said once, then eager)
+                    print(f"pixel forest: no CUDA graph ({e}); running kernel by kernel", file=sys.stderr)
+                    self.cuda_graphs = False
+                    with torch.inference_mode():
+                        return to_numpy(self._walk(to_torch(xt, self.device)))
+            graph, static_in, static_out = self._graphs[rows]
+            static_in.copy_(to_torch(padded, self.device))
+            graph.replay()
+            return to_numpy(static_out)[:x.shape[0]]

@@ -20,6 +20,8 @@ arithmetic as onnxruntime in float32. It knows the operators of YOLOv8/YOLO11 de
 from __future__ import annotations
 
 import pathlib
+import sys
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -101,6 +103,7 @@ class TorchGraph:
                                  f"(known: {', '.join(OPERATORS)}); use runtime = \"onnxruntime\"")
             self.steps.append((self._operator(node, _attributes(node), where), list(node.input), list(node.output)))
         self._graphs: dict[tuple, tuple[Any, Any, Any]] = {}
+        self._lock = threading.Lock()
 
     def _tensor(self, array: np.ndarray):
         """A constant: floats on the device, integers (shapes, indices) on the host."""
@@ -228,27 +231,36 @@ class TorchGraph:
             with torch.inference_mode():
                 return self._run(x)
         key = tuple(x.shape)
-        if key not in self._graphs:
-            self._graphs[key] = self._capture(x)
-        graph, static_in, static_out = self._graphs[key]
-        static_in.copy_(x)
-        graph.replay()
-        return static_out.clone()
+        with self._lock:  # (a graph's buffers serve one run at a time)
+            if key not in self._graphs:
+                try:
+                    self._graphs[key] = capture(self._run, x)
+                except RuntimeError as e:  # (a CUDA set-up that cannot capture: said once, then eager)
+                    print(f"{self.path.name}: no CUDA graph ({e}); running kernel by kernel", file=sys.stderr)
+                    self.cuda_graphs = False
+                    with torch.inference_mode():
+                        return self._run(x)
+            graph, static_in, static_out = self._graphs[key]
+            static_in.copy_(x)
+            graph.replay()
+            return static_out.clone()
 
-    def _capture(self, x):
-        """A CUDA graph of one run for ``x``'s shape, after warm-up runs on a side stream (as
-        PyTorch's documentation has it)."""
-        import torch
 
-        static_in = x.clone()
-        stream = torch.cuda.Stream(self.device)
-        stream.wait_stream(torch.cuda.current_stream(self.device))
-        with torch.inference_mode():
-            with torch.cuda.stream(stream):
-                for _ in range(2):
-                    self._run(static_in)
-            torch.cuda.current_stream(self.device).wait_stream(stream)
-            graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(graph):
-                static_out = self._run(static_in)
-        return graph, static_in, static_out
+def capture(fn: Callable, x) -> tuple[Any, Any, Any]:
+    """A CUDA graph of ``fn(x)`` for ``x``'s shape, dtype and device: (graph, its input, its
+    output). Warm-up runs on a side stream first, as PyTorch's documentation has it; then a
+    run is ``input.copy_(new); graph.replay()`` and the output is read (or cloned) after."""
+    import torch
+
+    static_in = x.clone()
+    stream = torch.cuda.Stream(x.device)
+    stream.wait_stream(torch.cuda.current_stream(x.device))
+    with torch.inference_mode():
+        with torch.cuda.stream(stream):
+            for _ in range(2):
+                fn(static_in)
+        torch.cuda.current_stream(x.device).wait_stream(stream)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            static_out = fn(static_in)
+    return graph, static_in, static_out
