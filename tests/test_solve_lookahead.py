@@ -88,3 +88,15 @@ def test_bad_lookahead_settings_name_their_key(changes, key):
 def test_lookahead_with_uav_bodies_is_accepted():
     params = SionnaLinkParams(lookahead=True, uav_mesh=True)
     assert params.lookahead_steps == "auto"
+
+
+def test_lookahead_with_uav_bodies_is_deterministic():
+    points = [ROUTE.at(100.0 + 2.5 * k) for k in range(3)]
+    runs = []
+    for _ in range(2):
+        tracer = LookaheadTracer(RadioScene(RadioConfig(**FAST), seed=5), steps=2)
+        runs.append([tracer.links({"uav1": points[0]}, {"uav1": points[1:]})["uav1"]] +
+                    [tracer.links({"uav1": p}, {})["uav1"] for p in points[1:]])
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a.h, b.h)
+        assert a.n_paths == b.n_paths and a.best_pair == b.best_pair
