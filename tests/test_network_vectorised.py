@@ -52,16 +52,21 @@ def _by_hand(s: HandoverSettings, names, state: dict, t: float, ue: str, rsrp: l
             return [{**event("rlf", st["serving"], best), "sinr_db": round(sinr, 3)}]
     else:
         st["below"] = None
+    _a3_by_hand(s, st, t, rsrp)
+    if st["candidate"] >= 0 and t - st["since"] >= s.time_to_trigger_s - 1e-9:
+        state[ue] = {"serving": st["candidate"], **fresh}
+        return [event("handover", st["serving"], st["candidate"])]
+    return []
+
+
+def _a3_by_hand(s: HandoverSettings, st: dict, t: float, rsrp: list[float]) -> None:
+    """A3's entering condition: the timer runs for the best neighbour meeting it."""
     entering = [c for c in range(len(rsrp)) if c != st["serving"]
                 and rsrp[c] - s.hysteresis_db > rsrp[st["serving"]] + s.offset_db]
     if not entering:
         st["candidate"] = -1
     elif st["candidate"] != (top := max(entering, key=lambda c: rsrp[c])):
         st["candidate"], st["since"] = top, t
-    if st["candidate"] >= 0 and t - st["since"] >= s.time_to_trigger_s - 1e-9:
-        state[ue] = {"serving": st["candidate"], **fresh}
-        return [event("handover", st["serving"], st["candidate"])]
-    return []
 
 
 @pytest.mark.parametrize("k", [4.0, 0.0])

@@ -201,7 +201,8 @@ def network_step(device, n_slot: int = 30):
     x = {"channels": channels, "cells": cells, "moved": channels.position + rng.normal(size=(n_ue, 3)),
          "f": np.array([-5e6, 5e6]), "serving": np.array([0, 1, 3, -1, 0, 1, 0]), "best": rng.integers(0, 4, n_ue),
          "noise": np.full(n_ue, 1e-12), "desired": rng.exponential(1e-9, (n_ue, n_f)),
-         "leak": rng.exponential(1e-11, (n_ue, n_ue, n_f)), "power": rng.uniform(-10.0, 10.0, n_ue),
+         "ul_gains": rng.exponential(1e-11, (n_ue, n_cell, n_f, 3)), "receive": rng.integers(0, 3, n_ue),
+         "power": rng.uniform(-10.0, 10.0, n_ue),
          "carriers": np.array([c.carrier_hz for c in cells])}
     x["pointed"] = scheduled_ues(x["serving"], n_cell, n_slot)  # (cell 2 serves nobody: -1)
     x["beams_of"] = np.where(x["pointed"] >= 0, x["best"][np.maximum(x["pointed"], 0)], -1)
@@ -211,8 +212,8 @@ def network_step(device, n_slot: int = 30):
     return x, {"amplitude": amplitude, "gains_db": summed_db(amplitude), "gains": gains,
                "downlink": slot_sinr_db(cells, gains, x["serving"], x["best"], x["beams_of"], x["noise"],
                                         silent_idle=False, device=device),
-               "uplink": uplink_sinr_db(x["desired"], x["leak"], x["serving"], x["carriers"], x["power"], x["heard"],
-                                        1e-13, device=device)}
+               "uplink": uplink_sinr_db(x["desired"], x["ul_gains"], x["receive"], x["serving"], x["carriers"],
+                                        x["power"], x["heard"], 1e-13, device=device)}
 
 
 def test_the_networks_per_step_channel_arithmetic_stays_on_a_second_device(monkeypatch):
@@ -264,6 +265,7 @@ def test_the_networks_per_step_channel_arithmetic_equals_the_sums_by_hand():
                        for c in others)
             np.testing.assert_allclose(out["downlink"][k, u], 10 * np.log10(p_cell[s] * gains[u, s, :, best[u]]
                                                                             / (x["noise"][u] + dl_i)), rtol=1e-9)
-            ul_i = sum(p_ue[heard[k, c]] * x["leak"][u, heard[k, c]] for c in others if heard[k, c] >= 0)
+            ul_i = sum(p_ue[heard[k, c]] * x["ul_gains"][heard[k, c], s, :, x["receive"][u]]  # (into u's beam)
+                       for c in others if heard[k, c] >= 0)
             np.testing.assert_allclose(out["uplink"][k, u], 10 * np.log10(p_ue[u] * x["desired"][u] / (1e-13 + ul_i)),
                                        rtol=1e-9)

@@ -72,20 +72,25 @@ def tx_power_dbm(s: UplinkSettings, pathloss_db: np.ndarray, num_prb: int, devic
     return 10 * np.log10(to_numpy(watts).astype(float)) + 30
 
 
-SLOTS_AT_ONCE = 25
-"""Slots of the uplink's interference gathered at once ([ue, slot, cell, freq] each time)."""
+SLOTS_AT_ONCE = 50
+"""Slots of the uplink's interference gathered at once ([slot, cell, cell, freq, beam] each time)."""
 
 
-def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, carrier_of: np.ndarray,
-                 prb_power_dbm: np.ndarray, scheduled: np.ndarray, noise_prb_mw: float,
+def slot_sinr_db(desired: np.ndarray, gains: np.ndarray, receive: np.ndarray, serving: np.ndarray,
+                 carrier_of: np.ndarray, prb_power_dbm: np.ndarray, scheduled: np.ndarray, noise_prb_mw: float,
                  device: Any = HOST) -> np.ndarray:
     """[slot, ue, freq]: uplink SINR of every UE at its serving cell.
 
     ``desired`` [ue, freq]: gain from the UE to its cell (receive beam or array included);
-    ``leak`` [ue, ue', freq]: gain from UE ue' into the cell serving ue, through that cell's
-    receive beam toward ue; ``prb_power_dbm`` [ue]: power per PRB; ``scheduled`` [slot, cell]
+    ``gains`` [ue', cell, freq, beam]: gain from UE ue' into each receive beam of each cell (one
+    "beam", the element pattern, without beams); ``receive`` [ue]: the beam its serving cell
+    receives the UE on; ``prb_power_dbm`` [ue]: power per PRB; ``scheduled`` [slot, cell]
     (:func:`~caviar_plugins.network.beams.scheduled_ues`); ``carrier_of`` [cell]. NaN for a UE
-    without a cell. Computed on the torch ``device`` (a setting or a ``torch.device``)."""
+    without a cell. Computed on the torch ``device`` (a setting or a ``torch.device``).
+
+    What a victim hears depends on it only through its cell and receive beam: the interference
+    is summed once per (cell, beam) and slot, over the UEs the other cells schedule, then read
+    out per victim ([slot, cell, freq, beam], not a [victim, interferer] matrix)."""
     import torch
 
     from caviar_plugins.torch_device import resolve, to_numpy, to_torch
@@ -93,23 +98,22 @@ def slot_sinr_db(desired: np.ndarray, leak: np.ndarray, serving: np.ndarray, car
     dev = resolve(device)
     serving = np.asarray(serving)
     n_slot, n_cell = scheduled.shape
-    served = np.flatnonzero(serving >= 0)
-    s = serving[served]
-    # The cells each victim hears: the others on its serving cell's carrier.
-    heard = (carrier_of[None, :] == carrier_of[s][:, None]) & (np.arange(n_cell)[None, :] != s[:, None])
+    # heard[k, c]: cell k hears cell c's UEs (the others on its carrier).
+    heard = (carrier_of[None, :] == carrier_of[:, None]) & ~np.eye(n_cell, dtype=bool)
     p = to_torch(10 ** (np.asarray(prb_power_dbm, dtype=float) / 10), dev, torch.float64)
-    heard_t, leak_t = to_torch(heard, dev), to_torch(leak[served], dev, torch.float64)  # [u, cell], [u, ue', freq]
-    served_t = to_torch(served, dev)
-    signal = p[served_t][:, None] * to_torch(desired[served], dev, torch.float64)  # [u, freq]
-    out = torch.full((n_slot, len(serving), desired.shape[1]), float("nan"), dtype=torch.float64, device=dev)
+    g, heard_t = to_torch(gains, dev, torch.float64), to_torch(heard, dev, torch.float64)
+    s, rx = to_torch(np.maximum(serving, 0), dev), to_torch(np.asarray(receive), dev)
+    signal = p[:, None] * to_torch(desired, dev, torch.float64)  # [ue, freq]
+    parts = []
     for a in range(0, n_slot, SLOTS_AT_ONCE):
         v = to_torch(scheduled[a:a + SLOTS_AT_ONCE], dev, torch.int64)  # [slot, cell]: the UE each cell hears
         who = torch.clamp(v, min=0)
-        weight = (heard_t[:, None, :] & (v >= 0)[None]) * p[who][None]  # [u, slot, cell]
-        interference = torch.einsum("usc,uscf->suf", weight, leak_t[:, who])
-        # (no path to its cell: -inf)
-        out[a:a + SLOTS_AT_ONCE, served_t] = 10 * torch.log10(signal[None] / (noise_prb_mw + interference))
-    return to_numpy(out)
+        weight = (v >= 0) * p[who]  # [slot, cell]
+        per_beam = torch.einsum("sc,kc,sckfb->skbf", weight, heard_t, g[who])  # [slot, cell k, beam, freq]
+        parts.append(per_beam[:, s, rx])  # [slot, ue, freq]
+    out = 10 * torch.log10(signal[None] / (noise_prb_mw + torch.cat(parts)))  # (no path to its cell: -inf)
+    unserved = to_torch(serving < 0, dev)[None, :, None]
+    return to_numpy(torch.where(unserved, float("nan"), out))  # (a mask, not an indexing: no wait on a GPU)
 
 
 def noise_per_prb_mw(subcarrier_spacing_hz: float, noise_figure_db: float) -> float:
@@ -141,15 +145,15 @@ def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm
         rsrp_gain = np.mean(beam_gains[ue, sv, :, best], axis=-1)
         pl = -10 * np.log10(np.maximum(rsrp_gain, 1e-40))
         desired = beam_gains[ue, sv, :, best]  # [ue, freq]
-        leak = beam_gains[ue[None, :], sv[:, None], :, best[:, None]]  # [u, v, freq]: v into u's beam
+        gains, receive = beam_gains, best  # (UE v into the beam cell k receives u on)
     else:
         pl = pathloss_db(power[sv], 10 * np.log10(np.maximum(rx_lin[ue, sv], 1e-40)))
         channel = 10 ** ((np.asarray(rx_dbm) - (power + array)[None, :, None]) / 10)  # [ue, cell, freq]
         desired = channel[ue, sv] * 10 ** (array[sv] / 10)[:, None]
-        leak = channel[ue[None, :], sv[:, None]]  # element pattern only (the array serves u)
+        gains, receive = channel[..., None], np.zeros(n, dtype=np.int64)  # element pattern only (the array serves u)
     tx = tx_power_dbm(s, pl, num_prb, device)
     scheduled = scheduled_ues(serving if talking is None else np.where(talking, serving, -1), len(cells), slots)
     carriers = np.array([c.carrier_hz for c in cells])
-    sinr = slot_sinr_db(desired, leak, serving, carriers, tx - 10 * np.log10(num_prb), scheduled,
+    sinr = slot_sinr_db(desired, gains, receive, serving, carriers, tx - 10 * np.log10(num_prb), scheduled,
                         noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db), device)
     return tx, sinr
