@@ -245,9 +245,11 @@ def bench_host(n_uav: int, samples: int, reps: int) -> dict:  # noqa: C901 (one 
 
     class TimedSolver:  # (the path tracer calls it as it calls Sionna's PathSolver)
         def __call__(self, *args, **kwargs):
+            t0 = time.perf_counter()
             out = clock("sionna_in_solve", lambda: solver(*args, **kwargs))
+            whole = time.perf_counter() - t0  # (with the clock's own reading of the kernel history)
             r = clock.rows["sionna_in_solve"].pop()
-            sionna_inside.append(r[0] - r[1] - r[2])
+            sionna_inside.append(whole - r[1] - r[2])
             return out
 
     radio.tracer.solver = TimedSolver()
@@ -266,18 +268,20 @@ def bench_host(n_uav: int, samples: int, reps: int) -> dict:  # noqa: C901 (one 
     original_solve = radio.solve
 
     def timed_solve(force: bool = False):
+        t0 = time.perf_counter()
         out = clock("solve_in_step", lambda: original_solve(force), keep=True)
         r = clock.rows["solve_in_step"][-1]
-        solve_inside.append(r[0] - r[1] - r[2])
+        solve_inside.append(time.perf_counter() - t0 - r[1] - r[2])  # (the clock's own time with it)
         return out
 
     place_inside: list[float] = []
     original_place = radio.place
 
     def timed_place(positions, **kw):
+        t0 = time.perf_counter()
         clock("place_in_step", lambda: original_place(positions, **kw))
         r = clock.rows["place_in_step"].pop()
-        place_inside.append(r[0] - r[1] - r[2])
+        place_inside.append(time.perf_counter() - t0 - r[1] - r[2])
 
     radio.solve = timed_solve  # type: ignore[method-assign]
     radio.place = timed_place  # type: ignore[method-assign]
@@ -346,36 +350,35 @@ def compare(before: dict, after: dict) -> dict[str, float]:
             "los_differs": float(sum(a.los != after[k].los for k, a in before.items()))}
 
 
-def carrier_drjit(a_re, a_im, tau, n_paths, n_ant, frequency, n_out: int):
-    """H at the carrier in Dr.Jit from the paths' flat arrays, the sizes that change from
-    solve to solve (paths) opaque, the sum over paths a ``scatter_reduce``: a kernel whose
-    code does not depend on the number of paths (what ``dr.freeze`` can replay)."""
-    i = dr.arange(mi.UInt, dr.width(a_re))
-    p, row = i % n_paths, i // n_paths
-    t = dr.gather(mi.Float, tau, (row // n_ant) * n_paths + p)
-    t = dr.select(t == -1, 0, t)
-    two_pi = 2 * dr.pi
-    phase = (-two_pi * frequency) * t
-    phase = phase - two_pi * dr.floor(phase * (1 / two_pi))
-    s, c = dr.sincos(phase)
-    h_re, h_im = dr.zeros(mi.Float, n_out), dr.zeros(mi.Float, n_out)
-    dr.scatter_reduce(dr.ReduceOp.Add, h_re, a_re * c - a_im * s, row)
-    dr.scatter_reduce(dr.ReduceOp.Add, h_im, a_re * s + a_im * c, row)
-    return h_re, h_im
+def carrier_numpy(paths, n_rx: int, frequency_hz: float) -> np.ndarray:
+    """H at the carrier in numpy from one read of the paths' arrays (the sum in float64):
+    the first version of issue #53's solve, before the frozen kernel."""
+    a_re, a_im = paths.a
+    dr.eval(a_re, a_im, paths.tau)
+    a_re, a_im = np.asarray(a_re), np.asarray(a_im)  # [rx, rx_ant, tx, tx_ant, P]
+    tau = np.asarray(paths.tau).reshape(n_rx, -1)
+    two_pi = np.float32(2 * np.pi)
+    phase = (-two_pi * np.float32(frequency_hz)) * np.where(tau == -1, np.float32(0), tau).astype(np.float32)
+    phase = phase - two_pi * np.floor(phase * (np.float32(1) / two_pi))
+    cos, sin = np.cos(phase)[:, None, None, None, :], np.sin(phase)[:, None, None, None, :]
+    h_re = (a_re * cos - a_im * sin).sum(axis=-1, dtype=np.float64)
+    h_im = (a_re * sin + a_im * cos).sum(axis=-1, dtype=np.float64)
+    return (h_re + 1j * h_im)[:, :, 0, :].astype(np.complex64)
 
 
 def freeze_trials(n_uav: int, samples: int, reps: int) -> dict:
-    """``dr.freeze`` where the shapes do not change: the carrier channel H of a solve's paths
-    (:func:`carrier_drjit`), frozen or not, against the numpy of ``RadioScene.solve``
-    (:func:`~caviar_plugins.radio.scene.carrier_channels`), on the paths of solves whose
-    path count changes; host time outside kernels, and recordings of the frozen function.
-    (The solver itself cannot be frozen from here: Sionna sizes its path buffer from a
-    count it reads back, ``paths_buffer.shrink``, so its later kernels' sizes depend on data.)"""
-    from caviar_plugins.radio.scene import carrier_channels
+    """``dr.freeze`` where the shapes do not change: the carrier channel H of a solve's paths.
+    ``frozen``: the project's (:func:`~caviar_plugins.rt.solver.carrier_channels`, one kernel
+    under ``dr.freeze``), ``drjit``: the same kernel unfrozen, ``numpy``:
+    :func:`carrier_numpy`; host time outside kernels, on the paths of solves whose path count
+    changes, and the recordings of the frozen function (1: replayed whatever the count).
+    (The solver itself cannot be frozen from here: Sionna sizes its path buffer from a count
+    it reads back, ``paths_buffer.shrink``, so its later kernels' sizes depend on data.)"""
+    from caviar_plugins.rt import solver as rt_solver
 
     route = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
     radio = plugin(samples, uav_mesh=False).radio
-    frozen = dr.freeze(carrier_drjit)
+    f = radio.cfg.frequency_hz
     clock = KernelClock()
     diff = 0.0
     counts = set()
@@ -384,18 +387,22 @@ def freeze_trials(n_uav: int, samples: int, reps: int) -> dict:
         radio.solve(force=True)
         paths = radio.last_paths
         dr.eval(paths.a, paths.tau, paths.valid)
-        n_p, n_ant = paths.tau.shape[-1], radio.w_rx.shape[0] * radio.w_tx.shape[0]
+        n_p = paths.tau.shape[-1]
         counts.add(n_p)
-        out = {"numpy": clock("numpy", lambda p=paths: carrier_channels(p, n_uav, radio.cfg.frequency_hz)[0], k >= 2)}
+        n_ant = radio.w_rx.shape[0] * radio.w_tx.shape[0]
+        out = {"numpy": clock("numpy", lambda p=paths: carrier_numpy(p, n_uav, f), k >= 2),
+               "frozen": clock("frozen", lambda p=paths: rt_solver.carrier_channels(p, n_uav, f)[0], k >= 2)}
         args = (paths.a[0].array, paths.a[1].array, paths.tau.array, dr.opaque(mi.UInt, n_p),
-                dr.opaque(mi.UInt, n_ant), dr.opaque(mi.Float, np.float32(radio.cfg.frequency_hz)), n_uav * n_ant)
-        for label, fn in (("drjit", carrier_drjit), ("frozen", frozen)):
-            def run(fn=fn, args=args, shape=out["numpy"].shape):
-                h_re, h_im = fn(*args)
-                return (np.asarray(h_re) + 1j * np.asarray(h_im)).reshape(shape)
-            out[label] = clock(label, run, k >= 2)
+                dr.opaque(mi.UInt, n_ant), dr.opaque(mi.Float, float(np.float32(f))), n_uav * n_ant)
+
+        def unfrozen(args=args, shape=out["numpy"].shape):
+            h_re, h_im = rt_solver.carrier_sums(*args)
+            return (np.asarray(h_re) + 1j * np.asarray(h_im)).reshape(shape)
+
+        out["drjit"] = clock("drjit", unfrozen, k >= 2)
         ref = np.abs(out["numpy"]).max()
         diff = max(diff, *(float(np.abs(out[x] - out["numpy"]).max() / ref) for x in ("drjit", "frozen")))
+    frozen = rt_solver.FROZEN.get("carrier")
     res = {"uavs": n_uav, "path_counts": sorted(counts), "recordings": getattr(frozen, "n_recordings", None),
            "max_relative_difference": diff, **{k: v["host_ms"] for k, v in clock.summary().items()}}
     print(json.dumps(res), flush=True)

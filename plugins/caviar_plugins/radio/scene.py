@@ -361,6 +361,8 @@ class RadioScene:
         dropped = self.tracer.dropped
         # Every receiver of the scene was traced, in the scene's order (which is not the
         # order of the last place(): UEs that joined later come last).
+        from caviar_plugins.rt.solver import carrier_channels
+
         h, valid, tau = carrier_channels(paths, len(self.receivers), c.frequency_hz)
         rx_pos = np.array([self._where[key] for key in self.receivers])
         direct = np.linalg.norm(rx_pos - np.asarray(c.tx_position, dtype=float), axis=1)
@@ -383,34 +385,7 @@ class RadioScene:
         return out
 
 
-def carrier_channels(paths: Any, n_rx: int, frequency_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The narrowband channel at the carrier of every receiver of a synthetic-array solve
-    from one transmitter, H = Σ a·exp(−j2π f_c τ) (N_rx, N_rx_ant, N_tx_ant) complex64, and
-    the paths' validity and delays (N_rx, P). It is Sionna's ``paths.cfr`` at baseband
-    offset 0 (the carrier phase in float32 as Sionna's ``cir`` computes it, the sum in
-    float64) from one read of the paths' arrays (``frequency_hz``: the scene's; reading
-    the scene's own would evaluate it, and the next solves' kernels, which had it as a
-    literal, would change in the last bits): no Dr.Jit kernel of its own, whose code
-    would change with the number of paths (a compilation per solve), and no sync per array."""
-    import drjit as dr
-
-    a_re, a_im = paths.a
-    dr.eval(a_re, a_im, paths.tau, paths.valid)
-    a_re, a_im = np.asarray(a_re), np.asarray(a_im)  # [rx, rx_ant, tx, tx_ant, P]
-    tau = np.asarray(paths.tau).reshape(n_rx, -1)  # [rx, P] (one transmitter)
-    valid = np.asarray(paths.valid).reshape(n_rx, -1)
-    two_pi = np.float32(2 * np.pi)
-    f = np.float32(frequency_hz)  # (as Sionna keeps the scene's)
-    phase = (-two_pi * f) * np.where(tau == -1, np.float32(0), tau).astype(np.float32)
-    phase = phase - two_pi * np.floor(phase * (np.float32(1) / two_pi))
-    cos, sin = np.cos(phase)[:, None, None, None, :], np.sin(phase)[:, None, None, None, :]
-    h_re = (a_re * cos - a_im * sin).sum(axis=-1, dtype=np.float64)
-    h_im = (a_re * sin + a_im * cos).sum(axis=-1, dtype=np.float64)
-    h = (h_re + 1j * h_im)[:, :, 0, :].astype(np.complex64)
-    return h, valid, tau
-
-
-LOOKAHEAD_AUTO = {"cuda": (40, 19), "llvm": (30, 9)}
+LOOKAHEAD_AUTO = {"GPU": (40, 19), "CPU": (30, 9)}
 """``lookahead_steps = "auto"``, by Dr.Jit backend: (about how many receivers one look-ahead
 solve traces, the most steps ahead). On a GPU a solve is bound by host work that grows
 slowly with the receivers (H200: 39 ms for 1, 117 ms for 10), so a solve traces many steps
@@ -428,7 +403,7 @@ def lookahead_depth(steps: int | str, n_ue: int, variant: str | None = None) -> 
         from caviar_plugins.rt.drjit_setup import mitsuba
 
         variant = str(mitsuba().variant())
-    budget, most = LOOKAHEAD_AUTO["cuda" if variant.startswith("cuda_") else "llvm"]
+    budget, most = LOOKAHEAD_AUTO["GPU" if variant.startswith("cuda_") else "CPU"]  # (Dr.Jit's CUDA or LLVM)
     return max(1, min(most, budget // max(n_ue, 1) - 1))
 
 

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from caviar_plugins.rt import sionna_adapter as adapter
+from caviar_plugins.rt.drjit_setup import jit
 from caviar_plugins.rt.scene import MovingObjects
 from caviar_plugins.rt.shoot_cache import ShootCache
 
@@ -129,3 +130,64 @@ class PathTracer:
         if self.shoot_cache is None or not solves:
             return None
         return f"shoot cache {100 * self.shoot_cache.connects / solves:.0f} % of {solves} solves"
+
+
+def carrier_sums(a_re, a_im, tau, n_paths, n_ant, frequency, n_out: int):
+    """Σ_p a·exp(−j2π f τ_p) per (receiver, antenna pair) from the flat arrays of a
+    synthetic-array solve (a: [rx, rx_ant, 1, tx_ant, P], τ: [rx, 1, P]), with Sionna's
+    float32 carrier phase (``Paths.cir``: a delay of −1 counts as 0, the phase mapped to
+    [0, 2π)). One lane per (receiver, antenna pair) loops over the paths in order, so a
+    receiver's sum is the same whatever the other receivers of the solve (their padding
+    adds exact zeros); the path count P is opaque: the kernel's code is the same whatever it is."""
+    dr, mi = jit()
+    row = dr.arange(mi.UInt, n_out)
+    base, tau_base = row * n_paths, (row // n_ant) * n_paths
+    two_pi = 2 * dr.pi
+
+    def body(p, h_re, h_im):
+        t = dr.gather(mi.Float, tau, tau_base + p)
+        t = dr.select(t == -1, 0, t)
+        phase = (-two_pi * frequency) * t
+        phase = phase - two_pi * dr.floor(phase * (1 / two_pi))
+        s, c = dr.sincos(phase)
+        re, im = dr.gather(mi.Float, a_re, base + p), dr.gather(mi.Float, a_im, base + p)
+        return p + 1, h_re + (re * c - im * s), h_im + (re * s + im * c)
+
+    _, h_re, h_im = dr.while_loop((dr.zeros(mi.UInt, n_out), dr.zeros(mi.Float, n_out), dr.zeros(mi.Float, n_out)),
+                                  lambda p, h_re, h_im: p < n_paths, body)
+    return h_re, h_im
+
+
+FROZEN: dict[str, Any] = {}
+"""The frozen functions of this module (``carrier``: :func:`carrier_sums` under ``dr.freeze``)."""
+
+
+def carrier_channels(paths: Any, n_rx: int, frequency_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The narrowband channel at the carrier of every receiver of a synthetic-array solve
+    from one transmitter, H = Σ a·exp(−j2π f_c τ) (N_rx, N_rx_ant, N_tx_ant) complex64, and
+    the paths' validity and delays (N_rx, P): Sionna's ``paths.cfr`` at baseband offset 0
+    (equal to it to 3e-7), without its kernels, whose code changed with the number of
+    paths (a compilation per solve on the CPU). The sum runs in one kernel under
+    ``dr.freeze`` (:func:`carrier_sums`: recorded once, replayed whatever the path count;
+    host time in benches/bench_solve_host.py), and H, validity and delays come back in one read.
+    ``frequency_hz``: the scene's (reading the scene's own would evaluate it, and the next
+    solves' kernels, which had it as a literal, would change in the last bits)."""
+    dr, mi = jit()
+    a_re, a_im = paths.a
+    n_paths = int(a_re.shape[-1])
+    n_ant = int(np.prod(a_re.shape[1:4]))
+    if n_paths == 0:
+        empty = np.zeros((n_rx, 0))
+        return (np.zeros((n_rx, a_re.shape[1], a_re.shape[3]), dtype=np.complex64), empty.astype(bool),
+                empty.astype(np.float32))
+    frozen = FROZEN.get("carrier")
+    if frozen is None:
+        frozen = FROZEN["carrier"] = dr.freeze(carrier_sums)
+    h_re, h_im = frozen(a_re.array, a_im.array, paths.tau.array, dr.opaque(mi.UInt, n_paths),
+                        dr.opaque(mi.UInt, n_ant), dr.opaque(mi.Float, float(np.float32(frequency_hz))),
+                        n_rx * n_ant)
+    dr.eval(h_re, h_im, paths.valid)
+    tau = np.asarray(paths.tau).reshape(n_rx, -1)  # [rx, P] (one transmitter)
+    valid = np.asarray(paths.valid).reshape(n_rx, -1)
+    h = (np.asarray(h_re) + 1j * np.asarray(h_im)).astype(np.complex64)
+    return h.reshape(n_rx, a_re.shape[1], a_re.shape[3]), valid, tau
