@@ -394,14 +394,16 @@ class LinkLevel:
         queue.on_device(dev, torch, cap)
         groups: list[tuple] = []  # each group's slots, as tensors: tallied once, after the loop
         member_t = member_all
-        firsts = torch.arange(0, n_slots, d, device=dev)  # (tensors: no recompiling, no copy per group)
+        # Each group's slots and first slot as views made at once (tensors: no recompiling, no copy,
+        # and no torch operation per group outside the compiled one).
+        firsts, blocks = torch.arange(0, n_slots, d, device=dev).unbind(), lin_all.split(d)
         for k in range(0, n_slots, d):
             if queue.finite:  # (only UEs with bits queued at the group's first slot)
                 member_t = member_all & queue.eligible(k)[None, :]
                 if not bool(member_t.any()):
                     continue  # nothing to send: no call (no transmission, no loop updates)
             prbs, harq, tbler, mcs, sinr_eff, cells, bits, self.rate_last = self._group(
-                lin_all[k:k + d], member_t, firsts[k // d], self.harq, self.rate_last)
+                blocks[k // d], member_t, firsts[k // d], self.harq, self.rate_last)
             self.harq = harq
             if queue.finite:
                 queue.take_group(k, bits.to(torch.float64))
@@ -417,7 +419,8 @@ class LinkLevel:
             zeros = np.zeros(n_ue, dtype=int)
             return SlotResults(np.zeros(n_ue), zeros, zeros, zeros, zeros, np.full(n_ue, -1), np.full(n_ue, np.nan),
                                np.full(n_ue, np.nan), to_numpy(active), np.zeros((n_slots, n_ue)))
-        slots = torch.cat([torch.arange(g[0], g[0] + len(g[1]), device=dev) for g in groups])
+        slots = (torch.arange(n_slots, device=dev) if sum(len(g[1]) for g in groups) == n_slots  # (every group ran)
+                 else torch.cat([torch.arange(g[0], g[0] + len(g[1]), device=dev) for g in groups]))
         prbs, harq, tbler, mcs, sinr_eff, cells, bits = (torch.cat([g[i] for g in groups]) for i in range(1, 8))
         active[slots] = cells
         if not queue.finite:  # (a full buffer delivers all it decodes)
