@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from caviar_plugins.rt import sionna_adapter as adapter
-from caviar_plugins.torch_device import check_setting, resolve, to_numpy, to_torch
+from caviar_plugins.torch_device import check_setting, is_cuda, resolve, to_numpy, to_torch
 
 NUMEROLOGIES = (15e3, 30e3, 60e3, 120e3)
 NR_RANGES_HZ = ((410e6, 7.125e9), (24.25e9, 71e9))
@@ -161,8 +161,7 @@ def cuda_graphs_on(settings: LinkSettings, device: Any) -> bool:
     compiled on a CUDA device."""
     if not settings.compile or settings.link_model != "sys":
         return False
-    return getattr(device, "type", str(device)).startswith("cuda") if settings.cuda_graphs is None \
-        else settings.cuda_graphs
+    return is_cuda(device) if settings.cuda_graphs is None else settings.cuda_graphs
 
 
 @dataclasses.dataclass
