@@ -183,9 +183,15 @@ def carrier_channels(paths: Any, n_rx: int, frequency_hz: float) -> tuple[np.nda
     frozen = FROZEN.get("carrier")
     if frozen is None:
         frozen = FROZEN["carrier"] = dr.freeze(carrier_sums)
-    h_re, h_im = frozen(a_re.array, a_im.array, paths.tau.array, dr.opaque(mi.UInt, n_paths),
-                        dr.opaque(mi.UInt, n_ant), dr.opaque(mi.Float, float(np.float32(frequency_hz))),
-                        n_rx * n_ant)
+    args = (a_re.array, a_im.array, paths.tau.array, dr.opaque(mi.UInt, n_paths), dr.opaque(mi.UInt, n_ant),
+            dr.opaque(mi.Float, float(np.float32(frequency_hz))), n_rx * n_ant)
+    try:
+        h_re, h_im = frozen(*args)
+    except RuntimeError as e:  # (a backend where freezing fails: the same kernel, traced each time)
+        warnings.warn(f"dr.freeze failed on the carrier channel ({e}); it is traced on every solve",
+                      RuntimeWarning, stacklevel=2)
+        FROZEN["carrier"] = carrier_sums
+        h_re, h_im = carrier_sums(*args)
     dr.eval(h_re, h_im, paths.valid)
     tau = np.asarray(paths.tau).reshape(n_rx, -1)  # [rx, P] (one transmitter)
     valid = np.asarray(paths.valid).reshape(n_rx, -1)
