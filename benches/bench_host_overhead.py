@@ -1,0 +1,265 @@
+"""Host overhead of the radio network's step (issue #53, part 4): what the ``radio-network``
+plugin spends per step outside the ray tracer and outside Sionna SYS's kernels, at 21 cells
+(7 sites × 3 sectors) × 100 and × 1,000 UEs, and the torch operations it launches per group
+of slots.
+
+The plugin runs as ``benches/bench_network.py --plugin-only`` runs it: the osm-city scene
+ray traced (every site in one solve), SSB beams, the uplink, ``interference = "scheduled"``,
+full buffers, 8 HARQ processes of 0.5 ms slots per call on 8 subbands, ``torch.compile``d link
+levels, 0.1 s steps (200 slots: 25 groups a link a step). Of the median step by host time (the
+first, which traces and compiles, left out; on a 2-core machine shared with other work a step is
+now and then many times slower, its OpenMP threads waiting for busy cores):
+
+- ``step_ms``: the step's wall time; ``rt_ms``: inside ``SiteTracer.trace`` (none between
+  refreshes); ``sys_kernels_ms``: inside the link levels' compiled groups of slots (Sionna
+  SYS's scheduler, link adaptation, EESM and PHY abstraction); ``host_ms``: the rest, the
+  network's own work (measurements, mobility, beams, the uplink's SINR, the link levels'
+  inputs and tallies, the reports);
+- the wall ms of the step's phases: ``_measure`` (the channel, beams, RSRP, mobility),
+  ``_downlink_sinr``, the uplink's powers and SINR (``uplink``), the two link levels' ``run``
+  (their compiled groups included); the rest is the reports and the queues;
+- ``host_torch_ms``: of ``host_ms``, the top-level torch operations outside the link levels'
+  runs (the channel's arithmetic: paths moved, beam gains, per-slot SINRs; kernels on a GPU, as
+  the profiled step read them), and ``host_python_numpy_ms`` the rest (Python and numpy);
+- ``top_level_torch_ops_per_group``: torch operations a group of slots runs that no other
+  torch operation called (torch.profiler, as ``tests/test_network.py`` counts them; on a GPU
+  each a kernel launch), and the compiled regions per group (one launch each with CUDA
+  graphs); ``top_level_torch_ops_per_step``: the whole step's.
+
+And the ray-tracing refresh: one solve of 21 sites × 1,000 UEs (``SiteTracer.trace``), timed
+on this CPU warm, with what it would cost on an H200 from the solve figures measured there.
+
+``--baseline DIR``: also runs the plugin of another checkout's ``DIR/plugins`` (say HEAD's,
+``git archive HEAD plugins | tar -x -C DIR``), each size's runs of the two interleaved, in
+processes of their own, for the before/after ratios. Writes ``docs/results/host-overhead.json``.
+
+    .venv/bin/python benches/bench_host_overhead.py [--steps 5] [--baseline /tmp/base]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+OUT = ROOT / "docs" / "results" / "host-overhead.json"
+TARGETS = {"host_ms_per_step_1000_ues": 10.0, "torch_launches_per_group": 30}
+H200_SOLVE = {"one_uav_1e6_samples_ms": {"warm": 39, "kernels": 17, "host": 18},
+              "ten_uavs_1e6_samples_ms": {"warm": 117, "kernels": 43, "host": 65}}
+"""One Sionna RT solve on an H200 (issue #53's figures): 1 UAV and 10 UAVs, 1e6 samples."""
+
+
+def _timed(obj, name: str, into: dict, key: str) -> None:
+    """Wraps ``obj.name`` to add its wall time to ``into[key]`` (and count its calls)."""
+    inner = getattr(obj, name)
+
+    def wrapper(*args, **kwargs):
+        a = time.perf_counter()
+        try:
+            return inner(*args, **kwargs)
+        finally:
+            into[key] = into.get(key, 0.0) + time.perf_counter() - a
+            into[key + "_calls"] = into.get(key + "_calls", 0) + 1
+
+    setattr(obj, name, wrapper)
+
+
+def _launches(net, step) -> tuple[int, int, int, float]:
+    """The torch operations of one ``step()`` that no other torch operation called, those of them
+    inside the link levels' runs, the compiled regions entered (torch.profiler), and the ms the
+    step's top-level torch operations outside the link levels took (the channel's arithmetic,
+    device kernels on a GPU)."""
+    from torch.profiler import ProfilerActivity, profile, record_function
+
+    for link in (net.link, net.ul_link):
+        def annotated(*args, _inner=link.run, **kwargs):
+            with record_function("link_run"):
+                return _inner(*args, **kwargs)
+        link.run = annotated
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        step()
+    top = [e for e in prof.events() if e.name.startswith("aten::")
+           and (e.cpu_parent is None or not e.cpu_parent.name.startswith("aten::"))]
+
+    def in_link(e) -> bool:
+        while e is not None:
+            if e.name == "link_run":
+                return True
+            e = e.cpu_parent
+        return False
+    compiled = sum(1 for e in prof.events() if e.name.startswith("Torch-Compiled Region"))
+    outside = sum(e.cpu_time_total for e in top if not in_link(e)) / 1e3
+    return len(top), sum(1 for e in top if in_link(e)), compiled, outside
+
+
+def one(n_ue: int, steps: int, samples: int) -> dict:
+    """The plugin at 21 cells × ``n_ue`` UEs, ``steps`` steps after the first: per-step times."""
+    import tempfile
+
+    import torch
+
+    from bench_network import SCENE, TS, compile_outside, sites, ues
+    from caviar._host import Hosted, check_params
+    from caviar.plugin import Inbox, Message
+    from caviar_plugins.network.plugin import RadioNetwork
+    from caviar_plugins.schema import position_payload
+
+    kinds, pos0, vel = ues(np.random.default_rng(7), n_ue)
+    params = {"sites": sites(), "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "tx_power_dbm": 43.0, "array": [4, 4],
+              "subcarrier_spacing_hz": 30e3, "harq_processes": 8, "subbands": 8, "compile": True,
+              "channel": "ray-traced", "interference": "scheduled", "antenna_height_m": 0.0,
+              "raytracing": {"scene": str(SCENE), "max_depth": 2, "samples_per_src": samples, "refresh_s": 1.0},
+              "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
+    hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, params))
+
+    def inbox(k: int) -> Inbox:
+        pos = pos0 + vel * k * TS
+        return Inbox([Message("3D.mobility.positions", position_payload(f"{kinds[u]}{u}", pos[u], kinds[u]),
+                              step=k, time=k * TS) for u in range(n_ue)])
+
+    with tempfile.TemporaryDirectory() as run_dir:
+        hosted.setup(seed=1, ts=TS, steps=None, every=1, offset=0, run_dir=run_dir, config_dir=str(ROOT))
+        assert hosted.ctx is not None
+        net = hosted.plugin
+        for link in (net.link, net.ul_link):
+            compile_outside(link.s, len(net.cells), n_ue)
+        timing: dict = {}
+
+        def step(k: int) -> int:
+            hosted.ctx.step = k
+            return len(list(net.step(k * TS, inbox(k)) or ()))
+
+        step(0)  # (traces and compiles)
+        _timed(net.tracer, "trace", timing, "rt")
+        for link, key in ((net.link, "sys"), (net.ul_link, "sys")):
+            _timed(link, "_group", timing, key)
+        for name in ("_measure", "_downlink_sinr"):
+            _timed(net, name, timing, name.strip("_"))
+        _timed(sys.modules[RadioNetwork.__module__], "uplink", timing, "uplink_sinr")  # (powers and SINR)
+        for link, key in ((net.link, "dl_link_run"), (net.ul_link, "ul_link_run")):
+            _timed(link, "run", timing, key)
+        messages, per_step = 0, []
+        for k in range(1, steps + 1):
+            before, a = dict(timing), time.perf_counter()
+            messages += step(k)
+            per_step.append((time.perf_counter() - a, {key: v - before.get(key, 0) for key, v in timing.items()}))
+        # The median step (by its host time): a 2-core machine shared with other work slows a step now
+        # and then many times over (OpenMP threads waiting on busy cores), the median not.
+        per_step.sort(key=lambda x: x[0] - x[1].get("rt", 0.0) - x[1].get("sys", 0.0))
+        wall, timing = per_step[len(per_step) // 2]
+        top, in_links, compiled, torch_ms = _launches(net, lambda: step(steps + 1))
+        groups = 2 * (net.slots // net.p.harq_processes)
+    step_ms = 1e3 * wall
+    rt_ms, sys_ms = 1e3 * timing.get("rt", 0.0), 1e3 * timing.get("sys", 0.0)
+    phases = {k: round(1e3 * timing[k], 2) for k in ("measure", "downlink_sinr", "dl_link_run", "uplink_sinr",
+                                                       "ul_link_run") if k in timing}
+    return {"cells": len(net.cells), "ues": n_ue, "steps": steps, "of_the_median_step": True,
+            "messages_per_step": messages / steps,
+            "step_ms": round(step_ms, 2), "rt_ms": round(rt_ms, 2), "sys_kernels_ms": round(sys_ms, 2),
+            "host_ms": round(step_ms - rt_ms - sys_ms, 2),
+            "host_torch_ms": round(torch_ms, 2), "host_python_numpy_ms": round(step_ms - rt_ms - sys_ms - torch_ms, 2),
+            "phases_ms": phases,
+            "groups_per_step": groups, "top_level_torch_ops_per_step": top,
+            "top_level_torch_ops_per_group": round(in_links / groups, 2),
+            "compiled_regions_per_group": round(compiled / groups, 2), "torch": torch.__version__}
+
+
+def refresh(n_ue: int, samples: int) -> dict:
+    """One ray-tracing refresh of 21 sites × ``n_ue`` UEs (all sites in one solve), warm."""
+    from bench_network import SCENE, sites, ues
+    from caviar_plugins.network.cells import parse_sites
+    from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
+
+    cells = parse_sites(sites(), {"tx_power_dbm": 43.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "array": [4, 4]})
+    _, pos0, vel = ues(np.random.default_rng(7), n_ue)
+    tracer = SiteTracer(TraceSettings(scene=str(SCENE), max_depth=2, samples_per_src=samples), cells, seed=1)
+    a = time.perf_counter()
+    tracer.trace(pos0)
+    first = time.perf_counter() - a
+    times = []
+    for k in (1, 2):
+        a = time.perf_counter()
+        tracer.trace(pos0 + vel * k)
+        times.append(time.perf_counter() - a)
+    sites_n = len({c.site for c in cells})
+    warm = min(times)
+    # An H200 solve, from its 1 -> 10 UAV figures read as 1 -> 10 sources of 1e6 samples each: a first
+    # source's kernels and host, and each further source's (an upper bound for fewer samples a source).
+    one_, ten = H200_SOLVE["one_uav_1e6_samples_ms"], H200_SOLVE["ten_uavs_1e6_samples_ms"]
+    kernels = one_["kernels"] + (ten["kernels"] - one_["kernels"]) / 9 * (sites_n - 1)
+    host = one_["host"] + (ten["host"] - one_["host"]) / 9 * (sites_n - 1)
+    return {"sites": sites_n, "cells": len(cells), "ues": n_ue, "samples_per_src": samples, "solves": 1,
+            "first_s": round(first, 2), "warm_s": round(warm, 3),
+            "h200_estimate_ms": {"kernels": round(kernels, 1), "host": round(host, 1),
+                                 "total": round(kernels + host, 1)},
+            "h200_estimate": (f"an extrapolation, not a measurement: the H200 solve figures {H200_SOLVE} read as 1 and "
+                              f"10 sources of 1e6 samples, scaled linearly to {sites_n} sources (the sites) of "
+                              f"{samples:g} samples, an upper bound on the rays; how the solve grows with {n_ue:,} "
+                              "receivers against their one is not in those figures")}
+
+
+def _subprocess(args: list[str], plugins: str | None) -> dict:
+    env = dict(os.environ)
+    if plugins is not None:
+        env["PYTHONPATH"] = plugins + os.pathsep + env.get("PYTHONPATH", "")
+    out = subprocess.run([sys.executable, __file__, *args], env=env, check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--steps", type=int, default=5, help="steps timed per run (after the first)")
+    ap.add_argument("--samples", type=int, default=20000, help="rays per site")
+    ap.add_argument("--ues", type=int, nargs="+", default=[100, 1000])
+    ap.add_argument("--baseline", help="another checkout's root (its plugins/ run interleaved with these)")
+    ap.add_argument("--one", type=int, metavar="N_UE", help="(internal) one run, its JSON on stdout")
+    ap.add_argument("--refresh-only", type=int, metavar="N_UE", help="(internal) the RT refresh, JSON on stdout")
+    args = ap.parse_args()
+    if args.one:
+        print(json.dumps(one(args.one, args.steps, args.samples)))
+        return
+    if args.refresh_only:
+        print(json.dumps(refresh(args.refresh_only, args.samples)))
+        return
+    from bench_common import machine
+
+    runs, before = {}, {}
+    for n in args.ues:
+        common = ["--one", str(n), "--steps", str(args.steps), "--samples", str(args.samples)]
+        if args.baseline:
+            before[n] = _subprocess(common, str(pathlib.Path(args.baseline) / "plugins"))
+            print("before", json.dumps(before[n]), flush=True)
+        runs[n] = _subprocess(common, None)
+        print("after", json.dumps(runs[n]), flush=True)
+    rt = _subprocess(["--refresh-only", str(max(args.ues)), "--samples", str(args.samples)], None)
+    print("refresh", json.dumps(rt), flush=True)
+    big = runs[max(args.ues)]
+    result = {
+        "host_ms_per_step": {str(n): r["host_ms"] for n, r in runs.items()},
+        "torch_launches_per_group": big["top_level_torch_ops_per_group"] + big["compiled_regions_per_group"],
+        "targets": TARGETS,
+        "meets_targets": {"host_ms_per_step_1000_ues": runs.get(1000, big)["host_ms"] <= TARGETS[
+            "host_ms_per_step_1000_ues"], "torch_launches_per_group": big["top_level_torch_ops_per_group"]
+            + big["compiled_regions_per_group"] <= TARGETS["torch_launches_per_group"]},
+        "runs": {str(n): r for n, r in runs.items()},
+        "rt_refresh": rt,
+        "machine": machine(),
+    }
+    if before:
+        result["before"] = {str(n): r for n, r in before.items()}
+        result["host_ms_ratio_before_after"] = {str(n): round(before[n]["host_ms"] / max(runs[n]["host_ms"], 1e-9), 2)
+                                                for n in runs}
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    OUT.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps({k: result[k] for k in ("host_ms_per_step", "torch_launches_per_group", "meets_targets")}))
+
+
+if __name__ == "__main__":
+    main()
