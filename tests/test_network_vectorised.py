@@ -14,7 +14,7 @@ import pytest
 
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.report import finite
-from caviar_plugins.network.ues import UeTable, ue_reports, uplink_fields
+from caviar_plugins.network.ues import UeTable, rounded, ue_reports, uplink_fields
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, cuda_graphs_on
 
 
@@ -156,6 +156,22 @@ def test_reports_built_in_bulk_round_as_one_by_one():
                        {k: v[:2] for k, v in link.items()})
     assert ul[0]["ul_tx_power_dbm"] == 23.0 and ul[0]["ul_sinr_db"] is None and ul[1]["ul_sinr_db"] == 2.223
     assert ul[0]["ul_tbler"] == 0.1235 and ul[1]["ul_mcs"] == -1
+
+
+@pytest.mark.parametrize("digits", [2, 3, 4, 6])
+def test_rounding_in_bulk_is_pythons_round_bit_for_bit(digits):
+    """``rounded`` (rint on the scaled values, Python's round near ties) gives what ``round(float(v),
+    digits)`` gives: on noise, on values a digit finer (ties in decimal, not in binary), on the
+    classic ties and signed zeros, and leaves non-finite values."""
+    rng = np.random.default_rng(digits)
+    values = np.concatenate([rng.normal(0, 100, 20000), np.round(rng.uniform(-300, 300, 20000), digits + 1),
+                             rng.normal(0, 1e9, 100), [2.675, 1.005, 0.125, -0.125, 0.5, -0.5, 2.5, -1e-300, -0.0,
+                                                       1e300, np.inf, -np.inf]])
+    got = rounded(values, digits)
+    want = [round(float(v), digits) if math.isfinite(v) else float(v) for v in values]
+    assert got == want
+    assert [math.copysign(1, g) for g in got] == [math.copysign(1, w) for w in want]  # (-0.0 stays)
+    assert np.isnan(rounded(np.array([np.nan]), digits)[0]) and rounded(np.ones((2, 2)), 1) == [[1.0, 1.0]] * 2
 
 
 def test_a_slot_broadcast_sinr_gives_what_its_copy_gives():

@@ -85,9 +85,27 @@ class UeTable:
         self._view = None
 
 
+def rounded(values: np.ndarray, digits: int) -> list:
+    """``[round(float(v), digits) for v in values]`` (a nested list for a 2-D array), in bulk:
+    Python's ``round`` is the nearest float to the decimal rounding of the exact value (ties to
+    even), which ``rint(v·10^d)/10^d`` gives too wherever ``v·10^d`` is not within rounding error
+    of a tie; the few that are are rounded by Python. Non-finite values stay as they are."""
+    v = np.asarray(values, dtype=float)
+    scale = 10.0 ** digits
+    with np.errstate(invalid="ignore", over="ignore"):
+        scaled = v * scale
+        out = np.rint(scaled) / scale
+        near_tie = np.abs(np.abs(scaled - np.trunc(scaled)) - 0.5) < 1e-6 + 1e-15 * np.abs(scaled)
+        near_tie |= np.abs(scaled) >= 2.0 ** 52  # (beyond float's integers: Python's)
+    out = np.where(np.isfinite(v), out, v)
+    for i in map(tuple, np.argwhere(near_tie & np.isfinite(v))):
+        out[i] = round(float(v[i]), digits)
+    return out.tolist()
+
+
 def _finite(values: np.ndarray, digits: int) -> list[float | None]:
     """Rounded as :func:`~caviar_plugins.network.report.finite` rounds, in bulk (None: not finite)."""
-    return [round(v, digits) if math.isfinite(v) else None for v in values.tolist()]
+    return [r if math.isfinite(r) else None for r in rounded(values, digits)]
 
 
 def link_fields(res: Any, cols: np.ndarray) -> dict[str, np.ndarray]:
@@ -99,15 +117,16 @@ def link_fields(res: Any, cols: np.ndarray) -> dict[str, np.ndarray]:
 
 def _summaries(link: dict[str, np.ndarray], prefix: str = "") -> list[dict[str, Any]]:
     """Every UE's link summary (``mcs``, ``tbler``, ``harq_ack``, ``harq_nack``, ``prbs``)."""
-    columns = [link[k].tolist() for k in ("mcs", "tbler", "harq_ack", "harq_nack", "prbs")]
-    return [{prefix + "mcs": m, prefix + "tbler": None if math.isnan(b) else round(b, 4), prefix + "harq_ack": a,
+    columns = [link[k].tolist() for k in ("mcs", "harq_ack", "harq_nack", "prbs")]
+    columns.insert(1, rounded(link["tbler"], 4))
+    return [{prefix + "mcs": m, prefix + "tbler": None if math.isnan(b) else b, prefix + "harq_ack": a,
              prefix + "harq_nack": n, prefix + "prbs": p} for m, b, a, n, p in zip(*columns, strict=True)]
 
 
 def uplink_fields(tx: np.ndarray, sinr: np.ndarray, mbps: np.ndarray, link: dict[str, np.ndarray]) -> list[dict]:
     """Every UE's ``ul_*`` fields of ``network.ue``: PUSCH power, mean SINR, throughput [ue] and
     the uplink link level's :func:`link_fields`."""
-    fields = zip([round(v, 3) for v in tx.tolist()], _finite(sinr, 3), [round(v, 6) for v in mbps.tolist()],
+    fields = zip(rounded(tx, 3), _finite(sinr, 3), rounded(mbps, 6),
                  _summaries(link, "ul_"), strict=True)
     return [{"ul_tx_power_dbm": p, "ul_sinr_db": s, "ul_throughput_mbps": m, **rest} for p, s, m, rest in fields]
 
@@ -122,25 +141,24 @@ def ue_reports(names: list[str], ids: list[str], types: list[str], serving: np.n
     None for a Shannon link); ``extras(i, covered)``: UE i's fields beyond them."""
     covered = (serving >= 0).tolist()
     cell = [names[s] if c else None for s, c in zip(serving.tolist(), covered, strict=True)]
-    sinr_l, sir_l, loss_l = _finite(sinr, 3), _finite(sir, 3), [round(v, 3) for v in loss.tolist()]
-    mbps_l = [round(v, 6) for v in mbps.tolist()]
-    rsrp_l = rsrp.tolist()
+    sinr_l, sir_l, loss_l = _finite(sinr, 3), _finite(sir, 3), rounded(loss, 3)
+    mbps_l = rounded(mbps, 6)
+    rsrp_l = rounded(rsrp, 2)
     listed_l = None if listed is None else listed.tolist()
-    all_cells = list(enumerate(names))
-    pos_l = position.tolist()
+    pos_l = rounded(position, 2)
     summary = None if link is None else _summaries(link)
     for i, u in enumerate(ids):
         ue_type, c, r = types[i], covered[i], rsrp_l[i]
         yield THROUGHPUT, {"UE_type": ue_type, "UE_Id": u, "throughput": mbps_l[i]}
-        cells = all_cells if listed_l is None else [(k, names[k]) for k in listed_l[i]]
+        listed_rsrp = dict(zip(names, r, strict=True)) if listed_l is None else {names[k]: r[k] for k in listed_l[i]}
         report = {"UE_type": ue_type, "UE_Id": u, "serving_cell": cell[i],
                   "sinr_db": sinr_l[i] if c else None,  # (None: no signal, paths gone)
                   "sir_db": sir_l[i] if c else None,
                   "coupling_loss_db": loss_l[i] if c else None,
-                  "rsrp_dbm": {n: round(r[k], 2) for k, n in cells},
+                  "rsrp_dbm": listed_rsrp,
                   "throughput_mbps": mbps_l[i]}
         if ue_type == "dropped":  # (no other module publishes where the network dropped it)
-            report["position_m"] = [round(v, 2) for v in pos_l[i]]
+            report["position_m"] = pos_l[i]
         if summary is not None:
             report.update(summary[i])
         report.update(extras(i, c))
