@@ -186,39 +186,45 @@ def inbox(positions: dict[str, np.ndarray], t: float, forecast: dict[str, list] 
                           time=t) for ue, ahead in (forecast or {}).items()]
 
 
-def bench_lookahead(n_uav: int, samples: int, steps: int) -> dict:
+def bench_lookahead(n_uav: int, samples: int, steps: int, depths: list | None = None) -> dict:
     """The comm module's steps along the route (5 m/s, Ts = 0.5 s, forecasts of 19 steps
     as waypoint-flight's ``forecast_steps`` gives them), UAV bodies on, the backend's
     default shoot cache: traced every step against ``lookahead = true`` with
-    ``lookahead_steps = "auto"``, interleaved step by step; wall time per step, solves,
-    and the look-ahead's links against the step-by-step ones, beside those of another
-    seed traced every step (the Monte Carlo noise the solver has anyway)."""
+    ``lookahead_steps`` each of ``depths`` (default ``["auto"]``; the label ``lookahead``
+    for ``"auto"``, ``lookahead_<d>`` otherwise), interleaved step by step; wall time per
+    step, solves, and the look-ahead's links against the step-by-step ones, beside those of
+    another seed traced every step (the Monte Carlo noise the solver has anyway)."""
     from caviar_plugins.radio.scene import lookahead_depth
 
+    depths = depths or ["auto"]
     route = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
     starts = np.linspace(10.0, 0.9 * route.length, n_uav)
-    plain = plugin(samples, shoot_cache="auto")
-    ahead = plugin(samples, shoot_cache="auto", lookahead=True)
+    runs = {"every_step": plugin(samples, shoot_cache="auto")}
+    for d in depths:
+        runs["lookahead" if d == "auto" else f"lookahead_{d}"] = plugin(samples, shoot_cache="auto", lookahead=True,
+                                                                        lookahead_steps=d)
     other = plugin(samples, seed=2, shoot_cache="auto")  # (every step, another seed: the Monte Carlo noise)
-    walls: dict[str, list[float]] = {"every_step": [], "lookahead": []}
-    links: dict[str, list] = {"every_step": [], "lookahead": [], "other_seed": []}
+    walls: dict[str, list[float]] = {label: [] for label in runs}
+    links: dict[str, list] = {label: [] for label in [*runs, "other_seed"]}
+    order = list(runs)
     for k in range(steps):
         t = 0.5 * k
         pos = {f"uav{i}": route.at(s + 2.5 * k) for i, s in enumerate(starts)}
         forecast = {f"uav{i}": [route.at(s + 2.5 * (k + j)) for j in range(1, 20)] for i, s in enumerate(starts)}
-        for label, link in (("every_step", plain), ("lookahead", ahead))[:: 1 if k % 2 else -1]:
+        for label in order[k % len(order):] + order[:k % len(order)]:  # (each first in turn)
             t0 = time.perf_counter()
-            out = list(link.step(t, inbox(pos, t, forecast)))
+            out = list(runs[label].step(t, inbox(pos, t, forecast)))
             dr.sync_thread()
             walls[label].append(time.perf_counter() - t0)
             links[label] += [m for topic, m in out if topic == "communications.link"]
         links["other_seed"] += [m for topic, m in other.step(t, inbox(pos, t)) if topic == "communications.link"]
     res = {"uavs": n_uav, "samples_per_src": samples, "steps": steps,
-           "lookahead_steps": lookahead_depth("auto", n_uav),
+           "lookahead_steps": {label: lookahead_depth(d, n_uav) for label, d in
+                               zip([x for x in runs if x != "every_step"], depths, strict=True)},
            "step_ms_mean": {k: 1e3 * float(np.mean(v[2:])) for k, v in walls.items()},
            "first_steps_ms": {k: [round(1e3 * x, 1) for x in v[:2]] for k, v in walls.items()},
-           "solves": {"every_step": plain.radio.solves, "lookahead": ahead.radio.solves}}
-    for label in ("lookahead", "other_seed"):  # against every step
+           "solves": {label: link.radio.solves for label, link in runs.items()}}
+    for label in [*runs, "other_seed"][1:]:  # against every step
         a, b = links[label], links["every_step"]
         err = np.abs([x["path_gain_db"] - y["path_gain_db"] for x, y in zip(a, b, strict=True)])
         res[label] = {"same_best_pair_pct": 100 * float(np.mean([x["best_pair"] == y["best_pair"]
@@ -427,15 +433,21 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--reps", type=int, default=7)
     ap.add_argument("--lookahead-steps", type=int, default=40, help="comm steps of the look-ahead item (0: none)")
+    ap.add_argument("--lookahead-depths", nargs="+", default=["auto"],
+                    help='lookahead_steps to compare (integers or "auto")')
+    ap.add_argument("--only-lookahead", action="store_true", help="the look-ahead item only")
     ap.add_argument("--no-freeze", action="store_true", help="skip the dr.freeze trials")
     ap.add_argument("--out", type=pathlib.Path, default=OUT)
     args = ap.parse_args()
     import sionna.rt  # noqa: F401  (it chooses the variant: CUDA where a GPU is found)
 
     print(f"Dr.Jit variant: {mi.variant()}", flush=True)
-    rows = [bench_host(n, args.samples, args.reps) for n in args.uavs]
-    ahead = [bench_lookahead(n, args.samples, args.lookahead_steps) for n in args.uavs] if args.lookahead_steps else []
-    frozen = [] if args.no_freeze else [freeze_trials(n, args.samples, args.reps) for n in args.uavs]
+    depths = [d if d == "auto" else int(d) for d in args.lookahead_depths]
+    rows = [] if args.only_lookahead else [bench_host(n, args.samples, args.reps) for n in args.uavs]
+    ahead = [bench_lookahead(n, args.samples, args.lookahead_steps, depths)
+             for n in args.uavs] if args.lookahead_steps else []
+    frozen = [] if args.no_freeze or args.only_lookahead else [freeze_trials(n, args.samples, args.reps)
+                                                               for n in args.uavs]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"machine": machine(), "variant": str(mi.variant()),
                                     "date": time.strftime("%Y-%m-%d"), "rows": rows, "lookahead": ahead,

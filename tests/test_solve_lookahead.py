@@ -69,7 +69,7 @@ def test_a_hovering_uav_parks_its_extra_bodies_and_matches_step_by_step():
 
 def test_lookahead_depth_by_backend():
     assert lookahead_depth(3, 10, "cuda_ad_mono_polarized") == 3
-    assert lookahead_depth("auto", 1, "cuda_ad_mono_polarized") == 19
+    assert lookahead_depth("auto", 1, "cuda_ad_mono_polarized") == 9
     assert lookahead_depth("auto", 10, "cuda_ad_mono_polarized") == 3
     assert lookahead_depth("auto", 1, "llvm_ad_mono_polarized") == 9
     assert lookahead_depth("auto", 10, "llvm_ad_mono_polarized") == 2
