@@ -100,3 +100,16 @@ def test_lookahead_with_uav_bodies_is_deterministic():
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a.h, b.h)
         assert a.n_paths == b.n_paths and a.best_pair == b.best_pair
+
+
+def test_lookahead_with_uav_bodies_resumes_to_the_same_messages(tmp_path, cli):
+    """A run killed and resumed records what the uninterrupted one did: the look-ahead's
+    traces and slots are in the checkpoint, the parked bodies come back on its next solve."""
+    from test_resume_plugins import BLUEPRINTS, _resumes_to_the_reference
+
+    sets = ["--set", "modules.comm.params.samples_per_src=10000", "--set", "modules.comm.params.threads=1",
+            "--set", "modules.comm.params.uav_mesh=true", "--set", "modules.comm.params.lookahead=true",
+            "--set", "modules.comm.params.lookahead_steps=2", "--set", "modules.uav.params.forecast_steps=2"]
+    log = _resumes_to_the_reference(tmp_path, cli, BLUEPRINTS / "raytraced" / "config.toml", sets, 5, every=3,
+                                    steps=11)
+    assert len(log.topic("3D.mobility.forecast")) == 11
