@@ -132,11 +132,13 @@ def test_a_ue_off_its_forecast_is_traced_on_demand(tracer):
     np.testing.assert_allclose(link.h, ref.h, rtol=1e-5, atol=1e-6 * np.abs(ref.h).max())
 
 
-def test_lookahead_refuses_moving_uav_bodies():
+def test_lookahead_takes_moving_uav_bodies():
+    """Look-ahead was refused with the UAV bodies; it now traces a body per forecast place
+    (tests/test_solve_lookahead.py checks its links against step-by-step solves)."""
     from caviar_plugins.radio import SionnaLinkParams
 
-    with pytest.raises(ValueError, match="uav_mesh = false"):
-        SionnaLinkParams(lookahead=True, uav_mesh=True)
+    params = SionnaLinkParams(lookahead=True, uav_mesh=True)
+    assert params.lookahead and params.uav_mesh and params.lookahead_steps == "auto"
 
 
 def test_path_buffer_overflow_is_detected_and_reported():

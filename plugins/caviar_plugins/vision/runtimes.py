@@ -5,7 +5,7 @@ scikit-learn) or torch on its device (:mod:`~caviar_plugins.vision.onnx_torch` f
 
 from __future__ import annotations
 
-from caviar_plugins.vision.person_detector import (
+from caviar_plugins.vision.pixel_detector import (
     BUILTIN,
     OnnxPixelModel,
     PixelDetector,
