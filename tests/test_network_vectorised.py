@@ -107,6 +107,8 @@ def test_the_per_name_api_and_the_state_round_trip():
     assert mm.serving("u") == -1
     mm.restore(saved)
     assert mm.serving("u") == 0 and mm.update(0.1, "u", [-80.0, -90.0]) == []
+    mm.ensure(20)  # (rows for more UEs: the old kept, the new unattached)
+    assert mm.serving("u") == 0 and len(mm.serving_cell) >= 20 and (mm.serving_cell[1:20] == -1).all()
 
 
 def test_the_ue_table_reuses_columns_and_starts_them_afresh():

@@ -65,8 +65,11 @@ class MobilityManager:
         self.filtered = np.zeros((0, len(cell_names)))
         self._grow(0)
 
-    def _grow(self, n: int) -> None:
+    def ensure(self, n: int) -> None:
         """Rows for ``n`` UEs at least (kept, the new ones unattached)."""
+        self._grow(n)
+
+    def _grow(self, n: int) -> None:
         k = len(self.serving_cell)
         if k and n <= k:
             return

@@ -460,7 +460,8 @@ class RadioNetwork(caviar.Plugin):
             wideband = tx + per_beam.max(axis=-1)
             self.best_beams = per_beam.argmax(axis=-1)  # [ue, cell]
         rsrp = rsrp_dbm(self.cells, wideband, [self.p.num_prb] * len(self.cells))
-        old = self.mm.serving_cell[cols] if len(self.mm.serving_cell) > cols.max() else np.full(len(cols), -1)
+        self.mm.ensure(int(cols.max()) + 1)
+        old = self.mm.serving_cell[cols]  # (a copy)
         events = self.mm.update_rows(t, cols, ids, rsrp, self.ues.last_sinr[cols])
         serving = self.mm.serving_cell[cols]
         for k in np.flatnonzero((old >= 0) & (serving >= 0) & (serving != old)).tolist():  # (handed over)
