@@ -197,8 +197,9 @@ def test_cuda_graphs_are_on_by_default_only_for_a_compiled_link_level_on_cuda():
     import torch
 
     base = LinkSettings(num_prb=24, compile=True)
-    assert cuda_graphs_on(base, torch.device("cuda")) and cuda_graphs_on(base, torch.device("cuda:1"))
-    assert not cuda_graphs_on(base, torch.device("cpu"))
+    # (off by default, CUDA too: the captured group failed on the H200 at Sionna's OLLA state)
+    assert not cuda_graphs_on(base, torch.device("cuda")) and not cuda_graphs_on(base, torch.device("cpu"))
+    assert cuda_graphs_on(dataclasses.replace(base, cuda_graphs=True), torch.device("cuda"))
     assert not cuda_graphs_on(dataclasses.replace(base, compile=False), torch.device("cuda"))
     assert not cuda_graphs_on(dataclasses.replace(base, cuda_graphs=False), torch.device("cuda"))
     assert cuda_graphs_on(dataclasses.replace(base, cuda_graphs=True), torch.device("cpu"))

@@ -35,6 +35,14 @@ def test_the_carrier_channel_is_sionnas_cfr(solved):
     for i, key in enumerate(radio.receivers):
         np.testing.assert_array_equal(links[key].h, h[i])
         assert links[key].n_paths == int(valid[i].sum()) > 0
+    # The CUDA backend's method (Sionna's cfr), here on the CPU: the same channel, paths and delays.
+    h_cfr, valid_cfr, tau_cfr = carrier_channels(paths, 3, radio.cfg.frequency_hz, method="cfr")
+    assert h_cfr.dtype == np.complex64 and h_cfr.shape == h.shape
+    np.testing.assert_allclose(h_cfr, h, rtol=0, atol=2e-6 * np.abs(cfr).max())
+    np.testing.assert_array_equal(valid_cfr, valid)
+    np.testing.assert_array_equal(tau_cfr, tau)
+    with pytest.raises(ValueError, match="carrier method: expected one of auto, frozen, cfr, got 'fast'"):
+        carrier_channels(paths, 3, radio.cfg.frequency_hz, method="fast")
 
 
 def test_a_receivers_channel_does_not_depend_on_the_others(solved):

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from caviar_plugins.rt import sionna_adapter as adapter
-from caviar_plugins.torch_device import check_setting, is_cuda, resolve, to_numpy, to_torch
+from caviar_plugins.torch_device import check_setting, resolve, to_numpy, to_torch
 
 NUMEROLOGIES = (15e3, 30e3, 60e3, 120e3)
 NR_RANGES_HZ = ((410e6, 7.125e9), (24.25e9, 71e9))
@@ -88,8 +88,12 @@ class LinkSettings:
     """With ``compile``, capture the compiled group of slots as a CUDA graph
     (``torch.compile(mode="reduce-overhead")``): one graph launch a group instead of its
     kernels, its outputs copied out before the next replay overwrites them. None (the
-    default): on where the device is CUDA, off elsewhere (:func:`cuda_graphs_on`); True on a
-    CPU compiles in that mode all the same (torch skips the graphs there: the same numbers)."""
+    default): off (:func:`cuda_graphs_on`); True on a CPU compiles in that mode all the same
+    (torch skips the graphs there: the same numbers). Off by default because on the H200
+    (2026-11-28) the captured group failed at its second replay: Sionna's link adaptation
+    (OLLA) keeps its offset, an output of the last replay, and reads it in the next
+    (``torch.clamp(new_offset, ...)``: "accessing tensor output of CUDAGraphs that has been
+    overwritten")."""
     device: str = "auto"
     """The torch device of the Sionna SYS blocks and every tensor they are given: ``auto``
     (Sionna's choice, a GPU where there is one), ``cpu``, ``cuda`` or ``cuda:N``. numpy
@@ -157,11 +161,11 @@ class LinkSettings:
 
 def cuda_graphs_on(settings: LinkSettings, device: Any) -> bool:
     """Whether a link level of ``settings`` on the torch ``device`` captures its compiled
-    group of slots as a CUDA graph: as ``cuda_graphs`` says, and by default (None) where it is
-    compiled on a CUDA device."""
+    group of slots as a CUDA graph: as ``cuda_graphs`` says (None, the default: not yet; see
+    :attr:`LinkSettings.cuda_graphs`)."""
     if not settings.compile or settings.link_model != "sys":
         return False
-    return is_cuda(device) if settings.cuda_graphs is None else settings.cuda_graphs
+    return bool(settings.cuda_graphs)
 
 
 @dataclasses.dataclass

@@ -162,7 +162,13 @@ FROZEN: dict[str, Any] = {}
 """The frozen functions of this module (``carrier``: :func:`carrier_sums` under ``dr.freeze``)."""
 
 
-def carrier_channels(paths: Any, n_rx: int, frequency_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+CARRIER_METHODS = ("auto", "frozen", "cfr")
+"""How :func:`carrier_channels` sums: ``frozen`` (one kernel under ``dr.freeze``), ``cfr``
+(Sionna's ``paths.cfr``) or ``auto``: ``frozen`` on Dr.Jit's LLVM backend, ``cfr`` on CUDA."""
+
+
+def carrier_channels(paths: Any, n_rx: int, frequency_hz: float,
+                     method: str = "auto") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The narrowband channel at the carrier of every receiver of a synthetic-array solve
     from one transmitter, H = Σ a·exp(−j2π f_c τ) (N_rx, N_rx_ant, N_tx_ant) complex64, and
     the paths' validity and delays (N_rx, P): Sionna's ``paths.cfr`` at baseband offset 0
@@ -171,8 +177,21 @@ def carrier_channels(paths: Any, n_rx: int, frequency_hz: float) -> tuple[np.nda
     ``dr.freeze`` (:func:`carrier_sums`: recorded once, replayed whatever the path count;
     host time in benches/bench_solve_host.py), and H, validity and delays come back in one read.
     ``frequency_hz``: the scene's (reading the scene's own would evaluate it, and the next
-    solves' kernels, which had it as a literal, would change in the last bits)."""
+    solves' kernels, which had it as a literal, would change in the last bits).
+
+    On CUDA (``method = "auto"``) Sionna's ``cfr`` sums instead: the frozen kernel loops over
+    the paths one after the other in a lane per (receiver, antenna pair), a few hundred
+    lanes, which a GPU runs poorly. On the H200 (2026-11-28) a warm solve of 1 UAV at 1e6
+    samples took 112 ms with it against 69 ms with ``cfr`` the session before (not yet measured
+    side by side; ``scripts/gpu_check.py`` does it on the next GPU run)."""
     dr, mi = jit()
+    if method not in CARRIER_METHODS:
+        raise ValueError(f"carrier method: expected one of {', '.join(CARRIER_METHODS)}, got {method!r}")
+    if method == "cfr" or (method == "auto" and str(mi.variant()).startswith("cuda_")):
+        cfr = paths.cfr(frequencies=np.array([0.0]), normalize_delays=False, out_type="numpy")
+        valid = np.array(paths.valid).reshape(n_rx, -1)  # [rx, paths] (one transmitter)
+        tau = np.array(paths.tau).reshape(n_rx, -1)
+        return cfr[:, :, 0, :, 0, 0].astype(np.complex64), valid, tau.astype(np.float32)
     a_re, a_im = paths.a
     n_paths = int(a_re.shape[-1])
     n_ant = int(np.prod(a_re.shape[1:4]))

@@ -12,7 +12,9 @@ one level down with gathers. It is exact, not approximately equal:
 * a tree's probability is its leaf's value as scikit-learn returns it
   (``tree_.value``, normalised the way its ``predict_proba`` does where it holds counts);
 * the trees' probabilities are summed in float64 one tree after the other in tree order, then
-  divided by the number of trees: :meth:`PixelDetector.person_probability`'s order.
+  divided by the number of trees: :meth:`PixelDetector.person_probability`'s order. The
+  division is numpy's, on the host: CUDA's division of a tensor by a number multiplies by its
+  inverse, which differs in the last bit (on the H200 the detections then differed).
 
 ``tests/test_yolo_torch.py`` compares it with ``predict_proba`` for equality on the CPU. Its
 launches do not depend on the rows (about 6 per level and one per tree), so on CUDA a frame's
@@ -96,7 +98,7 @@ class TorchForest:
         total = torch.zeros(xt.shape[1], dtype=torch.float64, device=self.device)
         for k in range(self.trees):  # (in tree order, one add each: scikit-learn's sum)
             total += prob[k]
-        return total / self.trees
+        return total  # (divided by the trees on the host: CUDA divides by a scalar as a product with its inverse)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         import torch
@@ -107,7 +109,7 @@ class TorchForest:
         xt = np.ascontiguousarray(x.T, dtype=np.float64)  # (features, M): float32 widened, exactly
         if not self.cuda_graphs:
             with torch.inference_mode():
-                return to_numpy(self._walk(to_torch(xt, self.device)))
+                return to_numpy(self._walk(to_torch(xt, self.device))) / self.trees
         rows = self.bucket(x.shape[0])
         padded = np.zeros((self.features, rows))
         padded[:, :x.shape[0]] = xt
@@ -121,8 +123,8 @@ class TorchForest:
                     print(f"pixel forest: no CUDA graph ({e}); running kernel by kernel", file=sys.stderr)
                     self.cuda_graphs = False
                     with torch.inference_mode():
-                        return to_numpy(self._walk(to_torch(xt, self.device)))
+                        return to_numpy(self._walk(to_torch(xt, self.device))) / self.trees
             graph, static_in, static_out = self._graphs[rows]
             static_in.copy_(to_torch(padded, self.device))
             graph.replay()
-            return to_numpy(static_out)[:x.shape[0]]
+            return to_numpy(static_out)[:x.shape[0]] / self.trees
