@@ -212,3 +212,50 @@ def test_the_loops_detections_are_the_same_with_the_forest_on_torch(tmp_path):
         assert log.status["status"] == "completed"
         found[name] = log.topic("ai.detections")["detections"].to_list()
     assert found["torch"] == found["cpu"] and sum(len(d) for d in found["cpu"]) >= 2
+
+
+def test_auto_takes_torch_for_the_projects_models_only_and_refuses_by_name(tmp_path, monkeypatch):
+    """On a machine with a GPU, ``auto`` moves the project's own models (YOLO, the builtin
+    forest) to torch; a user's YOLO file stays on onnxruntime (its operators may be ones torch
+    does not run here), a user's model that is no forest stays on scikit-learn, and asking
+    ``torch`` for it names the key and the model."""
+    import shutil
+    import types
+
+    from sklearn.ensemble import GradientBoostingClassifier
+
+    from caviar_plugins.vision.pixel_detector import PixelDetector
+    from caviar_plugins.vision.runtimes import detector_model
+
+    monkeypatch.setattr(yolo, "torch_sees_gpu", lambda: True)  # (torch then runs on this CPU)
+    shutil.copy(BUILTIN_YOLO, tmp_path / "mine.onnx")
+    rng = np.random.default_rng(0)
+    PixelDetector(GradientBoostingClassifier(n_estimators=3).fit(rng.random((40, 10)), np.arange(40) % 2)).save(
+        tmp_path / "boost.pkl")
+
+    def model(name, runtime="auto"):
+        params = types.SimpleNamespace(model=name, runtime=runtime, device="auto", confidence=0.25, iou=0.45,
+                                       person_class=0, workers=1)
+        ctx = types.SimpleNamespace(params=params, resolve=lambda m: tmp_path / m)
+        return detector_model(ctx, choose_runtime(runtime))
+
+    assert model("yolo").model.runtime == "torch"
+    assert model("mine.onnx").model.runtime == "onnxruntime"
+    assert model("mine.onnx", "torch").model.runtime == "torch"
+    assert model("builtin").on_device is not None
+    assert model("boost.pkl").on_device is None
+    with pytest.raises(ValueError, match=r"params.runtime = 'torch': boost.pkl: the pixel model is not a scikit-learn "
+                                         r"forest of decision trees .*; it runs with scikit-learn"):
+        model("boost.pkl", "torch")
+
+
+def test_rows_with_nan_are_walked_by_scikit_learn():
+    from caviar_plugins.vision.pixel_detector import PixelDetector, builtin_model
+
+    cpu = builtin_model()
+    device = PixelDetector(cpu.forest, cpu.min_pixels, cpu.threshold).to_device("cpu")
+    x = np.random.default_rng(4).random((50, 10)).astype(np.float32)
+    x[3, 2] = np.nan
+    assert np.array_equal(device.person_probability(x), cpu.person_probability(x))
+    with pytest.raises(ValueError, match="feature rows with NaN"):
+        device.on_device(x)

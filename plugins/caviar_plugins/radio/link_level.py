@@ -133,7 +133,7 @@ class LinkSettings:
 
     def _check_cuda_graphs(self) -> None:
         if self.cuda_graphs not in (None, True, False):
-            raise ValueError(f"cuda_graphs: expected true, false or none (on with a CUDA device), "
+            raise ValueError(f"cuda_graphs: expected true, false or none (off), "
                              f"got {self.cuda_graphs!r}")
         if self.cuda_graphs and not self.compile:
             raise ValueError("cuda_graphs: captures the compiled group of slots; it needs compile = true")

@@ -24,7 +24,6 @@ walk is one CUDA graph, captured once for each :meth:`TorchForest.bucket` of row
 from __future__ import annotations
 
 import sys
-import threading
 from typing import Any
 
 import numpy as np
@@ -43,6 +42,18 @@ def leaf_probabilities(tree) -> np.ndarray:
     return value / normalizer
 
 
+def unsupported(forest) -> str | None:
+    """Why :class:`TorchForest` cannot walk ``forest`` bit for bit as scikit-learn does (None: it can)."""
+    trees = getattr(forest, "estimators_", None)
+    if trees is None or not len(trees) or not all(hasattr(t, "tree_") and hasattr(t, "predict_proba") for t in trees):
+        return "not a scikit-learn forest of decision trees (RandomForestClassifier, ExtraTreesClassifier)"
+    if getattr(forest, "n_outputs_", 1) != 1 or np.ndim(getattr(forest, "n_classes_", 0)) != 0:
+        return "a forest of one output (classes of one target) is expected"
+    if getattr(forest, "n_jobs", None) not in (None, 1):
+        return f"n_jobs = {forest.n_jobs}: scikit-learn sums its trees in no fixed order then"
+    return None
+
+
 class TorchForest:
     """The ``forest`` (a fitted ``RandomForestClassifier``, one output) on torch ``device``:
     ``forest.column(x)`` is ``forest.predict_proba(x)[:, column]`` for feature rows ``x``
@@ -51,9 +62,10 @@ class TorchForest:
     def __init__(self, forest, device: Any, column: int = 1, cuda_graphs: bool | None = None):
         import torch
 
+        why = unsupported(forest)
+        if why is not None:
+            raise ValueError(why)
         trees = forest.estimators_
-        if getattr(forest, "n_outputs_", 1) != 1:
-            raise ValueError("a forest of one output (classes of one target) is expected")
         width = max(t.tree_.node_count for t in trees)
         n = len(trees)
         left = np.tile(np.arange(width, dtype=np.int64), (n, 1))  # (padding: leaves pointing to themselves)
@@ -77,7 +89,7 @@ class TorchForest:
         if self.cuda_graphs and not is_cuda(self.device):
             raise ValueError(f"cuda_graphs needs a CUDA device, not {self.device}")
         self._graphs: dict[int, tuple[Any, Any, Any]] = {}
-        self._lock = threading.Lock()  # (a graph's buffers serve one run at a time: the detector's threads)
+        self._pool: Any = None
 
     @staticmethod
     def bucket(rows: int) -> int:
@@ -106,6 +118,9 @@ class TorchForest:
         x = np.asarray(x, dtype=np.float32)
         if x.ndim != 2 or x.shape[1] != self.features:
             raise ValueError(f"expected feature rows (M, {self.features}), got {x.shape}")
+        if np.isnan(x).any():
+            raise ValueError("feature rows with NaN: scikit-learn sends them by each node's missing_go_to_left; "
+                             "walk these with scikit-learn")
         xt = np.ascontiguousarray(x.T, dtype=np.float64)  # (features, M): float32 widened, exactly
         if not self.cuda_graphs:
             with torch.inference_mode():
@@ -113,12 +128,13 @@ class TorchForest:
         rows = self.bucket(x.shape[0])
         padded = np.zeros((self.features, rows))
         padded[:, :x.shape[0]] = xt
-        with self._lock:
-            if rows not in self._graphs:
-                from caviar_plugins.vision.onnx_torch import capture
+        from caviar_plugins.vision.onnx_torch import _RUNS, capture
 
+        with _RUNS:  # (a graph's buffers serve one run at a time: the detector's threads)
+            if rows not in self._graphs:
                 try:
-                    self._graphs[rows] = capture(self._walk, to_torch(padded, self.device))
+                    self._graphs[rows] = capture(self._walk, to_torch(padded, self.device), self._pool)
+                    self._pool = self._graphs[rows][0].pool()
                 except RuntimeError as e:  # (a CUDA set-up that cannot capture: said once, then eager)
                     print(f"pixel forest: no CUDA graph ({e}); running kernel by kernel", file=sys.stderr)
                     self.cuda_graphs = False

@@ -8,13 +8,15 @@ arithmetic as onnxruntime in float32. It knows the operators of YOLOv8/YOLO11 de
 
 * **Batches.** Ultralytics bakes the export's batch size (1) into the file, also into the
   head's ``Reshape`` shapes. Here the batch is the input's first dimension, whatever it is: a
-  ``Reshape`` whose target starts with the file's batch size keeps the input's.
+  ``Reshape`` of a tensor led by the run's batch, whose target starts with the file's batch
+  size, keeps the run's.
 * **Shapes stay on the host.** Integer tensors (``Shape``, the arithmetic on it, integer
   constants) are computed on the CPU, float tensors on the device, so that a run needs nothing
   back from the device and never waits for it. The tests run the graph on torch's ``meta``
   device, which holds no values: any read of a device value would fail there.
-* **CUDA graphs.** On CUDA each batch size's run is captured once as a CUDA graph and then
-  replayed: one launch instead of ~200 kernels launched from Python (``cuda_graphs``).
+* **CUDA graphs.** On CUDA a batch is padded to a power of two, and each such size's run is
+  captured once as a CUDA graph (all in one memory pool) and then replayed: one launch instead
+  of ~200 kernels launched from Python (``cuda_graphs``).
 """
 
 from __future__ import annotations
@@ -103,7 +105,8 @@ class TorchGraph:
                                  f"(known: {', '.join(OPERATORS)}); use runtime = \"onnxruntime\"")
             self.steps.append((self._operator(node, _attributes(node), where), list(node.input), list(node.output)))
         self._graphs: dict[tuple, tuple[Any, Any, Any]] = {}
-        self._lock = threading.Lock()
+        self._pool: Any = None
+        self._batch = self.file_batch
 
     def _tensor(self, array: np.ndarray):
         """A constant: floats on the device, integers (shapes, indices) on the host."""
@@ -180,8 +183,9 @@ class TorchGraph:
             def reshape(x, target):
                 dims = ints(target)
                 dims = [x.shape[i] if d == 0 else d for i, d in enumerate(dims)]
-                if dims and self.file_batch is not None and dims[0] == self.file_batch and x.dim() > 0:
-                    dims[0] = x.shape[0]  # (the batch the file baked in: the input's instead)
+                if dims and self.file_batch is not None and dims[0] == self.file_batch and x.dim() > 1 \
+                        and x.shape[0] == self._batch:
+                    dims[0] = x.shape[0]  # (the batch the file baked in: the run's instead)
                 return x.reshape(dims)
 
             return reshape
@@ -212,6 +216,7 @@ class TorchGraph:
         raise AssertionError(op)  # (OPERATORS lists every case above)
 
     def _run(self, x):
+        self._batch = x.shape[0]
         values = dict(self.constants)
         values[self.input] = x
         for fn, ins, outs in self.steps:
@@ -223,33 +228,39 @@ class TorchGraph:
         return values[self.output]
 
     def __call__(self, batch):
-        """The first output for ``batch`` (N, ...), float32, on the device."""
+        """The first output for ``batch`` (N, ...), float32, on the device. One run at a time
+        (the detector's threads share the model): on CUDA the CUDA graphs' buffers and
+        cuDNN's float32 setting, a process-wide flag, are the run's while it lasts."""
         import torch
 
-        x = to_torch(batch, self.device, torch.float32)
-        with float32_convolutions():
-            return self._call(x)
-
-    def _call(self, x):
-        import torch
-
-        if not self.cuda_graphs:
-            with torch.inference_mode():
-                return self._run(x)
-        key = tuple(x.shape)
-        with self._lock:  # (a graph's buffers serve one run at a time)
+        with _RUNS, float32_convolutions():
+            x = to_torch(batch, self.device, torch.float32)
+            if not self.cuda_graphs:
+                with torch.inference_mode():
+                    return self._run(x)
+            n = x.shape[0]
+            size = 1 << max(0, n - 1).bit_length()  # (a few graphs for any batch: padded to a power of two)
+            if size != n:
+                x = torch.cat([x, x.new_zeros((size - n, *x.shape[1:]))])
+            key = tuple(x.shape)
             if key not in self._graphs:
                 try:
-                    self._graphs[key] = capture(self._run, x)
+                    self._graphs[key] = capture(self._run, x, self._pool)
+                    self._pool = self._graphs[key][0].pool()  # (the graphs share one memory pool)
                 except RuntimeError as e:  # (a CUDA set-up that cannot capture: said once, then eager)
                     print(f"{self.path.name}: no CUDA graph ({e}); running kernel by kernel", file=sys.stderr)
                     self.cuda_graphs = False
                     with torch.inference_mode():
-                        return self._run(x)
+                        return self._run(x)[:n]
             graph, static_in, static_out = self._graphs[key]
             static_in.copy_(x)
             graph.replay()
-            return static_out.clone()
+            return static_out[:n].clone()
+
+
+_RUNS = threading.RLock()
+"""Held by a run of a :class:`TorchGraph` or a CUDA-graph run of a
+:class:`~caviar_plugins.vision.forest_torch.TorchForest`: one at a time in the process."""
 
 
 def float32_convolutions():
@@ -262,10 +273,12 @@ def float32_convolutions():
                                       deterministic=torch.backends.cudnn.deterministic, allow_tf32=False)
 
 
-def capture(fn: Callable, x) -> tuple[Any, Any, Any]:
+def capture(fn: Callable, x, pool: Any = None) -> tuple[Any, Any, Any]:
     """A CUDA graph of ``fn(x)`` for ``x``'s shape, dtype and device: (graph, its input, its
     output). Warm-up runs on a side stream first, as PyTorch's documentation has it; then a
-    run is ``input.copy_(new); graph.replay()`` and the output is read (or cloned) after."""
+    run is ``input.copy_(new); graph.replay()`` and the output is read (or cloned) after.
+    ``pool``: another graph's memory pool to share (safe here: one run at a time, its output
+    copied out before the next)."""
     import torch
 
     static_in = x.clone()
@@ -277,6 +290,6 @@ def capture(fn: Callable, x) -> tuple[Any, Any, Any]:
                 fn(static_in)
         torch.cuda.current_stream(x.device).wait_stream(stream)
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
+        with torch.cuda.graph(graph, pool=pool, capture_error_mode="thread_local"):
             static_out = fn(static_in)
     return graph, static_in, static_out

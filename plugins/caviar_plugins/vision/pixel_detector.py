@@ -113,10 +113,11 @@ class PixelDetector:
     def to_device(self, device) -> PixelDetector:
         """This detector with its forest walked by torch on ``device`` (the GPU of ``runtime =
         "torch"``), bit for bit as scikit-learn walks it."""
-        from caviar_plugins.vision.forest_torch import TorchForest
+        from caviar_plugins.vision.forest_torch import TorchForest, unsupported
 
-        if getattr(self.forest, "estimators_", None) is None:
-            raise ValueError("runtime = 'torch': this pixel model is not a scikit-learn forest")
+        why = unsupported(self.forest)
+        if why is not None:
+            raise ValueError(f"runtime = 'torch': the pixel model is {why}")
         self.on_device = TorchForest(self.forest, device)
         return self
 
@@ -128,7 +129,7 @@ class PixelDetector:
         float64, divided by the number of trees) without joblib's dispatch of one task per
         tree, which cost 7 ms of the 12 ms of a 160 × 120 image. Any other model (an
         ONNX one, a forest with other ``n_jobs``) is asked for ``predict_proba``."""
-        if self.on_device is not None:
+        if self.on_device is not None and not np.isnan(x).any():  # (NaN: scikit-learn's missing-value rules)
             return self.on_device(x)
         trees = getattr(self.forest, "estimators_", None)
         if trees is None or getattr(self.forest, "n_jobs", None) not in (None, 1) or \

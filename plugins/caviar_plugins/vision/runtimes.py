@@ -5,6 +5,7 @@ scikit-learn) or torch on its device (:mod:`~caviar_plugins.vision.onnx_torch` f
 
 from __future__ import annotations
 
+from caviar_plugins.vision.forest_torch import unsupported
 from caviar_plugins.vision.pixel_detector import (
     BUILTIN,
     OnnxPixelModel,
@@ -19,24 +20,39 @@ def detector_model(ctx, runtime: str) -> PixelDetector | YoloPersonDetector:
     """The person detector's model for its ``ctx.params`` (``model``, ``runtime``, ``device``...)
     on ``runtime`` (``torch``, or the model's CPU runtime)."""
     p = ctx.params
+    explicit = p.runtime == "torch"  # (auto takes torch for the project's own models only)
     if p.model == "yolo" or (p.model.endswith(".onnx") and p.model not in BUILTIN):
         path = BUILTIN_YOLO if p.model == "yolo" else ctx.resolve(p.model)
-        if runtime == "torch" and p.model == "yolo":  # (the builtin model takes images)
+        if runtime == "torch" and (p.model == "yolo" or explicit) and not explicit_pixel_onnx(path):
             return YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class, runtime="torch",
                                                device=p.device))
         session = onnx_session(path, p.workers)  # loaded once, whichever kind of model it is
         if takes_images(session):
-            return YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class, session=session,
-                                               runtime=runtime, device=p.device))
-        if p.runtime == "torch":
+            return YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class, session=session))
+        if explicit:
             raise ValueError(f"params.runtime = 'torch': {path} is an ONNX pixel classifier; it runs with "
                              "onnxruntime")
         return PixelDetector(OnnxPixelModel(path, session))
     forest = builtin_model(BUILTIN[p.model]) if p.model in BUILTIN else PixelDetector.load(ctx.resolve(p.model))
-    is_forest = getattr(forest.forest, "estimators_", None) is not None
-    if runtime == "torch" and (is_forest or p.runtime == "torch"):  # (auto: a forest only)
-        try:
-            forest.to_device(torch_device_of(p.device))
-        except ValueError as e:
-            raise ValueError(f"params.{e}") from None
+    why = unsupported(forest.forest)
+    if runtime == "torch" and why is None:
+        forest.to_device(torch_device_of(p.device))
+    elif explicit:
+        raise ValueError(f"params.runtime = 'torch': {p.model}: the pixel model is {why}; it runs with scikit-learn")
     return forest
+
+
+def explicit_pixel_onnx(path) -> bool:
+    """Whether the ONNX file at ``path`` takes pixel features (N, 10), not images: read from the
+    file itself, so that ``runtime = "torch"`` on a pixel classifier is refused by name."""
+    try:
+        import onnx
+    except ImportError:
+        return False
+    try:
+        graph = onnx.load(str(path), load_external_data=False).graph
+    except Exception:  # noqa: BLE001 - unreadable: onnxruntime's loader names the problem
+        return False
+    weights = {i.name for i in graph.initializer}
+    inputs = [i for i in graph.input if i.name not in weights]
+    return len(inputs) == 1 and len(inputs[0].type.tensor_type.shape.dim) == 2
