@@ -93,7 +93,8 @@ class PersonDetector(caviar.Plugin):
         faster at 50 UAVs, and ~2x for one UAV: only its distinct feature rows are
         classified); ``false``: image by image on ``workers`` threads, as before issue #18."""
         runtime: str = "auto"
-        """``auto`` (torch where it sees a GPU, else the model's CPU runtime), ``onnxruntime``
+        """``auto`` (torch for the project's own models where it sees a GPU, else the model's
+        CPU runtime; a user's file keeps its CPU runtime), ``onnxruntime``
         (the CPU runtime: onnxruntime for ONNX files, scikit-learn for the builtin forests) or
         ``torch`` on ``device``: YOLO's ONNX graph run by PyTorch (a step's images in one batch,
         a CUDA graph on a GPU; :mod:`caviar_plugins.vision.onnx_torch`, the same boxes within
