@@ -23,7 +23,6 @@ walk is one CUDA graph, captured once for each :meth:`TorchForest.bucket` of row
 
 from __future__ import annotations
 
-import sys
 from typing import Any
 
 import numpy as np
@@ -88,8 +87,9 @@ class TorchForest:
         self.cuda_graphs = is_cuda(self.device) if cuda_graphs is None else bool(cuda_graphs)
         if self.cuda_graphs and not is_cuda(self.device):
             raise ValueError(f"cuda_graphs needs a CUDA device, not {self.device}")
-        self._graphs: dict[int, tuple[Any, Any, Any]] = {}
-        self._pool: Any = None
+        from caviar_plugins.vision.onnx_torch import CudaGraphs
+
+        self._graphs = CudaGraphs(self._walk, "pixel forest") if self.cuda_graphs else None
 
     @staticmethod
     def bucket(rows: int) -> int:
@@ -122,25 +122,14 @@ class TorchForest:
             raise ValueError("feature rows with NaN: scikit-learn sends them by each node's missing_go_to_left; "
                              "walk these with scikit-learn")
         xt = np.ascontiguousarray(x.T, dtype=np.float64)  # (features, M): float32 widened, exactly
-        if not self.cuda_graphs:
-            with torch.inference_mode():
-                return to_numpy(self._walk(to_torch(xt, self.device))) / self.trees
-        rows = self.bucket(x.shape[0])
-        padded = np.zeros((self.features, rows))
-        padded[:, :x.shape[0]] = xt
-        from caviar_plugins.vision.onnx_torch import _RUNS, capture
+        if self._graphs is not None and self._graphs.on:
+            from caviar_plugins.vision.onnx_torch import GPU_RUNS
 
-        with _RUNS:  # (a graph's buffers serve one run at a time: the detector's threads)
-            if rows not in self._graphs:
-                try:
-                    self._graphs[rows] = capture(self._walk, to_torch(padded, self.device), self._pool)
-                    self._pool = self._graphs[rows][0].pool()
-                except RuntimeError as e:  # (a CUDA set-up that cannot capture: said once, then eager)
-                    print(f"pixel forest: no CUDA graph ({e}); running kernel by kernel", file=sys.stderr)
-                    self.cuda_graphs = False
-                    with torch.inference_mode():
-                        return to_numpy(self._walk(to_torch(xt, self.device))) / self.trees
-            graph, static_in, static_out = self._graphs[rows]
-            static_in.copy_(to_torch(padded, self.device))
-            graph.replay()
-            return to_numpy(static_out)[:x.shape[0]] / self.trees
+            padded = np.zeros((self.features, self.bucket(x.shape[0])))
+            padded[:, :x.shape[0]] = xt
+            with GPU_RUNS:  # (a graph's buffers serve one run at a time: the detector's threads)
+                out = self._graphs(to_torch(padded, self.device))
+                if out is not None:
+                    return to_numpy(out)[:x.shape[0]] / self.trees
+        with torch.inference_mode():
+            return to_numpy(self._walk(to_torch(xt, self.device))) / self.trees

@@ -104,8 +104,7 @@ class TorchGraph:
                 raise ValueError(f"{where}: the operator {node.op_type} is not one torch runs here "
                                  f"(known: {', '.join(OPERATORS)}); use runtime = \"onnxruntime\"")
             self.steps.append((self._operator(node, _attributes(node), where), list(node.input), list(node.output)))
-        self._graphs: dict[tuple, tuple[Any, Any, Any]] = {}
-        self._pool: Any = None
+        self._graphs = CudaGraphs(self._run, self.path.name) if self.cuda_graphs else None
         self._batch = self.file_batch
 
     def _tensor(self, array: np.ndarray):
@@ -233,34 +232,50 @@ class TorchGraph:
         cuDNN's float32 setting, a process-wide flag, are the run's while it lasts."""
         import torch
 
-        with _RUNS, float32_convolutions():
+        with GPU_RUNS, float32_convolutions():
             x = to_torch(batch, self.device, torch.float32)
-            if not self.cuda_graphs:
-                with torch.inference_mode():
-                    return self._run(x)
             n = x.shape[0]
-            size = 1 << max(0, n - 1).bit_length()  # (a few graphs for any batch: padded to a power of two)
-            if size != n:
-                x = torch.cat([x, x.new_zeros((size - n, *x.shape[1:]))])
-            key = tuple(x.shape)
-            if key not in self._graphs:
-                try:
-                    self._graphs[key] = capture(self._run, x, self._pool)
-                    self._pool = self._graphs[key][0].pool()  # (the graphs share one memory pool)
-                except RuntimeError as e:  # (a CUDA set-up that cannot capture: said once, then eager)
-                    print(f"{self.path.name}: no CUDA graph ({e}); running kernel by kernel", file=sys.stderr)
-                    self.cuda_graphs = False
-                    with torch.inference_mode():
-                        return self._run(x)[:n]
-            graph, static_in, static_out = self._graphs[key]
-            static_in.copy_(x)
-            graph.replay()
-            return static_out[:n].clone()
+            if self._graphs is not None and self._graphs.on:
+                size = 1 << max(0, n - 1).bit_length()  # (a few graphs for any batch: padded to a power of two)
+                if size != n:
+                    x = torch.cat([x, x.new_zeros((size - n, *x.shape[1:]))])
+                out = self._graphs(x)
+                if out is not None:
+                    return out[:n].clone()
+            with torch.inference_mode():
+                return self._run(x)[:n]
 
 
-_RUNS = threading.RLock()
+GPU_RUNS = threading.RLock()
 """Held by a run of a :class:`TorchGraph` or a CUDA-graph run of a
 :class:`~caviar_plugins.vision.forest_torch.TorchForest`: one at a time in the process."""
+
+
+class CudaGraphs:
+    """``fn`` captured as CUDA graphs, one per input shape, all in one memory pool, then
+    replayed. Call it holding :data:`GPU_RUNS`, and read its output before the next call (the
+    buffer is the graph's). Where capture fails (a CUDA set-up that cannot), that is said once
+    on stderr, calls return None from then on (``on`` is False) and the caller runs ``fn`` itself."""
+
+    def __init__(self, fn: Callable, what: str):
+        self.fn, self.what, self.on = fn, what, True
+        self.graphs: dict[tuple, tuple[Any, Any, Any]] = {}
+        self.pool: Any = None
+
+    def __call__(self, x):
+        key = tuple(x.shape)
+        if key not in self.graphs:
+            try:
+                self.graphs[key] = capture(self.fn, x, self.pool)
+            except RuntimeError as e:
+                print(f"{self.what}: no CUDA graph ({e}); running kernel by kernel", file=sys.stderr)
+                self.on = False
+                return None
+            self.pool = self.graphs[key][0].pool()
+        graph, static_in, static_out = self.graphs[key]
+        static_in.copy_(x)
+        graph.replay()
+        return static_out
 
 
 def float32_convolutions():

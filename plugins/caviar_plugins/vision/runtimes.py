@@ -23,12 +23,13 @@ def detector_model(ctx, runtime: str) -> PixelDetector | YoloPersonDetector:
     explicit = p.runtime == "torch"  # (auto takes torch for the project's own models only)
     if p.model == "yolo" or (p.model.endswith(".onnx") and p.model not in BUILTIN):
         path = BUILTIN_YOLO if p.model == "yolo" else ctx.resolve(p.model)
-        if runtime == "torch" and (p.model == "yolo" or explicit) and not explicit_pixel_onnx(path):
+        if runtime == "torch" and p.model == "yolo":  # (the builtin model takes images)
             return YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class, runtime="torch",
                                                device=p.device))
         session = onnx_session(path, p.workers)  # loaded once, whichever kind of model it is
         if takes_images(session):
-            return YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class, session=session))
+            return YoloPersonDetector(YoloOnnx(path, p.confidence, p.iou, p.person_class, session=session,
+                                               runtime="torch" if explicit else "onnxruntime", device=p.device))
         if explicit:
             raise ValueError(f"params.runtime = 'torch': {path} is an ONNX pixel classifier; it runs with "
                              "onnxruntime")
@@ -41,18 +42,3 @@ def detector_model(ctx, runtime: str) -> PixelDetector | YoloPersonDetector:
         raise ValueError(f"params.runtime = 'torch': {p.model}: the pixel model is {why}; it runs with scikit-learn")
     return forest
 
-
-def explicit_pixel_onnx(path) -> bool:
-    """Whether the ONNX file at ``path`` takes pixel features (N, 10), not images: read from the
-    file itself, so that ``runtime = "torch"`` on a pixel classifier is refused by name."""
-    try:
-        import onnx
-    except ImportError:
-        return False
-    try:
-        graph = onnx.load(str(path), load_external_data=False).graph
-    except Exception:  # noqa: BLE001 - unreadable: onnxruntime's loader names the problem
-        return False
-    weights = {i.name for i in graph.initializer}
-    inputs = [i for i in graph.input if i.name not in weights]
-    return len(inputs) == 1 and len(inputs[0].type.tensor_type.shape.dim) == 2
