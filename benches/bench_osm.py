@@ -22,9 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pathlib
-import platform
 import statistics
 import sys
 import tempfile
@@ -40,17 +38,10 @@ OUT = pathlib.Path("docs/results/osm/bench.json")
 
 
 def machine() -> dict:
-    cpu = ""
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    import drjit
-    import sionna.rt
+    """The machine as it is (:func:`caviar_plugins.machine.describe`: CPU, GPU, Dr.Jit variant, torch device)."""
+    from caviar_plugins.machine import describe
 
-    return {"platform": platform.platform(), "cpu": cpu or platform.processor(), "cpus": os.cpu_count(),
-            "python": platform.python_version(), "sionna_rt": sionna.rt.__version__, "drjit": drjit.__version__,
-            "drjit_backend": "llvm"}
+    return describe()
 
 
 def build(pbf, out, *args) -> tuple[dict, float]:

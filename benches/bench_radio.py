@@ -19,9 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pathlib
-import platform
 import statistics
 import sys
 import tempfile
@@ -44,10 +42,10 @@ FLIGHT = DATA / "central_park_path0_scene.csv"
 
 
 def machine() -> dict:
-    import drjit
+    """The machine as it is (:func:`caviar_plugins.machine.describe`: CPU, GPU, Dr.Jit variant, torch device)."""
+    from caviar_plugins.machine import describe
 
-    return {"platform": platform.platform(), "cpus": os.cpu_count(), "drjit_backend": "llvm",
-            "sionna_rt": __import__("sionna.rt").rt.__version__, "drjit": drjit.__version__}
+    return describe()
 
 
 def flight_positions(n_rx: int, steps: int, ts: float = 0.5, speed: float = 5.0) -> list[dict[str, np.ndarray]]:

@@ -41,15 +41,10 @@ TX = [81.0, -41.0, 32.0]
 
 
 def machine() -> str:
-    cpu = platform.processor() or "cpu"
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.release()}, no GPU (Dr.Jit LLVM)"
+    """The machine as it is (:func:`caviar_plugins.machine.summary`: CPU, GPU, Dr.Jit variant, torch device)."""
+    from caviar_plugins.machine import summary
+
+    return summary()
 
 
 def compiled(dr) -> tuple[int, float, int]:
