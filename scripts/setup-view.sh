@@ -1,10 +1,18 @@
 #!/usr/bin/env bash
 # Sets up `caviar-core view` (the browser view of a run) and its tests. Idempotent.
 #
-# The page's bundle (python/caviar/view/static/view.js: three.js and the page, built by
-# esbuild from web/) is committed, so the view itself needs nothing here. This script:
-#   * rebuilds the bundle from web/ (npm ci + npm run build) when it is missing or
-#     with --build (needs node >= 18 and npm; packages from the npm registry);
+# The page's bundle (python/caviar/view/static/: view.js, three.js and the page minified by
+# esbuild from web/, with index.html, style.css and THIRD-PARTY.txt) is committed built, beside
+# its sources. Why: so that setting up (and CI) needs no node, no npm and no npm registry, and
+# spends no time on `npm ci` (the bundle changes only when web/ does). The cost is 540 kB of
+# generated JavaScript in git, which could drift from web/: BUILT-FROM.sha256 beside it records
+# the hashes of web/'s sources and of the bundle at its last build, and tests/test_docs.py
+# fails when either changed since. After editing web/, rebuild and commit both:
+#     bash scripts/setup-view.sh --build --no-browser
+# (`npm run build` in web/ alone leaves the record stale.) This script:
+#   * rebuilds the bundle from web/ (npm ci + npm run build) and writes BUILT-FROM.sha256 when
+#     the bundle is missing or with --build (needs node >= 18 and npm; packages from the npm
+#     registry);
 #   * for the browser tests: Debian's chromium (apt, when root) and playwright (pip, into
 #     the virtual environment; playwright's own browser download is not used).
 # Usage: scripts/setup-view.sh [--build] [--no-browser]
@@ -30,6 +38,13 @@ if [ "$BUILD" = 1 ] || [ ! -f python/caviar/view/static/view.js ]; then
     fi
     log "view front-end: npm ci && npm run build (web/ -> python/caviar/view/static/)"
     (cd web && npm ci --no-audit --no-fund && npm run build)
+    STATIC=python/caviar/view/static
+    # sha256sum's own format: `sha256sum -c --quiet $STATIC/BUILT-FROM.sha256` checks it too.
+    files=$( { printf '%s\n' web/build.mjs web/package.json web/package-lock.json
+               { find web/src -type f; find "$STATIC" -maxdepth 1 -type f ! -name BUILT-FROM.sha256; } \
+                   | LC_ALL=C sort; } )
+    # shellcheck disable=SC2086  # one path a line, none with spaces
+    sha256sum $files > "$STATIC/BUILT-FROM.sha256"
 fi
 
 if [ "$BROWSER" = 1 ]; then

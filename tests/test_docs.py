@@ -63,3 +63,39 @@ def test_no_source_file_is_over_600_lines():
                 if n > 600:
                     long.append(f"{path.relative_to(ROOT)}: {n} lines")
     assert not long, "\n".join(long)
+
+
+README = ROOT / "README.md"
+
+
+def test_the_readme_stays_short_and_its_links_exist():
+    """The README is the front door (issue #57): what CAVIAR is, the two commands, a picture and
+    links into the site; costs and known problems live on the site's pages. mkdocs does not see
+    the README, so its relative links are checked here."""
+    text = README.read_text()
+    n = len(text.splitlines())
+    assert n <= 120, f"README.md has {n} lines (at most 120): move detail to a page under docs/"
+    assert text.count("bash scripts/setup.sh && ") == 2, "the README's two commands"
+    targets = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text)
+    assert len(targets) > 20
+    missing = [t for t in targets if "://" not in t and not (ROOT / t).exists()]
+    assert not missing, f"README.md links to {missing}, which do not exist"
+
+
+def test_the_views_committed_bundle_was_built_from_the_sources_in_web():
+    """python/caviar/view/static/ is committed built (scripts/setup-view.sh says why).
+    BUILT-FROM.sha256 beside it, written by ``bash scripts/setup-view.sh --build``, records the
+    hashes of web/'s sources and of the bundle at that build: a source edited without a
+    rebuild, or a bundle edited by hand, fails here."""
+    import hashlib
+
+    static = ROOT / "python" / "caviar" / "view" / "static"
+    record = static / "BUILT-FROM.sha256"
+    recorded = dict(reversed(line.split("  ", 1)) for line in record.read_text().splitlines())
+    sources = ["web/build.mjs", "web/package.json", "web/package-lock.json"]
+    sources += [p.relative_to(ROOT).as_posix() for p in (ROOT / "web" / "src").rglob("*") if p.is_file()]
+    built = [p.relative_to(ROOT).as_posix() for p in static.iterdir() if p.is_file() and p != record]
+    rebuild = "rebuild and commit: bash scripts/setup-view.sh --build --no-browser"
+    assert sorted(recorded) == sorted(sources + built), f"{record.name} lists other files than web/ and the bundle: {rebuild}"
+    stale = [p for p, digest in recorded.items() if hashlib.sha256((ROOT / p).read_bytes()).hexdigest() != digest]
+    assert not stale, f"changed since the bundle was built: {stale}; {rebuild}"
