@@ -45,7 +45,7 @@ def machine() -> dict:
 
 
 def build(pbf, out, *args) -> tuple[dict, float]:
-    from caviar_plugins.osm.cli import main
+    from caviar_plugins.tools.scene.cli import main
 
     t0 = time.perf_counter()
     assert main(["build", str(pbf), "--out", str(out), "--quiet", *args]) == 0

@@ -21,7 +21,7 @@ import sys
 import numpy as np
 
 from caviar_plugins.beam_selection.knn import NearForestFarPrevious
-from caviar_plugins.beam_selection.paper_topk import hits, samples
+from caviar_plugins.tools.baselines.paper_topk import hits, samples
 
 GRID = np.arange(256) / 256
 RADII_M = (0.25, 0.5, 1.0, 2.0)

@@ -13,7 +13,7 @@ JIT_MODULES = {"dr", "drjit", "mi", "mitsuba"}
 VARIANT_HOME = ROOT / "plugins" / "caviar_plugins" / "rt" / "drjit_setup.py"
 DEVICE_HOMES = {ROOT / "plugins" / "caviar_plugins" / "torch_device.py",
                 # training runs on the CPU by design (a script, not the loop)
-                ROOT / "plugins" / "caviar_plugins" / "vision" / "train_yolo.py"}
+                ROOT / "plugins" / "caviar_plugins" / "tools" / "training" / "train_yolo.py"}
 
 
 def files():

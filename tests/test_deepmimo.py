@@ -63,7 +63,7 @@ def exported(tmp_path_factory):
     second.write_text("X,Y,Z\n-153.66,128.93,9.23\n-134.66,118.48,9.23\n-100.0,150.0,20.0\n")
     cfg = write_config(tmp, CONFIG % ((DATA / "central_park_path0_scene.csv").as_posix(), second.as_posix()))
     log = caviar.Simulation.from_toml(cfg, out=tmp / "run").run()
-    from caviar_plugins.radio.export_cli import main
+    from caviar_plugins.tools.export.cli import main
 
     assert main(["deepmimo", str(tmp / "run"), str(tmp / "scen"), "--quiet"]) == 0
     paths: dict[int, dict[str, PathData]] = {}

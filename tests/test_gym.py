@@ -278,7 +278,7 @@ def test_two_uavs_pass_pettingzoos_parallel_api_test_and_repeat_with_a_seed(tmp_
 def test_a_tiny_learning_baseline_beats_random_choice(tmp_path):
     """Two training flights of 15 steps, 12 steps of the held-out flight, 1e4 rays: the agent
     trained in the environment already does better than random; the oracle is the best."""
-    from caviar_plugins.beam_selection import gym_baseline
+    from caviar_plugins.tools.baselines import gym_baseline
 
     report = gym_baseline.main(["--episodes", "2", "--steps", "15", "--test-steps", "12", "--rays", "10000",
                                 "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--quiet"])

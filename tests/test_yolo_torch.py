@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 import caviar
+from caviar_plugins.tools.training.twin_frames import write_dataset
+from caviar_plugins.tools.training.yolo_eval import held_out_frames
 from caviar_plugins.vision import yolo
 from caviar_plugins.vision.onnx_torch import TorchGraph
-from caviar_plugins.vision.twin_frames import write_dataset
 from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx, choose_runtime
-from caviar_plugins.vision.yolo_eval import held_out_frames
 from conftest import write_config
 
 onnx = pytest.importorskip("onnx")

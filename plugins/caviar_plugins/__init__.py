@@ -12,8 +12,7 @@ configuration's ``plugin = "..."`` gives), by subpackage:
   (:class:`ImageLink`), ``person-detector`` (:class:`PersonDetector`).
 * :mod:`~caviar_plugins.beam_selection`: ``beam-selector`` (:class:`BeamSelector`),
   ``beam-dataset`` (:class:`BeamDataset`).
-* :mod:`~caviar_plugins.sar`: ``mission`` (:class:`Mission`), the search-and-rescue mission,
-  and its results table.
+* :mod:`~caviar_plugins.sar`: ``mission`` (:class:`Mission`), the search-and-rescue mission.
 * :mod:`~caviar_plugins.traffic`: ``sumo-traffic`` (:class:`SumoTraffic`), SUMO in the loop,
   and ``sionna-traffic-link`` (:class:`SionnaTrafficLink`), its vehicles as UEs and as moving
   scatterers.
@@ -34,9 +33,13 @@ OpenStreetMap; :mod:`~caviar_plugins.schema`, the topics and the payloads they s
 
 Each plugin is a :class:`caviar.Plugin` that declares what it ``publishes``; none of them
 knows how messages travel. The five of SUMO, the network, MAVLink and ns-3 are imported on
-first use (``caviar_plugins.SumoTraffic``): their packages are optional extras. Offline tools run
-with ``python -m``: ``caviar_plugins.beam_selection.train_tree``,
-``caviar_plugins.vision.train_detector``, ``caviar_plugins.sar.results``.
+first use (``caviar_plugins.SumoTraffic``): their packages are optional extras.
+
+Offline tools live above the plugins, in :mod:`~caviar_plugins.tools`, which no plugin
+imports: the commands ``caviar-core export`` and ``scene``, and, with
+``python -m``, training (``caviar_plugins.tools.training.train_tree``,
+``caviar_plugins.tools.training.train_detector``), baselines and result tables
+(``caviar_plugins.tools.results.sar``).
 """
 
 import importlib

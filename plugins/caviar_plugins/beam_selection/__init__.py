@@ -5,7 +5,7 @@
 * :class:`BeamDataset` (``beam-dataset``): one npz record per UAV and step (position,
   best pair, LOS, gains of all pairs); :func:`load` reads a run's records.
 * :mod:`~caviar_plugins.beam_selection.decision_tree`: fitting and scoring the tree;
-  ``python -m caviar_plugins.beam_selection.train_tree`` trains it on dataset runs.
+  ``python -m caviar_plugins.tools.training.train_tree`` trains it on dataset runs.
 """
 
 from caviar_plugins.beam_selection.dataset import BeamDataset, load

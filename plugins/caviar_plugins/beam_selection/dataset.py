@@ -7,7 +7,7 @@ sweep and camera image of that step (multimodal, as Raymobtime pairs them).
 * :func:`load` reads a run's records back as arrays (:func:`load_multimodal`: with the
   LiDAR sweeps and images);
 * ``caviar-core export raymobtime`` writes them in Raymobtime's files
-  (:mod:`caviar_plugins.beam_selection.raymobtime`).
+  (:mod:`caviar_plugins.tools.export.raymobtime`).
 
 The UAV flies with :class:`~caviar_plugins.mobility.RandomWaypointFlight`.
 """

@@ -93,7 +93,7 @@ class NearForestFarPrevious:
     training position the forest recognises the place (its top-1 there is near-memorisation),
     beyond it the forest's top-1 falls to 5-8 % while the previous step's best pair keeps
     about 58 %. The radius is chosen by leave-one-flight-out top-1 on the training flights
-    (:func:`~caviar_plugins.beam_selection.paper_topk.evaluate`). Without a previous sweep
+    (:func:`~caviar_plugins.tools.baselines.paper_topk.evaluate`). Without a previous sweep
     (first step) the forest decides."""
 
     uses_previous = True

@@ -2,7 +2,7 @@
 max depth 15), or the random and oracle baselines.
 
 * ``tree``: predicts the beam pair (0 … 255) from (x, y, z) with a tree trained by
-  ``python -m caviar_plugins.beam_selection.train_tree`` (see
+  ``python -m caviar_plugins.tools.training.train_tree`` (see
   :mod:`~caviar_plugins.beam_selection.decision_tree`).
 * ``random``: a uniformly drawn pair (Rx 0–3 × Tx 0–63), seeded.
 * ``oracle``: publishes nothing, so the communications module uses the best pair.
@@ -53,7 +53,7 @@ class BeamSelector(caviar.Plugin):
                 raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
             if self.method == "tree" and not self.model:
                 raise ValueError("method 'tree' needs `model`, a tree trained by "
-                                 "`python -m caviar_plugins.beam_selection.train_tree`")
+                                 "`python -m caviar_plugins.tools.training.train_tree`")
 
     def setup(self, ctx):
         self.ctx = ctx

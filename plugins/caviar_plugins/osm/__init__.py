@@ -3,7 +3,7 @@
     caviar-core scene build INPUT.osm|INPUT.osm.pbf --out DIR [--bbox S,W,N,E | --center LAT,LON --radius M]
                             [--decimate R] [--default-height M] [--roads] [--sumo]
 
-(or ``python -m caviar_plugins.osm build ...``). The pipeline (:mod:`.build`) reads the
+(or ``python -m caviar_plugins.tools.scene build ...``). The pipeline (:mod:`.build`) reads the
 file offline (:mod:`.reader`, pyosmium: OSM XML and PBF), projects it to a local
 east-north-up frame in metres (:mod:`.frame`), extrudes building footprints
 (:mod:`.extrude`), assigns ITU radio materials by tag (:mod:`.materials`), writes a

@@ -2,8 +2,9 @@
 
 * :class:`Mission` (``mission``): stops the UAV to upload its images on a detection and
   counts the rescued targets (``mission.*`` topics).
-* ``python -m caviar_plugins.sar.results``: runs the SAR blueprint with random, tree and
-  oracle beam selection and writes the paper's mission table.
+
+Its results table (the SAR blueprint with random, tree and oracle beam selection) is made
+offline by ``python -m caviar_plugins.tools.results.sar``.
 """
 
 from caviar_plugins.sar.mission import Mission

@@ -3,9 +3,9 @@
 * :class:`Camera` (``camera``): nadir images rendered with Mitsuba 3 from the radio's 3D scene.
 * :class:`ImageLink` (``image-link``): the images as received over the UE's link (packet loss).
 * :class:`PersonDetector` (``person-detector``): people in the received images, with
-  their estimated ground positions; trained by ``python -m caviar_plugins.vision.train_detector``,
+  their estimated ground positions; trained by ``python -m caviar_plugins.tools.training.train_detector``,
   or with ``model = "yolo"`` a YOLO trained on the twin's own frames
-  (``python -m caviar_plugins.vision.train_yolo``, :mod:`~caviar_plugins.vision.twin_frames`), run from
+  (``python -m caviar_plugins.tools.training.train_yolo``, :mod:`~caviar_plugins.tools.training.twin_frames`), run from
   ONNX by :class:`YoloOnnx` (any YOLOv8/YOLO11-style file).
 """
 

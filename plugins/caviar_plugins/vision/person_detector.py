@@ -7,14 +7,14 @@ connected regions of person pixels of plausible size are the detections. Trainin
 includes packet-loss-degraded frames, so the detector meets the images it gets in
 the loop.
 
-    python -m caviar_plugins.vision.train_detector      # trains, evaluates on held-out frames
+    python -m caviar_plugins.tools.training.train_detector      # trains, evaluates on held-out frames
 
 The ``builtin`` model is trained on first use (about half a minute) and cached under
 ``$CAVIAR_CACHE`` (default ``~/.cache/caviar``); ``model = "PATH.pkl"`` loads another,
 ``model = "PATH.onnx"`` a user-supplied ONNX pixel classifier (see :class:`OnnxPixelModel`).
 
 ``model = "yolo"`` runs the project's YOLO, trained on the twin's own frames
-(``python -m caviar_plugins.vision.train_yolo``), with onnxruntime; ``model = "PATH.onnx"``
+(``python -m caviar_plugins.tools.training.train_yolo``), with onnxruntime; ``model = "PATH.onnx"``
 with an image input runs any YOLOv8/YOLO11-style ONNX detector (:mod:`caviar_plugins.vision.yolo`).
 """
 

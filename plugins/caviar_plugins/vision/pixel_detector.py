@@ -251,7 +251,7 @@ class OnnxPixelModel:
     :func:`features` computes them, output per-pixel person probabilities, either
     (N, 2) class probabilities or (N,) / (N, 1) person probabilities. Runs with
     onnxruntime (``pip install caviar-plugins[onnx]``); ``python -m
-    caviar_plugins.vision.train_detector --export-onnx PATH`` writes the project's detector
+    caviar_plugins.tools.training.train_detector --export-onnx PATH`` writes the project's detector
     in this form."""
 
     def __init__(self, path, session=None):

@@ -1,6 +1,6 @@
 """Daylight shading of the twin's frames: a sun with cast shadows, a sky term and an
 exposure, over each surface's albedo. One owner of the arithmetic that both the training
-frames (:mod:`caviar_plugins.vision.twin_frames`) and the in-loop camera's ``shaded``
+frames (:mod:`caviar_plugins.tools.training.twin_frames`) and the in-loop camera's ``shaded``
 renderer (:mod:`caviar_plugins.vision.camera`) use, so the detector meets in the loop the
 light it was trained under::
 

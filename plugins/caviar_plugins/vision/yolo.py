@@ -19,7 +19,7 @@ Any YOLOv8 / YOLO11-style detector exported to ONNX (Ultralytics' ``model.export
 
 ``person_class`` picks the class (0: the project's models, and COCO's "person"). Boxes are
 mapped back to image pixels. Lost packets arrive as black (zero) pixels: the project's model
-was trained with them (:mod:`caviar_plugins.vision.twin_frames`).
+was trained with them (:mod:`caviar_plugins.tools.training.twin_frames`).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ import numpy as np
 from caviar_plugins.assets import DATA
 
 BUILTIN_YOLO = DATA / "person-yolo.onnx"
-"""The project's YOLO, trained on the twin's frames (``python -m caviar_plugins.vision.train_yolo``)."""
+"""The project's YOLO, trained on the twin's frames (``python -m caviar_plugins.tools.training.train_yolo``)."""
 
 
 @dataclasses.dataclass

@@ -2,8 +2,8 @@
 ``beams`` module of ``blueprints/beam-gym`` (Sionna RT in the loop), compared on a held-out
 flight with random choice, the paper's decision tree and the oracle.
 
-    python -m caviar_plugins.beam_selection.gym_baseline                  # about 10 min on 2 cores
-    python -m caviar_plugins.beam_selection.gym_baseline --episodes 1 --steps 20 --test-steps 20 --rays 10000
+    python -m caviar_plugins.tools.baselines.gym_baseline                  # about 10 min on 2 cores
+    python -m caviar_plugins.tools.baselines.gym_baseline --episodes 1 --steps 20 --test-steps 20 --rays 10000
 
 The agent (:class:`SweepBandit`) is an ε-greedy contextual bandit: its observation is the
 UAV position and the previous step's beam sweep (``beam_selection_spec(previous_gains=True)``);
@@ -102,7 +102,7 @@ class SweepBandit:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.beam_selection.gym_baseline", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.baselines.gym_baseline", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", type=pathlib.Path, default=BLUEPRINT / "config.toml", help="training flights")
     ap.add_argument("--test", type=pathlib.Path, default=BLUEPRINT / "test-flight.toml", help="held-out flight")
@@ -225,7 +225,7 @@ def write_report(out: pathlib.Path, report: dict, hits: list[float]) -> str:
     a = report["args"]
     (out / "gym-baseline.md").write_text(
         f"# Beam selection: a learning agent in the caviar.gym environment\n\n"
-        f"Measured by `python -m caviar_plugins.beam_selection.gym_baseline` (seed {a['seed']}, "
+        f"Measured by `python -m caviar_plugins.tools.baselines.gym_baseline` (seed {a['seed']}, "
         f"{a['rays']:.0e} rays per source): trained for {a['episodes']} episodes of {a['steps']} steps "
         f"(random-waypoint flights of blueprints/beam-gym/config.toml, {report['train_samples']} steps), "
         f"evaluated on {report['test_steps']} steps of the held-out SAR-route flight (test-flight.toml; "

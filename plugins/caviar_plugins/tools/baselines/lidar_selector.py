@@ -4,11 +4,11 @@ occupancy grid around the UE, with and without its position, against position-on
 selection (:class:`~caviar_plugins.beam_selection.knn.GainKNN`, the project's best) on the
 same flights.
 
-    python -m caviar_plugins.beam_selection.lidar_selector --train RUN [RUN ...] --test RUN \\
+    python -m caviar_plugins.tools.baselines.lidar_selector --train RUN [RUN ...] --test RUN \\
         [--out docs/results/beam-lidar.json] [--epochs 40] [--seed 0]
 
 The runs are ``beam-dataset`` runs with a ``lidar`` module (``blueprints/beam-lidar``). Each
-record's grid is :func:`~caviar_plugins.beam_selection.raymobtime.occupancy_grid`'s (40 × 40
+record's grid is :func:`~caviar_plugins.tools.export.raymobtime.occupancy_grid`'s (40 × 40
 × 20 cells of 1 m): its 20 height slices are the CNN's channels, with one more channel for
 the base station's marker (the direction toward it). Targets are Raymobtime's: the pairs
 within 6 dB of the best, their gains normalised to sum 1 (``beams_log_scale``), trained
@@ -38,7 +38,7 @@ def features(run: pathlib.Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     that have a LiDAR sweep."""
     from caviar.rundir import RunDir
     from caviar_plugins.beam_selection.dataset import load_multimodal
-    from caviar_plugins.beam_selection.raymobtime import BASE_STATION, OBSTACLE, occupancy_grid, transmitter_of
+    from caviar_plugins.tools.export.raymobtime import BASE_STATION, OBSTACLE, occupancy_grid, transmitter_of
 
     arrays, sweeps, _, _ = load_multimodal(run)
     tx = transmitter_of(RunDir(run).config_text())
@@ -202,7 +202,7 @@ def draw(result: dict[str, Any], path: pathlib.Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.beam_selection.lidar_selector",
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.baselines.lidar_selector",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--train", type=pathlib.Path, nargs="+", required=True)
     ap.add_argument("--test", type=pathlib.Path, required=True)

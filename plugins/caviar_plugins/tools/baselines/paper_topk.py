@@ -2,7 +2,7 @@
 the 2023 ``run_topK.py`` protocol on dataset runs of blueprints/beam-dataset/paper.toml
 and the SAR test flight (paper-test-flight.toml), with better selectors beside it.
 
-    python -m caviar_plugins.beam_selection.paper_topk --train runs/paper-dataset-* \\
+    python -m caviar_plugins.tools.baselines.paper_topk --train runs/paper-dataset-* \\
         --test runs/paper-test-flight --out docs/results/paper-protocol --model models/paper-beam-tree.pkl
 
 * Samples: every step with at least one path (the 2023 channels drop the LOS path, so
@@ -223,7 +223,7 @@ def write(report: dict, out: pathlib.Path) -> str:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.beam_selection.paper_topk", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.baselines.paper_topk", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--train", nargs="+", required=True)
     ap.add_argument("--test", required=True)
@@ -248,7 +248,7 @@ def main(argv=None) -> None:
 
 def topk_md(report: dict, table: str) -> str:
     return (f"# Top-K beam selection, paper protocol\n\n"
-            f"Measured by `python -m caviar_plugins.beam_selection.paper_topk` (`bash scripts/sar-results.sh`). "
+            f"Measured by `python -m caviar_plugins.tools.baselines.paper_topk` (`bash scripts/sar-results.sh`). "
             f"Training: {report['samples_with_paths']} samples with paths out of {report['steps_recorded']} steps "
             f"of the six 2023 training paths (blueprints/beam-dataset/paper.toml), {report['fit']} to fit and "
             f"{report['validation']} to validate (seeded shuffle, 70/30). Test: {report['test']} samples of the "

@@ -1,7 +1,7 @@
 """The paper's image-degradation table (packet loss 1, 25, 50 % against PSNR),
 measured over frames rendered by the camera module along the SAR route.
 
-    python -m caviar_plugins.vision.degradation --protocol paper --out docs/results/paper-protocol \\
+    python -m caviar_plugins.tools.results.degradation --protocol paper --out docs/results/paper-protocol \\
         [--runs runs/paper/sar-oracle runs/paper/sar-tree ...]
 
 * ``paper``: the 2023 degradation, exactly ⌊N·p⌋ random bytes zeroed
@@ -123,7 +123,7 @@ def write(result: dict, out: pathlib.Path, protocol: str, note: str = "") -> str
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.vision.degradation", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.results.degradation", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--protocol", choices=paper.PROTOCOLS, default="paper")
     ap.add_argument("--frames", type=int, default=60)
@@ -141,7 +141,7 @@ def main(argv=None) -> None:
         result["runs"] = list(args.runs)
     how = ("bytes zeroed (2023 `applyFilter`)" if args.protocol == "paper"
            else "1400-byte packets zeroed (this project's image link)")
-    note = (f"Measured by `python -m caviar_plugins.vision.degradation --protocol {args.protocol}` over "
+    note = (f"Measured by `python -m caviar_plugins.tools.results.degradation --protocol {args.protocol}` over "
             f"{args.frames} frames ({frames[0].shape[1]}×{frames[0].shape[0]}) rendered by the camera module "
             f"along the {'SAR route, rows 0-4' if args.protocol == 'paper' else 'scene-frame SAR route'}; loss: "
             f"{how}. Frame RMS {result['frame_rms']:.1f} (the paper's image: ≈ 122.6, which gives "

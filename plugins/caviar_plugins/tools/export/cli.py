@@ -5,9 +5,9 @@ a recorded run in another tool's format.
     export raymobtime RUN_DIR OUT [--grid X,Y,Z] [--cell M] [--tx X,Y,Z] [--debug]
 
 ``deepmimo``: a DeepMIMO v4 scenario from the path data of a ray-traced run
-(``sionna-link``'s ``publish_paths = true``; :mod:`caviar_plugins.radio.deepmimo_export`).
+(``sionna-link``'s ``publish_paths = true``; :mod:`caviar_plugins.tools.export.deepmimo_export`).
 ``raymobtime``: a ``beam-dataset`` run's records (position, beam-pair gains, LiDAR, camera)
-in Raymobtime's files (:mod:`caviar_plugins.beam_selection.raymobtime`).
+in Raymobtime's files (:mod:`caviar_plugins.tools.export.raymobtime`).
 
 Exit status: 0 written; 2 bad input (no run directory, a run without path data, an OUT
 that exists, deepmimo missing, bad option), one line on stderr naming what is wrong;
@@ -79,7 +79,7 @@ def _exported(args, bad_input: type[Exception], work: Callable[[], object]) -> i
 
 
 def _raymobtime(args) -> None:
-    from caviar_plugins.beam_selection.raymobtime import ExportError, export_raymobtime
+    from caviar_plugins.tools.export.raymobtime import ExportError, export_raymobtime
 
     try:
         grid = tuple(int(v) for v in args.grid.split(","))
@@ -104,10 +104,10 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:  # --help
         return int(e.code or 0)
     if args.format == "raymobtime":
-        from caviar_plugins.beam_selection.raymobtime import ExportError as RaymobtimeError
+        from caviar_plugins.tools.export.raymobtime import ExportError as RaymobtimeError
 
         return _exported(args, RaymobtimeError, lambda: _raymobtime(args))
-    from caviar_plugins.radio.deepmimo_export import ExportError, export_deepmimo
+    from caviar_plugins.tools.export.deepmimo_export import ExportError, export_deepmimo
 
     return _exported(args, ExportError, lambda: export_deepmimo(
         args.run_dir, args.out, module=args.module, progress=None if args.quiet else print))

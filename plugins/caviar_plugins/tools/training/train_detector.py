@@ -1,7 +1,7 @@
 """Trains the person detector on rendered frames and evaluates it on held-out ones.
 
-    python -m caviar_plugins.vision.train_detector [--frames 240] [--report docs/results/detector.json]
-    python -m caviar_plugins.vision.train_detector --export-onnx person-detector.onnx
+    python -m caviar_plugins.tools.training.train_detector [--frames 240] [--report docs/results/detector.json]
+    python -m caviar_plugins.tools.training.train_detector --export-onnx person-detector.onnx
 
 By default the model replaces the builtin one in the cache (``$CAVIAR_CACHE``, default
 ``~/.cache/caviar``); ``--out PATH.pkl`` writes it elsewhere (``model = "PATH.pkl"`` of
@@ -19,7 +19,7 @@ from caviar_plugins.vision.person_detector import builtin_model, builtin_model_p
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.vision.train_detector", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.training.train_detector", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=240, help="training frames (default 240)")
     ap.add_argument("--eval-frames", type=int, default=120, help="held-out evaluation frames (default 120)")

@@ -3,9 +3,9 @@ already in docs/results: the mission table (``mission.json``, commit 9ebfa83) an
 top-K table (``topk.json``) are reformatted with the paper's figures and the difference
 beside ours. Nothing is re-run here (the full physical set takes hours on 2 cores:
 1200 + 250 dataset steps and three missions of 2000-6300 steps); the image-degradation
-table is measured (``python -m caviar_plugins.vision.degradation --protocol physical``).
+table is measured (``python -m caviar_plugins.tools.results.degradation --protocol physical``).
 
-    python -m caviar_plugins.sar.physical_results [--src docs/results] [--out docs/results/physical]
+    python -m caviar_plugins.tools.results.physical [--src docs/results] [--out docs/results/physical]
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import json
 import pathlib
 
 from caviar_plugins.beam_selection.decision_tree import K_VALUES
-from caviar_plugins.beam_selection.paper_topk import PAPER_TOPK
-from caviar_plugins.sar.results import PAPER, write_tables
+from caviar_plugins.tools.baselines.paper_topk import PAPER_TOPK
+from caviar_plugins.tools.results.sar import PAPER, write_tables
 
 
 def topk(src: pathlib.Path, out: pathlib.Path) -> str:
@@ -40,7 +40,7 @@ def topk(src: pathlib.Path, out: pathlib.Path) -> str:
     (out / "topk.md").write_text(
         "# Top-K beam selection, physical protocol\n\n"
         "Not re-measured: reformatted from `docs/results/topk.json` (commit 9ebfa83, 2026-11-22; "
-        "`python -m caviar_plugins.beam_selection.train_tree`). Physical protocol: path loss, LOS kept, Kronecker "
+        "`python -m caviar_plugins.tools.training.train_tree`). Physical protocol: path loss, LOS kept, Kronecker "
         f"DFT codebook at 0.5 λ; {rep['nlos_samples']} NLOS samples of 1200 random-waypoint steps, {rep['fit']} fit / "
         f"{rep['validation']} validate, {rep['test_nlos']} NLOS test samples of the SAR route. Metric of that run: "
         "the true best pair is among the model's K most probable pairs (the 2023 metric, predicted pair among the "
@@ -80,16 +80,16 @@ def mission(src: pathlib.Path, out: pathlib.Path) -> str:
                  diff_pct=round(100 * (r["mission_time_s"] / pt - 1), 1),
                  measured="commit 9ebfa83 (2026-11-22), blueprints/sar/config.toml, physical protocol")
     note = ("Not re-measured: reformatted from `docs/results/mission.json` (commit 9ebfa83, 2026-11-22; "
-            "`python -m caviar_plugins.sar.results` on blueprints/sar/config.toml, configs in docs/results/configs). "
-            "Physical protocol: path loss and the link budget (0.5 W, −130 dBW interference), LOS kept, the full "
-            "762 m route, hover at once on detection for 320 Mbit / R (capped at 600 s). The times are 13-32× the "
-            "paper's because with path loss the NLOS street-level link gives ~0.1 Mbit/s median (see "
-            "docs/paper-protocol.md).")
+            "`python -m caviar_plugins.tools.results.sar` on blueprints/sar/config.toml, configs in "
+            "docs/results/configs). Physical protocol: path loss and the link budget (0.5 W, −130 dBW "
+            "interference), LOS kept, the full 762 m route, hover at once on detection for 320 Mbit / R (capped "
+            "at 600 s). The times are 13-32× the paper's because with path loss the NLOS street-level link gives "
+            "~0.1 Mbit/s median (see docs/paper-protocol.md).")
     return write_tables(rows, out, note)
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.sar.physical_results", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.results.physical", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--src", type=pathlib.Path, default=pathlib.Path("docs/results"))
     ap.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/results/physical"))

@@ -2,8 +2,8 @@
 writes the paper's mission table (mission time, rescued targets) with plots and the
 exact configurations that produced it.
 
-    python -m caviar_plugins.sar.results --tree models/beam-tree.pkl [--out docs/results]
-    python -m caviar_plugins.sar.results --config blueprints/sar-paper/config.toml \
+    python -m caviar_plugins.tools.results.sar --tree models/beam-tree.pkl [--out docs/results]
+    python -m caviar_plugins.tools.results.sar --config blueprints/sar-paper/config.toml \
         --tree models/paper-beam-tree.pkl --knn models/paper-beam-knn.pkl \
         --methods random tree oracle knn --runs runs/paper --out docs/results/paper-protocol --reuse
 
@@ -210,7 +210,7 @@ def write_tables(rows: list[dict], out: pathlib.Path, note: str = "") -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.sar.results", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.results.sar", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", type=pathlib.Path, default=pathlib.Path("blueprints/sar/config.toml"))
     ap.add_argument("--tree", type=pathlib.Path, default=pathlib.Path("models/beam-tree.pkl"))

@@ -1,13 +1,13 @@
 """Person detectors scored on the twin's held-out test frames, per packet-loss level.
 
-Every test frame (:mod:`caviar_plugins.vision.twin_frames`, its own scene and flights) is
+Every test frame (:mod:`caviar_plugins.tools.training.twin_frames`, its own scene and flights) is
 sent through the image link at each loss level of the paper's table (0, 1 %, 25 %, 50 %;
 the same frames at every level, each level's packets drawn from its own seeded generator),
 and each detector's boxes are scored against the renderer's boxes: AP at IoU 0.5 (mAP@0.5,
 one class), and precision and recall of the boxes a detector reports. The pixel
 classifier's boxes are its regions' bounding boxes, scored by their mean probability.
 
-    python -m caviar_plugins.vision.yolo_eval DATASET [--model PATH.onnx] [--report OUT.json]
+    python -m caviar_plugins.tools.training.yolo_eval DATASET [--model PATH.onnx] [--report OUT.json]
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import pathlib
 
 import numpy as np
 
+from caviar_plugins.tools.training.twin_frames import read_labels
 from caviar_plugins.vision.image_link import packet_loss
-from caviar_plugins.vision.twin_frames import read_labels
 from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx, average_precision
 
 LOSS_LEVELS = (0.0, 0.01, 0.25, 0.5)
@@ -46,8 +46,8 @@ def camera_frames(count: int = 120, seed: int = 1235) -> tuple[list[np.ndarray],
     the pixel forest's held-out frames (:func:`~caviar_plugins.vision.person_detector.frames`,
     seed 1235 as in ``docs/results/detector.json``) without their packet loss, each person's box
     from the renderer's labels."""
+    from caviar_plugins.tools.training.twin_frames import yolo_boxes
     from caviar_plugins.vision.person_detector import frames
-    from caviar_plugins.vision.twin_frames import yolo_boxes
 
     images, truths = [], []
     for image, labels, _ in frames(count, seed, loss_rates=(0.0,)):
@@ -89,7 +89,7 @@ def pixel_detect(detector):
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.vision.yolo_eval", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.training.yolo_eval", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("dataset", type=pathlib.Path)
     ap.add_argument("--model", type=pathlib.Path, default=BUILTIN_YOLO)

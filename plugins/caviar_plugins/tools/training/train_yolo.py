@@ -1,8 +1,8 @@
 """Trains the project's YOLO person detector from scratch on the twin's own frames.
 
-    python -m caviar_plugins.vision.train_yolo [--epochs 40] [--work runs/yolo] [--out PATH.onnx]
+    python -m caviar_plugins.tools.training.train_yolo [--epochs 40] [--work runs/yolo] [--out PATH.onnx]
 
-1. renders the frames and their labels (:mod:`caviar_plugins.vision.twin_frames`) into
+1. renders the frames and their labels (:mod:`caviar_plugins.tools.training.twin_frames`) into
    ``WORK/frames`` unless they are there;
 2. trains Ultralytics YOLO from ``data/person-yolo.yaml`` (YOLOv8's blocks at 1/4 width with
    heads at strides 4, 8 and 16, one class,
@@ -12,7 +12,7 @@
    letterboxed) and copies it to ``--out`` (default: the builtin model,
    ``caviar_plugins/data/person-yolo.onnx``);
 4. scores it and today's pixel classifier on the held-out test frames per packet-loss level
-   (:mod:`caviar_plugins.vision.yolo_eval`) and writes ``--report`` (JSON, with a Markdown
+   (:mod:`caviar_plugins.tools.training.yolo_eval`) and writes ``--report`` (JSON, with a Markdown
    table and a plot beside it).
 
 Training needs ``pip install 'caviar-plugins[yolo]'`` (Ultralytics, torch); running the
@@ -118,7 +118,7 @@ def write_report(report: dict, path: pathlib.Path) -> None:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.vision.train_yolo", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.training.train_yolo", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", type=pathlib.Path, default=pathlib.Path("runs/yolo"))
     ap.add_argument("--train-frames", type=int, default=1200)
@@ -135,10 +135,16 @@ def main(argv=None) -> None:
                     help="train nothing: score --out on the test frames and write the report")
     ap.add_argument("--train-s", type=float, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    from caviar_plugins.tools.training.twin_frames import write_dataset
+    from caviar_plugins.tools.training.yolo_eval import (
+        camera_frames,
+        evaluate,
+        held_out_frames,
+        pixel_detect,
+        yolo_detect,
+    )
     from caviar_plugins.vision.person_detector import builtin_model
-    from caviar_plugins.vision.twin_frames import write_dataset
     from caviar_plugins.vision.yolo import YoloOnnx
-    from caviar_plugins.vision.yolo_eval import camera_frames, evaluate, held_out_frames, pixel_detect, yolo_detect
 
     frames = args.work / "frames"
     if not (frames / "data.yaml").exists():
@@ -162,7 +168,7 @@ def main(argv=None) -> None:
             "yolo_at_0.25": evaluate(yolo_detect(YoloOnnx(onnx)), flat_images, flat_truths),
             "pixel_forest": evaluate(pixel_detect(builtin_model()), flat_images, flat_truths)}
     shown = [a for a in (argv or []) if a != "--score-only" and not a.startswith("--train-s")]
-    report = {"command": " ".join(["python -m caviar_plugins.vision.train_yolo", *shown]),
+    report = {"command": " ".join(["python -m caviar_plugins.tools.training.train_yolo", *shown]),
               "model_yaml": MODEL_YAML.name, "epochs": args.epochs, "seed": args.seed, "imgsz": IMGSZ,
               "degrees": args.degrees,
               "shaded_test_map50": round(scores["yolo"]["0.00"]["ap50"], 4),

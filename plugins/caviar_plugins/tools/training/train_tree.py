@@ -1,7 +1,7 @@
 """Fits the beam-selection decision tree on the NLOS samples of dataset runs and writes
 the paper's top-K table (JSON, Markdown, plot).
 
-    python -m caviar_plugins.beam_selection.train_tree --train runs/beam-dataset \\
+    python -m caviar_plugins.tools.training.train_tree --train runs/beam-dataset \\
         --test runs/beam-test-flight --out models/beam-tree.pkl --report-dir docs/results
 
 The runs come from ``blueprints/beam-dataset`` (``config.toml``: training flights,
@@ -24,7 +24,7 @@ PAIRS = 256
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.beam_selection.train_tree", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.training.train_tree", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--train", nargs="+", required=True, help="run directories of the dataset blueprint")
     ap.add_argument("--test", required=True, help="run directory of a separate test flight")

@@ -1,5 +1,5 @@
 """``caviar-core scene ...`` (entry point group ``caviar.commands``, name ``scene``)
-and ``python -m caviar_plugins.osm ...``.
+and ``python -m caviar_plugins.tools.scene ...``.
 
     scene build INPUT.osm|INPUT.osm.pbf --out DIR [--bbox S,W,N,E | --center LAT,LON --radius M]
                 [--decimate R] [--default-height M] [--roads] [--sumo]

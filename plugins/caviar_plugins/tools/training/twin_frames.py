@@ -20,13 +20,13 @@ Each frame is one Mitsuba AOV pass (position, normal, shape) at 2 x 2 samples pe
 one shadow-ray pass; the cost per frame is measured by :func:`write_dataset` and kept in
 ``meta.json``.
 
-    python -m caviar_plugins.vision.twin_frames OUT [--train 1200 --val 240 --test 240]
+    python -m caviar_plugins.tools.training.twin_frames OUT [--train 1200 --val 240 --test 240]
 
 ``OUT/data.yaml`` is an Ultralytics dataset; ``OUT/images/<split>/*.png`` and
 ``OUT/labels/<split>/*.txt`` (``0 cx cy w h``, normalised), ``OUT/meta.json`` the seeds,
 counts and measured cost. Training frames carry the image link's packet loss (as the
 detector meets them in the loop); validation and test frames are clean, and the test
-frames are degraded at each loss level when evaluated (:mod:`caviar_plugins.vision.yolo_eval`).
+frames are degraded at each loss level when evaluated (:mod:`caviar_plugins.tools.training.yolo_eval`).
 """
 
 from __future__ import annotations
@@ -378,7 +378,7 @@ def write_dataset(out: pathlib.Path, counts: dict[str, int], cfg: FrameConfig | 
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.vision.twin_frames", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m caviar_plugins.tools.training.twin_frames", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", type=pathlib.Path)
     ap.add_argument("--train", type=int, default=1200)

@@ -1,5 +1,0 @@
-import sys
-
-from caviar_plugins.osm.cli import main
-
-sys.exit(main())

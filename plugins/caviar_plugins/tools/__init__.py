@@ -1,0 +1,15 @@
+"""Offline tools above the plugins: commands that run before or after a simulation, never
+inside one. They may import any runtime package of :mod:`caviar_plugins`; no runtime package
+imports them.
+
+* :mod:`~caviar_plugins.tools.export`: ``caviar-core export`` (a recorded run as a DeepMIMO
+  scenario or as Raymobtime's files);
+* :mod:`~caviar_plugins.tools.scene`: ``caviar-core scene`` (a scene and a road network
+  from OpenStreetMap, built by :mod:`caviar_plugins.osm`);
+* :mod:`~caviar_plugins.tools.training`: the models the plugins load (the beam-selection
+  tree, the pixel person detector, the YOLO and its labelled frames);
+* :mod:`~caviar_plugins.tools.baselines`: beam selection compared (the Gymnasium agent, the
+  paper's top-K table, the LiDAR CNN);
+* :mod:`~caviar_plugins.tools.results`: the result tables of docs/results (the SAR mission,
+  the image degradation, the physical-protocol set).
+"""
