@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import sys
 
-from caviar_plugins.network.calibration import main
+from caviar_plugins.tools.calibration import main
 
 if __name__ == "__main__":
     argv = sys.argv[1:]

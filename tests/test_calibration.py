@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from caviar import _core
-from caviar_plugins.network import calibration
+from caviar_plugins.tools import calibration
 from caviar_plugins.network.cells import Column, parse_sites
 from caviar_plugins.network.layout import LayoutSettings, Wraparound, site_positions
 from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from caviar import _core
-from caviar_plugins.network import calibration
+from caviar_plugins.tools import calibration
 from caviar_plugins.network.layout import LayoutSettings, site_positions
 from caviar_plugins.rt.scene import load_scene, open_sky
 

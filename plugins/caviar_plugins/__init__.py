@@ -36,7 +36,7 @@ knows how messages travel. The five of SUMO, the network, MAVLink and ns-3 are i
 first use (``caviar_plugins.SumoTraffic``): their packages are optional extras.
 
 Offline tools live above the plugins, in :mod:`~caviar_plugins.tools`, which no plugin
-imports: the commands ``caviar-core export`` and ``scene``, and, with
+imports: the commands ``caviar-core export``, ``scene`` and ``calibrate``, and, with
 ``python -m``, training (``caviar_plugins.tools.training.train_tree``,
 ``caviar_plugins.tools.training.train_detector``), baselines and result tables
 (``caviar_plugins.tools.results.sar``).

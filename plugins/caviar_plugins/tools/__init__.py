@@ -6,6 +6,8 @@ imports them.
   scenario or as Raymobtime's files);
 * :mod:`~caviar_plugins.tools.scene`: ``caviar-core scene`` (a scene and a road network
   from OpenStreetMap, built by :mod:`caviar_plugins.osm`);
+* :mod:`~caviar_plugins.tools.calibration`: ``caviar-core calibrate`` (TR 38.901 phase 1,
+  and the ray-traced channel beside 38.901 UMi);
 * :mod:`~caviar_plugins.tools.training`: the models the plugins load (the beam-selection
   tree, the pixel person detector, the YOLO and its labelled frames);
 * :mod:`~caviar_plugins.tools.baselines`: beam selection compared (the Gymnasium agent, the
