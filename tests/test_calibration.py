@@ -14,10 +14,10 @@ import pytest
 import torch
 
 from caviar import _core
-from caviar_plugins.tools import calibration
 from caviar_plugins.network.cells import Column, parse_sites
 from caviar_plugins.network.layout import LayoutSettings, Wraparound, site_positions
 from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings
+from caviar_plugins.tools import calibration
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 COMPANIES = calibration.COMPANIES  # (shipped in caviar_plugins/data)

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from caviar import _core
-from caviar_plugins.tools import calibration
 from caviar_plugins.network.layout import LayoutSettings, site_positions
 from caviar_plugins.rt.scene import load_scene, open_sky
+from caviar_plugins.tools import calibration
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OSM_CITY = ROOT / "blueprints" / "osm-city" / "scene" / "scene.xml"
