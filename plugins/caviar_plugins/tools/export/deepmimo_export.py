@@ -218,15 +218,15 @@ def _scene_files(settings: dict[str, Any], folder: pathlib.Path) -> None:
     """The run's Sionna scene (its static geometry: no UAV bodies) as DeepMIMO's Sionna
     exporter writes it: materials, vertices, objects and faces."""
     from caviar_plugins.rt import configure_drjit
+    from caviar_plugins.rt.scene import load_scene
 
-    configure_drjit()
-    import sionna.rt as rt
+    configure_drjit()  # before DeepMIMO's exporter imports Sionna RT
     from deepmimo.exporters.sionna_exporter import export_scene_buildings, export_scene_materials
 
     path = settings.get("scene_file")
     if path is not None and not pathlib.Path(path).exists():
         raise ExportError(f"the run's scene {path} is gone; the export reads its geometry and materials")
-    scene = rt.load_scene(path) if path else rt.load_scene()
+    scene = load_scene(str(path) if path else "empty")
     scene.frequency = float(settings["frequency_hz"])  # the ITU materials' values depend on it
     materials, indices = export_scene_materials(scene)
     # DeepMIMO's exporter keeps 1-element arrays (drjit's .numpy()); its converter calls float() on them.
