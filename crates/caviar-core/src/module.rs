@@ -112,34 +112,68 @@ pub trait ResourceProbe: Send {
     fn sample(&mut self) -> Option<(f64, f64)>;
 }
 
+/// The methods [`Module`] and [`RemoteModule`] share, with their defaults, written once
+/// and expanded into both traits: each keeps all of them as its own, so an
+/// implementation of either overrides them in its own `impl`. A module's state is
+/// unsupported by default, for the reasons the trait gives (`no_state`: why it has no
+/// state to save, `no_restore`: why none can be put back).
+macro_rules! shared_module_methods {
+    (no_state: $no_state:literal, no_restore: $no_restore:literal $(,)?) => {
+        /// Subscription patterns used when the config gives none.
+        fn default_subscriptions(&self) -> Vec<String> {
+            Vec::new()
+        }
+
+        /// Topics (or patterns) the module may publish; `None`: not declared (it may
+        /// publish anything). Only `caviar-core validate` reads it, to warn about
+        /// subscriptions nobody feeds and publications nobody reads.
+        fn publishes(&self) -> Option<Vec<String>> {
+            None
+        }
+
+        /// Default subscriptions the module works without (optional inputs): `validate`
+        /// does not warn when no module publishes them.
+        fn optional_subscriptions(&self) -> Vec<String> {
+            Vec::new()
+        }
+
+        /// Inputs its parameters name, as (pattern, key of the module's table that names
+        /// it): a configuration in which no module publishes one is refused before
+        /// anything runs.
+        fn required_inputs(&self) -> Vec<(String, String)> {
+            Vec::new()
+        }
+
+        fn setup(&mut self, _ctx: &SetupContext) -> Result<(), ModuleError> {
+            Ok(())
+        }
+
+        fn teardown(&mut self) -> Result<(), ModuleError> {
+            Ok(())
+        }
+
+        /// The module's state between two steps, for a checkpoint. Default: unsupported.
+        fn state(&mut self) -> Result<ModuleState, ModuleError> {
+            Ok(ModuleState::Unsupported($no_state.into()))
+        }
+
+        /// Puts back a state from `state`, after `setup`, before the next step.
+        fn restore(&mut self, _state: &[u8]) -> Result<(), ModuleError> {
+            Err(ModuleError::new($no_restore))
+        }
+
+        /// A resumed run goes on at `next_step` (after `restore`, for every module).
+        fn resume_at(&mut self, _next_step: u64) -> Result<(), ModuleError> {
+            Ok(())
+        }
+    };
+}
+
 /// A module that runs in this process: the engine calls `step` and waits for it.
 pub trait Module: Send {
-    /// Subscription patterns used when the config gives none.
-    fn default_subscriptions(&self) -> Vec<String> {
-        Vec::new()
-    }
-
-    /// Topics (or patterns) the module may publish; `None`: not declared (it may
-    /// publish anything). Only `caviar-core validate` reads it, to warn about
-    /// subscriptions nobody feeds and publications nobody reads.
-    fn publishes(&self) -> Option<Vec<String>> {
-        None
-    }
-
-    /// Default subscriptions the module works without (optional inputs): `validate`
-    /// does not warn when no module publishes them.
-    fn optional_subscriptions(&self) -> Vec<String> {
-        Vec::new()
-    }
-
-    /// Inputs its parameters name, as (pattern, key of the module's table that names it):
-    /// a configuration in which no module publishes one is refused before anything runs.
-    fn required_inputs(&self) -> Vec<(String, String)> {
-        Vec::new()
-    }
-
-    fn setup(&mut self, _ctx: &SetupContext) -> Result<(), ModuleError> {
-        Ok(())
+    shared_module_methods! {
+        no_state: "it has no state()/restore() hooks and does not declare itself stateless",
+        no_restore: "it has no restore() hook",
     }
 
     /// One step: read `inbox`, push what to publish onto `out`.
@@ -149,27 +183,6 @@ pub trait Module: Send {
         inbox: &[SharedMessage],
         out: &mut Vec<Outgoing>,
     ) -> Result<(), ModuleError>;
-
-    fn teardown(&mut self) -> Result<(), ModuleError> {
-        Ok(())
-    }
-
-    /// The module's state between two steps, for a checkpoint. Default: unsupported.
-    fn state(&mut self) -> Result<ModuleState, ModuleError> {
-        Ok(ModuleState::Unsupported(
-            "it has no state()/restore() hooks and does not declare itself stateless".into(),
-        ))
-    }
-
-    /// Puts back a state from [`Module::state`], after `setup`, before the next step.
-    fn restore(&mut self, _state: &[u8]) -> Result<(), ModuleError> {
-        Err(ModuleError::new("it has no restore() hook"))
-    }
-
-    /// A resumed run goes on at `next_step` (after `restore`, for every module).
-    fn resume_at(&mut self, _next_step: u64) -> Result<(), ModuleError> {
-        Ok(())
-    }
 
     /// Whether `step` may run on a worker thread beside the other modules of its
     /// stage. Python plugins say no: they share one interpreter lock anyway and
@@ -192,28 +205,9 @@ pub trait Module: Send {
 /// }
 /// ```
 pub trait RemoteModule: Send {
-    /// Subscription patterns used when the config gives none.
-    fn default_subscriptions(&self) -> Vec<String> {
-        Vec::new()
-    }
-
-    /// As [`Module::publishes`].
-    fn publishes(&self) -> Option<Vec<String>> {
-        None
-    }
-
-    /// As [`Module::optional_subscriptions`].
-    fn optional_subscriptions(&self) -> Vec<String> {
-        Vec::new()
-    }
-
-    /// As [`Module::required_inputs`].
-    fn required_inputs(&self) -> Vec<(String, String)> {
-        Vec::new()
-    }
-
-    fn setup(&mut self, _ctx: &SetupContext) -> Result<(), ModuleError> {
-        Ok(())
+    shared_module_methods! {
+        no_state: "its transport does not carry module states",
+        no_restore: "its transport does not carry module states",
     }
 
     /// Hands the step off and returns without waiting.
@@ -221,29 +215,6 @@ pub trait RemoteModule: Send {
 
     /// Waits for the step started by `start_step`; returns what it cost where it ran.
     fn finish_step(&mut self, out: &mut Vec<Outgoing>) -> Result<Usage, ModuleError>;
-
-    fn teardown(&mut self) -> Result<(), ModuleError> {
-        Ok(())
-    }
-
-    /// As [`Module::state`]; default: unsupported.
-    fn state(&mut self) -> Result<ModuleState, ModuleError> {
-        Ok(ModuleState::Unsupported(
-            "its transport does not carry module states".into(),
-        ))
-    }
-
-    /// As [`Module::restore`].
-    fn restore(&mut self, _state: &[u8]) -> Result<(), ModuleError> {
-        Err(ModuleError::new(
-            "its transport does not carry module states",
-        ))
-    }
-
-    /// As [`Module::resume_at`].
-    fn resume_at(&mut self, _next_step: u64) -> Result<(), ModuleError> {
-        Ok(())
-    }
 }
 
 /// A module as the engine holds it: run here, or elsewhere.

@@ -1,6 +1,6 @@
 """Offline tools above the plugins: commands that run before or after a simulation, never
 inside one. They may import any runtime package of :mod:`caviar_plugins`; no runtime package
-imports them.
+imports them, and none of those uses argparse (``tests/test_layers.py`` checks both).
 
 * :mod:`~caviar_plugins.tools.export`: ``caviar-core export`` (a recorded run as a DeepMIMO
   scenario or as Raymobtime's files);
