@@ -13,7 +13,7 @@ use std::time::Duration;
 use crate::assembly::{build_modules, refuse_unfed, wiring_warnings, PrepareError, REPLAY_PLUGIN};
 use crate::checkpoint::{Checkpoint, SavedState};
 use crate::config::{ConfigError, LoadedConfig};
-use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec, StepReport};
+use crate::engine::{Engine, EngineError, EngineOptions, ModuleSpec, StepReport, Tap};
 use crate::module::{AnyModule, Module, ResourceProbe};
 use crate::recorder::Recorder;
 use crate::status::{Deadlines, Monitor, RunState, RunStatus};
@@ -247,31 +247,8 @@ impl RunSession {
             }
             (None, None) => unreachable!("in-process modules are loaded above"),
         };
-        let mut engine = new_engine(&cfg, &run_dir, specs)?;
-        if let Some(tap) = tap {
-            engine.set_tap(tap);
-        }
-        if let Some(probe) = loader.resource_probe() {
-            engine.set_probe(probe);
-        }
-        // A transport has its own deadlines; in-process, the monitor's watchdog.
-        let watchdog = connection.is_none().then(|| Deadlines {
-            step: Duration::from_secs_f64(cfg.step_timeout()),
-            setup: Duration::from_secs_f64(cfg.setup_timeout()),
-        });
-        let mut monitor = Monitor::install(&mut engine, watchdog);
-        RunStatus::of(&cfg, &engine, RunState::Running, None)
-            .write(&run_dir)
-            .map_err(PrepareError::Io)?;
-        monitor.started(&cfg, &engine);
-        Ok(RunSession {
-            cfg,
-            engine,
-            monitor: Some(monitor),
-            connection,
-            warnings,
-            ended: None,
-        })
+        let engine = new_engine(&cfg, &run_dir, specs, None)?;
+        Self::launch(cfg, loader, engine, tap, connection, warnings)
     }
 
     /// Goes on with the run in `run_dir` from its last checkpoint (`caviar-core run
@@ -315,63 +292,23 @@ impl RunSession {
         // The run as first started: its file and overrides (already in the saved text).
         cfg.file = before.config_file.clone();
         cfg.overrides = before.overrides.clone();
-        let transport = transport::check(&cfg)?;
-        let exclude = cfg
-            .config
-            .output
-            .exclude
-            .iter()
-            .map(|p| Pattern::new(p).expect("validated"))
-            .collect();
-        let recorder = |cfg: &LoadedConfig| {
-            Recorder::resume(
-                run_dir,
-                exclude,
-                Duration::from_secs_f64(cfg.config.output.flush_interval),
-                cp.next_step,
-            )
-            .map_err(|e| io(e.to_string()))
-        };
         // In process: the plugins here; over a transport: its server and workers again
         // (their logs start afresh in the run directory).
-        let (mut engine, connection, warnings) = match transport {
+        let (specs, tap, connection, warnings) = match transport::check(&cfg)? {
             None => {
                 let specs = load_modules(&cfg, loader)?;
                 let warnings = wiring_warnings(&cfg, &specs, &|_| None);
-                let engine = engine_with(&cfg, run_dir, specs, recorder(&cfg)?)?;
-                (engine, None, warnings)
+                (specs, None, None, warnings)
             }
             Some(t) => {
                 t.check_files(&cfg)?;
                 let p = t.prepare(&cfg, loader.worker_launcher().as_ref(), run_dir)?;
                 let warnings = wiring_warnings(&cfg, &p.modules, &|_| None);
-                let mut engine = engine_with(&cfg, run_dir, p.modules, recorder(&cfg)?)?;
-                if let Some(tap) = p.tap {
-                    engine.set_tap(tap);
-                }
-                (engine, Some(p.connection), warnings)
+                (p.modules, p.tap, Some(p.connection), warnings)
             }
         };
-        if let Some(probe) = loader.resource_probe() {
-            engine.set_probe(probe);
-        }
-        let watchdog = connection.is_none().then(|| Deadlines {
-            step: Duration::from_secs_f64(cfg.step_timeout()),
-            setup: Duration::from_secs_f64(cfg.setup_timeout()),
-        });
-        let mut monitor = Monitor::install(&mut engine, watchdog);
-        RunStatus::of(&cfg, &engine, RunState::Running, None)
-            .write(run_dir)
-            .map_err(io)?;
-        monitor.started(&cfg, &engine);
-        let mut session = RunSession {
-            cfg,
-            engine,
-            monitor: Some(monitor),
-            connection,
-            warnings,
-            ended: None,
-        };
+        let engine = new_engine(&cfg, run_dir, specs, Some(cp.next_step))?;
+        let mut session = Self::launch(cfg, loader, engine, tap, connection, warnings)?;
         if let Err(e) = session.engine.resume_from(&cp, &before.resumed_at) {
             // Nothing ran: the run stays as it was, failed, with why it did not resume.
             let _ = session.finish(Err(e));
@@ -381,6 +318,42 @@ impl RunSession {
             )));
         }
         Ok(session)
+    }
+
+    /// The session around a run's engine, for `start` and `resume` alike: the
+    /// transport's tap, this host's GPU probe, the monitor (with its watchdog in
+    /// process; a transport has its own deadlines) and run.json saying `running`.
+    fn launch(
+        cfg: LoadedConfig,
+        loader: &dyn PluginLoader,
+        mut engine: Engine,
+        tap: Option<Tap>,
+        connection: Option<Box<dyn Connection>>,
+        warnings: Vec<String>,
+    ) -> Result<Self, PrepareError> {
+        if let Some(tap) = tap {
+            engine.set_tap(tap);
+        }
+        if let Some(probe) = loader.resource_probe() {
+            engine.set_probe(probe);
+        }
+        let watchdog = connection.is_none().then(|| Deadlines {
+            step: Duration::from_secs_f64(cfg.step_timeout()),
+            setup: Duration::from_secs_f64(cfg.setup_timeout()),
+        });
+        let mut monitor = Monitor::install(&mut engine, watchdog);
+        RunStatus::of(&cfg, &engine, RunState::Running, None)
+            .write(engine.run_dir())
+            .map_err(PrepareError::Io)?;
+        monitor.started(&cfg, &engine);
+        Ok(RunSession {
+            cfg,
+            engine,
+            monitor: Some(monitor),
+            connection,
+            warnings,
+            ended: None,
+        })
     }
 
     pub fn engine(&self) -> &Engine {
@@ -508,11 +481,14 @@ fn checkpoint_due(
     Ok(())
 }
 
-/// The engine of a run: its recorder in `run_dir`, the episode's timing and stages.
+/// The engine of a run: the episode's timing and stages, and its recorder in `run_dir`,
+/// new, or with `resume_at` (a resumed run's next step) the one there, cut to the steps
+/// before it.
 fn new_engine(
     cfg: &LoadedConfig,
     run_dir: &Path,
     specs: Vec<ModuleSpec>,
+    resume_at: Option<u64>,
 ) -> Result<Engine, PrepareError> {
     let exclude = cfg
         .config
@@ -521,21 +497,12 @@ fn new_engine(
         .iter()
         .map(|p| Pattern::new(p).expect("validated"))
         .collect();
-    let recorder = Recorder::create(
-        run_dir,
-        exclude,
-        Duration::from_secs_f64(cfg.config.output.flush_interval),
-    )
+    let flush = Duration::from_secs_f64(cfg.config.output.flush_interval);
+    let recorder = match resume_at {
+        None => Recorder::create(run_dir, exclude, flush),
+        Some(next_step) => Recorder::resume(run_dir, exclude, flush, next_step),
+    }
     .map_err(|e| PrepareError::Io(e.to_string()))?;
-    engine_with(cfg, run_dir, specs, recorder)
-}
-
-fn engine_with(
-    cfg: &LoadedConfig,
-    run_dir: &Path,
-    specs: Vec<ModuleSpec>,
-    recorder: Recorder,
-) -> Result<Engine, PrepareError> {
     let ep = &cfg.config.episode;
     let opts = EngineOptions {
         ts: ep.ts,
