@@ -41,7 +41,7 @@ from caviar_plugins.beam_selection.gym_task import PAIRS, beam_selection_spec
 from caviar_plugins.radio.link_budget import LinkBudget
 from caviar_plugins.schema import BEAM_GAINS, POSITIONS, per_ue, read_position
 
-ROOT = pathlib.Path(__file__).resolve().parents[3]
+ROOT = pathlib.Path(__file__).resolve().parents[4]
 BLUEPRINT = ROOT / "blueprints" / "beam-gym"
 UE = "uav1"
 AGENT_MODULE = "beams"
