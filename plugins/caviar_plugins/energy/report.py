@@ -8,12 +8,12 @@ with the numbers.
 
 from __future__ import annotations
 
-import json
 import pathlib
 from typing import Any
 
 import numpy as np
 
+from caviar_plugins.report_figures import pyplot_into, save_figure, save_numbers
 from caviar_plugins.schema import ENERGY, POSITIONS, RESCUE, RESULT, RETURN_HOME
 
 
@@ -89,22 +89,11 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
     summary = summarize(log)
     if summary is None:
         return []
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out.mkdir(parents=True, exist_ok=True)
+    plt = pyplot_into(out)
     energy = log.decoded(ENERGY)
     rescues = log.decoded(RESCUE)
     sent = {m.data["UE_Id"]: m.time for m in log.decoded(RETURN_HOME)}
     fig, (ax, bx, cx) = plt.subplots(1, 3, figsize=(17, 4.8))
     _over_time(ax, bx, summary, energy, rescues, sent)
     _track(fig, cx, log, summary, energy, rescues)
-    fig.tight_layout()
-    path = out / "energy.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    numbers = out / "energy.json"
-    numbers.write_text(json.dumps(summary, indent=1) + "\n")
-    return [path, numbers]
+    return [save_figure(fig, out / "energy.png"), save_numbers(summary, out / "energy.json")]

@@ -7,12 +7,12 @@ the side, coloured by what it hit, and ``lidar.json`` with the sweeps' counts.
 
 from __future__ import annotations
 
-import json
 import pathlib
 from typing import Any
 
 import numpy as np
 
+from caviar_plugins.report_figures import pyplot_into, save_figure, save_numbers
 from caviar_plugins.schema import LIDAR
 
 
@@ -34,12 +34,7 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
     summary = summarize(log)
     if summary is None:
         return []
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out.mkdir(parents=True, exist_ok=True)
+    plt = pyplot_into(out)
     paths = []
     saved: dict[str, pathlib.Path] = {}
     for m in log.decoded(f"{LIDAR}.*.file"):
@@ -62,11 +57,5 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
         bx.set(xlabel="horizontal distance from the sensor (m)", ylabel="z (m)", title="side view")
         for axis in (ax, bx):
             axis.grid(True, alpha=0.4)
-        fig.tight_layout()
-        png = out / f"lidar-{ue}.png"
-        fig.savefig(png, dpi=100)
-        plt.close(fig)
-        paths.append(png)
-    numbers = out / "lidar.json"
-    numbers.write_text(json.dumps(summary, indent=1) + "\n")
-    return [*paths, numbers]
+        paths.append(save_figure(fig, out / f"lidar-{ue}.png"))
+    return [*paths, save_numbers(summary, out / "lidar.json")]

@@ -9,7 +9,6 @@ delay and user-perceived throughput CDFs of files and carried messages, with
 
 from __future__ import annotations
 
-import json
 import math
 import pathlib
 from typing import Any
@@ -17,6 +16,7 @@ from typing import Any
 import numpy as np
 import tomllib
 
+from caviar_plugins.report_figures import pyplot_into, save_figure, save_numbers
 from caviar_plugins.schema import NETWORK_EVENTS, NETWORK_TRANSFERS, NETWORK_UE, POSITIONS
 
 
@@ -130,12 +130,7 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
     summary = summarize(log)
     if summary is None:
         return []
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out.mkdir(parents=True, exist_ok=True)
+    plt = pyplot_into(out)
     ues = [m.data for m in log.decoded(NETWORK_UE)]
     kinds = sorted({u["UE_type"] for u in ues})
     uplink = any("ul_sinr_db" in u for u in ues)
@@ -148,10 +143,7 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
                                          and f"{prefix}throughput_mbps" in u]) for k in kinds}, "throughput (Mbit/s)")
         axes[row, 0].set_title(f"{link} SINR per UE type")
         axes[row, 1].set_title(f"{link} throughput per UE type")
-    fig.tight_layout()
-    cdfs = out / "network-cdf.png"
-    fig.savefig(cdfs, dpi=100)
-    plt.close(fig)
+    cdfs = save_figure(fig, out / "network-cdf.png")
 
     # The map: UE trails, sites and sector boresights, handovers where they happened.
     track: dict[str, dict[int, tuple[float, float]]] = {}
@@ -183,10 +175,7 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
     ax.grid(True)
     if ax.get_legend_handles_labels()[0]:  # (nothing to name in a run without handovers or beams)
         ax.legend(loc="upper right")
-    fig.tight_layout()
-    hmap = out / "network-handovers.png"
-    fig.savefig(hmap, dpi=100)
-    plt.close(fig)
+    hmap = save_figure(fig, out / "network-handovers.png")
     made = [cdfs, hmap]
     groups = {k: v[0] for k, v in transfer_groups(log).items() if v[0]}
     if groups:
@@ -197,13 +186,8 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
              "user-perceived throughput (Mbit/s)")
         axes[0, 0].set(xscale="log", title="file and message delay")
         axes[0, 1].set(xscale="log", title="user-perceived throughput")
-        fig.tight_layout()
-        made.append(out / "network-transfers.png")
-        fig.savefig(made[-1], dpi=100)
-        plt.close(fig)
-    numbers = out / "network.json"
-    numbers.write_text(json.dumps(summary, indent=2) + "\n")
-    return [*made, numbers]
+        made.append(save_figure(fig, out / "network-transfers.png"))
+    return [*made, save_numbers(summary, out / "network.json", indent=2)]
 
 
 def jain_index(x: np.ndarray) -> float:

@@ -8,13 +8,13 @@ the detector saw, and ``ns3.json`` with the numbers.
 
 from __future__ import annotations
 
-import json
 import pathlib
 from typing import Any
 
 import numpy as np
 
 from caviar_plugins.network.report import percentiles
+from caviar_plugins.report_figures import pyplot_into, save_figure, save_numbers
 from caviar_plugins.schema import IMAGE_QUALITY, NS3_LINK
 
 
@@ -47,12 +47,7 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
     summary = summarize(log)
     if summary is None:
         return []
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out.mkdir(parents=True, exist_ok=True)
+    plt = pyplot_into(out)
     links = log.decoded(NS3_LINK)
     images = [m for m in log.decoded(IMAGE_QUALITY) if "bytes_sent" in m.data]
     fig, axes = plt.subplots(3, 1, figsize=(11, 9), sharex=True)
@@ -85,10 +80,4 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
     for axis in axes:
         axis.grid(True)
         axis.legend(fontsize=8, loc="upper left")
-    fig.tight_layout()
-    path = out / "ns3.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    numbers = out / "ns3.json"
-    numbers.write_text(json.dumps(summary, indent=1) + "\n")
-    return [path, numbers]
+    return [save_figure(fig, out / "ns3.png"), save_numbers(summary, out / "ns3.json")]
