@@ -11,19 +11,60 @@ use arrow_array::{ArrayRef, RecordBatch};
 use super::schema::{messages_schema, timings_schema, TimingRow};
 use crate::message::{Message, Payload};
 
-#[derive(Default)]
-pub(super) struct MessageColumns {
-    step: UInt64Builder,
-    time: Float64Builder,
-    seq: UInt32Builder,
-    source: StringBuilder,
-    topic: StringBuilder,
-    kind: StringBuilder,
-    text: StringBuilder,
-    meta: StringBuilder,
-    data: BinaryBuilder,
-    pub(super) rows: usize,
+/// Declares a table's column builders, in the order of the table's schema, with the
+/// row count since the last `finish`, and `finish`, which empties them into a record
+/// batch of that schema. Each table fills its builders in a `push` of its own.
+macro_rules! columns {
+    ($(#[$doc:meta])* $name:ident, $schema:ident { $($column:ident: $builder:ty),+ $(,)? }) => {
+        $(#[$doc])*
+        #[derive(Default)]
+        pub(super) struct $name {
+            $($column: $builder,)+
+            pub(super) rows: usize,
+        }
+
+        impl $name {
+            pub(super) fn finish(&mut self) -> RecordBatch {
+                self.rows = 0;
+                let cols: Vec<ArrayRef> = vec![$(Arc::new(self.$column.finish())),+];
+                RecordBatch::try_new($schema(), cols).expect("columns match the schema")
+            }
+        }
+    };
 }
+
+columns!(
+    /// The `messages` table's columns.
+    MessageColumns,
+    messages_schema {
+        step: UInt64Builder,
+        time: Float64Builder,
+        seq: UInt32Builder,
+        source: StringBuilder,
+        topic: StringBuilder,
+        kind: StringBuilder,
+        text: StringBuilder,
+        meta: StringBuilder,
+        data: BinaryBuilder,
+    }
+);
+
+columns!(
+    /// The `timings` table's columns.
+    TimingColumns,
+    timings_schema {
+        step: UInt64Builder,
+        time: Float64Builder,
+        module: StringBuilder,
+        wall: Float64Builder,
+        cpu: Float64Builder,
+        rss: Float64Builder,
+        msgs_in: UInt32Builder,
+        msgs_out: UInt32Builder,
+        gpu_util: Float64Builder,
+        gpu_mem: Float64Builder,
+    }
+);
 
 impl MessageColumns {
     pub(super) fn push(&mut self, seq: u32, m: &Message) {
@@ -47,37 +88,6 @@ impl MessageColumns {
         }
         self.rows += 1;
     }
-
-    pub(super) fn finish(&mut self) -> RecordBatch {
-        self.rows = 0;
-        let cols: Vec<ArrayRef> = vec![
-            Arc::new(self.step.finish()),
-            Arc::new(self.time.finish()),
-            Arc::new(self.seq.finish()),
-            Arc::new(self.source.finish()),
-            Arc::new(self.topic.finish()),
-            Arc::new(self.kind.finish()),
-            Arc::new(self.text.finish()),
-            Arc::new(self.meta.finish()),
-            Arc::new(self.data.finish()),
-        ];
-        RecordBatch::try_new(messages_schema(), cols).expect("columns match the schema")
-    }
-}
-
-#[derive(Default)]
-pub(super) struct TimingColumns {
-    step: UInt64Builder,
-    time: Float64Builder,
-    module: StringBuilder,
-    wall: Float64Builder,
-    cpu: Float64Builder,
-    rss: Float64Builder,
-    msgs_in: UInt32Builder,
-    msgs_out: UInt32Builder,
-    gpu_util: Float64Builder,
-    gpu_mem: Float64Builder,
-    pub(super) rows: usize,
 }
 
 impl TimingColumns {
@@ -93,22 +103,5 @@ impl TimingColumns {
         self.gpu_util.append_option(r.gpu_util_pct);
         self.gpu_mem.append_option(r.gpu_mem_mib);
         self.rows += 1;
-    }
-
-    pub(super) fn finish(&mut self) -> RecordBatch {
-        self.rows = 0;
-        let cols: Vec<ArrayRef> = vec![
-            Arc::new(self.step.finish()),
-            Arc::new(self.time.finish()),
-            Arc::new(self.module.finish()),
-            Arc::new(self.wall.finish()),
-            Arc::new(self.cpu.finish()),
-            Arc::new(self.rss.finish()),
-            Arc::new(self.msgs_in.finish()),
-            Arc::new(self.msgs_out.finish()),
-            Arc::new(self.gpu_util.finish()),
-            Arc::new(self.gpu_mem.finish()),
-        ];
-        RecordBatch::try_new(timings_schema(), cols).expect("columns match the schema")
     }
 }
