@@ -40,6 +40,11 @@ pub fn timings_schema() -> SchemaRef {
     ]))
 }
 
+/// The recorded tables, by name, with their schemas, in the order they are written.
+pub(super) fn tables() -> [(&'static str, SchemaRef); 2] {
+    [(MESSAGES, messages_schema()), (TIMINGS, timings_schema())]
+}
+
 /// One module's cost in one step. The core's own share of a step is recorded under
 /// the module name [`CORE`].
 #[derive(Debug, Clone, PartialEq)]

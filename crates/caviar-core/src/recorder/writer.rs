@@ -16,7 +16,7 @@ use super::columns::{MessageColumns, TimingColumns};
 use super::error::{io_err, pq_err, RecordError};
 use super::layout::{compacted_file, part_files, parts_of, table_files};
 use super::reader::read_table;
-use super::schema::{messages_schema, timings_schema, TimingRow, MESSAGES, TIMINGS};
+use super::schema::{messages_schema, tables, timings_schema, TimingRow, MESSAGES, TIMINGS};
 use crate::message::Message;
 use crate::topic::Pattern;
 
@@ -114,11 +114,7 @@ impl Recorder {
             kept.push(before_step(batches, next_step));
         }
         let name = format!("chunk-000000-{last_part:06}.parquet");
-        for ((table, schema), batches) in
-            [(MESSAGES, messages_schema()), (TIMINGS, timings_schema())]
-                .into_iter()
-                .zip(kept)
-        {
+        for ((table, schema), batches) in tables().into_iter().zip(kept) {
             let dir = run_dir.join(table);
             fs::create_dir_all(&dir).map_err(io_err(&dir))?;
             // The chunk supersedes every file of the folder; the compacted table goes
@@ -175,18 +171,14 @@ impl Recorder {
         let part = self.next_part;
         let name = format!("part-{part:06}.parquet");
         self.next_part += 1;
+        let write_part = |table: &str, schema, batch: &RecordBatch| {
+            let file = self.run_dir.join(table).join(&name);
+            write_parquet(&file, schema, std::slice::from_ref(batch))
+        };
         let messages = self.messages.finish();
-        write_parquet(
-            &self.run_dir.join(MESSAGES).join(&name),
-            messages_schema(),
-            std::slice::from_ref(&messages),
-        )?;
+        write_part(MESSAGES, messages_schema(), &messages)?;
         let timings = self.timings.finish();
-        write_parquet(
-            &self.run_dir.join(TIMINGS).join(&name),
-            timings_schema(),
-            std::slice::from_ref(&timings),
-        )?;
+        write_part(TIMINGS, timings_schema(), &timings)?;
         self.unchunked_bytes += messages.get_array_memory_size() + timings.get_array_memory_size();
         self.unchunked.push((part, messages, timings));
         if self.unchunked.len() >= CHUNK_PARTS || self.unchunked_bytes >= CHUNK_BYTES {
@@ -206,10 +198,7 @@ impl Recorder {
         let (messages, timings): (Vec<RecordBatch>, Vec<RecordBatch>) =
             self.unchunked.drain(..).map(|(_, m, t)| (m, t)).unzip();
         self.unchunked_bytes = 0;
-        for (table, schema, batches) in [
-            (MESSAGES, messages_schema(), messages),
-            (TIMINGS, timings_schema(), timings),
-        ] {
+        for ((table, schema), batches) in tables().into_iter().zip([messages, timings]) {
             let dir = self.run_dir.join(table);
             write_parquet(&dir.join(&name), schema, &batches)?;
             for part in &parts {
@@ -223,7 +212,7 @@ impl Recorder {
     /// Flushes and compacts the parts into one file per table.
     pub fn finish(mut self) -> Result<(), RecordError> {
         self.flush()?;
-        for (table, schema) in [(MESSAGES, messages_schema()), (TIMINGS, timings_schema())] {
+        for (table, schema) in tables() {
             compact(&self.run_dir, table, schema)?;
         }
         Ok(())
