@@ -9,11 +9,11 @@ import math
 import numpy as np
 import pytest
 
-import caviar
 from caviar import _core
 from caviar_plugins.rt.drjit_setup import mitsuba
 from caviar_plugins.vision import shading
 from caviar_plugins.vision.camera import VisualConfig, VisualScene, default_targets
+from configs import SAR_STAGES, episode, image_chain, module, output, route_past, run_config, the_rescue, waypoint_uav
 from conftest import write_config
 
 
@@ -78,51 +78,13 @@ def test_the_flat_renderer_is_unchanged_and_the_shaded_one_differs():
 
 def test_the_sar_loop_with_the_shaded_camera_and_yolo_rescues_the_person_in_view(tmp_path):
     tx, ty = default_targets()[1]
-    (tmp_path / "route.csv").write_text(f"X,Y,Z\n{tx - 8:.2f},{ty:.2f},9.23\n{tx + 8:.2f},{ty:.2f},9.23\n")
-    cfg = write_config(tmp_path, """
-[episode]
-ts = 0.5
-seed = 2
-stages = ["mobility", "camera", "communications", "link", "detection", "mission"]
-
-[output]
-analysis = ["3D.camera.*.depth"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { waypoints = "route.csv", frame = "scene", speed = 5.0 }
-
-[modules.camera]
-stage = "camera"
-plugin = "camera"
-params = { render = "shaded", depth = true }
-
-[modules.comm]
-stage = "communications"
-plugin = "free-space-link"
-
-[modules.link]
-stage = "link"
-plugin = "image-link"
-
-[modules.detector]
-stage = "detection"
-plugin = "person-detector"
-params = { model = "yolo" }
-
-[modules.mission]
-stage = "mission"
-plugin = "mission"
-""")
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    route_past(tmp_path, (tx, ty))
+    log = run_config(tmp_path, episode(0.5, SAR_STAGES, seed=2) + output(analysis=["3D.camera.*.depth"])
+                     + waypoint_uav() + image_chain({"model": "yolo"}, camera={"render": "shaded", "depth": True}))
     assert log.status["status"] == "completed"
     depth = [np.asarray(m.data) for m in log.decoded("3D.camera.uav1.depth")]
     assert len(depth) == len(log.decoded("3D.mobility.positions")) and depth[0].shape == (120, 160)
-    rescues = log.topic("mission.rescue")
-    assert rescues.height == 1, rescues
-    r = rescues.row(0, named=True)
-    assert math.dist((r["x"], r["y"]), (tx, ty)) < 1.5
+    the_rescue(log, (tx, ty))
 
 
 @pytest.mark.parametrize("params, key, says", [
@@ -131,18 +93,8 @@ plugin = "mission"
     ("exposure = 0.0", "exposure", "exposure in (0, 4]"),
 ])
 def test_bad_camera_input_names_the_key(tmp_path, capfd, params, key, says):
-    cfg = write_config(tmp_path, f"""
-[episode]
-ts = 0.5
-steps = 1
-stages = ["camera"]
-
-[modules.camera]
-stage = "camera"
-plugin = "camera"
-subscribe = []
-params = {{ {params} }}
-""")
+    cfg = write_config(tmp_path, episode(0.5, ["camera"], steps=1)
+                       + module("camera", "camera", "camera", params, subscribe=[]))
     assert _core.main(["caviar-core", "validate", str(cfg)]) == 2
     first = capfd.readouterr().err.splitlines()[0]
     assert f"modules.camera.params.{key}:" in first and says in first, first

@@ -19,6 +19,7 @@ from caviar_plugins.tools.training.twin_frames import FrameConfig, TwinFrames, w
 from caviar_plugins.tools.training.yolo_eval import evaluate, held_out_frames, pixel_detect, yolo_detect
 from caviar_plugins.vision import person_detector as detector
 from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx, average_precision, iou, nms
+from configs import SAR_STAGES, episode, image_chain, route_past, the_rescue, waypoint_uav
 from conftest import write_config
 
 
@@ -211,39 +212,8 @@ def test_the_sar_loop_with_yolo_rescues_the_person_in_view(tmp_path):
     from caviar_plugins.vision.camera import default_targets
 
     tx, ty = default_targets()[1]
-    (tmp_path / "route.csv").write_text(f"X,Y,Z\n{tx - 8:.2f},{ty:.2f},9.23\n{tx + 8:.2f},{ty:.2f},9.23\n")
-    cfg = write_config(tmp_path, """
-[episode]
-ts = 0.5
-seed = 2
-stages = ["mobility", "camera", "communications", "link", "detection", "mission"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { waypoints = "route.csv", frame = "scene", speed = 5.0 }
-
-[modules.camera]
-stage = "camera"
-plugin = "camera"
-
-[modules.comm]
-stage = "communications"
-plugin = "free-space-link"
-
-[modules.link]
-stage = "link"
-plugin = "image-link"
-
-[modules.detector]
-stage = "detection"
-plugin = "person-detector"
-params = { model = "yolo" }
-
-[modules.mission]
-stage = "mission"
-plugin = "mission"
-""")
+    route_past(tmp_path, (tx, ty))
+    cfg = write_config(tmp_path, episode(0.5, SAR_STAGES, seed=2) + waypoint_uav() + image_chain({"model": "yolo"}))
     log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
     assert log.status["status"] == "completed"
     found = [d for row in log.topic("ai.detections")["detections"].to_list() for d in row]
@@ -255,10 +225,7 @@ plugin = "mission"
         assert (d["row"], d["col"]) == pytest.approx(((y0 + y1) / 2 - 0.5, (x0 + x1) / 2 - 0.5), abs=0.01)
         near += math.dist((d["ground"]["x"], d["ground"]["y"]), (tx, ty)) < 1.5
     assert near >= 0.8 * len(found), found
-    rescues = log.topic("mission.rescue")
-    assert rescues.height == 1, rescues
-    r = rescues.row(0, named=True)
-    assert math.dist((r["x"], r["y"]), (tx, ty)) < 1.5
+    the_rescue(log, (tx, ty))
     bad = write_config(tmp_path, open(cfg).read().replace('model = "yolo"', 'model = "missing.onnx"'), "bad.toml")
     with pytest.raises(caviar.RunError, match="missing.onnx: no such ONNX model file"):
         caviar.Simulation.from_toml(bad, out=tmp_path / "bad").run()

@@ -14,6 +14,7 @@ from caviar_plugins.tools.training.yolo_eval import held_out_frames
 from caviar_plugins.vision import yolo
 from caviar_plugins.vision.onnx_torch import TorchGraph
 from caviar_plugins.vision.yolo import BUILTIN_YOLO, YoloOnnx, choose_runtime
+from configs import SAR_STAGES, episode, image_chain, module, route_past, waypoint_uav
 from conftest import write_config
 
 onnx = pytest.importorskip("onnx")
@@ -99,17 +100,10 @@ def test_auto_is_torch_where_torch_sees_a_gpu_and_onnxruntime_elsewhere(monkeypa
     assert choose_runtime("auto") == "torch"
 
 
-DETECTOR = """
-[episode]
-ts = 0.5
-steps = 2
-stages = ["detection"]
-
-[modules.detector]
-stage = "detection"
-plugin = "person-detector"
-params = {{ model = "yolo", {params} }}
-"""
+def detector(params: str) -> str:
+    """One step of the YOLO detector alone, with ``params`` besides the model."""
+    return episode(0.5, ["detection"], steps=2) + module("detector", "detection", "person-detector",
+                                                         f'model = "yolo", {params}')
 
 
 @pytest.mark.parametrize("params, expected", [
@@ -122,7 +116,7 @@ def test_the_detectors_bad_runtime_settings_stop_the_run_naming_the_key(tmp_path
 
     if "cuda:0" in params and torch.cuda.is_available():
         pytest.skip("this machine has the GPU the setting names")
-    cfg = write_config(tmp_path, DETECTOR.format(params=params))
+    cfg = write_config(tmp_path, detector(params))
     with pytest.raises(caviar.RunError, match=expected.replace("(", r"\(").replace(")", r"\)")):
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
 
@@ -167,35 +161,9 @@ def test_the_forest_walked_by_torch_gives_scikit_learns_probabilities_bit_for_bi
         TorchForest(other, "cpu", cuda_graphs=True)
 
 
-LOOP = """
-[episode]
-ts = 0.5
-seed = 2
-steps = 8
-stages = ["mobility", "camera", "communications", "link", "detection"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = {{ waypoints = "route.csv", frame = "scene", speed = 5.0 }}
-
-[modules.camera]
-stage = "camera"
-plugin = "camera"
-
-[modules.comm]
-stage = "communications"
-plugin = "free-space-link"
-
-[modules.link]
-stage = "link"
-plugin = "image-link"
-
-[modules.detector]
-stage = "detection"
-plugin = "person-detector"
-params = {{ {params} }}
-"""
+def loop(params: str) -> str:
+    """8 steps of the SAR loop up to the detector (no mission), the detector with ``params``."""
+    return episode(0.5, SAR_STAGES[:-1], steps=8, seed=2) + waypoint_uav() + image_chain(params, mission=False)
 
 
 def test_the_loops_detections_are_the_same_with_the_forest_on_torch(tmp_path):
@@ -204,10 +172,10 @@ def test_the_loops_detections_are_the_same_with_the_forest_on_torch(tmp_path):
     from caviar_plugins.vision.camera import default_targets
 
     tx, ty = default_targets()[1]
-    (tmp_path / "route.csv").write_text(f"X,Y,Z\n{tx - 8:.2f},{ty:.2f},9.23\n{tx + 8:.2f},{ty:.2f},9.23\n")
+    route_past(tmp_path, (tx, ty))
     found = {}
     for name, params in (("cpu", 'runtime = "onnxruntime"'), ("torch", 'runtime = "torch", device = "cpu"')):
-        cfg = write_config(tmp_path, LOOP.format(params=params), f"{name}.toml")
+        cfg = write_config(tmp_path, loop(params), f"{name}.toml")
         log = caviar.Simulation.from_toml(cfg, out=tmp_path / name).run()
         assert log.status["status"] == "completed"
         found[name] = log.topic("ai.detections")["detections"].to_list()
