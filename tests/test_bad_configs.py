@@ -12,16 +12,14 @@ subset also goes through the installed ``caviar-core`` script.
 
 from __future__ import annotations
 
-import os
 import pathlib
 import re
 import subprocess
-import sys
 
 import pytest
 
 from caviar import _core
-from conftest import TESTS
+from configs import caviar_core, caviar_env
 
 BASE = """\
 [episode]
@@ -348,11 +346,9 @@ def test_the_console_script_refuses_them_too(cid, tmp_path):
     c = CASES[IDS.index(cid)]
     path = tmp_path / "cfg.toml"
     path.write_bytes(c.text.encode("utf-8", "surrogateescape"))
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
-    exe = pathlib.Path(sys.executable).parent / "caviar-core"
     for cmd in ("validate", "run"):
-        p = subprocess.run([str(exe), cmd, str(path)], cwd=tmp_path, env=env, capture_output=True, text=True,
-                           timeout=60)
+        p = subprocess.run([caviar_core(), cmd, str(path)], cwd=tmp_path, env=caviar_env(), capture_output=True,
+                           text=True, timeout=60)
         assert p.returncode == 2, f"{cmd}: exit {p.returncode}\n{p.stdout}{p.stderr}"
         _check_message(c, path, p.stderr, p.stdout)
     assert _listing(tmp_path) == {"cfg.toml"}

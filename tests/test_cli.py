@@ -9,25 +9,13 @@ import pytest
 
 import caviar
 from caviar._gpu import open_sampler
+from configs import episode, module
 from conftest import ROOT, write_config
 
 QUICKSTART = ROOT / "blueprints" / "quickstart" / "config.toml"
 
-CRASHING = """
-[episode]
-ts = 0.1
-steps = 100
-stages = ["a"]
-
-[modules.alive]
-stage = "a"
-plugin = "sample_plugins:Counter"
-
-[modules.crash]
-stage = "a"
-plugin = "sample_plugins:Crash"
-params = { at_step = 7 }
-"""
+CRASHING = (episode(0.1, ["a"], steps=100) + module("alive", "a", "sample_plugins:Counter")
+            + module("crash", "a", "sample_plugins:Crash", {"at_step": 7}))
 
 
 def test_quickstart_runs_and_shows_the_three_paper_topics(tmp_path, cli):
@@ -70,8 +58,8 @@ def test_quickstart_runs_and_shows_the_three_paper_topics(tmp_path, cli):
 
     text = cli("inspect", "qs", check=0).stdout
     assert "communications.throughput" in text and "(completed)" in text and "RTF" in text
-    for module in ("uav", "comm", "monitor", "caviar.core"):
-        assert f"\n{module} " in text
+    for name in ("uav", "comm", "monitor", "caviar.core"):
+        assert f"\n{name} " in text
 
 
 def test_numbered_run_directories_and_overrides(tmp_path, cli):
@@ -103,7 +91,7 @@ def test_validate_reports_errors_without_running(tmp_path, cli):
     assert "ok (2 modules in 1 stages, Ts = 0.1 s, 100 steps)" in cli("validate", good, check=0).stdout
     bad = write_config(tmp_path, CRASHING.replace("steps = 100", "steps = -3"), "bad.toml")
     p = cli("validate", bad, check=2)
-    assert "bad.toml:4: episode.steps: invalid value: integer `-3`" in p.stderr
+    assert "bad.toml:3: episode.steps: invalid value: integer `-3`" in p.stderr
     p = cli("run", bad, check=2)
     assert "episode.steps" in p.stderr
     assert not (tmp_path / "runs").exists()
@@ -127,8 +115,8 @@ def test_a_crashing_plugin_stops_the_cli_with_module_step_and_traceback(tmp_path
 
 def test_parts_of_an_unfinished_run_are_readable(tmp_path):
     """A killed process leaves per-step parts; the readers take them as they are."""
-    cfg = write_config(tmp_path, CRASHING.replace("at_step = 7", "at_step = 1000"))
-    sim = caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
+    sim = caviar.Simulation.from_toml(write_config(tmp_path, CRASHING.replace("at_step = 7", "at_step = 1000")),
+                                      out=tmp_path / "run")
     for _ in range(5):
         sim.step()
     parts = sorted((tmp_path / "run" / "messages").glob("part-*.parquet"))
@@ -144,21 +132,9 @@ def test_parts_of_an_unfinished_run_are_readable(tmp_path):
 
 def test_replay_reproduces_the_throughput_from_recorded_mobility(tmp_path, cli):
     cli("run", QUICKSTART, "-q", "--out", "original", "--set", "episode.steps=40", check=0)
-    write_config(tmp_path, """
-[episode]
-ts = 0.1
-steps = 40
-stages = ["mobility", "communications"]
-
-[modules.mobility]
-stage = "mobility"
-plugin = "caviar.replay"
-params = { run = "original", topics = ["3D.mobility.>"] }
-
-[modules.comm]
-stage = "communications"
-plugin = "free-space-link"
-""", "replay.toml")
+    write_config(tmp_path, episode(0.1, ["mobility", "communications"], steps=40)
+                 + module("mobility", "mobility", "caviar.replay", {"run": "original", "topics": ["3D.mobility.>"]})
+                 + module("comm", "communications", "free-space-link"), "replay.toml")
     cli("run", "replay.toml", "-q", "--out", "replayed", check=0)
     original, replayed = caviar.load_run(tmp_path / "original"), caviar.load_run(tmp_path / "replayed")
     assert set(replayed.topic("3D.mobility.positions")["source"]) == {"mobility"}
@@ -227,16 +203,7 @@ def test_gpu_sampling_follows_what_nvidia_ml_py_sees():
         assert 0.0 <= util <= 100.0 and mem >= 0.0
 
 
-STATUS = """
-[episode]
-ts = 0.1
-steps = 5
-stages = ["a"]
-
-[modules.counter]
-stage = "a"
-plugin = "sample_plugins:Status"
-"""
+STATUS = episode(0.1, ["a"], steps=5) + module("counter", "a", "sample_plugins:Status")
 
 
 def test_a_modules_status_line_is_shown_with_the_progress_and_recorded(tmp_path, cli):

@@ -5,37 +5,16 @@ import os
 import pathlib
 import signal
 import subprocess
-import sys
 import time
 
 import pytest
 
 import caviar
-from conftest import TESTS, write_config
+from configs import caviar_core, caviar_env, ended_in, episode, module
+from conftest import write_config
 
-DYING = """
-[episode]
-ts = 0.1
-steps = 1000
-stages = ["a", "b"]
-
-[modules.counter]
-stage = "a"
-plugin = "sample_plugins:Counter"
-
-[modules.exiter]
-stage = "b"
-plugin = "sample_plugins:Exits"
-params = { at_step = 5 }
-"""
-
-
-def _env():
-    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
-
-
-def _exe():
-    return str(pathlib.Path(sys.executable).parent / "caviar-core")
+DYING = (episode(0.1, ["a", "b"], steps=1000) + module("counter", "a", "sample_plugins:Counter")
+         + module("exiter", "b", "sample_plugins:Exits", {"at_step": 5}))
 
 
 def test_a_plugin_that_ends_the_process_is_reported_at_once(tmp_path, cli):
@@ -79,8 +58,8 @@ def test_unsupervised_a_plugin_that_ends_the_process_leaves_an_abandoned_run(tmp
     """The engine's own record, without the supervising parent (CAVIAR_SUPERVISED=1): the
     dead process leaves run.json running, and readers call the run abandoned."""
     write_config(tmp_path, DYING)
-    p = subprocess.run([_exe(), "run", "exp.toml", "-q", "--out", "run"], cwd=tmp_path,
-                       env=dict(_env(), CAVIAR_SUPERVISED="1"), capture_output=True, text=True, timeout=120)
+    p = subprocess.run([caviar_core(), "run", "exp.toml", "-q", "--out", "run"], cwd=tmp_path,
+                       env=caviar_env(CAVIAR_SUPERVISED="1"), capture_output=True, text=True, timeout=120)
     assert p.returncode == 3, p.stderr
     raw = json.loads((tmp_path / "run" / "run.json").read_text())
     assert raw["status"] == "running" and raw["pid"] > 0  # what the dead process left
@@ -94,7 +73,7 @@ def test_unsupervised_a_plugin_that_ends_the_process_leaves_an_abandoned_run(tmp
 def test_kill_9_of_the_core_leaves_an_abandoned_run(tmp_path, cli):
     write_config(tmp_path, DYING.replace("sample_plugins:Exits", "sample_plugins:Slow")
                  .replace("params = { at_step = 5 }", "params = { seconds = 0.02 }"))
-    proc = subprocess.Popen([_exe(), "run", "exp.toml", "-q", "--out", "run"], cwd=tmp_path, env=_env(),
+    proc = subprocess.Popen([caviar_core(), "run", "exp.toml", "-q", "--out", "run"], cwd=tmp_path, env=caviar_env(),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     parts = tmp_path / "run" / "messages"
     deadline = time.monotonic() + 60
@@ -166,26 +145,16 @@ def test_a_setup_or_teardown_that_never_ends_is_stopped_by_the_watchdog(tmp_path
 
 
 # --- Ctrl-C and deadlines (D1-D4) ------------------------------------------------------------
-SLOW_IN_PROCESS = """
-[episode]
-ts = 0.1
-steps = 100000
-stages = ["a", "b"]
-[modules.slow]
-stage = "a"
-plugin = "sample_plugins:Slow"
-params = { seconds = 0.02 }
-[modules.count]
-stage = "b"
-plugin = "sample_plugins:Counter"
-"""
+SLOW_IN_PROCESS = (episode(0.1, ["a", "b"], steps=100000)
+                   + module("slow", "a", "sample_plugins:Slow", {"seconds": 0.02})
+                   + module("count", "b", "sample_plugins:Counter"))
 
 NATS_SLOW = SLOW_IN_PROCESS.replace("[modules.slow]", '[transport]\nkind = "nats"\n[modules.slow]').replace(
     "seconds = 0.02", "seconds = 60.0")
 
 
 def _start(tmp_path, out):
-    return subprocess.Popen([_exe(), "run", "exp.toml", "-q", "--out", out], cwd=tmp_path, env=_env(),
+    return subprocess.Popen([caviar_core(), "run", "exp.toml", "-q", "--out", out], cwd=tmp_path, env=caviar_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -226,10 +195,7 @@ def test_ctrl_c_stops_a_nats_run_waiting_for_a_step_at_once(tmp_path):
     try:
         _wait_for(proc, _started(tmp_path / "run", "slow"), "step 0 of 'slow' started")
         time.sleep(0.3)
-        proc.send_signal(signal.SIGINT)
-        t0 = time.monotonic()
-        _, err = proc.communicate(timeout=60)
-        took = time.monotonic() - t0
+        err, took = ended_in(proc, 60, signal.SIGINT)
     finally:
         proc.kill()
     assert proc.returncode == 130, err
@@ -243,9 +209,7 @@ def test_a_nats_step_past_its_deadline_ends_the_run_at_once(tmp_path):
     proc = _start(tmp_path, "run")
     try:
         _wait_for(proc, _started(tmp_path / "run", "slow"), "step 0 of 'slow' started")
-        t0 = time.monotonic()
-        _, err = proc.communicate(timeout=90)
-        took = time.monotonic() - t0
+        err, took = ended_in(proc, 90)
     finally:
         proc.kill()
     assert proc.returncode == 1, err
@@ -270,10 +234,7 @@ def test_ctrl_c_twice_stops_an_in_process_step_that_takes_long(tmp_path):
         _wait_for(proc, _started(tmp_path / "run", "slow"), "step 0 of 'slow' started")
         proc.send_signal(signal.SIGINT)
         time.sleep(0.3)
-        proc.send_signal(signal.SIGINT)
-        t0 = time.monotonic()
-        _, err = proc.communicate(timeout=30)
-        took = time.monotonic() - t0
+        err, took = ended_in(proc, 30, signal.SIGINT)
     finally:
         proc.kill()
     assert proc.returncode == 130, err

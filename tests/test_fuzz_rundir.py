@@ -15,7 +15,6 @@ import os
 import pathlib
 import shutil
 import subprocess
-import sys
 import tempfile
 import time
 
@@ -25,44 +24,29 @@ from hypothesis import strategies as st
 
 import caviar
 from caviar.rundir import RunDir
-from conftest import TESTS
+from configs import caviar_core, caviar_env, episode, module, output
 
 EXAMPLES = int(os.environ.get("CAVIAR_FUZZ_EXAMPLES", "150"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow])
 COUNTS: dict[str, int] = {}
 
-CONFIG = """
-[episode]
-ts = 0.1
-steps = 12
-stages = ["a", "b"]
-[output]
-checkpoint_every = 4
-[modules.count]
-stage = "a"
-plugin = "sample_plugins:Counter"
-[modules.noise]
-stage = "a"
-plugin = "sample_plugins:Noise"
-[modules.exiter]
-stage = "b"
-plugin = "sample_plugins:Exits"
-params = { at_step = AT }
-"""
+def config(at: int) -> str:
+    """12 steps, checkpoints every 4, the process ending at step ``at``."""
+    return (episode(0.1, ["a", "b"], steps=12) + output(checkpoint_every=4)
+            + module("count", "a", "sample_plugins:Counter") + module("noise", "a", "sample_plugins:Noise")
+            + module("exiter", "b", "sample_plugins:Exits", {"at_step": at}))
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> list[pathlib.Path]:
     """A finished run, and one whose process ended at step 6 (parts, run.json `running`)."""
     root = tmp_path_factory.mktemp("fuzz-runs")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
-               CAVIAR_SUPERVISED="1")  # unsupervised: nobody closes the killed run
-    exe = str(pathlib.Path(sys.executable).parent / "caviar-core")
+    env = caviar_env(CAVIAR_SUPERVISED="1")  # unsupervised: nobody closes the killed run
     out = []
     for name, at in (("finished", 99), ("killed", 6)):
-        (root / f"{name}.toml").write_text(CONFIG.replace("AT", str(at)))
-        subprocess.run([exe, "run", f"{name}.toml", "-q", "--out", name], cwd=root, env=env,
+        (root / f"{name}.toml").write_text(config(at))
+        subprocess.run([caviar_core(), "run", f"{name}.toml", "-q", "--out", name], cwd=root, env=env,
                        capture_output=True, timeout=120)
         out.append(root / name)
     assert caviar.load_run(out[0]).status["status"] == "completed"

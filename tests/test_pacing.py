@@ -7,12 +7,12 @@ start up to 30 ms after its slot on a busy 2-core machine, and at most one step 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import caviar
+from configs import caviar_core, caviar_env, ended_in
 from conftest import write_config
 
 CONFIG = """
@@ -126,16 +126,12 @@ def test_bad_pacing_names_the_key_and_line(cli, tmp_path, pacing, key, expected)
 def test_ctrl_c_ends_a_paced_run_waiting_for_its_next_slot(tmp_path):
     """Steps every 5 s of wall clock: a Ctrl-C while the run waits for its next slot ends
     it at once, as an interruption, with what was recorded readable."""
-    import os
     import signal
     import subprocess
-    import sys
     import time
 
     cfg = write_config(tmp_path, CONFIG.format(ts=5.0, steps=10, pacing="pace = 1.0", seconds=0.0))
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
-    exe = Path(sys.executable).parent / "caviar-core"
-    proc = subprocess.Popen([str(exe), "run", "-q", str(cfg), "--out", str(tmp_path / "run")], env=env,
+    proc = subprocess.Popen([caviar_core(), "run", "-q", str(cfg), "--out", str(tmp_path / "run")], env=caviar_env(),
                             stderr=subprocess.PIPE, text=True)
     try:
         parts, deadline = tmp_path / "run" / "messages", time.monotonic() + 60
@@ -143,10 +139,7 @@ def test_ctrl_c_ends_a_paced_run_waiting_for_its_next_slot(tmp_path):
             assert proc.poll() is None and time.monotonic() < deadline
             time.sleep(0.05)
         time.sleep(0.5)  # the run now waits about 4.5 s for step 1's slot
-        proc.send_signal(signal.SIGINT)
-        t0 = time.monotonic()
-        _, err = proc.communicate(timeout=30)
-        took = time.monotonic() - t0
+        err, took = ended_in(proc, 30, signal.SIGINT)
     finally:
         proc.kill()
     assert proc.returncode == 130, err

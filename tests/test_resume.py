@@ -5,55 +5,23 @@ same seed; what cannot be resumed is refused, naming why."""
 from __future__ import annotations
 
 import json
-import os
 import pathlib
 import random
 import signal
 import subprocess
-import sys
 import time
 
 import pytest
 
 import caviar
-from conftest import ROOT, TESTS, write_config
+from configs import caviar_core, caviar_env, episode, module, output
+from conftest import ROOT, write_config
 
-RESUMABLE = """
-[episode]
-ts = 0.1
-steps = 160
-seed = 5
-stages = ["a", "b"]
-
-[output]
-checkpoint_every = 20
-
-[modules.count]
-stage = "a"
-plugin = "sample_plugins:Counter"
-
-[modules.noise]
-stage = "a"
-plugin = "sample_plugins:Noise"
-
-[modules.tally]            # state, an inbox carried across steps and a random stream
-stage = "a"
-plugin = "sample_plugins:Tally"
-subscribe = ["count"]
-
-[modules.slow]
-stage = "b"
-plugin = "sample_plugins:Slow"
-params = { seconds = 0.01 }
-"""
-
-
-def _env():
-    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
-
-
-def _exe():
-    return str(pathlib.Path(sys.executable).parent / "caviar-core")
+RESUMABLE = (episode(0.1, ["a", "b"], steps=160, seed=5) + output(checkpoint_every=20)
+             + module("count", "a", "sample_plugins:Counter") + module("noise", "a", "sample_plugins:Noise")
+             # state, an inbox carried across steps and a random stream:
+             + module("tally", "a", "sample_plugins:Tally", subscribe=["count"])
+             + module("slow", "b", "sample_plugins:Slow", {"seconds": 0.01}))
 
 
 def _progress(run_dir: pathlib.Path) -> int:
@@ -66,7 +34,7 @@ def _progress(run_dir: pathlib.Path) -> int:
 def _kill_at(args: list[str], run_dir: pathlib.Path, step: int, cwd: pathlib.Path) -> None:
     """Starts `caviar-core run ARGS` and kills it (SIGKILL, the supervising process and
     with it the run) once step `step` started."""
-    proc = subprocess.Popen([_exe(), "run", *args, "-q", "--out", str(run_dir)], cwd=cwd, env=_env(),
+    proc = subprocess.Popen([caviar_core(), "run", *args, "-q", "--out", str(run_dir)], cwd=cwd, env=caviar_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while _progress(run_dir) < step:
@@ -119,11 +87,7 @@ def test_the_quickstart_resumes_to_the_same_messages_and_report(tmp_path, cli):
 
 
 def test_a_module_without_state_hooks_makes_resume_refuse_naming_it(tmp_path, cli):
-    write_config(tmp_path, RESUMABLE + """
-[modules.echo]
-stage = "b"
-plugin = "sample_plugins:Echo"
-""")
+    write_config(tmp_path, RESUMABLE + module("echo", "b", "sample_plugins:Echo"))
     _kill_at(["exp.toml"], tmp_path / "run", 30, tmp_path)
     why = "plugin sample_plugins.Echo has no state()/restore() hooks and does not declare stateless = True"
     p = cli("run", "--resume", "run", check=2)

@@ -6,31 +6,18 @@ import numpy as np
 import pytest
 
 import caviar
+from configs import episode, module, run_config, write_route
 from conftest import write_config
 
-BASE = """
-[episode]
-ts = 0.5
-steps = 4
-seed = 11
-stages = ["first", "second"]
-"""
+BASE = episode(0.5, ["first", "second"], steps=4, seed=11)
+NOISE_ECHO = module("noise", "first", "sample_plugins:Noise") + module("echo", "second", "sample_plugins:Echo")
 
 
 def test_step_by_step_visibility_between_stages(tmp_path):
-    cfg = write_config(tmp_path, BASE + """
-[modules.b]
-stage = "second"
-plugin = "sample_plugins:Counter"
-subscribe = ["count.a"]
-params = { topic = "count.b" }
-
-[modules.a]
-stage = "first"
-plugin = "sample_plugins:Counter"
-subscribe = ["count.b"]
-params = { topic = "count.a", label = "A" }
-""")
+    cfg = write_config(tmp_path, BASE
+                       + module("b", "second", "sample_plugins:Counter", {"topic": "count.b"}, subscribe=["count.a"])
+                       + module("a", "first", "sample_plugins:Counter", {"topic": "count.a", "label": "A"},
+                                subscribe=["count.b"]))
     with caviar.Simulation.from_toml(cfg, out=tmp_path / "run") as sim:
         first = sim.step()
         assert [(m.topic, m.source, m.step) for m in first] == [("count.a", "a", 0), ("count.b", "b", 0)]
@@ -51,21 +38,10 @@ params = { topic = "count.a", label = "A" }
 
 
 def test_periods_and_offsets_for_python_plugins(tmp_path):
-    cfg = write_config(tmp_path, BASE.replace("steps = 4", "steps = 7") + """
-[modules.fast]
-stage = "first"
-plugin = "sample_plugins:Counter"
-params = { topic = "fast" }
-
-[modules.slow]
-stage = "second"
-plugin = "sample_plugins:Counter"
-every = 3
-offset = 2
-subscribe = ["fast"]
-params = { topic = "slow" }
-""")
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    log = run_config(tmp_path, episode(0.5, ["first", "second"], steps=7, seed=11)
+                     + module("fast", "first", "sample_plugins:Counter", {"topic": "fast"})
+                     + module("slow", "second", "sample_plugins:Counter", {"topic": "slow"}, every=3, offset=2,
+                              subscribe=["fast"]))
     slow = log.topic("slow")
     assert slow["step"].to_list() == [2, 5]
     # At step 2 it has fast's messages of steps 0, 1, 2; at step 5 those of 3, 4, 5.
@@ -78,16 +54,7 @@ params = { topic = "slow" }
 
 
 def test_binary_payloads_keep_dtype_and_shape_and_never_touch_json(tmp_path):
-    cfg = write_config(tmp_path, BASE + """
-[modules.noise]
-stage = "first"
-plugin = "sample_plugins:Noise"
-
-[modules.echo]
-stage = "second"
-plugin = "sample_plugins:Echo"
-""")
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    log = run_config(tmp_path, BASE + NOISE_ECHO)
     arrays = log.decoded("noise.array")
     echoed = log.decoded("echo.noise.array")
     assert len(arrays) == len(echoed) == 4
@@ -103,30 +70,15 @@ plugin = "sample_plugins:Echo"
 
 
 def test_artifacts_travel_as_paths_relative_to_the_run_directory(tmp_path):
-    cfg = write_config(tmp_path, BASE + """
-[modules.writer]
-stage = "first"
-plugin = "sample_plugins:WritesFile"
-
-[modules.reader]
-stage = "second"
-plugin = "sample_plugins:Reader"
-""")
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    log = run_config(tmp_path, BASE + module("writer", "first", "sample_plugins:WritesFile")
+                     + module("reader", "second", "sample_plugins:Reader"))
     assert log.messages.filter(log.messages["topic"] == "files.frame")["text"].to_list()[0] == \
         "artifacts/writer/frame-000.txt"
     assert log.topic("files.read")["text"].to_list() == [f"t={0.5 * k}" for k in range(4)]
 
 
 def test_same_seed_same_messages_other_seed_other_messages(tmp_path):
-    cfg = write_config(tmp_path, BASE + """
-[modules.noise]
-stage = "first"
-plugin = "sample_plugins:Noise"
-[modules.echo]
-stage = "second"
-plugin = "sample_plugins:Echo"
-""")
+    cfg = write_config(tmp_path, BASE + NOISE_ECHO)
     runs = [caviar.Simulation.from_toml(cfg, out=tmp_path / f"r{i}").run().messages for i in range(2)]
     assert runs[0].equals(runs[1])
     other = caviar.Simulation.from_toml(cfg, overrides={"episode.seed": 12}, out=tmp_path / "r3").run().messages
@@ -135,12 +87,8 @@ plugin = "sample_plugins:Echo"
 
 
 def test_a_crashing_plugin_raises_run_error_and_keeps_the_log(tmp_path):
-    cfg = write_config(tmp_path, BASE.replace("steps = 4", "steps = 50") + """
-[modules.crash]
-stage = "second"
-plugin = "sample_plugins:Crash"
-params = { at_step = 3 }
-""")
+    cfg = write_config(tmp_path, episode(0.5, ["first", "second"], steps=50, seed=11)
+                       + module("crash", "second", "sample_plugins:Crash", {"at_step": 3}))
     sim = caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
     with pytest.raises(caviar.RunError) as err:
         sim.run()
@@ -155,11 +103,7 @@ params = { at_step = 3 }
 
 
 def test_a_bad_payload_names_the_topic(tmp_path):
-    cfg = write_config(tmp_path, BASE + """
-[modules.bad]
-stage = "first"
-plugin = "sample_plugins:BadPayload"
-""")
+    cfg = write_config(tmp_path, BASE + module("bad", "first", "sample_plugins:BadPayload"))
     with pytest.raises(caviar.RunError, match="payload on topic 'bad.payload' is not JSON-serialisable"):
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
 
@@ -185,13 +129,8 @@ def test_plugin_config_errors_name_file_line_and_key(tmp_path, module_table, key
 
 
 def test_entry_point_plugins_are_found_by_name(tmp_path):
-    cfg = write_config(tmp_path, BASE + """
-[modules.uav]
-stage = "first"
-plugin = "waypoint-flight"
-params = { frame = "scene", waypoints = "path.csv", speed = 2.0, end_at_last = false }
-""")
-    (tmp_path / "path.csv").write_text("X,Y,Z\n0,0,10\n10,0,10\n")
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    write_route(tmp_path, [(0, 0, 10), (10, 0, 10)], "path.csv")
+    log = run_config(tmp_path, BASE + module("uav", "first", "waypoint-flight", {
+        "frame": "scene", "waypoints": "path.csv", "speed": 2.0, "end_at_last": False}))
     pos = log.topic("3D.mobility.positions")["position"].struct.field("x").to_list()
     assert pos == [0.0, 1.0, 2.0, 3.0]  # 2 m/s at Ts = 0.5 s
