@@ -14,6 +14,7 @@ import pytest
 import caviar
 from caviar import _core
 from caviar_plugins.energy import Battery, RotaryWing
+from configs import episode, module, output, waypoint_uav, write_route
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -63,35 +64,16 @@ def test_climbing_and_speeding_up_cost_what_energy_conservation_says():
     assert uav.step_power_w([5.0, 0, 0], [0, 0, 0], 0.5) == pytest.approx(uav.hover_power_w)  # braking is free
 
 
-FLIGHT = """
-[episode]
-ts = 1.0
-seed = 1
-stages = ["mobility", "energy", "mission"]
-
-[output]
-name = "energy"
-analysis = ["3D.mobility.forecast", "mission.rescue", "mission.result"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { waypoints = "route.csv", frame = "scene", speed = 10.0 }
-
-[modules.energy]
-stage = "energy"
-plugin = "uav-energy"
-params = { battery = { capacity_wh = 100.0, reserve = 0.2 }, communication_w = 5.0, computing_w = 10.0 }
-
-[modules.mission]
-stage = "mission"
-plugin = "mission"
-subscribe = ["uav.energy", "caviar.episode.end"]
-"""
+FLIGHT = (episode(1.0, ["mobility", "energy", "mission"], seed=1)
+          + output(name="energy", analysis=["3D.mobility.forecast", "mission.rescue", "mission.result"])
+          + waypoint_uav(speed=10.0)
+          + module("energy", "energy", "uav-energy", {"battery": {"capacity_wh": 100.0, "reserve": 0.2},
+                                                      "communication_w": 5.0, "computing_w": 10.0})
+          + module("mission", "mission", "mission", subscribe=["uav.energy", "caviar.episode.end"]))
 
 
 def _fly(tmp_path, text: str, route_m: float = 1000.0):
-    (tmp_path / "route.csv").write_text(f"X,Y,Z\n0,0,30\n{route_m},0,30\n")
+    write_route(tmp_path, [(0, 0, 30), (route_m, 0, 30)])
     cfg = tmp_path / "cfg.toml"
     cfg.write_text(text)
     with caviar.Simulation.from_toml(cfg, out=tmp_path / "runs") as sim:
@@ -170,7 +152,7 @@ def test_bad_energy_input_names_the_key_before_anything_runs(tmp_path, capfd, ed
            "communication_w": "communication_w = -1.0",
            "airframe.weight_n": "computing_w = 10.0, airframe = { weight_n = -20.0 }",
            "airframe.air_density": "computing_w = 10.0, airframe = { air_density = 1225.0 }"}[key]
-    (tmp_path / "route.csv").write_text("X,Y,Z\n0,0,30\n100,0,30\n")
+    write_route(tmp_path, [(0, 0, 30), (100, 0, 30)])
     cfg = tmp_path / "cfg.toml"
     cfg.write_text(FLIGHT.replace(edit, bad, 1))
     assert _core.main(["caviar-core", "validate", str(cfg)]) == 2

@@ -13,7 +13,6 @@ import io
 import json
 import os
 import subprocess
-import textwrap
 import time
 import urllib.parse
 
@@ -21,10 +20,12 @@ import polars as pl
 import pytest
 
 from caviar.view import RunData, start_server
+from configs import episode, module
 from view_support import (
     LIVE_PLUGINS,
     ROOT,
     assert_positions,
+    live_config,
     open_page,
     request,
     run_caviar,
@@ -85,20 +86,8 @@ def test_page_draws_the_run_and_scrubbing_moves_the_entities(browser, server, po
 
 def test_live_run_newest_step_appears_within_2_s(browser, tmp_path):
     out = tmp_path / "live-run"
-    proc = run_with_plugins(tmp_path, {"view_live_plugins": LIVE_PLUGINS}, """
-        [episode]
-        ts = 0.5
-        steps = 30
-        seed = 1
-        stages = ["mobility", "communications"]
-        [modules.walkers]
-        stage = "mobility"
-        plugin = "view_live_plugins:Walkers"
-        [modules.link]
-        stage = "communications"
-        plugin = "view_live_plugins:Link"
-        params = { tx_position = [-154.0, 64.0, 120.0] }
-    """, out)
+    proc = run_with_plugins(tmp_path, {"view_live_plugins": LIVE_PLUGINS},
+                            live_config(30, link={"tx_position": [-154.0, 64.0, 120.0]}), out)
     srv = None
     try:
         deadline = time.monotonic() + 60
@@ -218,17 +207,8 @@ def layer_run(tmp_path_factory):
     others = ["../outside.png", str(outside), "escape.png", "inside-link.png", "fake.png", "notes.txt",
               "./layer.png", "sub/../layer.png", "missing.png"]
     cfg = base / "layers.toml"
-    cfg.write_text(textwrap.dedent(f"""
-        [episode]
-        ts = 0.5
-        steps = 3
-        seed = 1
-        stages = ["mobility"]
-        [modules.layer]
-        stage = "mobility"
-        plugin = "sample_plugins:ImageLayer"
-        params = {{ extent = {LAYER_EXTENT}, z = {LAYER_Z}, others = {json.dumps(others)} }}
-    """))
+    cfg.write_text(episode(0.5, ["mobility"], steps=3, seed=1) + module(
+        "layer", "mobility", "sample_plugins:ImageLayer", {"extent": LAYER_EXTENT, "z": LAYER_Z, "others": others}))
     p = run_caviar("run", cfg, "--out", out, "-q", stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                    env={**os.environ, "PYTHONPATH": str(ROOT / "tests")})
     log, _ = p.communicate(timeout=120)

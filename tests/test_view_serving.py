@@ -8,7 +8,6 @@ import http.client
 import shutil
 import subprocess
 import sys
-import textwrap
 import time
 
 import polars as pl
@@ -16,8 +15,10 @@ import pytest
 
 from caviar.view import RunData, start_server
 from caviar.view.cli import main as view_main
+from configs import episode, module
 from view_support import (
     LIVE_PLUGINS,
+    live_config,
     open_page,
     request,
     run_with_plugins,
@@ -129,20 +130,7 @@ def test_a_frame_is_served_while_its_part_is_merged_away(tmp_path, monkeypatch):
     (tmp_path / "view_live_plugins.py").write_text(LIVE_PLUGINS)
     monkeypatch.syspath_prepend(str(tmp_path))
     cfg = tmp_path / "live.toml"
-    cfg.write_text(textwrap.dedent("""
-        [episode]
-        ts = 0.5
-        steps = 10
-        seed = 1
-        stages = ["mobility", "communications"]
-        [modules.walkers]
-        stage = "mobility"
-        plugin = "view_live_plugins:Walkers"
-        params = { delay_s = 0.0 }
-        [modules.link]
-        stage = "communications"
-        plugin = "view_live_plugins:Link"
-    """))
+    cfg.write_text(live_config(10, walkers={"delay_s": 0.0}))
     with caviar.Simulation.from_toml(cfg, out=tmp_path / "recording") as sim:
         for _ in range(4):
             sim.step()
@@ -193,16 +181,8 @@ class Camera(caviar.Plugin):
 
 def test_a_frame_the_server_cannot_give_leaves_the_last_one_dimmed_and_said(browser, tmp_path):
     out = tmp_path / "run"
-    p = run_with_plugins(tmp_path, {"bad_frame_plugins": BAD_FRAME_PLUGINS}, """
-        [episode]
-        ts = 0.5
-        steps = 6
-        seed = 1
-        stages = ["camera"]
-        [modules.camera]
-        stage = "camera"
-        plugin = "bad_frame_plugins:Camera"
-    """, out)
+    p = run_with_plugins(tmp_path, {"bad_frame_plugins": BAD_FRAME_PLUGINS}, episode(0.5, ["camera"], steps=6, seed=1)
+                         + module("camera", "camera", "bad_frame_plugins:Camera"), out)
     assert p.wait(timeout=60) == 0, p.stdout.read()
     srv = start_server(out, pending=False)
     try:

@@ -13,6 +13,8 @@ import textwrap
 
 import pytest
 
+from configs import episode, module
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 CHROMIUM = os.environ.get("CAVIAR_CHROMIUM", "/usr/bin/chromium")
 # software WebGL (SwiftShader): headless machines have no GPU
@@ -71,6 +73,14 @@ def request(server, method, path, host=None):
     body = r.read()
     c.close()
     return r.status, body
+
+
+def live_config(steps: int, walkers: dict | None = None, link: dict | None = None) -> str:
+    """A run of LIVE_PLUGINS (module view_live_plugins): the walkers and their link, ``steps``
+    steps of 0.5 s, each module with its params where given."""
+    return (episode(0.5, ["mobility", "communications"], steps=steps, seed=1)
+            + module("walkers", "mobility", "view_live_plugins:Walkers", walkers)
+            + module("link", "communications", "view_live_plugins:Link", link))
 
 
 LIVE_PLUGINS = '''
