@@ -89,67 +89,51 @@ impl Engine {
         cp: &Checkpoint,
         resumed_before: &[u64],
     ) -> Result<(), EngineError> {
-        let module_error = |module: &str, message: String| EngineError::Module {
+        // Whatever goes wrong is the module's, in its restore phase at the resumed step.
+        let (step, time) = (cp.next_step, cp.next_step as f64 * self.opts.ts);
+        let failed = move |module: &str, error: ModuleError| EngineError::Module {
             module: module.to_string(),
             phase: "restore",
-            step: Some(cp.next_step),
-            time: Some(cp.next_step as f64 * self.opts.ts),
-            error: Box::new(ModuleError::new(message)),
+            step: Some(step),
+            time: Some(time),
+            error: Box::new(error),
         };
+        let failed_with = |module: &str, message: String| failed(module, ModuleError::new(message));
         // Refuse before anything is set up: every module must be resumable.
         for slot in &self.slots {
             let Some(m) = cp.modules.iter().find(|m| m.name == slot.name) else {
-                return Err(module_error(
+                return Err(failed_with(
                     &slot.name,
                     "the checkpoint has no such module (was the configuration changed?)".into(),
                 ));
             };
             if let SavedState::Unsupported { why } = &m.state {
-                return Err(module_error(&slot.name, format!("cannot resume: {why}")));
+                return Err(failed_with(&slot.name, format!("cannot resume: {why}")));
             }
         }
         self.setup()?;
-        let ts = self.opts.ts;
         for slot in &mut self.slots {
             let m = cp
                 .modules
                 .iter()
                 .find(|m| m.name == slot.name)
                 .expect("checked above");
-            let fail = |message: String| EngineError::Module {
-                module: slot.name.clone(),
-                phase: "restore",
-                step: Some(cp.next_step),
-                time: Some(cp.next_step as f64 * ts),
-                error: Box::new(ModuleError::new(message)),
-            };
             if let SavedState::Saved { hex } = &m.state {
-                let bytes = crate::checkpoint::unhex(hex).map_err(&fail)?;
+                let bytes =
+                    crate::checkpoint::unhex(hex).map_err(|e| failed_with(&slot.name, e))?;
                 slot.module
                     .restore(&bytes)
-                    .map_err(|error| EngineError::Module {
-                        module: slot.name.clone(),
-                        phase: "restore",
-                        step: Some(cp.next_step),
-                        time: Some(cp.next_step as f64 * ts),
-                        error: Box::new(error),
-                    })?;
+                    .map_err(|e| failed(&slot.name, e))?;
             }
             slot.inbox = m
                 .inbox
                 .iter()
                 .map(|s| s.to_message().map(Arc::new))
                 .collect::<Result<_, _>>()
-                .map_err(&fail)?;
+                .map_err(|e| failed_with(&slot.name, e))?;
             slot.module
                 .resume_at(cp.next_step)
-                .map_err(|error| EngineError::Module {
-                    module: slot.name.clone(),
-                    phase: "restore",
-                    step: Some(cp.next_step),
-                    time: Some(cp.next_step as f64 * ts),
-                    error: Box::new(error),
-                })?;
+                .map_err(|e| failed(&slot.name, e))?;
         }
         self.next_step = cp.next_step;
         self.wall_s = cp.wall_s;
