@@ -1,6 +1,7 @@
 //! The command line of the Rust binary (built-in modules only, no Python).
 
 use std::fs;
+use std::path::Path;
 use std::time::Duration;
 
 use caviar_core::cli;
@@ -16,7 +17,13 @@ fn run(args: &[&str]) -> i32 {
     cli::main(argv, &BuiltinsOnly, &|| false)
 }
 
-fn recorded_run(dir: &std::path::Path) {
+/// `caviar-core run CONFIG --out OUT`, then `extra`: its exit code.
+fn run_into(config: &Path, out: &Path, extra: &[&str]) -> i32 {
+    let (config, out) = (config.to_str().unwrap(), out.to_str().unwrap());
+    run(&[&["run", config, "--out", out], extra].concat())
+}
+
+fn recorded_run(dir: &Path) {
     fs::create_dir_all(dir).unwrap();
     let mut rec = Recorder::create(dir, vec![], Duration::ZERO).unwrap();
     for step in 0..5u64 {
@@ -55,16 +62,7 @@ params = { run = "original", topics = ["3D.>"] }
     )
     .unwrap();
     let out = dir.path().join("out");
-    assert_eq!(
-        run(&[
-            "run",
-            config.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "-q"
-        ]),
-        0
-    );
+    assert_eq!(run_into(&config, &out, &["-q"]), 0);
     let replayed = read_messages(&out).unwrap();
     // Recorded at Ts = 0.5 s, replayed at Ts = 0.25 s: at the same virtual times.
     let at: Vec<(u64, f64)> = replayed.iter().map(|m| (m.step, m.time)).collect();
@@ -84,15 +82,7 @@ params = { run = "original", topics = ["3D.>"] }
         .replace("caviar.replay", "pkg.mod:Plugin");
     fs::write(&config, text).unwrap();
     let out2 = dir.path().join("out2");
-    assert_eq!(
-        run(&[
-            "run",
-            config.to_str().unwrap(),
-            "--out",
-            out2.to_str().unwrap()
-        ]),
-        2
-    );
+    assert_eq!(run_into(&config, &out2, &[]), 2);
     assert!(
         !out2.exists(),
         "a config error must not create a run directory"

@@ -10,7 +10,8 @@ use caviar_core::{
     Outgoing, Payload, RemoteModule, SharedMessage, StepInfo, Usage, END_TOPIC,
 };
 
-/// Ends the episode at `end_at`, fails at `fail_at`.
+/// Ends the episode at `end_at`, fails at `fail_at` (default: neither).
+#[derive(Default)]
 struct Local {
     end_at: Option<u64>,
     fail_at: Option<u64>,
@@ -126,14 +127,7 @@ fn status_of(
 #[test]
 fn planned_steps_end_with_reason_steps_and_remote_modules_start_then_finish() {
     let dir = tempfile::tempdir().unwrap();
-    let (mut e, calls) = engine(
-        dir.path(),
-        Some(2),
-        Local {
-            end_at: None,
-            fail_at: None,
-        },
-    );
+    let (mut e, calls) = engine(dir.path(), Some(2), Local::default());
     assert_eq!(e.end_reason(), None);
     let mut seen = Vec::new();
     e.run(|_, r| {
@@ -164,7 +158,7 @@ fn a_module_that_publishes_the_end_topic_is_named_as_the_end() {
         None,
         Local {
             end_at: Some(1),
-            fail_at: None,
+            ..Local::default()
         },
     );
     e.run(|_, _| true).unwrap();
@@ -190,8 +184,8 @@ fn errors_interruptions_and_early_closes_are_told_apart() {
         dir.path(),
         Some(5),
         Local {
-            end_at: None,
             fail_at: Some(1),
+            ..Local::default()
         },
     );
     let err = e.run(|_, _| true).unwrap_err();
@@ -204,28 +198,14 @@ fn errors_interruptions_and_early_closes_are_told_apart() {
         .contains("ended     an error"));
 
     let dir = tempfile::tempdir().unwrap();
-    let (mut e, _) = engine(
-        dir.path(),
-        Some(5),
-        Local {
-            end_at: None,
-            fail_at: None,
-        },
-    );
+    let (mut e, _) = engine(dir.path(), Some(5), Local::default());
     let err = e.run(|e, _| e.steps_done() < 2).unwrap_err();
     assert!(matches!(err, EngineError::Interrupted { step: 1 }));
     assert_eq!(e.end_reason(), Some(EndReason::Interrupted));
     e.close().unwrap();
 
     let dir = tempfile::tempdir().unwrap();
-    let (mut e, _) = engine(
-        dir.path(),
-        Some(5),
-        Local {
-            end_at: None,
-            fail_at: None,
-        },
-    );
+    let (mut e, _) = engine(dir.path(), Some(5), Local::default());
     e.step().unwrap();
     assert_eq!(e.end_reason(), None);
     e.close().unwrap();

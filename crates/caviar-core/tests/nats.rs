@@ -17,7 +17,9 @@ use caviar_core::{
     SharedMessage, StepInfo,
 };
 
-/// Counts steps on `a.count`; fails at `fail_at`, sleeps `sleep` per step.
+/// Counts steps on `a.count`; fails at `fail_at`, sleeps `sleep` per step (default:
+/// never fails, does not sleep).
+#[derive(Default)]
 struct Counter {
     fail_at: Option<u64>,
     sleep: Duration,
@@ -194,14 +196,7 @@ fn in_process(dir: &Path) -> Vec<Message> {
         module: module.into(),
     };
     let modules = vec![
-        spec(
-            "counter",
-            "a",
-            Box::new(Counter {
-                fail_at: None,
-                sleep: Duration::ZERO,
-            }),
-        ),
+        spec("counter", "a", Box::<Counter>::default()),
         spec("summer", "b", Box::new(Summer { total: 0 })),
     ];
     let rec = caviar_core::recorder::Recorder::create(&out, vec![], Duration::ZERO).unwrap();
@@ -216,14 +211,7 @@ fn workers_over_nats_record_the_same_messages_as_in_process() {
     let dir = tempfile::tempdir().unwrap();
     let srv = server(dir.path());
     let text = config_text(&srv.url, "same", "");
-    let (out, result, workers) = run_nats(
-        dir.path(),
-        &text,
-        Counter {
-            fail_at: None,
-            sleep: Duration::ZERO,
-        },
-    );
+    let (out, result, workers) = run_nats(dir.path(), &text, Counter::default());
     result.unwrap();
     for w in workers {
         w.join().unwrap().unwrap();
@@ -255,7 +243,7 @@ fn a_failing_worker_stops_the_run_naming_module_and_step_and_keeps_the_log() {
         &text,
         Counter {
             fail_at: Some(3),
-            sleep: Duration::ZERO,
+            ..Counter::default()
         },
     );
     let err = result.unwrap_err().to_string();
@@ -285,8 +273,8 @@ fn a_step_past_its_deadline_stops_the_run_within_the_deadline() {
         dir.path(),
         &text,
         Counter {
-            fail_at: None,
             sleep: Duration::from_secs(3),
+            ..Counter::default()
         },
     );
     let err = result.unwrap_err().to_string();
@@ -353,8 +341,8 @@ fn a_stranger_cannot_stop_or_steer_rust_workers_and_is_recorded() {
         dir.path(),
         &text,
         Counter {
-            fail_at: None,
             sleep: Duration::from_millis(250),
+            ..Counter::default()
         },
     );
     stranger.join().unwrap();
