@@ -105,15 +105,7 @@ fn engine(
     };
     let specs = modules
         .into_iter()
-        .map(|(name, stage, module)| ModuleSpec {
-            name,
-            stage: stage.into(),
-            every: 1,
-            offset: 0,
-            subscribe: None,
-            params: serde_json::Value::Null,
-            module: module.into(),
-        })
+        .map(|(name, stage, module)| ModuleSpec::new(name, stage, module))
         .collect();
     Engine::new(opts, specs, recorder).unwrap()
 }

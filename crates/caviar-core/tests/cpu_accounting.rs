@@ -50,13 +50,8 @@ impl Module for Burner {
 fn cpu_time_includes_the_threads_a_module_keeps_busy() {
     let dir = tempfile::tempdir().unwrap();
     let module = |name: &str, stage: &str, own: f64, helper: f64| ModuleSpec {
-        name: name.into(),
-        stage: stage.into(),
-        every: 1,
-        offset: 0,
         subscribe: Some(vec![]),
-        params: serde_json::Value::Null,
-        module: AnyModule::local(Burner { own, helper }),
+        ..ModuleSpec::new(name, stage, AnyModule::local(Burner { own, helper }))
     };
     let opts = EngineOptions {
         ts: 0.5,

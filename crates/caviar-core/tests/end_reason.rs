@@ -69,18 +69,6 @@ impl RemoteModule for Remote {
     }
 }
 
-fn spec(name: &str, stage: &str, module: AnyModule) -> ModuleSpec {
-    ModuleSpec {
-        name: name.into(),
-        stage: stage.into(),
-        every: 1,
-        offset: 0,
-        subscribe: None,
-        params: serde_json::Value::Null,
-        module,
-    }
-}
-
 fn engine(
     dir: &std::path::Path,
     steps: Option<u64>,
@@ -96,8 +84,8 @@ fn engine(
         config_dir: dir.into(),
     };
     let modules = vec![
-        spec("local", "a", AnyModule::local(local)),
-        spec(
+        ModuleSpec::new("local", "a", AnyModule::local(local)),
+        ModuleSpec::new(
             "remote",
             "b",
             AnyModule::remote(Remote {

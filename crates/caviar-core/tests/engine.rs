@@ -88,19 +88,17 @@ fn build(dir: &Path, steps: Option<u64>, specs: Vec<Spec>) -> (Engine, Vec<(&'st
         .map(|s| {
             let log: Seen = Arc::default();
             seen.push((s.name, log.clone()));
+            let probe = Probe {
+                topics: s.publish.iter().map(|x| x.to_string()).collect(),
+                seen: log,
+                fail_at: s.fail_at,
+                end_at: s.end_at,
+            };
             ModuleSpec {
-                name: s.name.into(),
-                stage: s.stage.into(),
                 every: s.every,
                 offset: s.offset,
                 subscribe: Some(s.subscribe.iter().map(|x| x.to_string()).collect()),
-                params: serde_json::Value::Null,
-                module: AnyModule::local(Probe {
-                    topics: s.publish.iter().map(|x| x.to_string()).collect(),
-                    seen: log,
-                    fail_at: s.fail_at,
-                    end_at: s.end_at,
-                }),
+                ..ModuleSpec::new(s.name, s.stage, AnyModule::local(probe))
             }
         })
         .collect();

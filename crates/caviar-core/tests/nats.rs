@@ -187,13 +187,8 @@ fn in_process(dir: &Path) -> Vec<Message> {
         config_dir: dir.into(),
     };
     let spec = |name: &str, stage: &str, module: Box<dyn Module>| ModuleSpec {
-        name: name.into(),
-        stage: stage.into(),
-        every: 1,
-        offset: 0,
-        subscribe: None,
         params: serde_json::json!({}),
-        module: module.into(),
+        ..ModuleSpec::new(name, stage, module)
     };
     let modules = vec![
         spec("counter", "a", Box::<Counter>::default()),

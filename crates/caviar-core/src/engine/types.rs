@@ -63,6 +63,26 @@ pub struct ModuleSpec {
     pub module: AnyModule,
 }
 
+impl ModuleSpec {
+    /// `module`, named `name`, in `stage`: every step from step 0, on its own default
+    /// subscriptions, without parameters (null). Change a field for anything else.
+    pub fn new(
+        name: impl Into<String>,
+        stage: impl Into<String>,
+        module: impl Into<AnyModule>,
+    ) -> Self {
+        ModuleSpec {
+            name: name.into(),
+            stage: stage.into(),
+            every: 1,
+            offset: 0,
+            subscribe: None,
+            params: serde_json::Value::Null,
+            module: module.into(),
+        }
+    }
+}
+
 pub(super) struct Slot {
     pub(super) name: String,
     pub(super) stage: usize,

@@ -55,13 +55,8 @@ fn recorded_run(dir: &Path, compact: bool) {
         config_dir: dir.to_path_buf(),
     };
     let module = ModuleSpec {
-        name: "talker".into(),
-        stage: "s".into(),
-        every: 1,
-        offset: 0,
         subscribe: Some(vec![]),
-        params: serde_json::Value::Null,
-        module: AnyModule::local(Talker),
+        ..ModuleSpec::new("talker", "s", AnyModule::local(Talker))
     };
     let recorder = Recorder::create(dir, vec![], Duration::ZERO).unwrap();
     let mut engine = Engine::new(opts, vec![module], Some(recorder)).unwrap();
