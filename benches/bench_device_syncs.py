@@ -64,7 +64,8 @@ def count(n_ue: int, steps: int) -> dict:
     params = {"sites": bn.sites(), "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "tx_power_dbm": 43.0, "array": [4, 4],
               "subcarrier_spacing_hz": bn.SCS, "harq_processes": 8, "subbands": 8, "compile": True,
               "channel": "ray-traced", "interference": "scheduled", "antenna_height_m": 0.0,
-              "raytracing": {"scene": str(bn.SCENE), "max_depth": 2, "samples_per_src": 2000, "refresh_s": 100.0},
+              "scene": str(bn.SCENE), "raytracing": {"max_depth": 2, "samples_per_src": 2000},
+              "evolution": {"refresh_s": 100.0},
               "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
     import tempfile
 

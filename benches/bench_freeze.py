@@ -33,6 +33,7 @@ from caviar_plugins import DATA  # noqa: E402
 from caviar_plugins.mobility import Path, read_waypoints  # noqa: E402
 from caviar_plugins.radio import RadioConfig, RadioScene  # noqa: E402
 from caviar_plugins.rt.drjit_setup import aligned_array  # noqa: E402
+from caviar_plugins.rt.settings import with_raytracing  # noqa: E402
 from caviar_plugins.rt.shoot_cache import connect  # noqa: E402
 
 original = connect.visibility
@@ -59,7 +60,7 @@ def frozen_visibility(mi_scene, rec, tgt_positions, rays, targets):
 
 def split(n_uav: int, samples: int, cache: bool) -> None:
     route = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
-    radio = RadioScene(RadioConfig(samples_per_src=samples, uav_mesh=False, shoot_cache=cache), seed=0)
+    radio = RadioScene(with_raytracing(RadioConfig, samples_per_src=samples, uav_mesh=False, shoot_cache=cache), seed=0)
     starts = np.linspace(0.0, 0.9 * route.length, n_uav)
     rows = []
     for k in range(8):
@@ -83,7 +84,8 @@ def split(n_uav: int, samples: int, cache: bool) -> None:
 
 def freeze(n_uav: int, samples: int) -> None:
     route = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
-    radio = RadioScene(RadioConfig(samples_per_src=samples, uav_mesh=False, threads=0, shoot_cache=True), seed=0)
+    radio = RadioScene(with_raytracing(RadioConfig, samples_per_src=samples, uav_mesh=False, threads=0,
+                                       shoot_cache=True), seed=0)
     starts = np.linspace(0.0, 0.9 * route.length, n_uav)
     times = {"plain": [], "frozen": []}
     same = True

@@ -39,6 +39,7 @@ processes of their own, for the before/after ratios. Writes ``docs/results/host-
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import pathlib
@@ -115,7 +116,8 @@ def one(n_ue: int, steps: int, samples: int) -> dict:
     params = {"sites": sites(), "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "tx_power_dbm": 43.0, "array": [4, 4],
               "subcarrier_spacing_hz": 30e3, "harq_processes": 8, "subbands": 8, "compile": True,
               "channel": "ray-traced", "interference": "scheduled", "antenna_height_m": 0.0,
-              "raytracing": {"scene": str(SCENE), "max_depth": 2, "samples_per_src": samples, "refresh_s": 1.0},
+              "scene": str(SCENE), "raytracing": {"max_depth": 2, "samples_per_src": samples},
+              "evolution": {"refresh_s": 1.0},
               "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
     hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, params))
 
@@ -137,11 +139,11 @@ def one(n_ue: int, steps: int, samples: int) -> dict:
             return len(list(net.step(k * TS, inbox(k)) or ()))
 
         step(0)  # (traces and compiles)
-        _timed(net.tracer, "trace", timing, "rt")
+        _timed(net.channel.tracer, "trace", timing, "rt")
         for link, key in ((net.link, "sys"), (net.ul_link, "sys")):
             _timed(link, "_group", timing, key)
-        for name in ("_measure", "_downlink_sinr"):
-            _timed(net, name, timing, name.strip("_"))
+        _timed(net, "_measure", timing, "measure")
+        _timed(sys.modules[RadioNetwork.__module__], "downlink_sinr", timing, "downlink_sinr")
         _timed(sys.modules[RadioNetwork.__module__], "uplink", timing, "uplink_sinr")  # (powers and SINR)
         for link, key in ((net.link, "dl_link_run"), (net.ul_link, "ul_link_run")):
             _timed(link, "run", timing, key)
@@ -175,11 +177,12 @@ def refresh(n_ue: int, samples: int) -> dict:
     """One ray-tracing refresh of 21 sites × ``n_ue`` UEs (all sites in one solve), warm."""
     from bench_network import SCENE, sites, ues
     from caviar_plugins.network.cells import parse_sites
-    from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
+    from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer
 
     cells = parse_sites(sites(), {"tx_power_dbm": 43.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "array": [4, 4]})
     _, pos0, vel = ues(np.random.default_rng(7), n_ue)
-    tracer = SiteTracer(TraceSettings(scene=str(SCENE), max_depth=2, samples_per_src=samples), cells, seed=1)
+    tracer = SiteTracer(str(SCENE), dataclasses.replace(NETWORK_RAYS, max_depth=2, samples_per_src=samples), cells,
+                        seed=1)
     a = time.perf_counter()
     tracer.trace(pos0)
     first = time.perf_counter() - a

@@ -39,7 +39,7 @@ from bench_common import machine
 from caviar_plugins.network.beams import BeamSettings, all_beam_gains, slot_beams, slot_sinr_db
 from caviar_plugins.network.cells import noise_dbm, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
-from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, TraceSettings
+from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer, TracedChannels
 from caviar_plugins.network.uplink import UplinkSettings, uplink
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
 
@@ -192,7 +192,8 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
     params = {"sites": sites(), "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "tx_power_dbm": 43.0, "array": [4, 4],
               "subcarrier_spacing_hz": SCS, "harq_processes": 8, "subbands": 8, "compile": compiled,
               "channel": "ray-traced", "interference": "scheduled", "antenna_height_m": 0.0,
-              "raytracing": {"scene": str(SCENE), "max_depth": 2, "samples_per_src": samples, "refresh_s": refresh},
+              "scene": str(SCENE), "raytracing": {"max_depth": 2, "samples_per_src": samples},
+              "evolution": {"refresh_s": refresh},
               "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
     if traffic is not None:
         params["traffic"] = traffic
@@ -255,7 +256,8 @@ def main() -> None:
     cells = parse_sites(sites(), {"tx_power_dbm": 43.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6,
                                   "array": [4, 4]})
     kinds, pos0, vel = ues(np.random.default_rng(7))
-    tracer = SiteTracer(TraceSettings(scene=str(SCENE), max_depth=2, samples_per_src=args.samples), cells, seed=1)
+    tracer = SiteTracer(str(SCENE), dataclasses.replace(NETWORK_RAYS, max_depth=2, samples_per_src=args.samples), cells,
+                        seed=1)
     a = time.perf_counter()
     initial = tracer.trace(pos0)
     first_trace = time.perf_counter() - a

@@ -97,10 +97,11 @@ def bench_solve(n_rx: int, samples: int, reps: int) -> dict:
     import drjit as dr
 
     from caviar_plugins.radio import RadioConfig, RadioScene
+    from caviar_plugins.rt.settings import with_raytracing
 
     path = Path(read_waypoints(DATA / ROUTE))
     starts = np.linspace(0, path.length * 0.9, n_rx)
-    radio = RadioScene(RadioConfig(samples_per_src=samples, uav_mesh=False), seed=0)
+    radio = RadioScene(with_raytracing(RadioConfig, samples_per_src=samples, uav_mesh=False), seed=0)
     sionna_solver = radio.rt.PathSolver()  # Sionna's own candidate generator, no cache
     c = radio.cfg
     k = [0]
@@ -178,10 +179,11 @@ def bench_moving_body(samples: int, positions: int) -> dict:
     same positions; both, and Sionna's loop on the next seed, against Sionna's loop with an
     8x larger specular-chain table at the same positions (bodies where they are)."""
     from caviar_plugins.radio import RadioConfig, RadioScene
+    from caviar_plugins.rt.settings import with_raytracing
 
     path = Path(read_waypoints(DATA / ROUTE))
-    new = RadioScene(RadioConfig(samples_per_src=samples, cache_moving_bodies=True), seed=0)
-    old = RadioScene(RadioConfig(samples_per_src=samples, cache_moving_bodies=False), seed=0)
+    new = RadioScene(with_raytracing(RadioConfig, samples_per_src=samples, cache_moving_bodies=True), seed=0)
+    old = RadioScene(with_raytracing(RadioConfig, samples_per_src=samples, cache_moving_bodies=False), seed=0)
     sionna_solver = new.rt.PathSolver()
     c = new.cfg
 

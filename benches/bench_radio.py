@@ -33,6 +33,7 @@ from caviar_plugins.mobility import Path, read_waypoints
 from caviar_plugins.radio import LinkBudget, RadioConfig, RadioScene
 from caviar_plugins.rt import configure_drjit
 from caviar_plugins.rt.scene import scene_path
+from caviar_plugins.rt.settings import with_raytracing
 from caviar_plugins.schema import POSITIONS, position_payload
 
 configure_drjit()  # before Sionna RT, Mitsuba or Dr.Jit are imported (none of the above imports them)
@@ -88,7 +89,7 @@ def bare_solver(cfg: RadioConfig):
 def overhead(args) -> None:
     results = {"machine": machine(), "samples_per_src": args.samples, "steps": args.steps, "rows": []}
     # The plugin's own overhead over the same Sionna calls: without the shoot cache.
-    cfg = RadioConfig(samples_per_src=args.samples, uav_mesh=False, shoot_cache=False)
+    cfg = with_raytracing(RadioConfig, samples_per_src=args.samples, uav_mesh=False, shoot_cache=False)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = pathlib.Path(tmp)
         for n_rx in (1, 3, 5, 10):
@@ -156,7 +157,7 @@ def accuracy(args) -> None:
     runs = [(10**4, 0), (3 * 10**4, 0), (10**5, 0), (3 * 10**5, 0), (10**6, 1), (10**6, 0)]
     per_count = {}
     for n, seed in runs:
-        radio = RadioScene(RadioConfig(samples_per_src=n, uav_mesh=True), seed=seed)
+        radio = RadioScene(with_raytracing(RadioConfig, samples_per_src=n, uav_mesh=True), seed=seed)
         radio.place({"uav1": path.at(arcs[0])})
         radio.solve()  # compile
         gains, times, los = [], [], []

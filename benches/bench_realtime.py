@@ -73,10 +73,9 @@ forecast_steps = {forecast}
 stage = "communications"
 plugin = "sionna-link"
 [modules.comm.params]
-samples_per_src = {samples}
+raytracing = {{ samples_per_src = {samples}, threads = 1 }}
 publish_channels = false
 uav_mesh = false
-threads = 1
 predict_horizons_s = {HORIZONS}
 warm_up_ues = {n * (1 + len(HORIZONS))}
 """
@@ -155,10 +154,9 @@ source = "local"
 stage = "communications"
 plugin = "sionna-link"
 [modules.comm.params]
-samples_per_src = {samples}
+raytracing = {{ samples_per_src = {samples}, threads = 1 }}
 publish_channels = false
 uav_mesh = false
-threads = 1
 predict_horizons_s = {HORIZONS}
 warm_up_ues = {1 + len(HORIZONS)}
 

@@ -54,7 +54,7 @@ ue_id = "uav{i + 1}"
 end_at_last = false
 start_m = {i * length / n:.1f}
 {uav_extra}"""
-    comm = f"samples_per_src = {samples}, publish_channels = false" + (f", {comm}" if comm else "")
+    comm = f"raytracing = {{ samples_per_src = {samples} }}, publish_channels = false" + (f", {comm}" if comm else "")
     camera_params = f"params = {{ {camera} }}\n" if camera else ""
     detector_params = f"params = {{ {detector} }}\n" if detector else ""
     text += f"""

@@ -132,10 +132,7 @@ def solve_before(radio) -> dict:
     from caviar_plugins.radio.scene import Link
 
     c = radio.cfg
-    paths = radio.tracer.solve(max_depth=c.max_depth, samples_per_src=c.samples_per_src, synthetic_array=True,
-                               los=c.los, specular_reflection=c.specular_reflection,
-                               diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
-                               diffraction=c.diffraction, seed=radio.seed)
+    paths = radio.tracer.solve()
     cfr = paths.cfr(frequencies=np.array([0.0]), normalize_delays=False, out_type="numpy")
     valid = np.array(paths.valid).reshape(len(radio.receivers), -1)
     tau = np.array(paths.tau).reshape(len(radio.receivers), -1)

@@ -61,10 +61,11 @@ def run(n: int, steps: int, seed: int = 0) -> dict:
 
     from caviar_plugins.radio.scene import RadioConfig, RadioScene
     from caviar_plugins.rt.scatterers import Body, ScattererPool
+    from caviar_plugins.rt.settings import with_raytracing
 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
-    radio = RadioScene(RadioConfig(scene=str(SCENE), tx_position=TX, tx_orientation=[-2.72, 0.1, 0.0],
+    radio = RadioScene(with_raytracing(RadioConfig, scene=str(SCENE), tx_position=TX, tx_orientation=[-2.72, 0.1, 0.0],
                                    samples_per_src=100_000, uav_mesh=False, antenna_offset=[0.0, 0.0, 0.0],
                                    shoot_cache=False))  # movers change the geometry: as sionna-traffic-link
     load_s = time.perf_counter() - t0

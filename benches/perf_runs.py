@@ -156,7 +156,7 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
     from caviar_plugins.traffic.link import SionnaTrafficLink, SionnaTrafficLinkParams
 
     exe = pathlib.Path(sys.executable).parent / "caviar-core"
-    variants = {"old": [], "loop": ["modules.comm.params.shoot_cache=false"], "new": [],
+    variants = {"old": [], "loop": ["modules.comm.params.raytracing.shoot_cache=false"], "new": [],
                 "floor": ["modules.comm.params.scatterers=false"]}
     per_step: dict[str, list] = {k: [] for k in variants}
     comm: dict[str, list] = {k: [] for k in variants}
@@ -199,13 +199,14 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
     plugin.setup(Context(name="comm", params=SionnaTrafficLinkParams(**cfg), seed=1, ts=1.0, steps=None, every=1,
                          offset=0, run_dir=work, config_dir=TRAFFIC.parent.resolve()))
     radio = plugin.radio
-    c = radio.cfg
-    solver = radio.rt.PathSolver()
+    rays = radio.cfg.raytracing
+    from caviar_plugins.rt.scene import sionna_rt
+
+    solver = sionna_rt().PathSolver()
 
     def sionna(table: int, seed: int) -> np.ndarray:
-        paths = solver(radio.scene, max_depth=c.max_depth, samples_per_src=c.samples_per_src, synthetic_array=True,
-                       los=c.los, specular_reflection=c.specular_reflection, diffuse_reflection=c.diffuse_reflection,
-                       refraction=c.refraction, diffraction=c.diffraction, seed=seed, max_num_paths_per_src=table)
+        options = {**rays.path_options(seed), "max_num_paths_per_src": table}
+        paths = solver(radio.scene, synthetic_array=True, **options)
         return paths.cfr(frequencies=np.array([0.0]), normalize_delays=False, out_type="numpy")[:, :, 0, :, 0, 0]
 
     pos = log.topic(POSITIONS)
@@ -222,9 +223,9 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
             continue
         h = {"new": radio.last_paths.cfr(frequencies=np.array([0.0]), normalize_delays=False,
                                          out_type="numpy")[:, :, 0, :, 0, 0],
-             "old": sionna(c.max_num_paths_per_src, radio.seed),
-             "other_seed": sionna(8 * c.max_num_paths_per_src, radio.seed + 1)}
-        ref = sionna(8 * c.max_num_paths_per_src, radio.seed)
+             "old": sionna(rays.max_num_paths_per_src, radio.seed),
+             "other_seed": sionna(8 * rays.max_num_paths_per_src, radio.seed + 1)}
+        ref = sionna(8 * rays.max_num_paths_per_src, radio.seed)
         for i in range(len(ref)):
             ref_gain = np.mean(np.abs(ref[i]) ** 2)
             if ref_gain == 0:  # a parked receiver (its car not in the scene)

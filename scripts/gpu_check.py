@@ -231,9 +231,10 @@ def solve_times(n_uav: int, samples: int = 1_000_000, warmup: int = 5, reps: int
     from caviar_plugins import DATA
     from caviar_plugins.mobility import Path, read_waypoints
     from caviar_plugins.radio import RadioConfig, RadioScene
+    from caviar_plugins.rt.settings import with_raytracing
 
     route = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
-    radio = RadioScene(RadioConfig(samples_per_src=samples, uav_mesh=False), seed=0)
+    radio = RadioScene(with_raytracing(RadioConfig, samples_per_src=samples, uav_mesh=False), seed=0)
     starts = np.linspace(0.0, 0.9 * route.length, n_uav)
     times = []
     for k in range(1 + warmup + reps):
@@ -271,8 +272,10 @@ def yolo_times(frames: int = 16, reps: int = 20) -> dict:
         out[runtime] = {"device": str(model.graph.device) if model.graph is not None else "onnxruntime "
                         f"{model.session.get_providers()[0]}", "cold_s": round(cold, 3),
                         "warm_ms_per_frame": round(1e3 * statistics.median(warm) / frames, 3)}
-    out["torch_vs_onnxruntime_max_abs"] = {"boxes_px": float(np.abs(raws["torch"][:, :4] - raws["onnxruntime"][:, :4]).max()),
-                                           "scores": float(np.abs(raws["torch"][:, 4] - raws["onnxruntime"][:, 4]).max())}
+    out["torch_vs_onnxruntime_max_abs"] = {"boxes_px": float(np.abs(raws["torch"][:, :4] - raws["onnxruntime"][:,
+                                                                                                               :4]).max()),
+                                           "scores": float(np.abs(raws["torch"][:, 4] - raws["onnxruntime"][:,
+                                                                                                            4]).max())}
     return out
 
 
@@ -406,7 +409,8 @@ def seed_spread(seeds: list[int]) -> int:
     rescued = dict(reference.get("rescued_by_seed") or {})
     for seed in seeds:
         with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
-            job = main_job(3600.0, pathlib.Path(tmp), ("modules.comm.params.threads=1", f"episode.seed={seed}"))
+            job = main_job(3600.0, pathlib.Path(tmp), ("modules.comm.params.raytracing.threads=1",
+                                                       f"episode.seed={seed}"))
         if job["error"] is not None or not job.get("mission_result"):
             print(f"seed {seed}: the main job failed: {job['error']}")
             return 1
@@ -532,15 +536,17 @@ def main() -> int:
         return seed_spread(args.seed_spread)
     if args.write_reference:
         with tempfile.TemporaryDirectory(prefix="caviar-gpu-check-") as tmp:
-            job = main_job(3600.0, pathlib.Path(tmp), ("modules.comm.params.threads=1",))
+            job = main_job(3600.0, pathlib.Path(tmp), ("modules.comm.params.raytracing.threads=1",))
         if job["error"] is not None:
             print(f"main job failed: {job['error']}")
             return 1
         REFERENCE.write_text(json.dumps({"device": dev["name"], "config": "blueprints/sar/config.toml",
-                                         "set": ["modules.comm.params.threads=1"], **job["recorded"]}) + "\n")
+                                         "set": ["modules.comm.params.raytracing.threads=1"],
+                                         **job["recorded"]}) + "\n")
         print(f"wrote {REFERENCE}: {len(job['recorded']['links'])} links, {job['mission_result']}")
         return 0
-    print(f"device: {dev['name']}; Dr.Jit variant {dev['drjit_variant']}; torch device {dev['torch_device']}", flush=True)
+    print(f"device: {dev['name']}; Dr.Jit variant {dev['drjit_variant']}; torch device {dev['torch_device']}",
+          flush=True)
     rows = check_blueprints(args.steps, args.only, args.timeout)
     result: dict = {"device": dev["name"], "machine": dev, "steps_per_blueprint": args.steps,
                     "blueprints": {k: {"ok": v["ok"], "tp_tv": v["tp_tv"], "error": v["error"], "steps": v["steps"],

@@ -13,6 +13,7 @@ import caviar
 from caviar_plugins import DATA
 from caviar_plugins.radio import RadioConfig, RadioScene
 from caviar_plugins.radio.path_data import PathData
+from caviar_plugins.rt.settings import with_raytracing
 from conftest import write_config
 
 FC = 40e9
@@ -45,8 +46,7 @@ params = { waypoints = "%s", frame = "scene", ue_id = "uav2", speed = 6.0 }
 stage = "communications"
 plugin = "sionna-link"
 [modules.comm.params]
-samples_per_src = 20000
-max_depth = 3
+raytracing = { samples_per_src = 20000, max_depth = 3 }
 uav_mesh = false
 tx_array = [1, 1]
 rx_array = [1, 1]
@@ -186,7 +186,8 @@ def elements(rows: int, cols: int, spacing_m: float) -> np.ndarray:
 def test_published_paths_rebuild_the_mimo_channel_of_rotated_arrays():
     """The coefficients at the array centres, with plane-wave phases over the elements of
     the rotated 8x8 and 2x2 arrays computed here, give back sionna-link's H (4 x 64)."""
-    cfg = RadioConfig(samples_per_src=20000, max_depth=2, uav_mesh=False, rx_orientation=[0.7, 0.2, -0.3])
+    cfg = with_raytracing(RadioConfig, samples_per_src=20000, max_depth=2, uav_mesh=False, rx_orientation=[0.7, 0.2,
+                                                                                                           -0.3])
     radio = RadioScene(cfg, seed=3)
     radio.keep_paths = True
     radio.place({"a": np.array([-264.0, 176.16, 8.23]), "b": np.array([-134.66, 118.48, 9.23])})
@@ -208,7 +209,8 @@ def test_published_paths_rebuild_the_mimo_channel_of_rotated_arrays():
 
 
 def test_in_free_space_the_one_path_is_friis_along_the_straight_line():
-    radio = RadioScene(RadioConfig(scene="empty", uav_mesh=False, max_depth=0, samples_per_src=1000, pattern="iso",
+    radio = RadioScene(with_raytracing(RadioConfig, scene="empty", uav_mesh=False, max_depth=0, samples_per_src=1000,
+                                       pattern="iso",
                                    tx_array=[4, 4], tx_orientation=[0.0, 0.0, 0.0], antenna_offset=[0.0, 0.0, 0.0]))
     radio.keep_paths = True
     radio.place({"far": np.array([300.0, -200.0, 20.0])})

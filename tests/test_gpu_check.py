@@ -84,7 +84,7 @@ def test_a_cpu_run_of_the_main_job_agrees_with_the_reference_by_place(tmp_path):
     criterion."""
     reference = json.loads(gpu_check.REFERENCE.read_text())
     assert len(reference["links"]) > 2000 and reference["mission_result"]["rescued"] == 6
-    job = gpu_check.main_job(600, tmp_path, ("episode.steps=20", "modules.comm.params.threads=1"))
+    job = gpu_check.main_job(600, tmp_path, ("episode.steps=20", "modules.comm.params.raytracing.threads=1"))
     assert job["error"] is None, job["error"]
     against = job["against_cpu"]
     assert against["links"] == 20 and against["matched_by_place"] == 20, against

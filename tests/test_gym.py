@@ -18,7 +18,7 @@ from caviar_plugins.radio.link_budget import LinkBudget
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 BEAM_GYM = ROOT / "blueprints" / "beam-gym"
-FEW_RAYS = {"modules.comm.params.samples_per_src": 10000}
+FEW_RAYS = {"modules.comm.params.raytracing.samples_per_src": 10000}
 
 TOY = """
 [episode]

@@ -56,7 +56,7 @@ params = {{ waypoints = "route.csv", frame = "scene", speed = {speed}, end_at_la
 [modules.lidar]
 stage = "sensing"
 plugin = "{plugin}"
-params = {{ scene = "{scene}", threads = 1, sensor = {{ {sensor} }} }}
+params = {{ scene = "{scene}", raytracing = {{ threads = 1 }}, sensor = {{ {sensor} }} }}
 """
 
 
@@ -202,7 +202,7 @@ params = { battery = { capacity_wh = 50.0 } }
 """
     scene = _scene(tmp_path, building=(30.0, -10.0, 50.0, 10.0, 40.0))
     text = RUN.format(steps=3, speed=5.0, plugin=PLUGIN, scene=scene, sensor=sensor).replace(
-        "threads = 1,", "threads = 1, view_points = 500,") + extra
+        "threads = 1 },", "threads = 1 }, view_points = 500,") + extra
     (tmp_path / "route.csv").write_text("X,Y,Z\n0,0,20\n100,0,20\n")
     (tmp_path / "lidar.toml").write_text(text)
     with caviar.Simulation.from_toml(tmp_path / "lidar.toml", out=tmp_path / "run") as sim:

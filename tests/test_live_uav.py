@@ -43,7 +43,7 @@ def test_the_live_uav_blueprint_follows_its_vehicle_and_predicts(cli, tmp_path):
     try:
         cli("run", "-q", BLUEPRINT / "config.toml", "--out", tmp_path / "live",
             "--set", "episode.duration=3.0", "--set", f'modules.uav.params.listen="127.0.0.1:{port}"',
-            "--set", "modules.comm.params.samples_per_src=10000", check=0)
+            "--set", "modules.comm.params.raytracing.samples_per_src=10000", check=0)
     finally:
         sender.terminate()
         sender.wait(timeout=10)

@@ -351,9 +351,8 @@ forecast_steps = 4
 stage = "communications"
 plugin = "sionna-link"
 [modules.comm.params]
-samples_per_src = 10000
+raytracing = {{ samples_per_src = 10000, threads = 1 }}
 uav_mesh = false
-threads = 1
 publish_channels = false
 predict_horizons_s = [0.5, 1.0]
 """)

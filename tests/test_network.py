@@ -271,6 +271,7 @@ plugin = "radio-network"
 carrier_hz = 3.5e9
 bandwidth_hz = 20e6
 subcarrier_spacing_hz = 15e3
+harq_processes = 10   # a step's 20 slots in 2 calls of Sionna SYS (slot by slot: 10x the calls, the same handover)
 handover = { offset_db = 0.0, hysteresis_db = 3.0, time_to_trigger_s = 0.16 }
 [[modules.net.params.sites]]
 name = "west"
@@ -326,8 +327,7 @@ def test_a_car_crossing_between_two_sites_hands_over_once_in_the_loop(tmp_path):
     ("subcarrier_spacing_hz = 15e3", "bler_target"),
     ("carrier_hz = 3.5e9", "carrier_hz"),
     ("bandwidth_hz = 20e6", "num_prb"),
-    # Nested tables are typed (HandoverSettings, TraceSettings): the host checks them
-    # recursively and names the whole key path.
+    # Nested tables are typed (HandoverSettings, TraceSettings): checked recursively, the whole key path named.
     ("time_to_trigger_s = 0.16", "handover.time_to_triger_s"),  # unknown key
     ("hysteresis_db = 3.0", "handover.hysteresis_db"),  # its own check
     ("offset_db = 0.0", "handover.offset_db"),  # wrong type
@@ -364,30 +364,28 @@ def test_ray_traced_gains_equal_friis_and_the_pattern_in_free_space():
     """A ray test: in an empty scene only the direct path exists, so the traced gain of
     every sector is Friis times its pattern along the straight line (an independent
     computation), for sites traced together in one solve."""
-    from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
+    from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer
 
     cells = parse_sites([{"name": "A", "position": [0.0, 0.0, 30.0], "azimuths_deg": [0.0, 120.0, 240.0],
                           "downtilt_deg": 6.0},
                          {"name": "B", "position": [300.0, 50.0, 20.0], "azimuths_deg": [200.0]}], DEFAULTS)
     ues = np.array([[120.0, 40.0, 1.5], [-80.0, -60.0, 1.5], [250.0, 300.0, 40.0]])
-    tracer = SiteTracer(TraceSettings(scene="empty", max_depth=0, samples_per_src=1000), cells)
-    traced = tracer.gains_db(ues)
-    assert traced.shape == (3, 4)
-    np.testing.assert_allclose(traced, line_of_sight_gain_db(cells, ues), atol=1e-3)
-    # The UEs move: the same receivers, new positions, the same agreement.
-    np.testing.assert_allclose(tracer.gains_db(ues[:2] + 10.0), line_of_sight_gain_db(cells, ues[:2] + 10.0),
-                               atol=1e-3)
+    tracer = SiteTracer("empty", dataclasses.replace(NETWORK_RAYS, max_depth=0, samples_per_src=1000), cells)
+    for placed in (ues, ues[:2] + 10.0):  # (then the UEs move: the same receivers, new positions)
+        traced = tracer.gains_db(placed)
+        assert traced.shape == (len(placed), 4)
+        np.testing.assert_allclose(traced, line_of_sight_gain_db(cells, placed), atol=1e-3)
 
 
 def _canyon_tracer(max_depth: int = 2):
     """One sector at the west end of Sionna's simple street canyon, looking down the street."""
     import sionna.rt as rt
 
-    from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
+    from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer
 
     cells = parse_sites([{"name": "W", "position": [-80.0, 0.0, 10.0], "azimuths_deg": [0.0]}], DEFAULTS)
-    return cells, SiteTracer(TraceSettings(scene=rt.scene.simple_street_canyon, max_depth=max_depth,
-                                           samples_per_src=20_000), cells, seed=2)
+    rays = dataclasses.replace(NETWORK_RAYS, max_depth=max_depth, samples_per_src=20_000)
+    return cells, SiteTracer(rt.scene.simple_street_canyon, rays, cells, seed=2)
 
 
 def test_traced_doppler_is_v_cos_theta_over_lambda_for_the_direct_and_the_floor_path():
@@ -498,7 +496,9 @@ channel = "ray-traced"
 subcarrier_spacing_hz = 30e3
 harq_processes = 8
 subbands = 8
-raytracing = { scene = "SCENE", max_depth = 2, samples_per_src = 20000, refresh_s = 0.5 }
+scene = "SCENE"
+raytracing = { max_depth = 2, samples_per_src = 20000 }
+evolution = { refresh_s = 0.5 }
 [[modules.net.params.sites]]
 name = "west"
 position = [-80.0, 0.0, 10.0]
@@ -516,7 +516,7 @@ def test_in_the_loop_the_ray_traced_sinr_fades_between_refreshes(tmp_path):
     def sinrs(evolve: str) -> np.ndarray:
         cfg = tmp_path / f"{evolve}.toml"
         text = CANYON.replace("SCENE", pathlib.Path(rt.scene.simple_street_canyon).as_posix())
-        cfg.write_text(text.replace("refresh_s = 0.5", f'refresh_s = 0.5, evolve = "{evolve}"'))
+        cfg.write_text(text.replace("refresh_s = 0.5", f'refresh_s = 0.5, mode = "{evolve}"'))
         log = caviar.Simulation.from_toml(cfg, out=tmp_path / evolve).run()
         ue = [m.data for m in log.decoded("network.ue")]
         assert len(ue) == 50 and all(u["serving_cell"] == "west/0" for u in ue)
@@ -532,12 +532,12 @@ def test_the_radio_map_matches_friis_and_the_pattern_and_picks_the_facing_sector
     """Sionna's radio-map solver with its tr38901 element, in free space: the path gain
     of each of a site's three sectors equals Friis times the sector pattern computed here
     (Monte Carlo noise aside), and the best server is the sector facing the point."""
-    from caviar_plugins.network.radio_map import RadioMapSettings, best_server_map, save
+    from caviar_plugins.network.radio_map import MAP_RAYS, RadioMapSettings, best_server_map, save
 
     cells = parse_sites([{"name": "A", "position": [0.0, 0.0, 30.0], "azimuths_deg": [0.0, 120.0, 240.0],
                           "downtilt_deg": 6.0}], DEFAULTS)
-    res = best_server_map(cells, RadioMapSettings(cell_size_m=10.0, margin_m=200.0, max_depth=0), "empty",
-                          num_prb=106, noise_figure_db=7.0)
+    flat = RadioMapSettings(cell_size_m=10.0, margin_m=200.0, raytracing=dataclasses.replace(MAP_RAYS, max_depth=0))
+    res = best_server_map(cells, flat, "empty", num_prb=106, noise_figure_db=7.0)
     x, y = np.meshgrid(res["x"], res["y"])
     points = np.stack([x.ravel(), y.ravel(), np.full(x.size, 1.5)], axis=1)
     expected = line_of_sight_gain_db(cells, points).T.reshape(res["gain_db"].shape)
@@ -580,7 +580,7 @@ params = {{ waypoints = "{route}", frame = "scene", ue_id = "uav2", speed = 10.0
 [modules.comm]
 stage = "communications"
 plugin = "sionna-link"
-params = {{ samples_per_src = 10000, link_model = "sys", publish_channels = false }}
+params = {{ raytracing = {{ samples_per_src = 10000 }}, link_model = "sys", publish_channels = false }}
 """)
     log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
     links = [m.data for m in log.decoded("communications.link")]

@@ -3,6 +3,7 @@ with the interferer's scheduled beam, against the array factor computed by hand.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -104,13 +105,13 @@ def test_a_codebook_larger_than_the_array_is_refused_naming_the_key():
 def test_the_ray_traced_paths_give_the_free_space_beams_in_an_empty_scene():
     """A ray test: with only the direct path, each sector's beam gains from the traced
     departure directions are those of the straight line, beam by beam."""
-    from caviar_plugins.network.raytraced import SiteTracer, TraceSettings
+    from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer
 
     cells = [Cell(name=f"A/{k}", site="A", index=k, position=(0.0, 0.0, 30.0), azimuth_deg=az, downtilt_deg=6.0,
                   tx_power_dbm=46.0, carrier_hz=CARRIER, bandwidth_hz=20e6, array=(4, 8))
              for k, az in enumerate((0.0, 120.0, 240.0))]
     ues = np.array([[120.0, 40.0, 1.5], [-80.0, -60.0, 1.5], [60.0, 150.0, 40.0]])
-    traced = SiteTracer(TraceSettings(scene="empty", max_depth=0, samples_per_src=1000), cells).trace(ues)
+    traced = SiteTracer("empty", dataclasses.replace(NETWORK_RAYS, max_depth=0, samples_per_src=1000), cells).trace(ues)
     amplitude, departure = line_of_sight(cells, ues)
     codebook = Codebook(rows=4, cols=8, beams_h=8, beams_v=2)
     for k, cell in enumerate(cells):
@@ -228,7 +229,7 @@ def test_in_an_empty_scene_the_ray_traced_beams_give_the_free_space_sinr(tmp_pat
     text = BEAMS.format(other=[250.0, -120.0, 25.0], beams=N)
     sinr = {}
     for channel in ("free-space", "ray-traced"):
-        extra = ('channel = "ray-traced"\nraytracing = { scene = "empty", max_depth = 0, samples_per_src = 1000 }\n'
+        extra = ('channel = "ray-traced"\nraytracing = { max_depth = 0, samples_per_src = 1000 }\n'
                  if channel == "ray-traced" else "")
         cfg = tmp_path / f"{channel}.toml"
         cfg.write_text(text.replace("beams = {", extra + "beams = {"))
@@ -265,11 +266,11 @@ def test_the_plugin_computes_the_beam_responses_once_per_trace(tmp_path, monkeyp
     """The paths' beam responses change only with a trace: over 6 steps with a trace every
     3, the plugin computes them twice, however often the gains are evaluated."""
     import caviar
-    from caviar_plugins.network import plugin as network_plugin
+    from caviar_plugins.network import traced_channel
     from caviar_plugins.network.raytraced import SiteTracer
 
     calls = {"responses": 0, "traces": 0}
-    responses, trace = network_plugin.beam_responses, SiteTracer.trace
+    responses, trace = traced_channel.beam_responses, SiteTracer.trace
 
     def counted_responses(*args, **kwargs):
         calls["responses"] += 1
@@ -279,11 +280,11 @@ def test_the_plugin_computes_the_beam_responses_once_per_trace(tmp_path, monkeyp
         calls["traces"] += 1
         return trace(self, *args, **kwargs)
 
-    monkeypatch.setattr(network_plugin, "beam_responses", counted_responses)
+    monkeypatch.setattr(traced_channel, "beam_responses", counted_responses)
     monkeypatch.setattr(SiteTracer, "trace", counted_trace)
     text = BEAMS.format(other=[250.0, -120.0, 25.0], beams=N).replace("steps = 3", "steps = 6")
     extra = ('channel = "ray-traced"\n'
-             'raytracing = { scene = "empty", max_depth = 0, samples_per_src = 1000, refresh_s = 0.03 }\n')
+             'raytracing = { max_depth = 0, samples_per_src = 1000 }\nevolution = { refresh_s = 0.03 }\n')
     cfg = tmp_path / "traced.toml"
     cfg.write_text(text.replace("beams = {", extra + "beams = {"))
     log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()

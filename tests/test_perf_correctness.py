@@ -93,20 +93,21 @@ def test_unique_rows_is_exact_even_with_hash_collisions(monkeypatch):
 
 from caviar_plugins.radio import RadioConfig, RadioScene  # noqa: E402
 from caviar_plugins.radio.scene import LookaheadTracer  # noqa: E402
+from caviar_plugins.rt.settings import with_raytracing  # noqa: E402
 
 FAST = dict(samples_per_src=20_000, max_depth=3, uav_mesh=False, threads=1)
 P0, P1, P2 = np.array([-60.0, 20.0, 30.0]), np.array([-57.5, 20.0, 30.0]), np.array([-55.0, 20.0, 30.0])
 
 
 def fresh(position, **kw) -> object:
-    radio = RadioScene(RadioConfig(**{**FAST, **kw}), seed=3)
+    radio = RadioScene(with_raytracing(RadioConfig, **{**FAST, **kw}), seed=3)
     radio.place({"uav1": position})
     return radio.solve()["uav1"]
 
 
 @pytest.fixture(scope="module")
 def tracer():
-    return LookaheadTracer(RadioScene(RadioConfig(**FAST), seed=3), steps=2, tolerance_m=0.01)
+    return LookaheadTracer(RadioScene(with_raytracing(RadioConfig, **FAST), seed=3), steps=2, tolerance_m=0.01)
 
 
 def test_lookahead_cache_hit_is_the_channel_a_fresh_trace_gives(tracer):
@@ -173,10 +174,8 @@ end_at_last = false
 stage = "communications"
 plugin = "sionna-link"
 [modules.comm.params]
-samples_per_src = 10000
-max_depth = 3
+raytracing = {{ samples_per_src = 10000, max_depth = 3, threads = 1 }}
 uav_mesh = false
-threads = 1
 lookahead = {str(lookahead).lower()}
 lookahead_steps = 3
 """, name=f"{name}.toml")
@@ -289,7 +288,7 @@ def test_an_image_seen_before_gets_its_detections_without_the_model(visual, mode
 def test_a_body_that_did_not_move_leaves_the_geometry_alone(monkeypatch):
     from sionna.rt.scene_object import SceneObject
 
-    radio = RadioScene(RadioConfig(**{**FAST, "uav_mesh": True}), seed=1)
+    radio = RadioScene(with_raytracing(RadioConfig, **{**FAST, "uav_mesh": True}), seed=1)
     moves = []
     prop = SceneObject.position
     monkeypatch.setattr(SceneObject, "position", property(prop.fget, lambda obj, v: (moves.append(list(v)),

@@ -34,10 +34,8 @@ end_at_last = false
 stage = "communications"
 plugin = "sionna-link"
 [modules.comm.params]
-samples_per_src = 10000
-max_depth = 3
+raytracing = { samples_per_src = 10000, max_depth = 3, threads = 1 }
 uav_mesh = false
-threads = 1
 predict_horizons_s = [0.5, 1.0, 2.0]
 """
 
@@ -150,7 +148,7 @@ def test_a_warm_up_at_setup_changes_no_recorded_message(tmp_path):
     its status line for people (caviar.status), which counts the warm-up's solves too."""
     plain = _flight(tmp_path, "plain", forecast=4)
     text = FLIGHT.format(route=(DATA / "central_park_path0_scene.csv").as_posix(), forecast=4)
-    cfg = write_config(tmp_path, text.replace("threads = 1", "threads = 1\nwarm_up_ues = 4"), "warm.toml")
+    cfg = write_config(tmp_path, text.replace("uav_mesh = false", "uav_mesh = false\nwarm_up_ues = 4"), "warm.toml")
     warm = caviar.Simulation.from_toml(cfg, out=tmp_path / "warm").run()
     cols = ["step", "source", "topic", "text"]
     a, b = ([r for r in log.messages.select(cols).rows() if r[2] != caviar.STATUS_TOPIC] for log in (warm, plain))
@@ -176,7 +174,8 @@ def test_predictions_next_to_look_ahead_ray_tracing(tmp_path):
     in one run: the same predictions and links as without look-ahead."""
     plain = _flight(tmp_path, "plain", forecast=4)
     text = FLIGHT.format(route=(DATA / "central_park_path0_scene.csv").as_posix(), forecast=4)
-    cfg = write_config(tmp_path, text.replace("threads = 1", "threads = 1\nlookahead = true\nlookahead_steps = 4"),
+    cfg = write_config(tmp_path, text.replace("uav_mesh = false",
+                                              "uav_mesh = false\nlookahead = true\nlookahead_steps = 4"),
                        "ahead.toml")
     ahead = caviar.Simulation.from_toml(cfg, out=tmp_path / "ahead").run()
     for topic in ("communications.prediction", "communications.link"):

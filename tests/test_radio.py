@@ -10,6 +10,7 @@ import caviar
 from caviar_plugins import DATA
 from caviar_plugins.mobility import Path, airsim_ned_to_scene, read_waypoints
 from caviar_plugins.radio import LinkBudget, RadioConfig, RadioScene, dft_codebook, element_grid
+from caviar_plugins.rt.settings import with_raytracing
 from conftest import write_config
 
 LAMBDA = 299_792_458.0 / 40e9
@@ -19,7 +20,7 @@ def free_space(**kw) -> RadioScene:
     cfg = dict(scene="empty", uav_mesh=False, samples_per_src=1000, max_depth=0, tx_position=[0.0, 0.0, 0.0],
                tx_orientation=[0.0, 0.0, 0.0], antenna_offset=[0.0, 0.0, 0.0])
     cfg.update(kw)
-    return RadioScene(RadioConfig(**cfg))
+    return RadioScene(with_raytracing(RadioConfig, **cfg))
 
 
 RX = {"a": [50.0, 10.0, -5.0], "b": [-30.0, -40.0, -20.0], "c": [10.0, 80.0, 30.0], "d": [-60.0, 30.0, -50.0],
@@ -95,7 +96,7 @@ def test_best_tx_beam_points_toward_a_los_receiver(orientation):
 
 
 def test_paper_waypoints_fly_through_open_space_except_the_spur_into_a_building():
-    radio = RadioScene(RadioConfig(samples_per_src=1000, uav_mesh=False))
+    radio = RadioScene(with_raytracing(RadioConfig, samples_per_src=1000, uav_mesh=False))
     import mitsuba as mi
 
     def covered(points):
@@ -145,7 +146,7 @@ params = { ue_id = "uav2", beam_pair = 77 }
 [modules.comm]
 stage = "communications"
 plugin = "sionna-link"
-params = { samples_per_src = 10000 }
+params = { raytracing = { samples_per_src = 10000 } }
 """ % (((DATA / "central_park_path0_scene.csv").as_posix(),) * 2))
     log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
     thr = log.topic("communications.throughput")
@@ -174,7 +175,7 @@ params = { samples_per_src = 10000 }
 def test_los_flag_agrees_with_an_independent_visibility_test():
     import mitsuba as mi
 
-    radio = RadioScene(RadioConfig(samples_per_src=10_000, uav_mesh=False))
+    radio = RadioScene(with_raytracing(RadioConfig, samples_per_src=10_000, uav_mesh=False))
     path = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
     points = {f"p{i}": path.at(s) for i, s in enumerate(np.arange(0.0, path.length, 20.0))}
     radio.place(points)

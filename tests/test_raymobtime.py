@@ -51,7 +51,8 @@ params = { spread = 15.0, altitude = [8.0, 12.0], speed = 5.0 }
 [modules.lidar]
 stage = "sensing"
 plugin = "lidar"
-params = { scene = "central_park", threads = 1, sensor = { channels = 16, horizontal_resolution_deg = 1.0 } }
+params = { scene = "central_park", raytracing = { threads = 1 }, sensor = { channels = 16,
+                                                                           horizontal_resolution_deg = 1.0 } }
 
 [modules.camera]
 stage = "sensing"
@@ -60,7 +61,7 @@ plugin = "camera"
 [modules.comm]
 stage = "communications"
 plugin = "sionna-link"
-params = { samples_per_src = 10000, tx_position = [-154.0, 64.0, 120.0] }
+params = { raytracing = { samples_per_src = 10000 }, tx_position = [-154.0, 64.0, 120.0] }
 
 [modules.dataset]
 stage = "dataset"

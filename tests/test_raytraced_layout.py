@@ -46,7 +46,9 @@ report_cells = 1
 layout = { kind = "hex", rings = 1, isd_m = 200.0, height_m = 10.0, min_distance_m = 10.0, wraparound = false, \
 indoor_share = 0.0, ues_per_sector = 2, redrop = "every-step", center_m = [0.0, 0.0] }
 column = { elements = 10 }
-raytracing = { scene = "empty", max_depth = 1, samples_per_src = 10000, evolve = "hold" }
+scene = "empty"
+raytracing = { max_depth = 1, samples_per_src = 10000 }
+evolution = { mode = "hold" }
 """
 
 

@@ -46,7 +46,8 @@ def _resumes_to_the_reference(tmp_path, cli, config: pathlib.Path, sets: list[st
 def test_the_sar_mission_resumes_to_the_same_messages(tmp_path, cli):
     """Every plugin of the main job: random beams (ctx.rng), packet loss (ctx.rng),
     the detector's positions, the mission's rescues, the UAV body in the ray-traced scene."""
-    sets = ["--set", "modules.comm.params.samples_per_src=10000", "--set", "modules.comm.params.threads=1",
+    sets = ["--set", "modules.comm.params.raytracing.samples_per_src=10000", "--set",
+            "modules.comm.params.raytracing.threads=1",
             "--set", 'modules.beams.params.method="random"']
     kill = random.Random(28).randrange(4, 9)
     log = _resumes_to_the_reference(tmp_path, cli, BLUEPRINTS / "sar" / "config.toml", sets, kill, every=3,
@@ -84,7 +85,9 @@ subcarrier_spacing_hz = 30e3
 harq_processes = 4
 subbands = 4
 handover = { time_to_trigger_s = 0.04 }
-raytracing = { scene = "SCENE", max_depth = 2, samples_per_src = 5000, refresh_s = 0.1, threads = 1 }
+scene = "SCENE"
+raytracing = { max_depth = 2, samples_per_src = 5000, threads = 1 }
+evolution = { refresh_s = 0.1 }
 [[modules.net.params.sites]]
 name = "west"
 position = [-80.0, 0.0, 10.0]
@@ -118,7 +121,8 @@ def test_the_radio_network_resumes_to_the_same_messages(tmp_path, cli, sites):
 def test_sumo_traffic_and_the_traffic_link_resume_to_the_same_messages(tmp_path, cli):
     """SUMO's own saved state (with its random streams), the connected cars' receivers
     and the scatterer pools, grown past their first size before the checkpoint."""
-    sets = ["--set", "modules.comm.params.samples_per_src=10000", "--set", "modules.comm.params.threads=1",
+    sets = ["--set", "modules.comm.params.raytracing.samples_per_src=10000", "--set",
+            "modules.comm.params.raytracing.threads=1",
             "--set", "modules.comm.params.vehicle_pool=4", "--set", "modules.comm.params.person_pool=2",
             "--set", "modules.traffic.params.pedestrians=0"]
     kill = random.Random(24).randrange(5, 8)
@@ -132,8 +136,9 @@ def test_the_ray_traced_link_with_shoot_cache_prediction_and_look_ahead_resumes(
     the first, look-ahead serves steps from its cached traces and prediction forecasts
     from the flight's plan. A resumed run must see the cache's geometry again so that its
     next solve is served as the uninterrupted run's was."""
-    sets = ["--set", "modules.comm.params.samples_per_src=10000", "--set", "modules.comm.params.threads=1",
-            "--set", "modules.comm.params.uav_mesh=false", "--set", "modules.comm.params.shoot_cache=true",
+    sets = ["--set", "modules.comm.params.raytracing.samples_per_src=10000", "--set",
+            "modules.comm.params.raytracing.threads=1",
+            "--set", "modules.comm.params.uav_mesh=false", "--set", "modules.comm.params.raytracing.shoot_cache=true",
             "--set", "modules.comm.params.lookahead=true", "--set", "modules.comm.params.lookahead_steps=2",
             "--set", "modules.comm.params.predict_horizons_s=[0.5, 1.0]"]
     kill = random.Random(25).randrange(5, 9)
@@ -219,7 +224,7 @@ stage = "sensing"
 plugin = "lidar"
 [modules.lidar.params]
 scene = "scene.xml"
-threads = 1
+raytracing = { threads = 1 }
 [modules.lidar.params.sensor]
 channels = 8
 horizontal_resolution_deg = 2.0

@@ -9,6 +9,7 @@ import pytest
 import caviar
 from caviar_plugins import beam_selection
 from caviar_plugins.radio import RadioConfig, RadioScene
+from caviar_plugins.rt.settings import with_raytracing
 from caviar_plugins.schema import read_position
 from caviar_plugins.vision import VisualConfig, VisualScene, loss_for_throughput, packet_loss, psnr
 from caviar_plugins.vision import person_detector as detector
@@ -129,7 +130,7 @@ plugin = "mission"
 
 
 def test_beam_selection_methods(tmp_path):
-    radio = RadioScene(RadioConfig(samples_per_src=10_000, uav_mesh=False))
+    radio = RadioScene(with_raytracing(RadioConfig, samples_per_src=10_000, uav_mesh=False))
     rng = np.random.default_rng(3)
     pts = np.c_[rng.uniform(-250, 250, 60), rng.uniform(-100, 200, 60), np.full(60, 9.23)]
     radio.place({f"p{i}": p for i, p in enumerate(pts)})
@@ -201,7 +202,7 @@ params = {{ method = "oracle" }}
 [modules.comm]
 stage = "communications"
 plugin = "sionna-link"
-params = {{ samples_per_src = 10000, publish_channels = false }}
+params = {{ raytracing = {{ samples_per_src = 10000 }}, publish_channels = false }}
 
 [modules.link]
 stage = "link"
@@ -247,7 +248,7 @@ def test_beam_dataset_blueprint_and_tree_training(tmp_path, cli):
     from conftest import ROOT
 
     bp = ROOT / "blueprints" / "beam-dataset"
-    small = ["--set", "modules.comm.params.samples_per_src=10000", "-q"]
+    small = ["--set", "modules.comm.params.raytracing.samples_per_src=10000", "-q"]
     cli("run", bp / "config.toml", "--out", "train", "--set", "episode.steps=24", *small, check=0)
     cli("run", bp / "test-flight.toml", "--out", "test", "--set", "episode.steps=8", *small, check=0)
     data = load(tmp_path / "train")

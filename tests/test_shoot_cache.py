@@ -7,6 +7,7 @@ import pytest
 from caviar_plugins import DATA
 from caviar_plugins.mobility import Path, read_waypoints
 from caviar_plugins.radio import RadioConfig, RadioScene
+from caviar_plugins.rt.settings import with_raytracing
 
 # Diffuse reflection only adds paths where a material scatters: give concrete a
 # scattering coefficient so that the diffuse branch (paths finalised in the loop) is
@@ -17,7 +18,8 @@ RECEIVERS = {"a": ROUTE.at(0.0), "b": ROUTE.at(60.0), "c": ROUTE.at(150.0)}  # t
 
 
 def scene(shoot_cache: bool, scattering: float = 0.3, **kw) -> RadioScene:
-    radio = RadioScene(RadioConfig(**{**SETTINGS, "uav_mesh": False, "shoot_cache": shoot_cache, **kw}), seed=5)
+    radio = RadioScene(with_raytracing(RadioConfig, **{**SETTINGS, "uav_mesh": False, "shoot_cache": shoot_cache,
+                                                       **kw}), seed=5)
     radio.scene.radio_materials["itu_concrete"].scattering_coefficient = scattering
     return radio
 
@@ -82,8 +84,8 @@ def test_a_changed_geometry_is_never_served_from_the_cache():
 
 
 def test_without_cache_moving_bodies_moving_uav_bodies_run_sionnas_loop_every_step():
-    cached = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True, cache_moving_bodies=False), seed=5)
-    plain = RadioScene(RadioConfig(**{**SETTINGS, "uav_mesh": True, "shoot_cache": False}), seed=5)
+    cached = RadioScene(with_raytracing(RadioConfig, **SETTINGS, uav_mesh=True, cache_moving_bodies=False), seed=5)
+    plain = RadioScene(with_raytracing(RadioConfig, **{**SETTINGS, "uav_mesh": True, "shoot_cache": False}), seed=5)
     for shift in (0.0, 2.5, 5.0):
         for radio in (cached, plain):
             radio.place({"u": RECEIVERS["a"] + [shift, 0.0, 0.0]})
@@ -112,8 +114,8 @@ def test_moving_uav_bodies_are_served_from_the_cache_and_keep_sionnas_paths():
     a new geometry) finds: the same line-of-sight flag, at least its paths, its path gain
     or more (the rays aimed at the bodies find body reflections Sionna's sparse rays miss:
     at 3e4 rays a 2 m body 200 m away is hit by about one ray)."""
-    cached = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True), seed=5)
-    plain = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True, cache_moving_bodies=False), seed=5)
+    cached = RadioScene(with_raytracing(RadioConfig, **SETTINGS, uav_mesh=True), seed=5)
+    plain = RadioScene(with_raytracing(RadioConfig, **SETTINGS, uav_mesh=True, cache_moving_bodies=False), seed=5)
     more, same_pair, links = 0, 0, 0
     times = (0.0, 30.0, 60.0, 90.0, 120.0)
     for t in times:
@@ -136,8 +138,9 @@ def test_a_body_under_the_receiver_reflects_where_the_geometry_says():
     tx = np.array([0.0, 0.0, 30.0])
     settings = dict(scene="empty", tx_position=tx.tolist(), tx_array=[1, 1], rx_array=[1, 1], pattern="iso",
                     max_depth=2, threads=1, uav_mesh=True, diffraction=False, shoot_cache=True)
-    cached = RadioScene(RadioConfig(**settings, samples_per_src=10_000), seed=2)
-    dense = RadioScene(RadioConfig(**{**settings, "samples_per_src": 1_000_000, "shoot_cache": False}), seed=2)
+    cached = RadioScene(with_raytracing(RadioConfig, **settings, samples_per_src=10_000), seed=2)
+    dense = RadioScene(with_raytracing(RadioConfig, **{**settings, "samples_per_src": 1_000_000,
+                                                       "shoot_cache": False}), seed=2)
     for x in (18.0, 19.0, 20.0):  # the body moves; the last solve is served from the cache
         uav = np.array([x, 0.0, 10.0])
         cached.place({"u": uav})
@@ -159,7 +162,7 @@ def test_a_body_under_the_receiver_reflects_where_the_geometry_says():
 
 
 def test_the_bodies_are_put_back_bit_for_bit_after_the_bounces_are_recorded():
-    radio = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True), seed=5)
+    radio = RadioScene(with_raytracing(RadioConfig, **SETTINGS, uav_mesh=True), seed=5)
     body = None
     for shift in (0.0, 2.5):
         radio.place({"u": RECEIVERS["a"] + [shift, 0.0, 0.0]})
@@ -209,7 +212,8 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
     from caviar_plugins.rt.scatterers import Body, ScattererPool
 
     def with_pool(**kw):
-        radio = RadioScene(RadioConfig(**SETTINGS, uav_mesh=False, rays_per_moving_object=512, **kw), seed=5)
+        radio = RadioScene(with_raytracing(RadioConfig, **SETTINGS, uav_mesh=False, rays_per_moving_object=512,
+                                           **kw), seed=5)
         metal = radio.rt.ITURadioMaterial("car-metal", "metal", thickness=0.01)
         pool = ScattererPool(radio.scene, {"vehicle": 4}, {"vehicle": metal}, prefix="cars")
         radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
@@ -247,7 +251,7 @@ def test_the_box_prefilter_finds_every_recorded_ray_that_now_meets_a_moving_obje
     from caviar_plugins.rt.scene import on_shapes, shape_table
     from caviar_plugins.rt.shoot_cache.movers import boxes_scene, met_by_movers
 
-    radio = RadioScene(RadioConfig(**SETTINGS, uav_mesh=True, rays_per_moving_object=64), seed=5)
+    radio = RadioScene(with_raytracing(RadioConfig, **SETTINGS, uav_mesh=True, rays_per_moving_object=64), seed=5)
     metal = radio.rt.ITURadioMaterial("car-metal", "metal", thickness=0.01)
     pool = ScattererPool(radio.scene, {"vehicle": 3}, {"vehicle": metal}, prefix="cars")
     radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
@@ -288,7 +292,7 @@ def test_the_one_loop_bounce_records_what_the_per_depth_bounce_records():
     from caviar_plugins.rt.shoot_cache.shoot import bounce, bounce_in_one_loop, first_rays
 
     radio = scene(True, samples_per_src=4000, max_depth=3)
-    c = radio.cfg
+    c = radio.cfg.raytracing
     gen = radio.shoot_cache.generator  # (Sionna's own generator, which the cache stands in for)
     source = radio.scene.sources(True, False)[0]
     flags = (c.specular_reflection, c.diffuse_reflection, c.refraction, c.diffraction, False)
@@ -312,7 +316,7 @@ def test_the_one_loop_bounce_records_what_the_per_depth_bounce_records():
 
 def test_a_negative_ray_count_for_moving_objects_is_refused_by_name():
     with pytest.raises(ValueError, match=r"rays_per_moving_object: expected >= 0 .*got -1"):
-        RadioConfig(rays_per_moving_object=-1)
+        with_raytracing(RadioConfig, rays_per_moving_object=-1)
 
 
 def test_sionnas_own_first_rays_that_meet_a_moving_body_are_those_a_slab_test_finds():
@@ -328,7 +332,7 @@ def test_sionnas_own_first_rays_that_meet_a_moving_body_are_those_a_slab_test_fi
     settings = dict(scene="empty", tx_position=tx.tolist(), tx_array=[1, 1], rx_array=[1, 1], pattern="iso",
                     max_depth=2, threads=1, uav_mesh=True, diffraction=False, rays_per_moving_object=0,
                     shoot_cache=True)
-    radio = RadioScene(RadioConfig(**settings, samples_per_src=100_000), seed=2)
+    radio = RadioScene(with_raytracing(RadioConfig, **settings, samples_per_src=100_000), seed=2)
     for x in (18.0, 20.0):  # the second solve records the bounces
         uav = np.array([x, 0.0, 10.0])
         radio.place({"u": uav})
@@ -352,7 +356,8 @@ def test_sionnas_own_first_rays_that_meet_a_moving_body_are_those_a_slab_test_fi
     assert slab(found, lo - 0.01, hi + 0.01).all()  # nothing off the box
     assert len(found) >= len(inner)  # and every ray well inside it
     assert {tuple(np.round(d, 6)) for d in inner} <= {tuple(np.round(d, 6)) for d in found}
-    plain = RadioScene(RadioConfig(**settings, samples_per_src=100_000, cache_moving_bodies=False), seed=2)
+    plain = RadioScene(with_raytracing(RadioConfig, **settings, samples_per_src=100_000, cache_moving_bodies=False),
+                       seed=2)
     plain.place({"u": uav})
     ref = plain.solve()["u"]
     assert got.n_paths == ref.n_paths == 2  # the line of sight and the top's reflection
@@ -373,7 +378,8 @@ def test_targets_behind_a_reflecting_plane_go_untested_and_the_paths_stay(monkey
         return visibility(mi_scene, rec, tgt, rays, targets)
 
     monkeypatch.setattr(connect, "visibility", counting)
-    radio = RadioScene(RadioConfig(samples_per_src=1_000_000, uav_mesh=False, threads=1, shoot_cache=True), seed=0)
+    radio = RadioScene(with_raytracing(RadioConfig, samples_per_src=1_000_000, uav_mesh=False, threads=1,
+                                       shoot_cache=True), seed=0)
     # 30 receivers along the SAR route, as look-ahead places 10 UAVs: there, a path that
     # diffracts and then reflects on a face of the diffracting edge is lost if the side is
     # taken from the recorded ray (the first version of the cull lost one at u3, 0.5 m on).
@@ -476,8 +482,8 @@ def test_the_default_turns_the_cache_on_for_the_cpu_and_off_on_cuda():
 
     on_cpu = not str(mi.variant()).startswith("cuda")
     assert use_shoot_cache("auto") is on_cpu
-    default = RadioScene(RadioConfig(scene="empty", samples_per_src=100, uav_mesh=False))
+    default = RadioScene(with_raytracing(RadioConfig, scene="empty", samples_per_src=100, uav_mesh=False))
     assert (default.shoot_cache is not None) is on_cpu
     for bad in ("yes", 1, None):
         with pytest.raises(ValueError, match=r'shoot_cache: expected true, false or "auto"'):
-            RadioConfig(shoot_cache=bad)
+            with_raytracing(RadioConfig, shoot_cache=bad)

@@ -14,6 +14,7 @@ from caviar_plugins import DATA
 from caviar_plugins.mobility import Path, read_waypoints
 from caviar_plugins.radio import RadioConfig, RadioScene
 from caviar_plugins.rt import sionna_adapter as internals
+from caviar_plugins.rt.settings import with_raytracing
 
 PLUGINS = pathlib.Path(__file__).resolve().parents[1] / "plugins" / "caviar_plugins"
 RECEIVERS = {"a": np.array([30.0, 5.0, 10.0]), "b": np.array([-40.0, 5.0, 12.0])}  # free space
@@ -69,13 +70,13 @@ def test_a_reordered_argument_is_caught(monkeypatch):
 
 def test_without_the_internals_the_scene_warns_and_sionnas_loop_finds_the_same_links(monkeypatch):
     cfg = dict(scene="central_park", samples_per_src=20_000, max_depth=2, threads=1, uav_mesh=False)
-    plain = RadioScene(RadioConfig(**cfg, shoot_cache=False), seed=3)
+    plain = RadioScene(with_raytracing(RadioConfig, **cfg, shoot_cache=False), seed=3)
     plain.place(ON_ROUTE)
     ref = plain.solve()
     monkeypatch.setattr(internals, "PROBLEM", "sionna-rt 9.9.0 is installed; checked against 2.2.x only")
     with pytest.warns(RuntimeWarning, match=r"9\.9\.0.*Sionna's own shoot-and-bounce runs \(shoot_cache = true "
                                             r"ignored\).*not reported"):
-        fallback = RadioScene(RadioConfig(**cfg, shoot_cache=True), seed=3)
+        fallback = RadioScene(with_raytracing(RadioConfig, **cfg, shoot_cache=True), seed=3)
     assert fallback.shoot_cache is None
     for shift in (0.0, 1.0, 0.0):  # the same geometry again: a cache would have served it
         fallback.place({k: p + [shift, 0, 0] for k, p in ON_ROUTE.items()})
@@ -86,7 +87,8 @@ def test_without_the_internals_the_scene_warns_and_sionnas_loop_finds_the_same_l
 
 
 def test_forced_solve_traces_again_and_keeps_its_paths():
-    radio = RadioScene(RadioConfig(scene="empty", samples_per_src=1000, max_depth=1, threads=1, uav_mesh=False,
+    radio = RadioScene(with_raytracing(RadioConfig, scene="empty", samples_per_src=1000, max_depth=1, threads=1,
+                                       uav_mesh=False,
                                    shoot_cache=False), seed=1)
     assert radio.last_paths is None
     radio.place(RECEIVERS)

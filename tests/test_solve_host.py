@@ -11,6 +11,7 @@ configure_drjit()
 
 from caviar_plugins.radio import RadioConfig, RadioScene  # noqa: E402
 from caviar_plugins.rt import scene as rt_scene  # noqa: E402
+from caviar_plugins.rt.settings import with_raytracing  # noqa: E402
 from caviar_plugins.rt.solver import carrier_channels  # noqa: E402
 
 FAST = dict(samples_per_src=20_000, max_depth=3, threads=1, shoot_cache=False)
@@ -19,7 +20,7 @@ UAVS = {"a": np.array([-60.0, 20.0, 30.0]), "b": np.array([-20.0, 40.0, 25.0]), 
 
 @pytest.fixture(scope="module")
 def solved():
-    radio = RadioScene(RadioConfig(**FAST, uav_mesh=False), seed=2)
+    radio = RadioScene(with_raytracing(RadioConfig, **FAST, uav_mesh=False), seed=2)
     radio.place(UAVS)
     return radio, radio.solve()
 
@@ -47,13 +48,14 @@ def test_the_carrier_channel_is_sionnas_cfr(solved):
 
 def test_a_receivers_channel_does_not_depend_on_the_others(solved):
     _, links = solved
-    alone = RadioScene(RadioConfig(**FAST, uav_mesh=False), seed=2)
+    alone = RadioScene(with_raytracing(RadioConfig, **FAST, uav_mesh=False), seed=2)
     alone.place({"b": UAVS["b"]})
     np.testing.assert_array_equal(alone.solve()["b"].h, links["b"].h)
 
 
 def test_no_paths_give_a_zero_channel():
-    radio = RadioScene(RadioConfig(scene="empty", samples_per_src=1000, max_depth=1, threads=1, uav_mesh=False,
+    radio = RadioScene(with_raytracing(RadioConfig, scene="empty", samples_per_src=1000, max_depth=1, threads=1,
+                                       uav_mesh=False,
                                    shoot_cache=False, los=False), seed=1)
     radio.place({"a": UAVS["a"]})
     link = radio.solve()["a"]
@@ -61,7 +63,7 @@ def test_no_paths_give_a_zero_channel():
 
 
 def test_moved_bodies_share_one_geometry_update(monkeypatch):
-    radio = RadioScene(RadioConfig(**FAST, uav_mesh=True), seed=2)
+    radio = RadioScene(with_raytracing(RadioConfig, **FAST, uav_mesh=True), seed=2)
     radio.place(UAVS)
     updates = []
     changed = rt_scene.geometry_changed

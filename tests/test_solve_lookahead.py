@@ -14,6 +14,7 @@ from caviar_plugins.mobility import Path, read_waypoints  # noqa: E402
 from caviar_plugins.radio import RadioConfig, RadioScene, SionnaLinkParams  # noqa: E402
 from caviar_plugins.radio.scene import LookaheadTracer, lookahead_depth  # noqa: E402
 from caviar_plugins.rt.scene import OUT_OF_THE_WAY_M  # noqa: E402
+from caviar_plugins.rt.settings import with_raytracing  # noqa: E402
 
 FAST = dict(samples_per_src=20_000, max_depth=3, uav_mesh=True, threads=1)
 ROUTE = Path(read_waypoints(DATA / "central_park_path0_scene.csv"))
@@ -25,7 +26,7 @@ measured up to 0.30 dB (one path fewer) on the SAR route at 2e4 samples."""
 
 
 def step_by_step(points) -> list:
-    radio = RadioScene(RadioConfig(**FAST), seed=3)
+    radio = RadioScene(with_raytracing(RadioConfig, **FAST), seed=3)
     out = []
     for p in points:
         radio.place({"uav1": p})
@@ -36,7 +37,7 @@ def step_by_step(points) -> list:
 @pytest.mark.parametrize("start", [10.0, 60.0])
 def test_lookahead_with_uav_bodies_agrees_with_step_by_step(start):
     points = [ROUTE.at(start + 2.5 * k) for k in range(5)]  # 5 m/s, Ts = 0.5 s
-    tracer = LookaheadTracer(RadioScene(RadioConfig(**FAST), seed=3), steps=4)
+    tracer = LookaheadTracer(RadioScene(with_raytracing(RadioConfig, **FAST), seed=3), steps=4)
     ahead = [tracer.links({"uav1": points[0]}, {"uav1": points[1:]})["uav1"]]
     ahead += [tracer.links({"uav1": p}, {})["uav1"] for p in points[1:]]
     assert tracer.solves == 1 and tracer.hits == 4
@@ -49,7 +50,7 @@ def test_lookahead_with_uav_bodies_agrees_with_step_by_step(start):
 
 def test_a_hovering_uav_parks_its_extra_bodies_and_matches_step_by_step():
     p = ROUTE.at(60.0)
-    radio = RadioScene(RadioConfig(**FAST), seed=3)
+    radio = RadioScene(with_raytracing(RadioConfig, **FAST), seed=3)
     tracer = LookaheadTracer(radio, steps=3)
     link = tracer.links({"uav1": p}, {"uav1": [p, p, p]})["uav1"]
     z = [float(np.array(radio.bodies[f"uav1@{k}"].position).ravel()[2]) for k in range(4)]
@@ -94,7 +95,7 @@ def test_lookahead_with_uav_bodies_is_deterministic():
     points = [ROUTE.at(100.0 + 2.5 * k) for k in range(3)]
     runs = []
     for _ in range(2):
-        tracer = LookaheadTracer(RadioScene(RadioConfig(**FAST), seed=5), steps=2)
+        tracer = LookaheadTracer(RadioScene(with_raytracing(RadioConfig, **FAST), seed=5), steps=2)
         runs.append([tracer.links({"uav1": points[0]}, {"uav1": points[1:]})["uav1"]] +
                     [tracer.links({"uav1": p}, {})["uav1"] for p in points[1:]])
     for a, b in zip(*runs, strict=True):
@@ -107,7 +108,8 @@ def test_lookahead_with_uav_bodies_resumes_to_the_same_messages(tmp_path, cli):
     traces and slots are in the checkpoint, the parked bodies come back on its next solve."""
     from test_resume_plugins import BLUEPRINTS, _resumes_to_the_reference
 
-    sets = ["--set", "modules.comm.params.samples_per_src=10000", "--set", "modules.comm.params.threads=1",
+    sets = ["--set", "modules.comm.params.raytracing.samples_per_src=10000", "--set",
+            "modules.comm.params.raytracing.threads=1",
             "--set", "modules.comm.params.uav_mesh=true", "--set", "modules.comm.params.lookahead=true",
             "--set", "modules.comm.params.lookahead_steps=2", "--set", "modules.uav.params.forecast_steps=2"]
     log = _resumes_to_the_reference(tmp_path, cli, BLUEPRINTS / "raytraced" / "config.toml", sets, 5, every=3,

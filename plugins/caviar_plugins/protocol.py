@@ -41,8 +41,9 @@ PAPER_INTERFERENCE_W = 10 ** (100 / 10)
 """``interference_power_dBW = 100`` (sign error in the 2023 code)."""
 PAPER_SNR_DIVISOR = (PAPER_NOISE_W * 1e3) * (PAPER_INTERFERENCE_W * 1e3)
 """SNR = |g|² / (N_mW · I_mW) = |g|² / 3248.11 (a product of powers: B4, kept)."""
-PAPER_LINK = {"spacing": PAPER_SPACING, "los": False, "diffuse_reflection": False, "refraction": False,
-              "specular_reflection": True, "diffraction": True, "codebook": "flat-dft", "normalize": True,
+PAPER_LINK = {"spacing": PAPER_SPACING, "raytracing.los": False, "raytracing.diffuse_reflection": False,
+              "raytracing.refraction": False, "raytracing.specular_reflection": True, "raytracing.diffraction": True,
+              "codebook": "flat-dft", "normalize": True,
               "antenna_offset": list(PAPER_RX_OFFSET), "rx_orientation": list(PAPER_RX_ORIENTATION),
               "uav_mesh": True, "bandwidth_hz": PAPER_BANDWIDTH_HZ}
 """What ``protocol = "paper"`` sets of sionna-link's parameters: the 2023 code's link (LOS

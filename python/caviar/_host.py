@@ -159,21 +159,69 @@ def _rows_of(hint: Any) -> Any:
     return None
 
 
-def _build(schema: Any, params: dict[str, Any], path: str, owner: str) -> Any:
+def _example(new_key: str, value: Any) -> str:
+    """``table = { key = value }`` for a moved key's message (TOML-like)."""
+    *tables, key = new_key.split(".")
+    text = json.dumps(value) if isinstance(value, (bool, int, float, str)) else repr(value)
+    text = text.lower() if isinstance(value, bool) else text
+    for table in reversed(tables):
+        text = f"{{ {key} = {text} }}"
+        key = table
+    return f"{key} = {text}"
+
+
+def _default_of(field: dataclasses.Field) -> Any:
+    """A field's default value (made by its factory), or MISSING."""
+    if field.default is not dataclasses.MISSING:
+        return field.default
+    if field.default_factory is not dataclasses.MISSING:
+        return field.default_factory()
+    return dataclasses.MISSING
+
+
+def _key_paths(params: dict[str, Any], prefix: str = "") -> list[str]:
+    """Every key a table wrote, those of its nested tables as dotted paths (``raytracing.los``)."""
+    keys = []
+    for key, value in params.items():
+        keys.append(prefix + key)
+        if isinstance(value, dict):
+            keys += _key_paths(value, f"{prefix}{key}.")
+    return keys
+
+
+def _build(schema: Any, params: dict[str, Any], path: str, owner: str, base: Any = None,
+           moved_here: dict[str, str] | None = None) -> Any:
     """``schema(**params)`` with every key, type and nested table checked; errors name
-    ``path.key`` (``path`` is ``params`` or the key path of a nested table)."""
+    ``path.key`` (``path`` is ``params`` or the key path of a nested table). A nested table
+    starts from its field's default (``base``: the plugin's defaults for the keys the
+    configuration leaves out). A key the schema lists in its ``moved`` mapping (a class
+    attribute: old key -> new key path within the same table; a dotted old key names a key of
+    a nested table; ``moved_here`` holds those of the tables above, their new keys in full) is
+    refused with the new key named in full."""
     hints = typing.get_type_hints(schema)
     fields = {f.name: f for f in dataclasses.fields(schema) if f.init}
     values: dict[str, Any] = {}
+    if base is not None:
+        values = {name: getattr(base, name) for name in fields if hasattr(base, name)}
+    here = path.partition(".")[2]  # (this table's key path within params: "" at the top)
+    moved: dict[str, str] = {old: f"{here}.{new}" if here else new
+                             for old, new in (getattr(schema, "moved", None) or {}).items()}
+    moved.update(moved_here or {})  # (the tables above name their new keys in full)
     for key, value in params.items():
         where = f"{path}.{key}"
         if key not in fields:
+            if key in moved:
+                raise ConfigError(f"'{key}' has moved: write it as {moved[key]} (for example "
+                                  f"{_example(moved[key], value)})", where)
             raise ConfigError(f"unknown parameter '{key}' of {owner}, expected one of: "
                               f"{', '.join(fields) or 'none'}", where)
         hint = hints.get(key, Any)
         table = _table_of(hint)
         if table is not None and isinstance(value, dict):
-            values[key] = _build(table, value, where, f"{owner}.{key}")
+            default = _default_of(fields[key])
+            inner = {old[len(key) + 1:]: new for old, new in moved.items() if old.startswith(f"{key}.")}
+            values[key] = _build(table, value, where, f"{owner}.{key}",
+                                 base=default if isinstance(default, table) else None, moved_here=inner)
             continue
         rows = _rows_of(hint)
         if rows is not None and isinstance(value, list):  # an array of tables, each checked
@@ -190,7 +238,7 @@ def _build(schema: Any, params: dict[str, Any], path: str, owner: str) -> Any:
     if missing:
         raise ConfigError(f"missing required parameter(s) of {owner}: {', '.join(missing)}", path)
     try:
-        with building(params):  # (what the configuration wrote: caviar.given_keys())
+        with building(_key_paths(params)):  # (what the configuration wrote: caviar.given_keys())
             return schema(**values)
     except (TypeError, ValueError) as e:  # __post_init__ checks of the plugin
         raise _keyed(e, fields, path) from None

@@ -218,18 +218,41 @@ def apply_preset(params: Any, preset: typing.Mapping[str, Any], name: str) -> No
     """Sets the fields of a ``Params`` dataclass that a preset fixes (``protocol = "paper"``)
     and refuses, naming the key, one that the configuration set to another value: a preset
     never overrides what a user wrote. Built in Python code (no configuration), a field
-    that differs from both its default and the preset's value is refused likewise."""
+    that differs from both its default and the preset's value is refused likewise. A key
+    may be a dotted path into a nested table (``raytracing.los``; a frozen table is
+    replaced by a copy)."""
     given = given_keys()
-    defaults = {f.name: f.default if f.default is not dataclasses.MISSING else
-                (f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
-                for f in dataclasses.fields(params)}
     for key, value in preset.items():
-        current = getattr(params, key)
-        set_by_user = key in given if given is not None else current != defaults.get(key)
+        *tables, field = key.split(".")
+        owner, chain = params, []
+        for table in tables:
+            chain.append((owner, table))
+            owner = getattr(owner, table)
+        default = _field_default(type(owner), field)
+        current = getattr(owner, field)
+        set_by_user = key in given if given is not None else current != default
         if set_by_user and current != value:
             raise ValueError(f"{key}: {name} sets it to {value!r}; the configuration gives {current!r} "
                              f"(remove the key, or choose another preset)")
-        setattr(params, key, list(value) if isinstance(value, list) else value)
+        value = list(value) if isinstance(value, list) else value
+        if not tables:
+            setattr(params, field, value)
+            continue
+        updated = dataclasses.replace(owner, **{field: value})
+        for parent, table in reversed(chain):
+            if parent is params:
+                setattr(params, table, updated)
+            else:
+                updated = dataclasses.replace(parent, **{table: updated})
+
+
+def _field_default(cls: Any, name: str) -> Any:
+    for f in dataclasses.fields(cls):
+        if f.name == name:
+            if f.default is not dataclasses.MISSING:
+                return f.default
+            return f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+    return None
 
 
 class Plugin:

@@ -19,15 +19,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 import caviar
 from caviar_plugins.lidar.sensor import COLUMNS, Caster, LidarSettings
-from caviar_plugins.rt.drjit_setup import configure_drjit, set_thread_count
 from caviar_plugins.rt.scatterers import Body, ScattererPool
-from caviar_plugins.rt.scene import load_scene
+from caviar_plugins.rt.scene import build_scene, itu_material
+from caviar_plugins.rt.settings import TraceSettings, moved_keys
 from caviar_plugins.schema import ARRIVED, LIDAR, POSITIONS, VIEW_LIDAR, every_ue, per_ue, read_position
 
 SWEEP = "sweep"
@@ -55,15 +55,26 @@ class Lidar(caviar.Plugin):
         """The other UEs as boxes in the scene (vehicles, persons, UAVs)."""
         uav_body_m: tuple[float, float, float] = (1.0, 1.0, 0.4)
         """Length, width and height of a UAV's box, centred on its position."""
-        threads: int = 0
-        """Dr.Jit CPU threads; 0 = all cores."""
+        raytracing: TraceSettings = dataclasses.field(default_factory=TraceSettings)
+        """The ray tracer's settings (:class:`~caviar_plugins.rt.settings.TraceSettings`); a
+        LiDAR casts one ray per beam (``sensor``), so only ``threads`` (Dr.Jit CPU threads,
+        0 = all cores) applies."""
         save_every: int = 0
         """Also save every N-th sweep as an ``.npz`` artifact (points, columns, objects, origin, time; 0: none)."""
         view_points: int = 0
         """Draw each step's last sweep in the browser view (``view.lidar``), thinned to this
         many points, coloured by what they hit (0: not drawn)."""
 
+        moved: ClassVar[dict[str, str]] = moved_keys("threads")
+
         def __post_init__(self):
+            given = caviar.given_keys()
+            unused = [f"raytracing.{f.name}" for f in dataclasses.fields(TraceSettings) if f.name != "threads"
+                      and (f"raytracing.{f.name}" in given if given is not None
+                           else getattr(self.raytracing, f.name) != f.default)]
+            if unused:
+                raise ValueError(f"{unused[0]}: a LiDAR casts one ray per beam (see sensor); of raytracing only "
+                                 f"threads applies")
             for key in ("save_every", "view_points"):
                 v = getattr(self, key)
                 if isinstance(v, bool) or not isinstance(v, int) or v < 0:
@@ -74,17 +85,14 @@ class Lidar(caviar.Plugin):
                 raise ValueError(f"uav_body_m: expected [length, width, height] > 0 in metres, got {self.uav_body_m!r}")
 
     def setup(self, ctx):
-        configure_drjit()
-        set_thread_count(ctx.params.threads)
-        import sionna.rt as rt
-
         self.ctx = ctx
         p = self.p = ctx.params
-        self.scene = load_scene(p.scene, ctx.config_dir, merge_shapes=False)  # (objects by name)
+        self.scene = build_scene(p.scene, ctx.config_dir, threads=p.raytracing.threads,
+                                 merge_shapes=False)  # (objects by name)
         self.pool = ScattererPool(self.scene, {"vehicle": 8, "person": 8, "uav": 2}, {
-            "vehicle": rt.ITURadioMaterial("lidar-vehicle", "metal", thickness=0.01),
-            "person": rt.ITURadioMaterial("lidar-person", "wood", thickness=0.2),
-            "uav": rt.ITURadioMaterial("lidar-uav", "metal", thickness=0.01),
+            "vehicle": itu_material("lidar-vehicle", "metal", thickness=0.01),
+            "person": itu_material("lidar-person", "wood", thickness=0.2),
+            "uav": itu_material("lidar-uav", "metal", thickness=0.01),
         }, prefix="lidar")
         self.caster = Caster(self.scene, p.sensor, [self.pool])
         self.step_s = ctx.ts * ctx.every

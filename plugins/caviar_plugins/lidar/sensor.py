@@ -24,7 +24,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from caviar_plugins.rt.drjit_setup import aligned_array, jit
+from caviar_plugins.rt.scene import surface_hits
 
 REFLECTIVITY = {"concrete": 0.35, "brick": 0.3, "plasterboard": 0.6, "wood": 0.4, "glass": 0.05,
                 "ceiling_board": 0.6, "chipboard": 0.4, "plywood": 0.4, "marble": 0.5, "floorboard": 0.4,
@@ -146,24 +146,12 @@ class Caster:
 
     def cast(self, origins: np.ndarray, rng: np.random.Generator) -> Sweep:
         """A sweep fired from ``origins``: (columns, 3), where the sensor is at each column."""
-        dr, mi = jit()
         s = self.s
         n_ch = s.channels
         o = np.repeat(np.asarray(origins, dtype=np.float32), n_ch, axis=0)
         d = self.directions.astype(np.float32)
-        ray = mi.Ray3f(mi.Point3f(*(aligned_array(mi.Float, np.ascontiguousarray(o[:, k])) for k in range(3))),
-                       mi.Vector3f(*(aligned_array(mi.Float, np.ascontiguousarray(d[:, k])) for k in range(3))))
-        ray.maxt = mi.Float(float(s.max_range_m))
-        si = self.scene.mi_scene.ray_intersect(ray, mi.RayFlags.Minimal, True)
-        hit = si.is_valid()
-        t = dr.select(hit, si.t, 0.0)
-        shape = dr.select(hit, dr.reinterpret_array(mi.UInt32, si.shape), 0)
-        n = si.n
-        dr.eval(t, shape, n, si.prim_index)
-        t_np, shape_np = np.array(t, dtype=float), np.array(shape, dtype=np.int64)
-        hit_np = np.array(hit, dtype=bool) & (t_np >= s.min_range_m)
-        normal = np.stack([np.array(n.x), np.array(n.y), np.array(n.z)], -1)
-        prim = np.array(si.prim_index, dtype=np.int64)
+        hit, t_np, shape_np, normal, prim = surface_hits(self.scene, o, d, s.max_range_m)
+        hit_np = hit & (t_np >= s.min_range_m)
         cosine = np.abs(np.einsum("ij,ij->i", normal, d))
         if s.range_noise_m > 0:
             t_np = t_np + rng.normal(0.0, s.range_noise_m, t_np.shape)

@@ -101,13 +101,17 @@ class LayoutSettings:
 
 
 def site_positions(layout: LayoutSettings) -> np.ndarray:
-    """The sites' (x, y) in metres, [num_sites, 2], in Sionna's order (centre first)."""
+    """The sites' (x, y) in metres, [num_sites, 2], in Sionna's order (centre first). (Sionna
+    drops a UE per sector on the way: under a seed of its own, Sionna's random state put back.)"""
     from sionna.sys import gen_tr38901_multicell_topology
 
-    _, xy = gen_tr38901_multicell_topology(
-        "uma", batch_size=1, num_ut_per_sector=1, carrier_frequency=6e9, num_rings=layout.rings,
-        use_3gpp_calibration_defaults=False, isd=float(layout.isd_m), bs_height=float(layout.height_m),
-        min_bs_ut_dist=0.0, indoor_probability=0.0, return_site_positions=True)
+    from caviar_plugins.rt.sionna_adapter import seeded
+
+    with seeded(0):
+        _, xy = gen_tr38901_multicell_topology(
+            "uma", batch_size=1, num_ut_per_sector=1, carrier_frequency=6e9, num_rings=layout.rings,
+            use_3gpp_calibration_defaults=False, isd=float(layout.isd_m), bs_height=float(layout.height_m),
+            min_bs_ut_dist=0.0, indoor_probability=0.0, return_site_positions=True)
     return xy.detach().cpu().double().numpy() + np.array(layout.center_m)
 
 
@@ -156,16 +160,47 @@ class Drop:
     distance_2d_in: np.ndarray
 
 
-def drop_ues(layout: LayoutSettings, scenario: str, carrier_hz: float) -> Drop:
-    """One drop of ``ues_per_sector`` UEs in every sector (Sionna's random state: the
-    caller seeds it). UE ``k`` is in sector ``k // ues_per_sector`` (site-major)."""
+MAX_REDROPS = 50
+"""Fresh drops a ray-traced layout tries for a UE that fell under a roof."""
+
+
+def drop_outdoors(layout: LayoutSettings, scenario: str, carrier_hz: float, seed: int,
+                  outdoors: Any = None, sectors: Any = ()) -> Drop:
+    """One drop (:func:`drop_ues`) drawn from ``seed``; with ``outdoors`` (whether points
+    [n, 3] stand under open sky: a scene's), a UE dropped under a roof is dropped again in
+    its sector (``sectors``: their names, for the error) until it is outdoors, uniform over
+    the sector's open ground, at most :data:`MAX_REDROPS` times."""
+    drop = drop_ues(layout, scenario, carrier_hz, seed)
+    if outdoors is None:
+        return drop
+    inside = ~outdoors(drop.positions)
+    for again in range(1, MAX_REDROPS + 1):
+        if not inside.any():
+            break
+        more = drop_ues(layout, scenario, carrier_hz, seed + 7_919 * again).positions  # (the same sectors, k by k)
+        drop.positions[inside] = more[inside]
+        inside[inside] = ~outdoors(more[inside])
+    if inside.any():
+        names = sorted({sectors[k // layout.ues_per_sector] for k in np.flatnonzero(inside)})
+        raise caviar.ConfigError(f"{MAX_REDROPS} drops found no open ground in sector(s) {', '.join(names)}: move "
+                                 f"the layout with layout.center_m", "params.layout.center_m")
+    return drop
+
+
+def drop_ues(layout: LayoutSettings, scenario: str, carrier_hz: float, seed: int) -> Drop:
+    """One drop of ``ues_per_sector`` UEs in every sector, drawn by Sionna from ``seed``
+    (its random state put back afterwards: :func:`~caviar_plugins.rt.sionna_adapter.seeded`).
+    UE ``k`` is in sector ``k // ues_per_sector`` (site-major)."""
     from sionna.sys import gen_tr38901_multicell_topology
 
-    topo = gen_tr38901_multicell_topology(
-        scenario, batch_size=1, num_ut_per_sector=layout.ues_per_sector, carrier_frequency=float(carrier_hz),
-        num_rings=layout.rings, use_3gpp_calibration_defaults=False, isd=float(layout.isd_m),
-        bs_height=float(layout.height_m), min_bs_ut_dist=float(layout.min_distance_m),
-        indoor_probability=float(layout.indoor_share))
+    from caviar_plugins.rt.sionna_adapter import seeded
+
+    with seeded(seed):
+        topo = gen_tr38901_multicell_topology(
+            scenario, batch_size=1, num_ut_per_sector=layout.ues_per_sector, carrier_frequency=float(carrier_hz),
+            num_rings=layout.rings, use_3gpp_calibration_defaults=False, isd=float(layout.isd_m),
+            bs_height=float(layout.height_m), min_bs_ut_dist=float(layout.min_distance_m),
+            indoor_probability=float(layout.indoor_share))
     ut_loc, in_state, d_in = topo[0], topo[5], topo[10]
     d_in = d_in.detach().cpu().double().numpy()[0]
     if d_in.ndim == 2:  # link-specific below 6 GHz ([cell, ut]): the home site's value

@@ -2,7 +2,8 @@
 
 Every cell is one transmitter with Sionna's ``tr38901`` element (the TR 38.901 sector
 pattern, 8 dBi, 65°, 30 dB, the model :mod:`~caviar_plugins.network.cells` computes),
-pointed at its azimuth and tilted down; one :class:`sionna.rt.RadioMapSolver` call
+pointed at its azimuth and tilted down; one call of Sionna's ``RadioMapSolver``
+(:func:`~caviar_plugins.rt.solver.radio_map`)
 gives every cell's path gain on a horizontal grid at UE height. From it, per grid cell:
 the RSRP of every cell, the best server, and the SINR on it with the other co-channel
 cells interfering (the same :func:`~caviar_plugins.network.cells.sinr_db` the UEs get).
@@ -15,18 +16,24 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
-from typing import Any, Sequence
+from typing import Any, ClassVar, Sequence
 
 import numpy as np
 
 from caviar_plugins.network.cells import Cell, rsrp_dbm, rx_power_dbm, sinr_db
-from caviar_plugins.rt.drjit_setup import configure_drjit
-from caviar_plugins.rt.scene import load_scene
+from caviar_plugins.rt.scene import AntennaArray, Emitter, build_scene
+from caviar_plugins.rt.settings import TraceSettings
+from caviar_plugins.rt.solver import radio_map
 
 NO_SIGNAL_DB = -250.0
 SINR_RANGE_DB = (-10.0, 40.0)
 """The colour scale of the SINR figure and layer (viridis)."""
 LAYER_FILE = "radio-map-layer.png"
+
+
+MAP_RAYS = TraceSettings(samples_per_src=200_000, max_depth=2, diffuse_reflection=False, diffraction=False)
+"""The map's ``raytracing`` defaults: Sionna's radio-map solver's own interactions (the
+line of sight, specular reflection and refraction), 2e5 rays per cell to depth 2."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,15 +42,19 @@ class RadioMapSettings:
     height_m: float = 1.5
     margin_m: float = 200.0
     """The map covers the sites' bounding box grown by this much."""
-    samples_per_tx: int = 200_000
-    max_depth: int = 2
+    raytracing: TraceSettings = dataclasses.field(default_factory=lambda: MAP_RAYS)
+    """The map's rays (:class:`~caviar_plugins.rt.settings.TraceSettings`; ``samples_per_src``
+    is per cell, Sionna's ``samples_per_tx``; the shoot cache and the path buffer do not
+    apply to a radio map)."""
+    moved: ClassVar[dict[str, str]] = {"samples_per_tx": "raytracing.samples_per_src",
+                                       "max_depth": "raytracing.max_depth"}
 
     def __post_init__(self):
-        for key in ("cell_size_m", "height_m", "samples_per_tx"):
+        for key in ("cell_size_m", "height_m"):
             if not getattr(self, key) > 0:
                 raise ValueError(f"{key}: expected a positive number, got {getattr(self, key)}")
-        if self.max_depth < 0 or self.margin_m < 0:
-            raise ValueError(f"{'max_depth' if self.max_depth < 0 else 'margin_m'}: expected >= 0")
+        if self.margin_m < 0:
+            raise ValueError(f"margin_m: expected >= 0, got {self.margin_m}")
 
 
 def best_server_map(cells: Sequence[Cell], settings: RadioMapSettings, scene: str, num_prb: int,
@@ -51,25 +62,15 @@ def best_server_map(cells: Sequence[Cell], settings: RadioMapSettings, scene: st
     """The map: grid centres ``x`` [nx] and ``y`` [ny], ``gain_db`` [cell, ny, nx] (path
     gain and pattern), ``rsrp_dbm`` [cell, ny, nx], ``best`` [ny, nx] (cell index, -1
     where no cell reaches) and ``sinr_db`` [ny, nx] on the best server (NaN where none)."""
-    configure_drjit()
-    import mitsuba as mi
-    import sionna.rt as rt
-
-    s = load_scene(scene, base_dir)
-    s.frequency = cells[0].carrier_hz
-    s.tx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="tr38901", polarization="V")
-    s.rx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
-    for c in cells:
-        s.add(rt.Transmitter(f"map-{c.index}", position=list(c.position),
-                             orientation=[float(np.radians(c.azimuth_deg)), float(np.radians(c.downtilt_deg)), 0.0]))
+    s = build_scene(scene, base_dir, frequency_hz=cells[0].carrier_hz, tx_array=AntennaArray(pattern="tr38901"),
+                    rx_array=AntennaArray(), threads=settings.raytracing.threads,
+                    transmitters=[Emitter(f"map-{c.index}", c.position,
+                                          (float(np.radians(c.azimuth_deg)), float(np.radians(c.downtilt_deg)), 0.0))
+                                  for c in cells])
     pos = np.array([c.position for c in cells])
     lo, hi = pos[:, :2].min(axis=0) - settings.margin_m, pos[:, :2].max(axis=0) + settings.margin_m
-    centre, size = (lo + hi) / 2, hi - lo
-    rm = rt.RadioMapSolver()(s, center=mi.Point3f(float(centre[0]), float(centre[1]), settings.height_m),
-                             orientation=mi.Point3f(0.0, 0.0, 0.0), size=mi.Point2f(float(size[0]), float(size[1])),
-                             cell_size=mi.Point2f(settings.cell_size_m, settings.cell_size_m),
-                             samples_per_tx=settings.samples_per_tx, max_depth=settings.max_depth,
-                             seed=int(seed) % (2**31))
+    rm = radio_map(s, settings.raytracing, seed, center=((lo + hi) / 2).tolist() + [settings.height_m],
+                   size=(hi - lo).tolist(), cell_size=[settings.cell_size_m, settings.cell_size_m])
     gain = np.array(rm.path_gain)  # [cell, ny, nx]
     grid = np.array(rm.cell_centers)  # [ny, nx, 3]
     n_cell, ny, nx = gain.shape

@@ -35,8 +35,8 @@ import numpy as np
 
 from caviar_plugins.constants import SPEED_OF_LIGHT
 from caviar_plugins.network.cells import Cell, pattern_gain_db
-from caviar_plugins.rt.drjit_setup import configure_drjit, set_thread_count
-from caviar_plugins.rt.scene import load_scene
+from caviar_plugins.rt.scene import AntennaArray, Emitter, build_scene, receiver
+from caviar_plugins.rt.settings import TraceSettings
 from caviar_plugins.torch_device import HOST, resolve, to_numpy, to_torch
 
 NO_PATH_DB = -250.0
@@ -44,50 +44,31 @@ NO_PATH_DB = -250.0
 EVOLUTIONS = ("doppler", "hold")
 
 
+NETWORK_RAYS = TraceSettings(samples_per_src=100_000, max_depth=3, diffuse_reflection=False, refraction=False)
+"""The network's ``raytracing`` defaults: 1e5 rays per site to depth 3, the line of sight,
+specular reflection and diffraction (every site in one solve, refreshed every second)."""
+
+
 @dataclasses.dataclass(frozen=True)
-class TraceSettings:
-    scene: str = "empty"
-    max_depth: int = 3
-    samples_per_src: int = 100_000
-    diffraction: bool = True
+class Evolution:
+    """How the ray-traced channel is kept between two traces (``evolution = { … }``)."""
+
     refresh_s: float = 1.0
     """Virtual seconds between two traces."""
-    evolve: str = "doppler"
+    mode: str = "doppler"
     """Between traces: ``doppler`` (each path's phase turns as the UE moves, at its
     Doppler shift, see :class:`TracedChannels`) or ``hold`` (the paths' power sum, frozen)."""
     paths_per_link: int = 16
     """The strongest paths kept per cell and UE for the evolution (the rest are weaker
     than the noise of the sum)."""
-    threads: int = 0
-    """Dr.Jit CPU threads; 0 = all cores. As sionna-link's ``threads``: ``1`` makes the
-    traces bit-identical from run to run (the parallel sums differ in the last bits)."""
-    shoot_cache: bool | str = "auto"
-    """The shoot cache of :class:`~caviar_plugins.rt.solver.PathTracer`, as sionna-link's: it
-    serves a trace whose scene and sites are those of the last one from the recorded bounces.
-    It covers one source per solve: with more than one site, Sionna's own loop runs.
-    ``"auto"``: on for the CPU, off on CUDA (:func:`~caviar_plugins.rt.solver.use_shoot_cache`)."""
-    max_num_paths_per_src: int = 1_000_000
-    """Sionna's candidate-path buffer per site; a trace that overflows it warns with the
-    number of candidates dropped."""
 
     def __post_init__(self):
-        if self.max_depth < 0:
-            raise ValueError(f"max_depth: expected >= 0, got {self.max_depth}")
-        if self.samples_per_src < 1:
-            raise ValueError(f"samples_per_src: expected >= 1, got {self.samples_per_src}")
         if not self.refresh_s > 0:
             raise ValueError(f"refresh_s: expected a positive number of seconds, got {self.refresh_s}")
-        if self.evolve not in EVOLUTIONS:
-            raise ValueError(f"evolve: expected one of {list(EVOLUTIONS)}, got {self.evolve!r}")
-        if self.paths_per_link < 1:
+        if self.mode not in EVOLUTIONS:
+            raise ValueError(f"mode: expected one of {list(EVOLUTIONS)}, got {self.mode!r}")
+        if isinstance(self.paths_per_link, bool) or self.paths_per_link < 1:
             raise ValueError(f"paths_per_link: expected >= 1, got {self.paths_per_link}")
-        if self.threads < 0:
-            raise ValueError(f"threads: expected 0 (all cores) or more, got {self.threads}")
-        if self.max_num_paths_per_src < 1:
-            raise ValueError(f"max_num_paths_per_src: expected >= 1, got {self.max_num_paths_per_src}")
-        from caviar_plugins.rt.solver import check_shoot_cache
-
-        check_shoot_cache(self.shoot_cache)
 
 
 @dataclasses.dataclass
@@ -159,31 +140,23 @@ class SiteTracer:
     :mod:`caviar_plugins.rt`: the scene from :func:`~caviar_plugins.rt.scene.load_scene`, the
     solves by a :class:`~caviar_plugins.rt.solver.PathTracer` (shoot cache, path-buffer watch)."""
 
-    def __init__(self, settings: TraceSettings, cells: Sequence[Cell], seed: int = 0,
-                 base_dir: pathlib.Path | None = None):
-        configure_drjit()
-        import sionna.rt as rt
-
+    def __init__(self, scene: str, settings: TraceSettings, cells: Sequence[Cell], seed: int = 0,
+                 base_dir: pathlib.Path | None = None, paths_per_link: int = 16):
         from caviar_plugins.rt.solver import PathTracer
 
-        set_thread_count(settings.threads)
-        self.rt, self.s, self.cells, self.seed = rt, settings, list(cells), int(seed) % (2**31)
-        self.scene = load_scene(settings.scene, base_dir)
+        self.s, self.cells, self.paths_per_link = settings, list(cells), paths_per_link
         carriers = {c.carrier_hz for c in cells}
         if len(carriers) > 1:
             raise ValueError("raytracing: every cell must share one carrier (one solve per carrier is not "
                              f"supported yet), got {sorted(carriers)}")
-        self.scene.frequency = carriers.pop()
-        iso = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
-        self.scene.tx_array, self.scene.rx_array = iso, iso
-        self.sites: list[str] = []
-        for c in self.cells:
-            if c.site not in self.sites:
-                self.sites.append(c.site)
-                self.scene.add(rt.Transmitter(f"site-{c.site}", position=list(c.position)))
+        self.sites: list[str] = list(dict.fromkeys(c.site for c in self.cells))
+        first = {c.site: c for c in reversed(self.cells)}  # (a site's position: its first cell's)
+        iso = AntennaArray()
+        self.scene = build_scene(scene, base_dir, frequency_hz=carriers.pop(), tx_array=iso, rx_array=iso,
+                                 transmitters=[Emitter(f"site-{site}", first[site].position) for site in self.sites],
+                                 threads=settings.threads)
         self.site_of = np.array([self.sites.index(c.site) for c in self.cells])
-        self.tracer = PathTracer(self.scene, shoot_cache=settings.shoot_cache,
-                                 max_num_paths_per_src=settings.max_num_paths_per_src)
+        self.tracer = PathTracer(self.scene, settings, seed=seed)
         self.receivers: list[str] = []
 
     def cache_seen(self) -> bool:
@@ -202,7 +175,7 @@ class SiteTracer:
         n = len(ues)
         while len(self.receivers) < n:
             name = f"ue-{len(self.receivers)}"
-            self.scene.add(self.rt.Receiver(name, position=[0.0, 0.0, 0.0]))
+            self.scene.add(receiver(name, [0.0, 0.0, 0.0]))
             self.receivers.append(name)
         while len(self.receivers) > n:
             self.scene.remove(self.receivers.pop())
@@ -218,17 +191,14 @@ class SiteTracer:
     def trace(self, ues: np.ndarray) -> TracedChannels:
         """Every cell's paths toward the UEs at ``ues`` [n_ue, 3], the strongest
         ``paths_per_link`` per cell and UE. One solve for every site."""
-        n_ue, n_cell, k = len(ues), len(self.cells), self.s.paths_per_link
+        n_ue, n_cell, k = len(ues), len(self.cells), self.paths_per_link
         carrier = float(self.scene.frequency[0])
         if n_ue == 0:
             z = np.zeros((0, n_cell, k))
             return TracedChannels(z.astype(complex), z, np.zeros((0, n_cell, k, 3)), np.zeros((0, 3)), carrier,
                                   np.zeros((0, n_cell)), np.zeros((0, n_cell, k, 3)))
         self._place(ues)
-        s = self.s
-        paths = self.tracer.solve(max_depth=s.max_depth, samples_per_src=s.samples_per_src, synthetic_array=True,
-                                  los=True, specular_reflection=True, diffuse_reflection=False, refraction=False,
-                                  diffraction=s.diffraction, seed=self.seed)
+        paths = self.tracer.solve()
         a_re, a_im = (np.array(x) for x in paths.a)  # [rx, rx_ant, tx, tx_ant, paths]
         a = (a_re + 1j * a_im)[:, 0, :, 0, :]  # [rx, tx, paths]
         shape = a.shape

@@ -19,6 +19,7 @@ Indoor UEs (the drop's) get the O2I loss of a low-loss or a high-loss building (
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -168,11 +169,17 @@ class StochasticChannel:
                  distance_2d_in: np.ndarray | None = None) -> np.ndarray:
         """Channel gains (dB: −pathloss − shadow fading + the cell's pattern) of every
         cell toward the UEs ``ids`` at ``pos`` [n, 3]: [n_ue, n_cell]. ``indoor`` and
-        ``distance_2d_in`` describe UEs seen for the first time (default: outdoor)."""
-        from sionna.phy import config as sionna_config
+        ``distance_2d_in`` describe UEs seen for the first time (default: outdoor). Each call
+        draws from a seed of its own (the run's and the call count: resumable), with Sionna's
+        random state put back afterwards (:func:`~caviar_plugins.rt.sionna_adapter.seeded`)."""
+        from caviar_plugins.rt.sionna_adapter import seeded
 
-        sionna_config.seed = (self.seed * 1_000_003 + 7919 * self.calls + 1) % 2**31
         self.calls += 1
+        with seeded(self.seed * 1_000_003 + 7919 * (self.calls - 1) + 1):
+            return self._gains_db(ids, pos, indoor, distance_2d_in)
+
+    def _gains_db(self, ids: list[str], pos: np.ndarray, indoor: np.ndarray | None,
+                  distance_2d_in: np.ndarray | None) -> np.ndarray:
         n = len(ids)
         indoor = np.zeros(n, bool) if indoor is None else np.asarray(indoor, bool)
         d_in = np.zeros(n) if distance_2d_in is None else np.asarray(distance_2d_in, float)
@@ -229,3 +236,33 @@ class StochasticChannel:
             out[:, k] = pattern_gain_db(c, theta, phi)
         return out
 
+
+class Tr38901Channel:
+    """The ``38.901-*`` channels on the network's side: :class:`StochasticChannel`'s
+    large-scale gains, flat in frequency, without path directions (no SSB beams)."""
+
+    directions = False
+    flat = True
+
+    def __init__(self, kind: str, scenario: str, cells: list[Cell], settings: StochasticSettings,
+                 wraparound: Wraparound | None = None, device: Any = None, seed: int = 0):
+        self.kind = kind
+        self.model = StochasticChannel(scenario, cells, settings, wraparound, device=device, seed=seed)
+
+    def gains_db(self, t: float, ues: Any) -> np.ndarray:
+        return self.model.gains_db(ues.ids, ues.positions, ues.indoor, ues.distance_2d_in)[..., None]
+
+    def beam_gains(self, ues: Any, codebooks: Any) -> np.ndarray:
+        raise ValueError(f"beams: the {self.kind} channel has no path directions")
+
+    def forget(self, ue: str) -> None:
+        self.model.forget(ue)
+
+    def outdoors(self, points: np.ndarray) -> np.ndarray:
+        return np.ones(len(points), dtype=bool)
+
+    def state(self) -> dict:
+        return self.model.snapshot()
+
+    def restore(self, state: dict) -> None:
+        self.model.restore(state)

@@ -171,13 +171,35 @@ class Queues:
         self.rng = np.random.default_rng([seed, 36872])
         self.queues: dict[tuple[str, str], list[Transfer]] = {}
         self.next_file: dict[tuple[str, str], float] = {}  # (UE, direction) -> next FTP arrival (s)
+        self.lost: list[Transfer] = []  # transfers of UEs that left, to report (:meth:`finished`)
 
     def state(self) -> dict[str, Any]:
-        return {"rng": self.rng.bit_generator.state, "queues": self.queues, "next_file": self.next_file}
+        return {"rng": self.rng.bit_generator.state, "queues": self.queues, "next_file": self.next_file,
+                "lost": self.lost}
 
     def restore(self, state: dict[str, Any]) -> None:
         self.rng.bit_generator.state = state["rng"]
-        self.queues, self.next_file = state["queues"], state["next_file"]
+        self.queues, self.next_file, self.lost = state["queues"], state["next_file"], state["lost"]
+
+    def step_backlog(self, t: float, ids: list[str], types: list[str], direction: str, slots: int, slot_s: float,
+                     scheduled: bool) -> tuple[Backlog | None, np.ndarray | None]:
+        """A step's :meth:`backlog` of ``ids`` in ``direction`` (None: every UE has a full
+        buffer) and, with ``scheduled`` interference, which UEs have any bits: the only ones
+        their cells transmit to or receive from ([ue] bool; None: all, as under full-buffer
+        interference)."""
+        if all(self.model(direction, k) == "full-buffer" for k in set(types)):
+            return None, None
+        backlog = self.backlog(t, ids, types, direction, slots, slot_s)
+        if not scheduled:
+            return backlog, None  # (every cell transmits, whatever its queues)
+        return backlog, (backlog.queued_bits > 0) | (backlog.arrivals_bits > 0).any(axis=0)
+
+    def finished(self, t: float, ids: list[str], direction: str, delivered_bits: np.ndarray,
+                 slot_s: float) -> list[tuple[Transfer, float | None]]:
+        """The transfers the UEs that left did not finish (done: None; once) and those the
+        step's delivered bits completed (:meth:`serve`), in that order."""
+        lost, self.lost = [(x, None) for x in self.lost], []
+        return lost + list(self.serve(t, ids, direction, delivered_bits, slot_s))
 
     def model(self, direction: str, ue_type: str | None = None) -> str:
         return self.s.model(direction, ue_type)
@@ -194,11 +216,13 @@ class Queues:
         queue.insert(at, x)
 
     def forget(self, ue: str) -> list[Transfer]:
-        """Drops a UE that left; returns the transfers it had not finished."""
+        """Drops a UE that left; returns the transfers it had not finished (and keeps them
+        for :meth:`finished` to report)."""
         left = []
         for d in DIRECTIONS:
             left += self.queues.pop((ue, d), [])
             self.next_file.pop((ue, d), None)
+        self.lost += left
         return left
 
     def backlog(self, t: float, ids: list[str], types: list[str], direction: str, slots: int,

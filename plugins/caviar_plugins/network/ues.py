@@ -163,3 +163,37 @@ def ue_reports(names: list[str], ids: list[str], types: list[str], serving: np.n
             report.update(summary[i])
         report.update(extras(i, c))
         yield NETWORK_UE, report
+
+
+def link_columns(per_slot: np.ndarray, serving: np.ndarray, cols: np.ndarray, slots: int):
+    """A link level's inputs on UE columns (stable across steps) from the step's UE rows:
+    SINR [slot, column, subband] over the step's ``slots`` (``per_slot`` [slot or 1, ue,
+    subband]: one row is every slot's), and the serving cell per column (-1: none)."""
+    sinr_cols = np.full((len(per_slot), int(cols.max()) + 1, per_slot.shape[2]), np.nan)
+    serving_cols = np.full(int(cols.max()) + 1, -1)
+    sinr_cols[:, cols], serving_cols[cols] = per_slot, serving
+    return np.broadcast_to(sinr_cols, (slots, *sinr_cols.shape[1:])), serving_cols
+
+
+def ue_extras(ids: list[str], types: list[str], serving: np.ndarray, ul: list[dict] | None,
+              beam_reports: list[list[dict]] | None, best_beams: np.ndarray | None, queues: Any,
+              directions: tuple[str, ...]) -> Callable[[int, bool], dict[str, Any]]:
+    """``extras(i, covered)``: UE ``i``'s ``network.ue`` fields beyond the downlink's, from the
+    step's arrays: its uplink's (``ul``: :func:`uplink_fields`), its best beam's on the serving
+    cell (``beam_reports[cell][beam]``, ``best_beams`` [ue, cell]) and its queues'."""
+    beams: list[dict] | None = None
+    if beam_reports is not None and best_beams is not None:
+        sv = np.maximum(serving, 0)
+        beams = [beam_reports[s][b] for s, b in
+                 zip(sv.tolist(), best_beams[np.arange(len(sv)), sv].tolist(), strict=True)]
+
+    def extras(i: int, covered: bool) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if ul is not None and covered:
+            out.update(ul[i])
+        if beams is not None and covered:
+            out.update(beams[i])
+        if queues is not None:
+            out.update(queues.report(ids[i], types[i], directions))
+        return out
+    return extras

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 from collections.abc import Callable, Collection, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -20,8 +20,18 @@ from caviar_plugins.assets import SCENES
 from caviar_plugins.radio.beams import beam_gains, dft_codebook, flat_dft_codebook
 from caviar_plugins.radio.link_report import line_of_sight_paths
 from caviar_plugins.radio.path_data import PathData, receiver_paths
-from caviar_plugins.rt.drjit_setup import configure_drjit, set_thread_count
-from caviar_plugins.rt.scene import OUT_OF_THE_WAY_M, MovingObjects, load_scene, move_objects
+from caviar_plugins.rt.scene import (
+    OUT_OF_THE_WAY_M,
+    AntennaArray,
+    Emitter,
+    MovingObjects,
+    build_scene,
+    itu_material,
+    move_objects,
+    receiver,
+    scene_object,
+)
+from caviar_plugins.rt.settings import TraceSettings, moved_keys
 
 CODEBOOKS = ("kronecker", "flat-dft")
 UAV_BODY = SCENES / "central_park" / "meshes" / "Cube.ply"  # a 2 m cube
@@ -43,13 +53,14 @@ class RadioConfig:
     """Element spacing in wavelengths, both axes."""
     pattern: str = "tr38901"
     polarization: str = "V"
-    max_depth: int = 5
-    samples_per_src: int = 1_000_000
-    los: bool = True
-    specular_reflection: bool = True
-    diffuse_reflection: bool = True
-    diffraction: bool = True
-    refraction: bool = True
+    raytracing: TraceSettings = dataclasses.field(default_factory=TraceSettings)
+    """How rays are traced (``raytracing = { samples_per_src, max_depth, los, ...,
+    threads, shoot_cache, max_num_paths_per_src }``): see
+    :class:`~caviar_plugins.rt.settings.TraceSettings`. Here 1e6 rays per source to depth 5
+    with every interaction (the paper's). The shoot cache covers one transmitter's solves;
+    UAV bodies and the objects of :meth:`RadioScene.add_moving_objects` (vehicles) move on
+    top of it (``cache_moving_bodies``); other changes of the geometry and the first solve
+    of a geometry run Sionna's loop unchanged."""
     uav_mesh: bool = True
     """Put a metal UAV body (the scene's 2 m cube) at each UAV's position."""
     antenna_offset: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 1.5])
@@ -63,21 +74,6 @@ class RadioConfig:
     normalize: bool = False
     """Scale each link's H to unit mean |H_mn|² (the 2023 code's ``normalize=True``):
     path loss and distance cancel. A link without paths stays zero."""
-    max_num_paths_per_src: int = 1_000_000
-    """Sionna's candidate-path buffer per source (its default). Candidates beyond it are
-    dropped silently by Sionna (NVlabs/sionna#1172); :meth:`RadioScene.solve` detects
-    it, warns and reports the number dropped in :attr:`Link.paths_dropped`."""
-    shoot_cache: bool | str = "auto"
-    """Keep the rays' bounces of a solve and, while the geometry stays the same (objects,
-    materials, frequency, transmitters), trace only the receivers' visibility tests in
-    later solves (:mod:`~caviar_plugins.rt.shoot_cache`): the paths of Sionna's loop
-    (without the specular chains its hash table drops), 0.08x its time for 1 receiver,
-    0.36x for 10 (1e6 samples, 2 cores). UAV bodies and the objects of
-    :meth:`RadioScene.add_moving_objects` (vehicles) move on top of it
-    (``cache_moving_bodies``); other changes of the geometry, the first solve of a geometry
-    and any solve with more than one source run Sionna's loop unchanged. ``false``: always
-    Sionna's loop. ``"auto"`` (default): on for Dr.Jit's LLVM backend (the CPU), off on CUDA,
-    where it measured slower than Sionna's loop (:func:`~caviar_plugins.rt.solver.use_shoot_cache`)."""
     cache_moving_bodies: bool = True
     """With ``shoot_cache`` and ``uav_mesh``: the UAV bodies are moving objects on top of
     the cached bounces of the static scene, so solves are served from the cache while they
@@ -95,10 +91,8 @@ class RadioConfig:
     Sionna's 1e6 rays over the whole sphere are about 1.3 m apart at 200 m. 0: none aimed;
     Sionna's own rays from the transmitter that now meet the object first go on from it (the
     rays of Sionna's loop, with the same seed: a car 50 m away gets about 60 of 1e5)."""
-    threads: int = 0
-    """Dr.Jit CPU threads; 0 = all cores. On CPU the solver's parallel sums differ in the
-    last float bits from run to run; ``threads = 1`` makes runs bit-identical (measured
-    1.9x slower per solve on the 2-core development machine)."""
+    moved: ClassVar[dict[str, str]] = moved_keys()
+    """The keys that moved into ``raytracing`` (refused flat, with the new key named)."""
 
     def __post_init__(self):
         if self.codebook not in CODEBOOKS:
@@ -109,16 +103,9 @@ class RadioConfig:
         for name in ("tx_array", "rx_array"):
             if len(getattr(self, name)) != 2 or min(getattr(self, name)) < 1:
                 raise ValueError(f"{name}: expected [rows, columns], got {getattr(self, name)}")
-        if self.max_depth < 0 or self.samples_per_src < 1:
-            raise ValueError("max_depth must be >= 0 and samples_per_src >= 1")
         if self.rays_per_moving_object < 0:
             raise ValueError(f"rays_per_moving_object: expected >= 0 (0: Sionna's own rays), got "
                              f"{self.rays_per_moving_object}")
-        if self.max_num_paths_per_src < 1:
-            raise ValueError(f"max_num_paths_per_src: expected >= 1, got {self.max_num_paths_per_src}")
-        from caviar_plugins.rt.solver import check_shoot_cache
-
-        check_shoot_cache(self.shoot_cache)
 
 
 @dataclasses.dataclass
@@ -166,25 +153,19 @@ def normalize_channel(h: np.ndarray) -> np.ndarray:
 
 class RadioScene:
     def __init__(self, cfg: RadioConfig, seed: int = 0, base_dir: pathlib.Path | None = None):
-        configure_drjit()
-        import sionna.rt as rt
-
         from caviar_plugins.rt.solver import PathTracer
 
-        set_thread_count(cfg.threads)
-        self.rt = rt
         self.cfg = cfg
-        self.seed = int(seed) % (2**31)
-        self.scene = load_scene(cfg.scene, base_dir)
+        self.seed = int(seed)
+        """The run's seed (the solver's is ``raytracing.seed`` where set)."""
+        self.scene = build_scene(cfg.scene, base_dir, frequency_hz=cfg.frequency_hz,
+                                 tx_array=self._array(cfg.tx_array), rx_array=self._array(cfg.rx_array),
+                                 transmitters=[Emitter("tx", cfg.tx_position, cfg.tx_orientation)],
+                                 threads=cfg.raytracing.threads)
         s = self.scene
-        s.frequency = cfg.frequency_hz
-        s.tx_array = self._array(cfg.tx_array)
-        s.rx_array = self._array(cfg.rx_array)
-        s.add(rt.Transmitter("tx", position=cfg.tx_position, orientation=cfg.tx_orientation))
         self.movers = MovingObjects(s, enabled=cfg.cache_moving_bodies, rays_per_object=cfg.rays_per_moving_object)
         """The UAV bodies (``movers.bodies``) and the objects of :meth:`add_moving_objects`."""
-        self.tracer = PathTracer(s, shoot_cache=cfg.shoot_cache, movers=self.movers,
-                                 max_num_paths_per_src=cfg.max_num_paths_per_src)
+        self.tracer = PathTracer(s, cfg.raytracing, seed=self.seed, movers=self.movers)
         if cfg.codebook == "flat-dft":
             self.w_tx = flat_dft_codebook(s.tx_array.num_ant)
             self.w_rx = flat_dft_codebook(s.rx_array.num_ant)
@@ -244,10 +225,9 @@ class RadioScene:
         """Candidates the last solve dropped for lack of buffer (0: none)."""
         return self.tracer.paths_dropped()
 
-    def _array(self, shape):
-        return self.rt.PlanarArray(num_rows=shape[0], num_cols=shape[1], vertical_spacing=self.cfg.spacing,
-                                   horizontal_spacing=self.cfg.spacing, pattern=self.cfg.pattern,
-                                   polarization=self.cfg.polarization)
+    def _array(self, shape) -> AntennaArray:
+        return AntennaArray(rows=shape[0], cols=shape[1], spacing=self.cfg.spacing, pattern=self.cfg.pattern,
+                            polarization=self.cfg.polarization)
 
     @property
     def n_tx_beams(self) -> int:
@@ -270,8 +250,7 @@ class RadioScene:
             pos = np.asarray(pos, dtype=float)
             moved = key not in self._where or not np.array_equal(self._where[key], pos + offset)
             if key not in self.receivers:
-                rx = self.rt.Receiver(f"rx-{key}", position=(pos + offset).tolist(),
-                                      orientation=list(self.cfg.rx_orientation))
+                rx = receiver(f"rx-{key}", (pos + offset).tolist(), self.cfg.rx_orientation)
                 self.scene.add(rx)
                 self.receivers[key] = rx
             elif moved:
@@ -334,7 +313,7 @@ class RadioScene:
                 self.bodies[key] = template
                 continue
             material = template.radio_material if template is not None else self._metal()
-            obj = self.rt.SceneObject(fname=str(UAV_BODY), name=f"uav-body-{key}", radio_material=material)
+            obj = scene_object(UAV_BODY, f"uav-body-{key}", material)
             extra.append(obj)
             self.bodies[key] = obj
         if extra:
@@ -342,7 +321,7 @@ class RadioScene:
 
     def _metal(self):
         if not hasattr(self, "_metal_material"):
-            self._metal_material = self.rt.ITURadioMaterial("uav-metal", "metal", thickness=0.1)
+            self._metal_material = itu_material("uav-metal", "metal", thickness=0.1)
         return self._metal_material
 
     def solve(self, force: bool = False) -> dict[str, Link]:
@@ -354,10 +333,7 @@ class RadioScene:
             return self._solved[1]
         c = self.cfg
         self.solves += 1
-        paths = self.tracer.solve(max_depth=c.max_depth, samples_per_src=c.samples_per_src, synthetic_array=True,
-                                  los=c.los, specular_reflection=c.specular_reflection,
-                                  diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
-                                  diffraction=c.diffraction, seed=self.seed)
+        paths = self.tracer.solve()
         dropped = self.tracer.dropped
         # Every receiver of the scene was traced, in the scene's order (which is not the
         # order of the last place(): UEs that joined later come last).

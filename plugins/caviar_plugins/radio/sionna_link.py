@@ -293,7 +293,9 @@ def _path_settings(p: SionnaLinkParams, ctx) -> dict:
     """What an exporter of the paths needs to know of the link: its ray-tracing settings,
     the scene's file (None: free space), the bandwidth and the versions."""
     scene = scene_path(p.scene, ctx.config_dir)
-    return {**dataclasses.asdict(radio_config(p)), "scene_file": None if scene is None else str(scene.resolve()),
+    link = dataclasses.asdict(radio_config(p))
+    rays = link.pop("raytracing")  # (flat beside the link's own settings, as exporters read them)
+    return {**link, **rays, "scene_file": None if scene is None else str(scene.resolve()),
             "bandwidth_hz": p.bandwidth_hz, "protocol": p.protocol, "module": ctx.name, "plugin": "sionna-link",
             "sionna_rt": metadata.version("sionna-rt")}
 

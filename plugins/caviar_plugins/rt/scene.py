@@ -1,14 +1,17 @@
 """The ray-traced scene: loading it, the objects that move in it, and the one place that
 writes its vertex positions.
 
-* :func:`scene_path` / :func:`load_scene`: a shipped scene by name, a Mitsuba XML file, or
-  free space;
+* :func:`build_scene`: the one way a module gets a scene to trace in (loaded by
+  :func:`scene_path` / :func:`load_scene`: a shipped scene by name, a Mitsuba XML file, or
+  free space; with its carrier, arrays and transmitters), and what a module adds to it
+  (:func:`receiver`, :func:`scene_object`, :func:`itu_material`);
 * :class:`MovingObjects`: the objects a caller moves from solve to solve (UAV bodies,
   vehicle boxes) that the shoot cache handles on top of its recorded bounces, and the
   :func:`geometry_fingerprint` that leaves them out;
 * vertex positions: :func:`write_vertex_positions` (then :func:`geometry_changed`),
   :func:`vertex_positions`, and :func:`objects_out_of_the_way`;
 * which shapes a ray meets first: :func:`first_hits`, :func:`shape_table`, :func:`on_shapes`;
+  where and on what surface (a range sensor's hits): :func:`surface_hits`;
   and which points are outdoors: :func:`open_sky`.
 
 Sionna RT's public scene API (``load_scene``, ``SceneObject``, ``Scene.edit``) is used as
@@ -18,6 +21,7 @@ documented; Mitsuba's scene parameters (``mi_scene_params``) only here.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import pathlib
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
@@ -25,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from caviar_plugins.assets import SCENES
-from caviar_plugins.rt.drjit_setup import aligned_array, configure_drjit, jit
+from caviar_plugins.rt.drjit_setup import aligned_array, configure_drjit, jit, set_thread_count
 
 
 def scene_path(name: str, base: pathlib.Path | None = None) -> pathlib.Path | None:
@@ -50,11 +54,88 @@ def load_scene(name: str, base: pathlib.Path | None = None, merge_shapes: bool =
     shapes of one material into one object by default (faster to trace);
     ``merge_shapes=False`` keeps each shape an object of its own name (a sensor that says
     what it hit)."""
+    rt = sionna_rt()
+    path = scene_path(name, base)
+    return rt.load_scene(str(path), merge_shapes=merge_shapes) if path else rt.load_scene()
+
+
+@dataclasses.dataclass(frozen=True)
+class AntennaArray:
+    """A planar array (Sionna's ``PlanarArray``): ``rows`` along z × ``cols`` along y,
+    ``spacing`` in wavelengths on both axes, each element's ``pattern`` (``iso``, ``dipole``,
+    ``tr38901``) and ``polarization`` (``V``, ``H``, ``VH``, ``cross``)."""
+
+    rows: int = 1
+    cols: int = 1
+    spacing: float = 0.5
+    pattern: str = "iso"
+    polarization: str = "V"
+
+
+@dataclasses.dataclass(frozen=True)
+class Emitter:
+    """A transmitter: its name, position (m) and orientation (yaw, pitch, roll in radians)."""
+
+    name: str
+    position: Sequence[float]
+    orientation: Sequence[float] = (0.0, 0.0, 0.0)
+
+
+def build_scene(name: str, base: pathlib.Path | None = None, *, frequency_hz: float | None = None,
+                tx_array: AntennaArray | None = None, rx_array: AntennaArray | None = None,
+                transmitters: Sequence[Emitter] = (), threads: int = 0, merge_shapes: bool = True) -> Any:
+    """The one way a module gets a scene to trace in: :func:`load_scene` (a shipped scene,
+    a Mitsuba XML file or ``empty``), Dr.Jit's CPU ``threads`` (0: all cores), the carrier,
+    the arrays of the transmitters and receivers (:class:`AntennaArray`) and the
+    transmitters. Receivers, bodies and materials are added by the caller
+    (:func:`receiver`, :func:`scene_object`, :func:`itu_material`)."""
+    set_thread_count(threads)
+    scene = load_scene(name, base, merge_shapes=merge_shapes)
+    if frequency_hz is not None:
+        scene.frequency = float(frequency_hz)
+    if tx_array is not None:
+        scene.tx_array = planar_array(tx_array)
+    if rx_array is not None:
+        scene.rx_array = planar_array(rx_array)
+    rt = sionna_rt()
+    for e in transmitters:
+        scene.add(rt.Transmitter(e.name, position=[float(v) for v in e.position],
+                                 orientation=[float(v) for v in e.orientation]))
+    return scene
+
+
+def sionna_rt() -> Any:
+    """Sionna RT, with Dr.Jit set up first (:func:`configure_drjit`)."""
     configure_drjit()
     import sionna.rt as rt
 
-    path = scene_path(name, base)
-    return rt.load_scene(str(path), merge_shapes=merge_shapes) if path else rt.load_scene()
+    return rt
+
+
+def planar_array(spec: AntennaArray) -> Any:
+    """Sionna's ``PlanarArray`` for ``spec``."""
+    return sionna_rt().PlanarArray(num_rows=spec.rows, num_cols=spec.cols, vertical_spacing=spec.spacing,
+                                   horizontal_spacing=spec.spacing, pattern=spec.pattern,
+                                   polarization=spec.polarization)
+
+
+def receiver(name: str, position: Sequence[float], orientation: Sequence[float] | None = None) -> Any:
+    """A Sionna ``Receiver`` (not yet in a scene: ``scene.add`` it)."""
+    rt = sionna_rt()
+    if orientation is None:
+        return rt.Receiver(name, position=[float(v) for v in position])
+    return rt.Receiver(name, position=[float(v) for v in position], orientation=[float(v) for v in orientation])
+
+
+def itu_material(name: str, itu_type: str, thickness: float) -> Any:
+    """An ITU-R P.2040 radio material (Sionna's ``ITURadioMaterial``): ``itu_type`` such as
+    ``metal`` or ``concrete``, ``thickness`` in metres."""
+    return sionna_rt().ITURadioMaterial(name, itu_type, thickness=thickness)
+
+
+def scene_object(fname: str | pathlib.Path, name: str, material: Any) -> Any:
+    """A Sionna ``SceneObject`` from a mesh file (not yet in a scene: ``scene.edit(add=…)``)."""
+    return sionna_rt().SceneObject(fname=str(fname), name=name, radio_material=material)
 
 
 def bounding_box(obj) -> np.ndarray:
@@ -252,6 +333,30 @@ def first_hits(scene: Any, origins: np.ndarray, directions: np.ndarray,
     si = scene.mi_scene.ray_intersect_preliminary(ray)
     return (np.array(si.is_valid(), dtype=bool), np.array(dr.reinterpret_array(mi.UInt32, si.shape)),
             np.array(si.prim_index))
+
+
+def surface_hits(scene: Any, origins: np.ndarray, directions: np.ndarray,
+                 max_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For rays from ``origins`` (n, 3) along unit ``directions`` (n, 3), float32, up to
+    ``max_distance``: whether each hits anything, the distance to the hit, the Mitsuba
+    shape id hit (0: none), the surface normal there (n, 3) and the triangle. What a
+    range sensor needs (:mod:`caviar_plugins.lidar`): a surface interaction without the
+    shapes' own computations (``RayFlags.Minimal``), in one evaluation."""
+    dr, mi = jit()
+    o = np.asarray(origins, dtype=np.float32)
+    d = np.asarray(directions, dtype=np.float32)
+    ray = mi.Ray3f(mi.Point3f(*(aligned_array(mi.Float, np.ascontiguousarray(o[:, k])) for k in range(3))),
+                   mi.Vector3f(*(aligned_array(mi.Float, np.ascontiguousarray(d[:, k])) for k in range(3))))
+    ray.maxt = mi.Float(float(max_distance))
+    si = scene.mi_scene.ray_intersect(ray, mi.RayFlags.Minimal, True)
+    hit = si.is_valid()
+    t = dr.select(hit, si.t, 0.0)
+    shape = dr.select(hit, dr.reinterpret_array(mi.UInt32, si.shape), 0)
+    n = si.n
+    dr.eval(t, shape, n, si.prim_index)
+    normal = np.stack([np.array(n.x), np.array(n.y), np.array(n.z)], -1)
+    return (np.array(hit, dtype=bool), np.array(t, dtype=float), np.array(shape, dtype=np.int64), normal,
+            np.array(si.prim_index, dtype=np.int64))
 
 
 def open_sky(scene: Any, points: np.ndarray) -> np.ndarray:

@@ -15,6 +15,10 @@ proportional-fair scheduler to more UEs and resets a UE's column: their state te
 **PyTorch.** The compiled link level raises dynamo's recompile limit
 (:func:`allow_recompiles`), which has no public setter.
 
+**Sionna's random state.** A draw that takes no generator (a 38.901 drop, large-scale
+parameters) runs under :func:`seeded`, which puts ``sionna.phy.config``'s generators back
+afterwards: no global seed stays set.
+
 Nothing else in this project touches a private name of Sionna (``tests/test_sionna_adapter.py``
 checks it with an allowlist). :func:`problem` checks, on first use, that the installed
 sionna-rt is the minor version this code was written and tested for
@@ -26,8 +30,9 @@ own loop (no shoot cache, no path-buffer overflow report): slower, never wrong.
 
 from __future__ import annotations
 
+import contextlib
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -287,3 +292,27 @@ def allow_recompiles(torch: Any, at_least: int) -> None:
     ``_dynamo.config.recompile_limit``, 8 by default; past it a function runs eager)."""
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, at_least)
+
+
+@contextlib.contextmanager
+def seeded(seed: int) -> Iterator[None]:
+    """Sionna's random state seeded with ``seed`` while the block runs (for its draws that
+    take no generator, such as a 38.901 topology or large-scale parameters), and put back
+    afterwards as it was: Sionna's own generators (``sionna.phy.config``'s ``_seed``,
+    ``_py_rng``, ``_np_rng``, ``_torch_rngs``, which its seed setter replaces) and torch's
+    default generators, which the setter reseeds too. Another user of Sionna's random state
+    (the link level's block errors) goes on as if the block had not run."""
+    import torch
+    from sionna.phy import config
+
+    saved = (config._seed, config._py_rng, config._np_rng, config._torch_rngs)
+    cpu = torch.default_generator.get_state()
+    gpus = [g.get_state() for g in torch.cuda.default_generators] if torch.cuda.is_available() else []
+    config.seed = int(seed) % 2**31
+    try:
+        yield
+    finally:
+        config._seed, config._py_rng, config._np_rng, config._torch_rngs = saved
+        torch.default_generator.set_state(cpu)
+        for g, state in zip(torch.cuda.default_generators, gpus, strict=True):
+            g.set_state(state)

@@ -14,20 +14,8 @@ import numpy as np
 from caviar_plugins.rt import sionna_adapter as adapter
 from caviar_plugins.rt.drjit_setup import jit
 from caviar_plugins.rt.scene import MovingObjects
+from caviar_plugins.rt.settings import TraceSettings, check_shoot_cache
 from caviar_plugins.rt.shoot_cache import ShootCache
-
-DEFAULT_MAX_PATHS_PER_SOURCE = 1_000_000
-"""Sionna's own default for ``max_num_paths_per_src``."""
-
-SHOOT_CACHE_SETTINGS = (True, False, "auto")
-
-
-def check_shoot_cache(value: bool | str, key: str = "shoot_cache") -> bool | str:
-    """``value`` if it is a shoot-cache setting (true, false or ``"auto"``), else a
-    ValueError naming ``key``."""
-    if isinstance(value, bool) or value == "auto":
-        return value
-    raise ValueError(f'{key}: expected true, false or "auto", got {value!r}')
 
 
 def use_shoot_cache(setting: bool | str, variant: str | None = None) -> bool:
@@ -48,26 +36,27 @@ def use_shoot_cache(setting: bool | str, variant: str | None = None) -> bool:
 
 
 class PathTracer:
-    """Sionna's ``PathSolver`` for ``scene``, with the shoot cache (``shoot_cache``: true, false
-    or ``"auto"``, see :func:`use_shoot_cache`) and the path-buffer watch. ``movers``
-    (optional) are the objects that move on top of the cache's recorded bounces; without it
-    every moved object is a new geometry.
+    """Sionna's ``PathSolver`` for ``scene``, traced as ``settings`` say (rays, depth,
+    interactions, the solver's seed: ``settings.seed`` or the run's ``seed``), with the shoot
+    cache (``settings.shoot_cache``: true, false or ``"auto"``, see :func:`use_shoot_cache`)
+    and the path-buffer watch (``settings.max_num_paths_per_src``). ``movers`` (optional)
+    are the objects that move on top of the cache's recorded bounces; without it every
+    moved object is a new geometry.
 
     Where the installed Sionna RT lacks an internal the cache or the watch use
     (:func:`~caviar_plugins.rt.sionna_adapter.problem`), it warns once and runs Sionna's own
     loop, unwatched: correct, slower."""
 
-    def __init__(self, scene: Any, shoot_cache: bool | str = "auto", movers: MovingObjects | None = None,
-                 max_num_paths_per_src: int = DEFAULT_MAX_PATHS_PER_SOURCE):
+    def __init__(self, scene: Any, settings: TraceSettings, seed: int = 0, movers: MovingObjects | None = None):
         import sionna.rt as rt
 
-        shoot_cache = use_shoot_cache(shoot_cache)
-
-        if max_num_paths_per_src < 1:
-            raise ValueError(f"max_num_paths_per_src: expected >= 1, got {max_num_paths_per_src}")
+        shoot_cache = use_shoot_cache(settings.shoot_cache)
         self.scene = scene
+        self.settings = settings
+        self.options = settings.path_options(seed)
+        """The keywords every solve passes to Sionna's ``PathSolver``."""
         self.movers = movers if movers is not None else MovingObjects(scene, enabled=False)
-        self.max_num_paths_per_src = max_num_paths_per_src
+        self.max_num_paths_per_src = settings.max_num_paths_per_src
         self.solver = rt.PathSolver()
         self.shoot_cache: ShootCache | None = None
         self.last_paths: Any = None
@@ -110,18 +99,18 @@ class PathTracer:
         counts = np.array(counter, dtype=np.int64).reshape(-1)
         return int(np.maximum(counts - self.max_num_paths_per_src, 0).sum())
 
-    def solve(self, **options: Any) -> Any:
-        """One solve of every source toward every receiver of the scene: Sionna's
-        ``PathSolver`` keywords (``max_depth``, ``samples_per_src``, ``synthetic_array``,
-        the interaction flags, ``seed``...). Warns when the path buffer overflowed
-        (:attr:`dropped` says by how much). Returns Sionna's ``Paths``."""
+    def solve(self, synthetic_array: bool = True) -> Any:
+        """One solve of every source toward every receiver of the scene, with :attr:`options`
+        (``synthetic_array``: the arrays' channels from their centres' paths). Warns when
+        the path buffer overflowed (:attr:`dropped` says by how much). Returns Sionna's
+        ``Paths``."""
         paths = self.last_paths = self.solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src,
-                                              **options)
+                                              synthetic_array=synthetic_array, **self.options)
         self.dropped = self.paths_dropped()
         if self.dropped:
             warnings.warn(f"Sionna's path buffer overflowed: {self.dropped} candidate paths dropped "
-                          f"(max_num_paths_per_src = {self.max_num_paths_per_src}); raise it", RuntimeWarning,
-                          stacklevel=3)
+                          f"(raytracing.max_num_paths_per_src = {self.max_num_paths_per_src}); raise it",
+                          RuntimeWarning, stacklevel=3)
         return paths
 
     def cache_status(self, solves: int) -> str | None:
@@ -130,6 +119,18 @@ class PathTracer:
         if self.shoot_cache is None or not solves:
             return None
         return f"shoot cache {100 * self.shoot_cache.connects / solves:.0f} % of {solves} solves"
+
+
+def radio_map(scene: Any, settings: TraceSettings, seed: int, *, center: Any, size: Any, cell_size: Any) -> Any:
+    """Sionna RT's radio map of ``scene`` on a horizontal grid: ``center`` (x, y, z), ``size``
+    (x, y) and ``cell_size`` (x, y) in metres, traced as ``settings`` say (the solver's seed:
+    ``settings.seed`` or the run's ``seed``). Returns Sionna's ``RadioMap``."""
+    import sionna.rt as rt
+
+    _, mi = jit()
+    return rt.RadioMapSolver()(scene, center=mi.Point3f(*(float(v) for v in center)),
+                               orientation=mi.Point3f(0.0, 0.0, 0.0), size=mi.Point2f(*(float(v) for v in size)),
+                               cell_size=mi.Point2f(*(float(v) for v in cell_size)), **settings.map_options(seed))
 
 
 def carrier_sums(a_re, a_im, tau, n_paths, n_ant, frequency, n_out: int):

@@ -37,6 +37,7 @@ from caviar_plugins.radio.link_report import LINK_TOPICS, line_of_sight_paths, l
 from caviar_plugins.radio.scene import RadioConfig, RadioScene, radio_config
 from caviar_plugins.radio.sionna_link import LinkBudgetParams
 from caviar_plugins.rt.scatterers import Body, ScattererPool, box_doppler_hz, update_pools
+from caviar_plugins.rt.scene import itu_material
 from caviar_plugins.schema import BEAM_SELECTION, POSITIONS, STATE, read_position
 
 PARKED_RX_Z = -500.0
@@ -107,18 +108,18 @@ class SionnaTrafficLink(caviar.Plugin):
         # The pools' boxes are the shoot cache's moving objects (cache_moving_bodies): the
         # bounces of the static scene are recorded once and the boxes handled on top of them.
         # Without cache_moving_bodies every step would be a new geometry: no cache then.
-        cached = use_shoot_cache(p.shoot_cache) and (p.cache_moving_bodies or not p.scatterers)
-        radio_cfg = radio_config(p, antenna_offset=[0.0, 0.0, 0.0], uav_mesh=False, shoot_cache=cached)
+        cached = use_shoot_cache(p.raytracing.shoot_cache) and (p.cache_moving_bodies or not p.scatterers)
+        radio_cfg = radio_config(p, antenna_offset=[0.0, 0.0, 0.0], uav_mesh=False,
+                                 raytracing=dataclasses.replace(p.raytracing, shoot_cache=cached))
         self.radio = RadioScene(radio_cfg, seed=ctx.seed, base_dir=ctx.config_dir)
         self.budget = LinkBudget(bandwidth_hz=p.bandwidth_hz, tx_power_w=p.tx_power_w,
                                  interference_dbw=p.interference_dbw)
-        rt = self.radio.rt
         n_slots = len(p.connected) + p.connected_count
         capacity = {"vehicle": p.vehicle_pool, "person": p.person_pool} if p.scatterers else {}
         self.pool_edits: list[tuple[str, dict[str, int]]] = []  # both pools' growth, in order (checkpoints)
         self.pool = ScattererPool(self.radio.scene, capacity, {
-            "vehicle": rt.ITURadioMaterial("traffic-vehicle", p.vehicle_material, thickness=0.01),
-            "person": rt.ITURadioMaterial("traffic-person", p.person_material, thickness=p.person_thickness),
+            "vehicle": itu_material("traffic-vehicle", p.vehicle_material, thickness=0.01),
+            "person": itu_material("traffic-person", p.person_material, thickness=p.person_thickness),
         }, prefix="traffic", edits=self.pool_edits)
         self.uav_pool: ScattererPool | None = None
         self._declare_movers()
@@ -251,9 +252,8 @@ class SionnaTrafficLink(caviar.Plugin):
             self.radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
 
     def _new_uav_pool(self, capacity: dict[str, int]) -> None:
-        rt = self.radio.rt
         self.uav_pool = ScattererPool(self.radio.scene, capacity,
-                                      {"uav": rt.ITURadioMaterial("traffic-uav", "metal", thickness=0.01)},
+                                      {"uav": itu_material("traffic-uav", "metal", thickness=0.01)},
                                       prefix="traffic-uav", edits=self.pool_edits)
 
     def state(self):

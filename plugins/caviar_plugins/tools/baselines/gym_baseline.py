@@ -120,7 +120,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 def train(args: argparse.Namespace, agent: SweepBandit, progress) -> tuple[list[pathlib.Path], list[float]]:
     """Plays the training episodes; their run directories and the per-step top-1 hits."""
     env = caviar.gym.make(args.config, AGENT_MODULE, beam_selection_spec(UE, previous_gains=True),
-                          overrides={"episode.steps": args.steps, "modules.comm.params.samples_per_src": args.rays},
+                          overrides={"episode.steps": args.steps,
+                                     "modules.comm.params.raytracing.samples_per_src": args.rays},
                           out=args.runs / "train")
     runs, hits = [], []
     try:
@@ -148,7 +149,8 @@ def train(args: argparse.Namespace, agent: SweepBandit, progress) -> tuple[list[
 def evaluate(args: argparse.Namespace, agent: SweepBandit, progress) -> tuple[pathlib.Path, list[dict]]:
     """The agent, greedy, on the test flight; its run directory and per-step infos."""
     env = caviar.gym.make(args.test, AGENT_MODULE, beam_selection_spec(UE, previous_gains=True),
-                          overrides={"modules.comm.params.samples_per_src": args.rays}, max_steps=args.test_steps,
+                          overrides={"modules.comm.params.raytracing.samples_per_src": args.rays},
+                          max_steps=args.test_steps,
                           out=args.runs / "test")
     infos = []
     try:

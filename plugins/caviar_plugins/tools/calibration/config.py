@@ -118,7 +118,8 @@ def side_by_side_toml(s: dict[str, Any], channel: str, drops: int, seed: int, sc
     text = text.replace(f'channel = "38.901-{s["scenario"].lower()}"', f'channel = "{channel}"')
     if channel == "ray-traced":
         rt = s["raytracing"]
-        text += (f'raytracing = {{ scene = {json.dumps(str(scene_file))}, max_depth = {rt["max_depth"]}, '
-                 f'samples_per_src = {rt["samples_per_src"]}, diffraction = true, evolve = "hold", '
-                 f'threads = {rt["threads"]} }}\n')
+        text += (f'scene = {json.dumps(str(scene_file))}\n'
+                 f'raytracing = {{ max_depth = {rt["max_depth"]}, samples_per_src = {rt["samples_per_src"]}, '
+                 f'diffraction = true, threads = {rt["threads"]} }}\n'
+                 'evolution = { mode = "hold" }\n')
     return text

@@ -1,0 +1,56 @@
+"""The downlink SINR of a step: per slot and subband (what the link level decodes) and
+wideband (what ``network.ue`` reports), with the co-channel cells as interference, either on
+their sector patterns (:func:`~caviar_plugins.network.cells.sinr_db`) or, with SSB beams, on
+the beams the other cells point at the UEs they schedule in each slot
+(:func:`~caviar_plugins.network.beams.slot_sinr_db`)."""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from caviar_plugins.network.beams import slot_beams, slot_sinr_db
+from caviar_plugins.network.cells import Cell, noise_dbm, sinr_db
+
+
+def downlink_sinr(cells: Sequence[Cell], rx: np.ndarray, wideband: np.ndarray, serving: np.ndarray,
+                  talking: np.ndarray | None, *, noise_figure_db: float, scheduled: bool,
+                  beams: tuple[np.ndarray, np.ndarray] | None = None, slots: int = 1,
+                  subband_prbs: np.ndarray | None = None, device: Any = None):
+    """Per slot and subband [slot or 1, ue, subband], and wideband [ue], SINR and SIR (dB).
+    ``rx``: received power [ue, cell, subband] and ``wideband`` [ue, cell] (dBm);
+    ``serving`` [ue] (-1: none). With ``scheduled`` (``interference = "scheduled"``) only
+    cells with data for someone (``talking`` [ue]; None: all) send. ``beams``: the beam gains
+    [ue, cell, subband, beam] and each UE's best beam per cell [ue, cell]."""
+    if beams is not None:
+        return _beamformed(cells, beams, serving, talking, noise_figure_db, scheduled, slots, subband_prbs, device)
+    load = None
+    if scheduled:
+        on = serving if talking is None else serving[talking]
+        load = np.isin(np.arange(len(cells)), on).astype(float)
+    sinr = sinr_db(cells, wideband, serving, noise_figure_db, load)
+    sir = sinr_db(cells, wideband, serving, -np.inf, load)
+    return sinr_db(cells, rx, serving, noise_figure_db, load)[None], sinr, sir
+
+
+def _beamformed(cells: Sequence[Cell], beams: tuple[np.ndarray, np.ndarray], serving: np.ndarray,
+                talking: np.ndarray | None, noise_figure_db: float, scheduled: bool, slots: int,
+                subband_prbs: np.ndarray | None, device: Any):
+    """With beams: per slot and subband, and wideband (the slots' mean); the other cells
+    point at the UEs they schedule among ``talking`` (None: all)."""
+    gains, best_beams = beams
+    ue = np.arange(len(serving))
+    best = np.where(serving >= 0, best_beams[ue, np.maximum(serving, 0)], 0)
+    pointed = serving if talking is None else np.where(talking, serving, -1)
+    chosen = slot_beams(pointed, best, len(cells), slots)
+    bandwidth = np.array([c.bandwidth_hz for c in cells])[np.maximum(serving, 0)]
+    noise = 10 ** (noise_dbm(bandwidth, noise_figure_db) / 10)
+    per_slot = slot_sinr_db(cells, gains, serving, best, chosen, noise, scheduled, device)
+    weights = subband_prbs if gains.shape[2] > 1 and subband_prbs is not None else np.ones(gains.shape[2])
+    flat = np.average(gains, axis=2, weights=weights)[:, :, None, :]
+    with np.errstate(divide="ignore"):  # (no signal: -inf, reported as None)
+        sinr, sir = (10 * np.log10(np.mean(10 ** (slot_sinr_db(cells, flat, serving, best, chosen, n, scheduled,
+                                                               device)[:, :, 0] / 10), axis=0))
+                     for n in (noise, np.zeros(len(serving))))
+    return per_slot, sinr, sir
