@@ -164,8 +164,9 @@ def place_before(radio, positions: dict) -> None:
 def plugin(samples: int, seed: int = 1, **params):
     from caviar.plugin import Context
     from caviar_plugins.radio.sionna_link import SionnaLink, SionnaLinkParams
+    from caviar_plugins.rt.settings import with_raytracing
 
-    p = SionnaLinkParams(**{"samples_per_src": samples, "shoot_cache": False, "threads": 1, **params})
+    p = with_raytracing(SionnaLinkParams, **{"samples_per_src": samples, "shoot_cache": False, "threads": 1, **params})
     link = SionnaLink()
     link.setup(Context(name="comm", params=p, seed=seed, ts=0.5, steps=None, every=1, offset=0,
                        run_dir=pathlib.Path("."), config_dir=pathlib.Path(".")))

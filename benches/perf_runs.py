@@ -151,9 +151,10 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
     import tomllib
 
     import caviar
+    from caviar._host import check_params
     from caviar.plugin import Context, Inbox, Message
     from caviar_plugins.schema import POSITIONS
-    from caviar_plugins.traffic.link import SionnaTrafficLink, SionnaTrafficLinkParams
+    from caviar_plugins.traffic.link import SionnaTrafficLink
 
     exe = pathlib.Path(sys.executable).parent / "caviar-core"
     variants = {"old": [], "loop": ["modules.comm.params.raytracing.shoot_cache=false"], "new": [],
@@ -196,7 +197,7 @@ def bench_traffic_step(work: pathlib.Path, steps: int, skip: int = 10, reps: int
 
     cfg = tomllib.loads(TRAFFIC.read_text())["modules"]["comm"]["params"]
     plugin = SionnaTrafficLink()
-    plugin.setup(Context(name="comm", params=SionnaTrafficLinkParams(**cfg), seed=1, ts=1.0, steps=None, every=1,
+    plugin.setup(Context(name="comm", params=check_params(SionnaTrafficLink, cfg), seed=1, ts=1.0, steps=None, every=1,
                          offset=0, run_dir=work, config_dir=TRAFFIC.parent.resolve()))
     radio = plugin.radio
     rays = radio.cfg.raytracing
