@@ -64,6 +64,11 @@ def output(**keys) -> str:
     return table("output", keys) + "\n"
 
 
+def nats_transport(**nats) -> str:
+    """[transport] over NATS, and [transport.nats] with ``nats`` where given."""
+    return table("transport", {"kind": "nats"}) + (table("transport.nats", nats) if nats else "") + "\n"
+
+
 def module(name: str, stage: str, plugin: str, params: dict | str | None = None, *, params_table: bool = False,
            **keys) -> str:
     """``[modules.<name>]`` with its stage, plugin, any other ``keys`` (every, subscribe...) and

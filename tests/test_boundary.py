@@ -14,6 +14,7 @@ import caviar
 from caviar import _core
 from caviar.plugin import Message
 from caviar.runlog import RunStatus
+from configs import episode, module
 from conftest import ROOT, write_config
 
 PKG = ROOT / "python" / "caviar"
@@ -111,17 +112,8 @@ def test_malformed_or_foreign_requests_are_value_errors():
 def test_errors_are_caviars_own_classes(tmp_path):
     with pytest.raises(caviar.ConfigError):
         caviar.Simulation.from_toml(write_config(tmp_path, "[episode]\nts = -1\n"))
-    cfg = write_config(tmp_path, """
-[episode]
-ts = 0.1
-steps = 5
-stages = ["s"]
-[modules.crash]
-stage = "s"
-plugin = "sample_plugins:Crash"
-[modules.crash.params]
-at_step = 1
-""")
+    cfg = write_config(tmp_path, episode(0.1, ["s"], steps=5)
+                       + module("crash", "s", "sample_plugins:Crash", {"at_step": 1}, params_table=True))
     sim = caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
     with pytest.raises(caviar.RunError) as e:
         sim.run()
@@ -130,15 +122,7 @@ at_step = 1
     assert (status["status"], status["end_reason"]) == ("failed", "error")
 
 
-COUNTING = """
-[episode]
-ts = 0.1
-steps = 3
-stages = ["s"]
-[modules.count]
-stage = "s"
-plugin = "sample_plugins:Counter"
-"""
+COUNTING = episode(0.1, ["s"], steps=3) + module("count", "s", "sample_plugins:Counter")
 
 
 def test_run_json_is_a_run_status_and_says_why_the_episode_ended(tmp_path):
@@ -156,18 +140,8 @@ def test_run_json_is_a_run_status_and_says_why_the_episode_ended(tmp_path):
     assert "ended     closed by the host" in caviar.inspect(tmp_path / "early")
 
 
-WIRING = """
-[episode]
-ts = 0.1
-steps = 3
-stages = ["s"]
-[modules.source]
-stage = "s"
-plugin = "sample_plugins:Declared"
-[modules.sink]
-stage = "s"
-plugin = "sample_plugins:DeclaredSink"
-"""
+WIRING = (episode(0.1, ["s"], steps=3) + module("source", "s", "sample_plugins:Declared")
+          + module("sink", "s", "sample_plugins:DeclaredSink"))
 
 
 def test_validate_warns_about_wiring_from_declared_publishes(tmp_path, cli):
@@ -180,7 +154,7 @@ def test_validate_warns_about_wiring_from_declared_publishes(tmp_path, cli):
     assert "modules.sink: publishes 'sink.summary' — no module subscribes to it (recorded only)" in warnings[1]
 
     # A module that declares nothing may publish anything: no subscription is unfed.
-    undeclared = WIRING + '[modules.count]\nstage = "s"\nplugin = "sample_plugins:Counter"\n'
+    undeclared = WIRING + module("count", "s", "sample_plugins:Counter")
     p = cli("validate", write_config(tmp_path, undeclared, "u.toml"), check=0)
     assert "no module publishes" not in p.stderr and "no module subscribes" in p.stderr
 

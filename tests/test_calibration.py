@@ -18,6 +18,7 @@ from caviar_plugins.network.cells import Column, parse_sites
 from caviar_plugins.network.layout import LayoutSettings, Wraparound, site_positions
 from caviar_plugins.network.tr38901 import StochasticChannel, StochasticSettings
 from caviar_plugins.tools import calibration
+from configs import episode, module, output
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 COMPANIES = calibration.COMPANIES  # (shipped in caviar_plugins/data)
@@ -177,28 +178,16 @@ def test_a_ue_keeps_its_draw_and_its_gain_follows_the_uma_pathloss_as_it_moves()
     assert ch.state["u"].anchor[0] == pytest.approx(270.0)
 
 
-NETWORK_38901 = """
-[episode]
-ts = 0.05
-seed = 1
-steps = 3
-stages = ["communications"]
-
-[output]
-analysis = ["communications.throughput", "network.ue", "network.events", "network.cells",
-            "network.radio_map", "view.radio_map"]
-
-[modules.net]
-stage = "communications"
-plugin = "radio-network"
-subscribe = []
-[modules.net.params]
+NETWORK_38901 = (episode(0.05, ["communications"], steps=3, seed=1)
+                 + output(analysis=["communications.throughput", "network.ue", "network.events", "network.cells",
+                                    "network.radio_map", "view.radio_map"])
+                 + module("net", "communications", "radio-network", subscribe=[], params_table=True, params="""\
 channel = "38.901-umi"
 carrier_hz = 6e9
 tx_power_dbm = 44.0
 layout = { kind = "hex", rings = 1, isd_m = 200.0, height_m = 10.0, min_distance_m = 10.0, ues_per_sector = 2 }
 column = { elements = 10 }
-"""
+"""))
 
 
 @pytest.mark.parametrize("edit, key, says", [

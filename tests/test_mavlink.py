@@ -19,6 +19,7 @@ import pytest
 
 import caviar
 from caviar.runlog import load_run
+from configs import episode, module
 from conftest import write_config
 
 pytest.importorskip("pymavlink")
@@ -248,19 +249,8 @@ def test_counts_drops_delays_duplicates_garbage_and_strangers(sender):
 
 # -- in a Simulation -----------------------------------------------------------------
 
-CONFIG = """
-[episode]
-ts = 0.05
-steps = 2000
-seed = 1
-stages = ["mobility"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "mavlink-telemetry"
-[modules.uav.params]
-listen = "127.0.0.1:0"
-"""
+CONFIG = (episode(0.05, ["mobility"], steps=2000, seed=1)
+          + module("uav", "mobility", "mavlink-telemetry", {"listen": "127.0.0.1:0"}, params_table=True))
 
 
 def _status(msgs):

@@ -17,25 +17,13 @@ import pytest
 
 import caviar
 from caviar import _core
+from configs import episode, module, nats_transport
 from conftest import write_config
 from test_nats import BIN, env, wait_for_steps, worker_pids
 
-CONFIG = """
-[episode]
-ts = 0.1
-steps = 120
-stages = ["a", "b"]
-[transport]
-kind = "nats"
-[modules.slow]
-stage = "a"
-plugin = "sample_plugins:Slow"
-[modules.slow.params]
-seconds = 0.03
-[modules.count]
-stage = "b"
-plugin = "sample_plugins:Counter"
-"""
+CONFIG = (episode(0.1, ["a", "b"], steps=120) + nats_transport()
+          + module("slow", "a", "sample_plugins:Slow", {"seconds": 0.03}, params_table=True)
+          + module("count", "b", "sample_plugins:Counter"))
 
 
 def proc_env(pid: int) -> dict[str, str]:

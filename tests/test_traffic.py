@@ -13,6 +13,7 @@ import caviar
 from caviar.plugin import Context, Inbox, Message
 from caviar_plugins.schema import LINK, POSITIONS, position_payload
 from caviar_plugins.traffic.sumo import binary
+from configs import episode, module
 from conftest import write_config
 
 FC = 40e9
@@ -34,22 +35,10 @@ DEMAND = "vehicles = { passenger = 5, bus = 1 }\npedestrians = 3"
 
 
 def traffic_config(tmp_path, net, seed=3, steps=6, ts=0.5, demand=DEMAND):
-    return write_config(tmp_path, f"""
-[episode]
-ts = {ts}
-seed = {seed}
-steps = {steps}
-stages = ["mobility"]
-[modules.traffic]
-stage = "mobility"
-plugin = "sumo-traffic"
-[modules.traffic.params]
-net = "{net}"
-{demand}
-window_s = 2.0
-min_trip_m = 100.0
-substeps = 2
-""", f"traffic-{seed}.toml")
+    params = f'net = "{net}"\n{demand}\nwindow_s = 2.0\nmin_trip_m = 100.0\nsubsteps = 2\n'
+    text = episode(ts, ["mobility"], steps=steps, seed=seed) + module("traffic", "mobility", "sumo-traffic", params,
+                                                                       params_table=True)
+    return write_config(tmp_path, text, f"traffic-{seed}.toml")
 
 
 def positions(log):
@@ -178,6 +167,7 @@ def test_the_uav_and_traffic_pools_move_in_one_scene_update(tmp_path):
 
 
 def radio_plugin(tmp_path, **kw):
+    from caviar_plugins.rt.settings import with_raytracing
     from caviar_plugins.traffic.link import SionnaTrafficLink, SionnaTrafficLinkParams
 
     params = dict(scene="empty", samples_per_src=2000, max_depth=1, tx_array=[1, 1], rx_array=[1, 1],
@@ -185,8 +175,8 @@ def radio_plugin(tmp_path, **kw):
                   frequency_hz=FC, vehicle_pool=4, person_pool=2, publish_channels=False)
     params.update(kw)
     plugin = SionnaTrafficLink()
-    plugin.setup(Context(name="comm", params=SionnaTrafficLinkParams(**params), seed=1, ts=1.0, steps=None, every=1,
-                         offset=0, run_dir=tmp_path, config_dir=tmp_path))
+    plugin.setup(Context(name="comm", params=with_raytracing(SionnaTrafficLinkParams, **params), seed=1, ts=1.0,
+                         steps=None, every=1, offset=0, run_dir=tmp_path, config_dir=tmp_path))
     return plugin
 
 

@@ -211,23 +211,23 @@ def test_a_frame_the_server_cannot_give_leaves_the_last_one_dimmed_and_said(brow
                 topic = page.evaluate("caviarView.frameTopic")
                 raise AssertionError(f"{condition}: {page.evaluate(shown)}, topic {topic}") from None
 
+        def shows(step, frame, red, note, stale=False):  # what the frame panel shows (32 x 24, red = 8 x step)
+            assert page.evaluate(shown) == {"step": step, "frame": frame, "size": [32, 24], "red": red,
+                                            "stale": stale, "note": note}
+
         # a finished run opens at its first step, and shows its frame without being touched
         wait("caviarView.frameShown === 0")
-        assert page.evaluate(shown) == {"step": 0, "frame": 0, "size": [32, 24], "red": 0, "stale": False,
-                                        "note": "3D.camera.uav0 · step 0"}
+        shows(0, 0, 0, "3D.camera.uav0 · step 0")
         go(4)
         wait("caviarView.frameShown === 4")
-        assert page.evaluate(shown) == {"step": 4, "frame": 4, "size": [32, 24], "red": 32, "stale": False,
-                                        "note": "3D.camera.uav0 · step 4"}
+        shows(4, 4, 32, "3D.camera.uav0 · step 4")
         go(3)
         wait("document.getElementById('framenote').textContent.includes('unavailable')")
         time.sleep(1.2)  # its retries (3, 0.3 s apart) fail too
-        assert page.evaluate(shown) == {"step": 3, "frame": 4, "size": [32, 24], "red": 32, "stale": True,
-                                        "note": "3D.camera.uav0: frame of step 3 unavailable"}
+        shows(3, 4, 32, "3D.camera.uav0: frame of step 3 unavailable", stale=True)
         go(2)
         wait("caviarView.frameShown === 2")
-        assert page.evaluate(shown) == {"step": 2, "frame": 2, "size": [32, 24], "red": 16, "stale": False,
-                                        "note": "3D.camera.uav0 · step 2"}
+        shows(2, 2, 16, "3D.camera.uav0 · step 2")
         assert not errors
     finally:
         srv.stop()
