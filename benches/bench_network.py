@@ -31,15 +31,16 @@ import dataclasses
 import json
 import pathlib
 import time
-import warnings
 
 import numpy as np
 
 from bench_common import machine
-from caviar_plugins.network.beams import BeamSettings, all_beam_gains, slot_beams, slot_sinr_db
-from caviar_plugins.network.cells import noise_dbm, parse_sites, rsrp_dbm, rx_power_dbm, sinr_db
+from caviar_plugins.network.beams import BeamSettings, all_beam_gains
+from caviar_plugins.network.cells import parse_sites
+from caviar_plugins.network.downlink import downlink_sinr, received
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer, TracedChannels
+from caviar_plugins.network.ues import link_columns
 from caviar_plugins.network.uplink import UplinkSettings, uplink
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
 
@@ -73,26 +74,6 @@ def ues(rng: np.random.Generator, n: int = 100):
     return kinds, pos, vel
 
 
-def beamformed(cells, codebooks, channels: TracedChannels, pos, freqs, weights, mm, t, last_sinr, slots):
-    """The plugin's ``beams`` path (radio-network): SSB beam gains from the paths, L1-RSRP,
-    mobility, and the per-slot SINR with each interferer's scheduled beam."""
-    gains = all_beam_gains(cells, codebooks, channels.amplitudes(pos, freqs), channels.departure)
-    per_beam = 10 * np.log10(np.maximum(np.average(gains, axis=2, weights=weights), 1e-40))
-    tx = np.array([c.tx_power_dbm for c in cells])[None, :]
-    rsrp = rsrp_dbm(cells, tx + per_beam.max(axis=-1), [NUM_PRB] * len(cells))
-    for u in range(len(pos)):
-        mm.update(t, str(u), list(rsrp[u]), last_sinr.get(u))
-    serving = np.array([mm.serving(str(u)) for u in range(len(pos))])
-    best = np.where(serving >= 0, per_beam.argmax(axis=-1)[np.arange(len(pos)), np.maximum(serving, 0)], 0)
-    beams = slot_beams(serving, best, len(cells), slots)
-    noise = np.full(len(pos), 10 ** (noise_dbm(cells[0].bandwidth_hz, 7.0) / 10))
-    per_slot = slot_sinr_db(cells, gains, serving, best, beams, noise, silent_idle=False)
-    with warnings.catch_warnings():  # (a UE without a cell: all NaN)
-        warnings.simplefilter("ignore", RuntimeWarning)
-        sinr = 10 * np.log10(np.nanmean(10 ** (per_slot / 10), axis=(0, 2)))
-    return per_slot, sinr, serving, gains, per_beam.argmax(axis=-1), tx + per_beam.max(axis=-1)
-
-
 def compile_outside(settings: LinkSettings, n_cell: int, n_ue: int) -> float:
     """Compiles a link level of these settings outside the timed loop (once per process), on
     a link level of its own; returns the seconds it took."""
@@ -123,50 +104,46 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
     mm = MobilityManager(HandoverSettings(), [c.name for c in cells])
     slots = round(TS / link.s.slot_s)
     freqs, weights = settings.subband_frequencies_hz, settings.subband_prbs
+    codebooks = None if beams is None else [beams.codebook(cell.array) for cell in cells]
     channels = initial
     held = initial.power_sum_db[..., None] if subbands == 1 else initial.gain_db(pos0, freqs)
-    t_rt, t_evolve, t_sys, t_beams, last_sinr = 0.0, 0.0, 0.0, 0.0, {}
-    t_uplink, t_uplink_sinr = 0.0, 0.0
+    ids, rows = [str(u) for u in range(len(pos0))], np.arange(len(pos0))
+    last_sinr = np.full(len(pos0), np.nan)
+    t_rt, t_evolve, t_sys, t_beams, t_uplink, t_uplink_sinr = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     steps = round(seconds / TS)
     t0 = time.perf_counter()
     for k in range(steps):
+        # The plugin's step (radio-network: network.downlink's received and downlink_sinr, the
+        # mobility manager's rows, the link level on UE columns), on channels held or evolved here.
         t = k * TS
         pos = pos0 + vel * t
         a = time.perf_counter()
         if refresh is not None and k and k % round(refresh / TS) == 0:
             channels = tracer.trace(pos)
         b = time.perf_counter()
-        if beams is not None:
-            c = time.perf_counter()
-            t_rt = t_rt + b - a
-            codebooks = [beams.codebook(cell.array) for cell in cells]
-            per_slot, sinr, serving, gains, best, rx = beamformed(cells, codebooks, channels,
-                                                                  pos0 if refresh is None else pos,
-                                                                  freqs, weights, mm, t, last_sinr, slots)
-            t_beams += time.perf_counter() - c
-            link.run(per_slot, serving)
-            if up is not None and ul_link is not None:
-                d = time.perf_counter()
-                _, ul_sinr = uplink(cells, up, serving, rx[..., None], gains, best, NUM_PRB, SCS, slots)
-                t_uplink_sinr += time.perf_counter() - d
-                ul_link.run(ul_sinr, serving)
-                t_uplink += time.perf_counter() - d
-            last_sinr = {u: float(s) for u, s in enumerate(sinr) if serving[u] >= 0}
-            t_sys += time.perf_counter() - c
-            continue
+        at = pos0 if refresh is None else pos
         gains = held if refresh is None else channels.gain_db(pos, freqs)
+        beam_gains = None
+        if codebooks is not None:
+            beam_gains = all_beam_gains(cells, codebooks, channels.amplitudes(at, freqs), channels.departure)
         c = time.perf_counter()
         t_rt, t_evolve = t_rt + b - a, t_evolve + c - b
-        rx = rx_power_dbm(cells, gains)
-        wideband = 10 * np.log10(np.average(10 ** (rx / 10), axis=-1, weights=weights))
-        rsrp = rsrp_dbm(cells, wideband, [NUM_PRB] * len(cells))
-        for u in range(len(pos)):
-            mm.update(t, str(u), list(rsrp[u]), last_sinr.get(u))
-        serving = np.array([mm.serving(str(u)) for u in range(len(pos))])
-        sinr = sinr_db(cells, wideband, serving, 7.0)
-        per_subband = sinr_db(cells, rx, serving, 7.0)
-        link.run(np.broadcast_to(per_subband, (slots, *per_subband.shape)), serving)
-        last_sinr = {u: float(s) for u, s in enumerate(sinr) if serving[u] >= 0}
+        rx, wideband, rsrp, best = received(cells, gains, weights, NUM_PRB, beam_gains)
+        mm.ensure(len(pos0))
+        mm.update_rows(t, rows, ids, rsrp, last_sinr)
+        serving = mm.serving_cell[rows]
+        chosen = None if beam_gains is None or best is None else (beam_gains, best)
+        per_slot, sinr, _ = downlink_sinr(cells, rx, wideband, serving, None, noise_figure_db=7.0, scheduled=False,
+                                          beams=chosen, slots=slots, subband_prbs=weights)
+        t_beams += time.perf_counter() - c if chosen is not None else 0.0
+        link.run(*link_columns(per_slot, serving, rows, slots))
+        if up is not None and ul_link is not None:
+            d = time.perf_counter()
+            _, ul_sinr = uplink(cells, up, serving, rx, beam_gains, best, NUM_PRB, SCS, slots)
+            t_uplink_sinr += time.perf_counter() - d
+            ul_link.run(*link_columns(ul_sinr, serving, rows, slots))
+            t_uplink += time.perf_counter() - d
+        last_sinr = np.where(serving >= 0, sinr, np.nan)
         t_sys += time.perf_counter() - c
     wall = time.perf_counter() - t0
     return {"harq_processes": processes, "subbands": subbands, "compiled": compiled,

@@ -1,4 +1,6 @@
-"""The downlink SINR of a step: per slot and subband (what the link level decodes) and
+"""A step of the downlink: what every UE receives of every cell (:func:`received`: power per
+subband and wideband, RSRP, on the best SSB beam with beams), and the SINR
+(:func:`downlink_sinr`) per slot and subband (what the link level decodes) and
 wideband (what ``network.ue`` reports), with the co-channel cells as interference, either on
 their sector patterns (:func:`~caviar_plugins.network.cells.sinr_db`) or, with SSB beams, on
 the beams the other cells point at the UEs they schedule in each slot
@@ -11,13 +13,32 @@ from typing import Any, Sequence
 import numpy as np
 
 from caviar_plugins.network.beams import slot_beams, slot_sinr_db
-from caviar_plugins.network.cells import Cell, noise_dbm, sinr_db
+from caviar_plugins.network.cells import Cell, noise_dbm, rsrp_dbm, rx_power_dbm, sinr_db
+
+
+def received(cells: Sequence[Cell], gains_db: np.ndarray, subband_prbs: np.ndarray, num_prb: int,
+             beam_gains: np.ndarray | None = None):
+    """What every UE receives of every cell from the channel's ``gains_db`` [ue, cell,
+    subband] (dB): power [ue, cell, subband] and wideband (the subbands weighted by their
+    PRBs) [ue, cell] in dBm, RSRP [ue, cell] and, with ``beam_gains`` [ue, cell, subband,
+    beam] (linear), each cell's best beam [ue, cell] (None without), the wideband power and
+    RSRP then the best beam's (L1-RSRP)."""
+    rx = rx_power_dbm(cells, gains_db)
+    weights = subband_prbs if gains_db.shape[-1] > 1 else np.ones(1)
+    wideband = 10 * np.log10(np.average(10 ** (rx / 10), axis=-1, weights=weights))
+    best = None
+    if beam_gains is not None:
+        tx = np.array([c.tx_power_dbm for c in cells])[None, :]
+        per_beam = 10 * np.log10(np.maximum(np.average(beam_gains, axis=2, weights=weights), 1e-40))
+        wideband = tx + per_beam.max(axis=-1)
+        best = per_beam.argmax(axis=-1)
+    return rx, wideband, rsrp_dbm(cells, wideband, [num_prb] * len(cells)), best
 
 
 def downlink_sinr(cells: Sequence[Cell], rx: np.ndarray, wideband: np.ndarray, serving: np.ndarray,
                   talking: np.ndarray | None, *, noise_figure_db: float, scheduled: bool,
                   beams: tuple[np.ndarray, np.ndarray] | None = None, slots: int = 1,
-                  subband_prbs: np.ndarray | None = None, device: Any = None):
+                  subband_prbs: np.ndarray | None = None, device: Any = "auto"):
     """Per slot and subband [slot or 1, ue, subband], and wideband [ue], SINR and SIR (dB).
     ``rx``: received power [ue, cell, subband] and ``wideband`` [ue, cell] (dBm);
     ``serving`` [ue] (-1: none). With ``scheduled`` (``interference = "scheduled"``) only

@@ -31,9 +31,8 @@ import numpy as np
 
 import caviar
 from caviar_plugins.network.beams import beam_report
-from caviar_plugins.network.cells import rsrp_dbm, rx_power_dbm
 from caviar_plugins.network.channel import UePlaces
-from caviar_plugins.network.downlink import downlink_sinr
+from caviar_plugins.network.downlink import downlink_sinr, received
 from caviar_plugins.network.handover import MobilityManager
 from caviar_plugins.network.layout import drop_outdoors
 from caviar_plugins.network.radio_map import best_server_map, layer_message, save
@@ -205,17 +204,10 @@ class RadioNetwork(caviar.Plugin):
         pos[:, 2] += self.ues.lift[cols]
         places = UePlaces(ids, pos, self.ues.indoor[cols] > 0, self.ues.distance_2d_in[cols])
         gains = self.channel.gains_db(t, places)
-        rx = rx_power_dbm(self.cells, gains)
-        weights = self.subband_prbs if gains.shape[-1] > 1 else np.ones(1)
-        wideband = 10 * np.log10(np.average(10 ** (rx / 10), axis=-1, weights=weights))
-        self.beams = None  # (the beam gains [ue, cell, subband, beam] and best beams [ue, cell])
-        if self.codebooks is not None:  # L1-RSRP: the best SSB beam's
-            beam_gains = self.channel.beam_gains(places, self.codebooks)
-            tx = np.array([c.tx_power_dbm for c in self.cells])[None, :]
-            per_beam = 10 * np.log10(np.maximum(np.average(beam_gains, axis=2, weights=weights), 1e-40))
-            wideband = tx + per_beam.max(axis=-1)
-            self.beams = (beam_gains, per_beam.argmax(axis=-1))
-        rsrp = rsrp_dbm(self.cells, wideband, [self.p.num_prb] * len(self.cells))
+        beam_gains = None if self.codebooks is None else self.channel.beam_gains(places, self.codebooks)
+        rx, wideband, rsrp, best = received(self.cells, gains, self.subband_prbs, self.p.num_prb, beam_gains)
+        # (the beam gains [ue, cell, subband, beam] and best beams [ue, cell]: L1-RSRP, the SINR's beams)
+        self.beams = None if beam_gains is None or best is None else (beam_gains, best)
         self.mm.ensure(int(cols.max()) + 1)
         old = self.mm.serving_cell[cols]  # (a copy)
         events = self.mm.update_rows(t, cols, ids, rsrp, self.ues.last_sinr[cols])
