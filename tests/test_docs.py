@@ -96,6 +96,7 @@ def test_the_views_committed_bundle_was_built_from_the_sources_in_web():
     sources += [p.relative_to(ROOT).as_posix() for p in (ROOT / "web" / "src").rglob("*") if p.is_file()]
     built = [p.relative_to(ROOT).as_posix() for p in static.iterdir() if p.is_file() and p != record]
     rebuild = "rebuild and commit: bash scripts/setup-view.sh --build --no-browser"
-    assert sorted(recorded) == sorted(sources + built), f"{record.name} lists other files than web/ and the bundle: {rebuild}"
+    assert sorted(recorded) == sorted(sources + built), \
+        f"{record.name} lists other files than web/ and the bundle: {rebuild}"
     stale = [p for p, digest in recorded.items() if hashlib.sha256((ROOT / p).read_bytes()).hexdigest() != digest]
     assert not stale, f"changed since the bundle was built: {stale}; {rebuild}"
