@@ -11,6 +11,7 @@ so that pieces concatenate: ``episode(...) + waypoint_uav() + module(...)``."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import os
@@ -21,6 +22,9 @@ import time
 import caviar
 
 TESTS = pathlib.Path(__file__).resolve().parent
+# caviar_plugins.DATA's route of a UAV over Central Park, scene frame (found without importing the plugins)
+CENTRAL_PARK = (pathlib.Path(importlib.util.find_spec("caviar_plugins").submodule_search_locations[0]) / "data"
+                / "central_park_path0_scene.csv")
 
 SAR_STAGES = ["mobility", "camera", "communications", "link", "detection", "mission"]
 
@@ -91,12 +95,14 @@ def waypoint_uav(waypoints: str | pathlib.Path = "route.csv", speed: float = 5.0
 
 
 def image_chain(detector: dict | str | None = None, *, camera: dict | str | None = None,
-                comm: dict | str | None = None, mission: dict | str | bool | None = True) -> str:
-    """The search-and-rescue loop after the flight: the camera, a free-space link, the
-    image link, the person detector and (unless ``mission`` is False) the mission; each
-    one's params where given."""
+                comm: dict | str | None = None, radio: str | None = None,
+                mission: dict | str | bool | None = True) -> str:
+    """The search-and-rescue loop after the flight: the camera, a free-space link (or
+    ``radio``, the TOML of the modules in its place, e.g. a beam selector and
+    sionna_link()), the image link, the person detector and (unless ``mission`` is False)
+    the mission; each one's params where given."""
     text = (module("camera", "camera", "camera", camera)
-            + module("comm", "communications", "free-space-link", comm)
+            + (radio if radio is not None else module("comm", "communications", "free-space-link", comm))
             + module("link", "link", "image-link")
             + module("detector", "detection", "person-detector", detector))
     if mission is not False:
@@ -105,11 +111,29 @@ def image_chain(detector: dict | str | None = None, *, camera: dict | str | None
 
 
 def sionna_link(samples_per_src: int = 10000, *, name: str = "comm", stage: str = "communications",
-                raytracing: dict | None = None, **params) -> str:
+                raytracing: dict | None = None, params_table: bool = False, **params) -> str:
     """A ray-traced ``sionna-link`` with few rays (``raytracing = { samples_per_src = ... }``,
-    plus any other ray-tracing keys), then ``params``."""
+    plus any other ray-tracing keys), then ``params`` (inline, or a table with ``params_table``)."""
     return module(name, stage, "sionna-link", {"raytracing": {"samples_per_src": samples_per_src,
-                                                              **(raytracing or {})}, **params})
+                                                              **(raytracing or {})}, **params},
+                  params_table=params_table)
+
+
+def planned_flight(waypoints: str | pathlib.Path = CENTRAL_PARK, forecast_steps: int = 4, *, name: str = "uav1",
+                   **params) -> str:
+    """uav1 (``name``) flying ``waypoints`` (the Central Park route) and publishing its plan
+    ``forecast_steps`` ahead: waypoint-flight, its params as a table."""
+    return module(name, "mobility", "waypoint-flight", {"waypoints": waypoints, "frame": "scene",
+                                                        "forecast_steps": forecast_steps, **params}, params_table=True)
+
+
+def traced_flight(forecast_steps: int, **link) -> str:
+    """8 steps of 0.5 s (seed 2): the planned Central Park flight (not ending at its last
+    waypoint) and its sionna-link with few rays to depth 3 on one thread, no UAV mesh, and
+    ``link``'s other params."""
+    return (episode(0.5, ["mobility", "communications"], steps=8, seed=2)
+            + planned_flight(forecast_steps=forecast_steps, end_at_last=False)
+            + sionna_link(raytracing={"max_depth": 3, "threads": 1}, params_table=True, uav_mesh=False, **link))
 
 
 def write_route(tmp_path: pathlib.Path, points, name: str = "route.csv") -> pathlib.Path:

@@ -13,6 +13,7 @@ from pettingzoo.test import parallel_api_test
 
 import caviar
 import caviar.gym
+import configs
 from caviar_plugins.beam_selection.gym_task import PAIRS, beam_selection_spec
 from caviar_plugins.radio.link_budget import LinkBudget
 
@@ -20,25 +21,10 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 BEAM_GYM = ROOT / "blueprints" / "beam-gym"
 FEW_RAYS = {"modules.comm.params.raytracing.samples_per_src": 10000}
 
-TOY = """
-[episode]
-ts = 0.1
-steps = 5
-seed = 3
-stages = ["world", "agent", "judge"]
-
-[modules.target]
-stage = "world"
-plugin = "gym_plugins:Target"
-
-[modules.guesser]
-stage = "agent"
-plugin = "gym_plugins:Guesser"
-
-[modules.judge]
-stage = "judge"
-plugin = "gym_plugins:Judge"
-"""
+TOY = (configs.episode(0.1, ["world", "agent", "judge"], steps=5, seed=3)
+       + configs.module("target", "world", "gym_plugins:Target")
+       + configs.module("guesser", "agent", "gym_plugins:Guesser")
+       + configs.module("judge", "judge", "gym_plugins:Judge"))
 
 
 def toy_spec(topic: str = "toy.target") -> caviar.gym.AgentSpec:

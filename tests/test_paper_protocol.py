@@ -21,6 +21,7 @@ from caviar_plugins.radio.scene import normalize_channel
 from caviar_plugins.radio.sionna_link import SionnaLinkParams
 from caviar_plugins.sar.mission import Mission
 from caviar_plugins.vision.image_link import ImageLink
+from configs import episode, module, run_config
 from conftest import ROOT, write_config
 
 K_B = 1.380649e-23
@@ -125,16 +126,8 @@ def _arrived_at(pts, index, step) -> bool:
 
 
 def test_paper_flight_plugin_reports_the_mission_clock(tmp_path):
-    cfg = write_config(tmp_path, """
-[episode]
-ts = 0.5
-stages = ["mobility"]
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { protocol = "paper", waypoints = "central_park_path0.csv", takeoff_s = 8.5 }
-""")
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    log = run_config(tmp_path, episode(0.5, ["mobility"]) + module("uav", "mobility", "waypoint-flight", {
+        "protocol": "paper", "waypoints": "central_park_path0.csv", "takeoff_s": 8.5}))
     end = log.topic(caviar.END_TOPIC).row(0, named=True)
     flight = PaperFlight(sar_points(), 0.5, 5.0, 5.0, last=4)
     assert end["flight_time_s"] == 0.5 * fly(flight)
@@ -146,20 +139,9 @@ params = { protocol = "paper", waypoints = "central_park_path0.csv", takeoff_s =
 
 
 def test_paper_mission_uses_the_previous_throughput_and_skips_zero(tmp_path):
-    cfg = write_config(tmp_path, """
-[episode]
-ts = 0.5
-steps = 8
-stages = ["sensors", "mission"]
-[modules.script]
-stage = "sensors"
-plugin = "test_paper_protocol:ScriptedLink"
-[modules.mission]
-stage = "mission"
-plugin = "mission"
-params = { protocol = "paper" }
-""")
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    log = run_config(tmp_path, episode(0.5, ["sensors", "mission"], steps=8)
+                     + module("script", "sensors", "test_paper_protocol:ScriptedLink")
+                     + module("mission", "mission", "mission", {"protocol": "paper"}))
     rescues = log.topic("mission.rescue")
     # Step 1 sees a person while the previous throughput was 0: nothing counted. Step 3
     # (previous step 40 Mbit/s, this step 80) counts with S = 320 Mbit / 40 Mbit/s.
@@ -207,15 +189,8 @@ def test_protocol_is_validated_and_physical_is_the_default(params):
 
 
 def test_config_error_names_the_module_and_key(tmp_path):
-    cfg = write_config(tmp_path, """
-[episode]
-ts = 0.5
-stages = ["mobility"]
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { protocol = "2023" }
-""")
+    cfg = write_config(tmp_path, episode(0.5, ["mobility"]) + module("uav", "mobility", "waypoint-flight",
+                                                                     {"protocol": "2023"}))
     with pytest.raises(caviar.ConfigError, match=r"exp.toml:8: modules.uav.params.protocol: expected one of"):
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
 

@@ -6,12 +6,11 @@ import math
 import numpy as np
 import pytest
 
-import caviar
 from caviar_plugins import DATA
 from caviar_plugins.mobility import Path, airsim_ned_to_scene, read_waypoints
 from caviar_plugins.radio import LinkBudget, RadioConfig, RadioScene, dft_codebook, element_grid
 from caviar_plugins.rt.settings import with_raytracing
-from conftest import write_config
+from configs import CENTRAL_PARK, episode, module, run_config, sionna_link, waypoint_uav
 
 LAMBDA = 299_792_458.0 / 40e9
 
@@ -121,34 +120,12 @@ def test_paper_waypoints_fly_through_open_space_except_the_spur_into_a_building(
 
 
 def test_sionna_link_in_the_loop_with_beam_selection(tmp_path):
-    cfg = write_config(tmp_path, """
-[episode]
-ts = 0.5
-steps = 3
-seed = 5
-stages = ["mobility", "ai", "communications"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { waypoints = "%s", frame = "scene", ue_id = "uav1" }
-
-[modules.uav2]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { waypoints = "%s", frame = "scene", ue_id = "uav2", speed = 10.0 }
-
-[modules.pick]
-stage = "ai"
-plugin = "sample_plugins:FixedBeam"
-params = { ue_id = "uav2", beam_pair = 77 }
-
-[modules.comm]
-stage = "communications"
-plugin = "sionna-link"
-params = { raytracing = { samples_per_src = 10000 } }
-""" % (((DATA / "central_park_path0_scene.csv").as_posix(),) * 2))
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    log = run_config(tmp_path, episode(0.5, ["mobility", "ai", "communications"], steps=3, seed=5)
+                     + module("uav", "mobility", "waypoint-flight", {"waypoints": CENTRAL_PARK, "frame": "scene",
+                                                                     "ue_id": "uav1"})
+                     + waypoint_uav(CENTRAL_PARK, 10.0, name="uav2", ue_id="uav2")
+                     + module("pick", "ai", "sample_plugins:FixedBeam", {"ue_id": "uav2", "beam_pair": 77})
+                     + sionna_link())
     thr = log.topic("communications.throughput")
     link = log.topic("communications.link")
     assert thr["UE_Id"].to_list() == ["uav1", "uav2"] * 3

@@ -13,6 +13,18 @@ from caviar_plugins.rt.settings import with_raytracing
 from caviar_plugins.schema import read_position
 from caviar_plugins.vision import VisualConfig, VisualScene, loss_for_throughput, packet_loss, psnr
 from caviar_plugins.vision import person_detector as detector
+from configs import (
+    SAR_STAGES,
+    episode,
+    image_chain,
+    module,
+    output,
+    route_past,
+    run_config,
+    sionna_link,
+    the_rescue,
+    waypoint_uav,
+)
 from conftest import write_config
 
 
@@ -106,21 +118,9 @@ def test_detector_precision_and_recall_on_held_out_frames(trained):
 
 
 def test_mission_stops_for_the_upload_and_counts_each_person_once(tmp_path):
-    cfg = write_config(tmp_path, """
-[episode]
-ts = 1.0
-steps = 6
-stages = ["sensors", "mission"]
-
-[modules.script]
-stage = "sensors"
-plugin = "sample_plugins:ScriptedDetections"
-
-[modules.mission]
-stage = "mission"
-plugin = "mission"
-""")
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    log = run_config(tmp_path, episode(1.0, ["sensors", "mission"], steps=6)
+                     + module("script", "sensors", "sample_plugins:ScriptedDetections")
+                     + module("mission", "mission", "mission"))
     hover = log.topic("mission.hover")
     # Detections at steps 1 (person A), 2 (A again, 3 m away: same), 3 (person B at 80 Mbit/s).
     assert hover["step"].to_list() == [1, 3]
@@ -142,20 +142,10 @@ def test_beam_selection_methods(tmp_path):
     assert top[1] <= top[5] <= top[256] == 1.0
     beam_selection.save(tree, tmp_path / "tree.pkl")
 
-    base = """
-[episode]
-ts = 0.5
-steps = 4
-seed = 9
-stages = ["mobility", "ai"]
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { waypoints = "central_park_path0_scene.csv", frame = "scene" }
-[modules.beams]
-stage = "ai"
-plugin = "beam-selector"
-"""
+    base = (episode(0.5, ["mobility", "ai"], steps=4, seed=9)
+            + module("uav", "mobility", "waypoint-flight", {"waypoints": "central_park_path0_scene.csv",
+                                                            "frame": "scene"})
+            + module("beams", "ai", "beam-selector"))
     for method, extra in (("random", ""), ("tree", ', model = "tree.pkl"'), ("oracle", "")):
         cfg = write_config(tmp_path, base + f'params = {{ method = "{method}"{extra} }}\n', f"{method}.toml")
         log = caviar.Simulation.from_toml(cfg, out=tmp_path / method).run()
@@ -177,55 +167,15 @@ plugin = "beam-selector"
 def test_short_all_in_loop_episode_rescues_the_person_in_view(tmp_path, trained, visual):
     _, model = trained
     tx, ty = visual.cfg.targets[1]
-    (tmp_path / "route.csv").write_text(f"X,Y,Z\n{tx - 8:.2f},{ty:.2f},9.23\n{tx + 8:.2f},{ty:.2f},9.23\n")
-    cfg = write_config(tmp_path, f"""
-[episode]
-ts = 0.5
-seed = 2
-stages = ["mobility", "camera", "ai", "communications", "link", "detection", "mission"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = {{ waypoints = "route.csv", frame = "scene", speed = 5.0 }}
-
-[modules.camera]
-stage = "camera"
-plugin = "camera"
-params = {{ save = true }}
-
-[modules.beams]
-stage = "ai"
-plugin = "beam-selector"
-params = {{ method = "oracle" }}
-
-[modules.comm]
-stage = "communications"
-plugin = "sionna-link"
-params = {{ raytracing = {{ samples_per_src = 10000 }}, publish_channels = false }}
-
-[modules.link]
-stage = "link"
-plugin = "image-link"
-
-[modules.detector]
-stage = "detection"
-plugin = "person-detector"
-params = {{ model = "{model.as_posix()}" }}
-
-[modules.mission]
-stage = "mission"
-plugin = "mission"
-""")
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    route_past(tmp_path, (tx, ty))
+    beams_and_rays = module("beams", "ai", "beam-selector", {"method": "oracle"}) + sionna_link(publish_channels=False)
+    log = run_config(tmp_path, episode(0.5, ["mobility", "camera", "ai", *SAR_STAGES[2:]], seed=2) + waypoint_uav()
+                     + image_chain({"model": model.as_posix()}, camera={"save": True}, radio=beams_and_rays))
     assert log.status["status"] == "completed"
-    rescues = log.topic("mission.rescue")
     quality = log.topic("ai.image_quality")
     assert quality.height == log.status["steps_done"]
     assert set(quality["loss_rate"]) <= {0.01, 0.25, 0.5}
-    assert rescues.height == 1, rescues
-    r = rescues.row(0, named=True)
-    assert math.dist((r["x"], r["y"]), (tx, ty)) < 1.5
+    r = the_rescue(log, (tx, ty))
     assert r["hover_s"] == pytest.approx(min(320 / r["throughput"], 600.0))
     # The hover shows in the flight: the UAV stood still after the rescue.
     xs = [p["x"] for p in log.topic("3D.mobility.positions")["position"].to_list()]
@@ -321,38 +271,11 @@ def test_detector_threads_find_the_same_people_as_one_thread(tmp_path, trained, 
     by side, and the recorded detections are those of one thread."""
     _, model = trained
     uavs = ""
-    for i, (tx, ty) in enumerate(visual.cfg.targets[:3]):
-        (tmp_path / f"route{i}.csv").write_text(f"X,Y,Z\n{tx - 2:.2f},{ty:.2f},9.0\n{tx + 2:.2f},{ty:.2f},9.0\n")
-        uavs += f"""
-[modules.uav{i}]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = {{ waypoints = "route{i}.csv", frame = "scene", speed = 2.0, ue_id = "uav{i}" }}
-"""
-    cfg = write_config(tmp_path, f"""
-[episode]
-ts = 0.5
-steps = 4
-seed = 3
-stages = ["mobility", "camera", "communications", "link", "detection"]
-{uavs}
-[modules.camera]
-stage = "camera"
-plugin = "camera"
-
-[modules.comm]
-stage = "communications"
-plugin = "free-space-link"
-
-[modules.link]
-stage = "link"
-plugin = "image-link"
-
-[modules.detector]
-stage = "detection"
-plugin = "person-detector"
-params = {{ model = "{model.as_posix()}", workers = 3 }}
-""")
+    for i, target in enumerate(visual.cfg.targets[:3]):
+        route_past(tmp_path, target, half=2.0, z=9.0, name=f"route{i}.csv")
+        uavs += waypoint_uav(f"route{i}.csv", 2.0, name=f"uav{i}", ue_id=f"uav{i}")
+    cfg = write_config(tmp_path, episode(0.5, SAR_STAGES[:-1], steps=4, seed=3) + uavs
+                       + image_chain({"model": model.as_posix(), "workers": 3}, mission=False))
     runs = {}
     for workers in (1, 3):
         sim = caviar.Simulation.from_toml(cfg, out=tmp_path / f"run-{workers}",
@@ -369,23 +292,11 @@ params = {{ model = "{model.as_posix()}", workers = 3 }}
 def test_the_camera_rides_only_on_the_ue_types_it_is_given(tmp_path):
     """``ue_types = ["UAV"]``: a city's cars publish positions too, but only the UAV gets a
     camera (and an image a step)."""
-    (tmp_path / "cam.toml").write_text("""
-[episode]
-ts = 0.5
-steps = 2
-stages = ["mobility", "camera"]
-[output]
-analysis = ["3D.camera.*", "3D.camera.*.file", "3D.camera.*.depth"]
-[modules.ues]
-stage = "mobility"
-plugin = "sample_plugins:LineMover"
-params = { ues = [{ id = "uav1", type = "UAV", start = [0.0, 0.0, 40.0], end = [10.0, 0.0, 40.0], speed = 5.0 },
-                  { id = "car1", type = "car", start = [5.0, 5.0, 0.0], end = [5.0, 25.0, 0.0], speed = 5.0 }] }
-[modules.camera]
-stage = "camera"
-plugin = "camera"
-params = { ue_types = ["UAV"], distractors = 0 }
-""")
-    log = caviar.Simulation.from_toml(tmp_path / "cam.toml", out=tmp_path / "run").run()
+    ues = [{"id": "uav1", "type": "UAV", "start": [0.0, 0.0, 40.0], "end": [10.0, 0.0, 40.0], "speed": 5.0},
+           {"id": "car1", "type": "car", "start": [5.0, 5.0, 0.0], "end": [5.0, 25.0, 0.0], "speed": 5.0}]
+    log = run_config(tmp_path, episode(0.5, ["mobility", "camera"], steps=2)
+                     + output(analysis=["3D.camera.*", "3D.camera.*.file", "3D.camera.*.depth"])
+                     + module("ues", "mobility", "sample_plugins:LineMover", {"ues": ues})
+                     + module("camera", "camera", "camera", {"ue_types": ["UAV"], "distractors": 0}), name="cam.toml")
     assert sorted(set(log.messages["topic"].to_list()) - {"3D.mobility.positions"}) == ["3D.camera.uav1"]
     assert len(log.decoded("3D.camera.uav1")) == 2
