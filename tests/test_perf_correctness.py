@@ -150,36 +150,9 @@ def test_path_buffer_overflow_is_detected_and_reported():
 
 
 def lookahead_run(tmp_path, name: str, lookahead: bool):
-    import caviar
-    from caviar_plugins import DATA
-    from conftest import write_config
+    from configs import run_config, traced_flight
 
-    cfg = write_config(tmp_path, f"""
-[episode]
-ts = 0.5
-steps = 8
-seed = 2
-stages = ["mobility", "communications"]
-
-[modules.uav1]
-stage = "mobility"
-plugin = "waypoint-flight"
-[modules.uav1.params]
-waypoints = "{(DATA / "central_park_path0_scene.csv").as_posix()}"
-frame = "scene"
-forecast_steps = 3
-end_at_last = false
-
-[modules.comm]
-stage = "communications"
-plugin = "sionna-link"
-[modules.comm.params]
-raytracing = {{ samples_per_src = 10000, max_depth = 3, threads = 1 }}
-uav_mesh = false
-lookahead = {str(lookahead).lower()}
-lookahead_steps = 3
-""", name=f"{name}.toml")
-    return caviar.Simulation.from_toml(cfg, out=tmp_path / name).run()
+    return run_config(tmp_path, traced_flight(3, lookahead=lookahead, lookahead_steps=3), out=name, name=f"{name}.toml")
 
 
 def test_lookahead_runs_are_deterministic_and_solve_once_per_forecast(tmp_path):

@@ -10,39 +10,18 @@ import numpy as np
 import pytest
 
 import caviar
-from caviar_plugins import DATA
 from caviar_plugins.radio.prediction import Forecaster, prediction_errors
+from configs import traced_flight
 from conftest import write_config
 
-FLIGHT = """
-[episode]
-ts = 0.5
-steps = 8
-seed = 2
-stages = ["mobility", "communications"]
 
-[modules.uav1]
-stage = "mobility"
-plugin = "waypoint-flight"
-[modules.uav1.params]
-waypoints = "{route}"
-frame = "scene"
-forecast_steps = {forecast}
-end_at_last = false
-
-[modules.comm]
-stage = "communications"
-plugin = "sionna-link"
-[modules.comm.params]
-raytracing = { samples_per_src = 10000, max_depth = 3, threads = 1 }
-uav_mesh = false
-predict_horizons_s = [0.5, 1.0, 2.0]
-"""
+def flight(forecast: int) -> str:
+    """The planned Central Park flight, ``forecast`` steps of plan, and its link predicting 0.5, 1 and 2 s ahead."""
+    return traced_flight(forecast, predict_horizons_s=[0.5, 1.0, 2.0])
 
 
 def _flight(tmp_path, name: str, forecast: int):
-    text = FLIGHT.format(route=(DATA / "central_park_path0_scene.csv").as_posix(), forecast=forecast)
-    cfg = write_config(tmp_path, text, f"{name}.toml")
+    cfg = write_config(tmp_path, flight(forecast), f"{name}.toml")
     return caviar.Simulation.from_toml(cfg, out=tmp_path / name).run()
 
 
@@ -129,7 +108,7 @@ def test_bad_predictions_name_the_key(tmp_path, capfd, edit, key):
 
     replacement = {"predict_horizons_s.1": "predict_horizons_s = [0.5, -1.0]",
                    "predict_horizons_s": "uav_mesh = true"}[key]
-    text = FLIGHT.format(route=(DATA / "central_park_path0_scene.csv").as_posix(), forecast=0)
+    text = flight(0)
     cfg = write_config(tmp_path, text.replace(edit, replacement))
     assert _core.main(["caviar-core", "validate", str(cfg)]) == 2
     err = capfd.readouterr().err
@@ -147,7 +126,7 @@ def test_a_warm_up_at_setup_changes_no_recorded_message(tmp_path):
     loop, agrees to float32 rounding only (as the cache does, tests/test_shoot_cache.py), and
     its status line for people (caviar.status), which counts the warm-up's solves too."""
     plain = _flight(tmp_path, "plain", forecast=4)
-    text = FLIGHT.format(route=(DATA / "central_park_path0_scene.csv").as_posix(), forecast=4)
+    text = flight(4)
     cfg = write_config(tmp_path, text.replace("uav_mesh = false", "uav_mesh = false\nwarm_up_ues = 4"), "warm.toml")
     warm = caviar.Simulation.from_toml(cfg, out=tmp_path / "warm").run()
     cols = ["step", "source", "topic", "text"]
@@ -173,7 +152,7 @@ def test_predictions_next_to_look_ahead_ray_tracing(tmp_path):
     """Look-ahead (its own receivers, UE@k, cached between solves) and predictions (UE#hI)
     in one run: the same predictions and links as without look-ahead."""
     plain = _flight(tmp_path, "plain", forecast=4)
-    text = FLIGHT.format(route=(DATA / "central_park_path0_scene.csv").as_posix(), forecast=4)
+    text = flight(4)
     cfg = write_config(tmp_path, text.replace("uav_mesh = false",
                                               "uav_mesh = false\nlookahead = true\nlookahead_steps = 4"),
                        "ahead.toml")
