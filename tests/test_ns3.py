@@ -16,6 +16,7 @@ import pytest
 
 import caviar
 from caviar_plugins.ns3 import simulator as sim
+from configs import episode, module, nats_transport, output, waypoint_uav, write_route
 from conftest import ROOT
 
 SPEED_OF_LIGHT = 299_792_458.0
@@ -134,44 +135,22 @@ def test_two_ues_share_the_uplink_each_at_its_half_of_the_rbs():
         s.close()
 
 
-FLIGHT = """
-[episode]
-ts = {ts}
-seed = 1
-stages = ["mobility", "camera", "communications", "link"]
-
-[output]
-name = "ns3"
-analysis = ["communications.throughput", "communications.state", "network.ns3.link", "ai.image_quality",
-            "ai.images.*"]
-exclude = ["3D.camera.>", "ai.images.*"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = {{ waypoints = "route.csv", frame = "scene", speed = {speed} }}
-
-[modules.camera]
-stage = "camera"
-plugin = "camera"
-
-[modules.comm]
-stage = "communications"
-plugin = "free-space-link"
-params = {{ tx_position = [0.0, 0.0, 60.0], frequency_hz = 40e9, publish_link = true }}
-
-[modules.net]
-stage = "link"
-plugin = "ns3-network"
-[modules.net.params]
-{net}
-"""
+def flight(ts: float, speed: float, net: str) -> str:
+    """A UAV flying route.csv at ``speed`` with its camera, a free-space link from a mast at
+    60 m and its images over ns3-network, whose params are the lines ``net``."""
+    return (episode(ts, ["mobility", "camera", "communications", "link"], seed=1)
+            + output(name="ns3", analysis=["communications.throughput", "communications.state", "network.ns3.link",
+                                           "ai.image_quality", "ai.images.*"], exclude=["3D.camera.>", "ai.images.*"])
+            + waypoint_uav(speed=speed) + module("camera", "camera", "camera")
+            + module("comm", "communications", "free-space-link",
+                     "tx_position = [0.0, 0.0, 60.0], frequency_hz = 40e9, publish_link = true")
+            + module("net", "link", "ns3-network", net, params_table=True))
 
 
 def _fly(tmp_path, net: str, route: list[list[float]], ts=0.5, speed=20.0, transport=None):
-    (tmp_path / "route.csv").write_text("X,Y,Z\n" + "".join(f"{x},{y},{z}\n" for x, y, z in route))
+    write_route(tmp_path, route)
     cfg = tmp_path / "cfg.toml"
-    cfg.write_text(FLIGHT.format(ts=ts, speed=speed, net=net) + (transport or ""))
+    cfg.write_text(flight(ts, speed, net) + (transport or ""))
     with caviar.Simulation.from_toml(cfg, out=tmp_path / "run") as s:
         return s.run(progress=False)
 
@@ -246,10 +225,9 @@ BIN = os.path.dirname(sys.executable)
 
 
 def test_killing_the_ns3_worker_stops_the_run_naming_the_module(tmp_path):
-    (tmp_path / "route.csv").write_text("X,Y,Z\n0,0,40\n400,0,40\n")
+    write_route(tmp_path, [(0, 0, 40), (400, 0, 40)])
     cfg = tmp_path / "cfg.toml"
-    cfg.write_text(FLIGHT.format(ts=0.5, speed=2.0, net='enb_position = [0.0, 0.0, 60.0]')
-                   + '\n[transport]\nkind = "nats"\n[transport.nats]\nheartbeat_timeout = 2.0\n')
+    cfg.write_text(flight(0.5, 2.0, "enb_position = [0.0, 0.0, 60.0]") + nats_transport(heartbeat_timeout=2.0))
     run = subprocess.Popen([os.path.join(BIN, "caviar-core"), "run", str(cfg), "--out", "run", "-q"], cwd=tmp_path,
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -271,9 +249,9 @@ def test_killing_the_ns3_worker_stops_the_run_naming_the_module(tmp_path):
 
 
 def _config_error(tmp_path, net: str) -> str:
-    (tmp_path / "route.csv").write_text("X,Y,Z\n0,0,40\n40,0,40\n")
+    write_route(tmp_path, [(0, 0, 40), (40, 0, 40)])
     cfg = tmp_path / "cfg.toml"
-    cfg.write_text(FLIGHT.format(ts=0.5, speed=10.0, net=net))
+    cfg.write_text(flight(0.5, 10.0, net))
     with pytest.raises(caviar.ConfigError) as e:
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
     assert not (tmp_path / "run").exists()
@@ -294,9 +272,9 @@ def test_a_ran_the_wheel_does_not_build_is_refused_naming_the_key(tmp_path):
 
 
 def test_an_image_from_a_ue_without_a_node_stops_the_run_naming_the_key(tmp_path):
-    (tmp_path / "route.csv").write_text("X,Y,Z\n0,0,40\n40,0,40\n")
+    write_route(tmp_path, [(0, 0, 40), (40, 0, 40)])
     cfg = tmp_path / "cfg.toml"
-    cfg.write_text(FLIGHT.format(ts=0.5, speed=10.0, net='ues = ["uav2"]'))
+    cfg.write_text(flight(0.5, 10.0, 'ues = ["uav2"]'))
     with pytest.raises(caviar.RunError) as e:
         with caviar.Simulation.from_toml(cfg, out=tmp_path / "run") as s:
             s.run(progress=False)
@@ -306,10 +284,10 @@ def test_an_image_from_a_ue_without_a_node_stops_the_run_naming_the_key(tmp_path
 
 def test_the_same_run_in_process_and_over_nats_records_the_same_messages(tmp_path, cli):
     """ns-3 is deterministic: a worker process of its own gives what the embedded plugin gave."""
-    (tmp_path / "route.csv").write_text("X,Y,Z\n200,0,60\n500,0,60\n")
+    write_route(tmp_path, [(200, 0, 60), (500, 0, 60)])
     net = ('loss_from = "path"\nenb_position = [0.0, 0.0, 60.0]\n'
            'attributes = { "ns3::LteUePhy::EnableUplinkPowerControl" = false, "ns3::LteUePhy::TxPower" = 10 }')
-    (tmp_path / "cfg.toml").write_text(FLIGHT.format(ts=0.5, speed=20.0, net=net))
+    (tmp_path / "cfg.toml").write_text(flight(0.5, 20.0, net))
     cli("run", "cfg.toml", "-q", "--out", "inproc", check=0)
     cli("run", "cfg.toml", "-q", "--out", "nats", "--set", 'transport.kind="nats"', check=0)
     a, b = (caviar.load_run(tmp_path / d).messages.drop("seq") for d in ("inproc", "nats"))

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from caviar_plugins.tools.export.raymobtime import BASE_STATION, OBSTACLE, UE, occupancy_grid
+from configs import episode, module, output, sionna_link
 from conftest import ROOT
 
 
@@ -30,43 +31,18 @@ def test_the_occupancy_grid_puts_each_point_in_the_cell_computed_by_hand():
     assert east[39, 20, 16] == BASE_STATION and (east != 0).sum() == 2
 
 
-DATASET = """
-[episode]
-ts = 0.5
-steps = 3
-seed = 7
-stages = ["mobility", "sensing", "communications", "dataset"]
-
-[output]
-analysis = ["communications.throughput", "communications.channel.*", "communications.state",
-            "communications.prediction", "communications.paths.*", "dataset.record", "3D.lidar.*.sweep",
-            "3D.lidar.*.file", "3D.camera.*.file", "3D.camera.*.depth"]
-exclude = ["communications.channel.>", "3D.lidar.*", "3D.camera.*"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "random-waypoint-flight"
-params = { spread = 15.0, altitude = [8.0, 12.0], speed = 5.0 }
-
-[modules.lidar]
-stage = "sensing"
-plugin = "lidar"
-params = { scene = "central_park", raytracing = { threads = 1 }, sensor = { channels = 16,
-                                                                           horizontal_resolution_deg = 1.0 } }
-
-[modules.camera]
-stage = "sensing"
-plugin = "camera"
-
-[modules.comm]
-stage = "communications"
-plugin = "sionna-link"
-params = { raytracing = { samples_per_src = 10000 }, tx_position = [-154.0, 64.0, 120.0] }
-
-[modules.dataset]
-stage = "dataset"
-plugin = "beam-dataset"
-"""
+DATASET = (episode(0.5, ["mobility", "sensing", "communications", "dataset"], steps=3, seed=7)
+           + output(analysis=["communications.throughput", "communications.channel.*", "communications.state",
+                              "communications.prediction", "communications.paths.*", "dataset.record",
+                              "3D.lidar.*.sweep", "3D.lidar.*.file", "3D.camera.*.file", "3D.camera.*.depth"],
+                    exclude=["communications.channel.>", "3D.lidar.*", "3D.camera.*"])
+           + module("uav", "mobility", "random-waypoint-flight", {"spread": 15.0, "altitude": [8.0, 12.0],
+                                                                   "speed": 5.0})
+           + module("lidar", "sensing", "lidar", {"scene": "central_park", "raytracing": {"threads": 1},
+                                                   "sensor": {"channels": 16, "horizontal_resolution_deg": 1.0}})
+           + module("camera", "sensing", "camera")
+           + sionna_link(tx_position=[-154.0, 64.0, 120.0])
+           + module("dataset", "dataset", "beam-dataset"))
 
 
 def test_export_raymobtime_writes_every_modality_of_every_record(tmp_path, cli):
