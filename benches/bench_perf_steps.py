@@ -102,7 +102,9 @@ def bench_solve(n_rx: int, samples: int, reps: int) -> dict:
     path = Path(read_waypoints(DATA / ROUTE))
     starts = np.linspace(0, path.length * 0.9, n_rx)
     radio = RadioScene(with_raytracing(RadioConfig, samples_per_src=samples, uav_mesh=False), seed=0)
-    sionna_solver = radio.rt.PathSolver()  # Sionna's own candidate generator, no cache
+    from caviar_plugins.rt.scene import sionna_rt
+
+    sionna_solver = sionna_rt().PathSolver()  # Sionna's own candidate generator, no cache
     c = radio.cfg
     k = [0]
 
@@ -184,7 +186,9 @@ def bench_moving_body(samples: int, positions: int) -> dict:
     path = Path(read_waypoints(DATA / ROUTE))
     new = RadioScene(with_raytracing(RadioConfig, samples_per_src=samples, cache_moving_bodies=True), seed=0)
     old = RadioScene(with_raytracing(RadioConfig, samples_per_src=samples, cache_moving_bodies=False), seed=0)
-    sionna_solver = new.rt.PathSolver()
+    from caviar_plugins.rt.scene import sionna_rt
+
+    sionna_solver = sionna_rt().PathSolver()
     c = new.cfg
 
     def reference(seed: int) -> np.ndarray:

@@ -240,7 +240,9 @@ def bench_host(n_uav: int, samples: int, reps: int) -> dict:  # noqa: C901 (one 
     link = plugin(samples)
     radio = link.radio
     c = radio.cfg
-    bare_solver = radio.rt.PathSolver()
+    from caviar_plugins.rt.scene import sionna_rt
+
+    bare_solver = sionna_rt().PathSolver()
     options = dict(max_depth=c.max_depth, samples_per_src=c.samples_per_src, synthetic_array=True, los=c.los,
                    specular_reflection=c.specular_reflection, diffuse_reflection=c.diffuse_reflection,
                    refraction=c.refraction, diffraction=c.diffraction, seed=radio.seed,

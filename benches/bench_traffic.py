@@ -61,6 +61,7 @@ def run(n: int, steps: int, seed: int = 0) -> dict:
 
     from caviar_plugins.radio.scene import RadioConfig, RadioScene
     from caviar_plugins.rt.scatterers import Body, ScattererPool
+    from caviar_plugins.rt.scene import itu_material
     from caviar_plugins.rt.settings import with_raytracing
 
     rng = np.random.default_rng(seed)
@@ -69,10 +70,9 @@ def run(n: int, steps: int, seed: int = 0) -> dict:
                                    samples_per_src=100_000, uav_mesh=False, antenna_offset=[0.0, 0.0, 0.0],
                                    shoot_cache=False))  # movers change the geometry: as sionna-traffic-link
     load_s = time.perf_counter() - t0
-    rt = radio.rt
     t0 = time.perf_counter()
     pool = ScattererPool(radio.scene, {"vehicle": n} if n else {},
-                         {"vehicle": rt.ITURadioMaterial("bench-metal", "metal", thickness=0.01)})
+                         {"vehicle": itu_material("bench-metal", "metal", thickness=0.01)})
     pool_s = time.perf_counter() - t0
     rx = {f"rx{i}": np.array([TX[0] + rng.uniform(-150, 150), TX[1] + rng.uniform(-150, 150), 1.6])
           for i in range(6)}

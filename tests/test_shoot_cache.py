@@ -7,6 +7,7 @@ import pytest
 from caviar_plugins import DATA
 from caviar_plugins.mobility import Path, read_waypoints
 from caviar_plugins.radio import RadioConfig, RadioScene
+from caviar_plugins.rt.scene import itu_material
 from caviar_plugins.rt.settings import with_raytracing
 
 # Diffuse reflection only adds paths where a material scatters: give concrete a
@@ -214,7 +215,7 @@ def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():
     def with_pool(**kw):
         radio = RadioScene(with_raytracing(RadioConfig, **SETTINGS, uav_mesh=False, rays_per_moving_object=512,
                                            **kw), seed=5)
-        metal = radio.rt.ITURadioMaterial("car-metal", "metal", thickness=0.01)
+        metal = itu_material("car-metal", "metal", thickness=0.01)
         pool = ScattererPool(radio.scene, {"vehicle": 4}, {"vehicle": metal}, prefix="cars")
         radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
         return radio, pool
@@ -252,7 +253,7 @@ def test_the_box_prefilter_finds_every_recorded_ray_that_now_meets_a_moving_obje
     from caviar_plugins.rt.shoot_cache.movers import boxes_scene, met_by_movers
 
     radio = RadioScene(with_raytracing(RadioConfig, **SETTINGS, uav_mesh=True, rays_per_moving_object=64), seed=5)
-    metal = radio.rt.ITURadioMaterial("car-metal", "metal", thickness=0.01)
+    metal = itu_material("car-metal", "metal", thickness=0.01)
     pool = ScattererPool(radio.scene, {"vehicle": 3}, {"vehicle": metal}, prefix="cars")
     radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
     for k in range(2):  # the second solve records the bounces (with where each ray goes next)
@@ -438,7 +439,7 @@ def test_a_diffuse_path_whose_earlier_segment_meets_a_moving_object_is_dropped()
 
     def with_pool(**kw):
         radio = scene(True, uav_mesh=False, rays_per_moving_object=512, **kw)
-        metal = radio.rt.ITURadioMaterial("slab-metal", "metal", thickness=0.01)
+        metal = itu_material("slab-metal", "metal", thickness=0.01)
         pool = ScattererPool(radio.scene, {"vehicle": 1}, {"vehicle": metal}, prefix="slab")
         radio.add_moving_objects(pool.objects(), away=pool.parked, boxes=pool.boxes)
         radio.keep_paths = True

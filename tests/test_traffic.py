@@ -237,10 +237,12 @@ def test_a_moving_car_reflects_where_the_image_method_says_on_the_shoot_cache(tm
     valid = np.array(radio.last_paths.valid).ravel()
     tau = np.sort(np.array(radio.last_paths.tau).ravel()[valid])
     np.testing.assert_allclose(tau, expected, rtol=0, atol=1e-12)
-    c_ = radio.cfg
-    dense = radio.rt.PathSolver()(radio.scene, max_depth=2, samples_per_src=1_000_000, synthetic_array=True,
-                                  los=True, specular_reflection=True, diffuse_reflection=c_.diffuse_reflection,
-                                  refraction=c_.refraction, diffraction=False, seed=radio.seed)
+    c_ = radio.cfg.raytracing
+    from caviar_plugins.rt.scene import sionna_rt
+
+    dense = sionna_rt().PathSolver()(radio.scene, max_depth=2, samples_per_src=1_000_000, synthetic_array=True,
+                                     los=True, specular_reflection=True, diffuse_reflection=c_.diffuse_reflection,
+                                     refraction=c_.refraction, diffraction=False, seed=radio.seed)
     h = dense.cfr(frequencies=np.array([0.0]), normalize_delays=False, out_type="numpy")
     dense_db = 10 * np.log10(np.mean(np.abs(h) ** 2))
     assert link["path_gain_db"] == pytest.approx(dense_db, abs=0.01)
