@@ -120,3 +120,19 @@ def test_the_torch_device_is_resolved_once_at_set_up(tmp_path):
                              run_dir=tmp_path, config_dir=tmp_path))
     assert isinstance(net.device, torch.device) and net.device.type == "cpu"
     assert isinstance(net.link, LinkLevel) and net.link.device == net.device
+
+
+def test_one_site_with_wraparound_runs(tmp_path):
+    """``rings = 0`` (one site) with the default wraparound: nothing to wrap (it stopped at
+    set-up on Sionna's "The number of rings must be positive"); the UEs are dropped and served."""
+    import caviar
+
+    cfg = tmp_path / "one.toml"
+    cfg.write_text('[episode]\nts = 0.01\nsteps = 2\nseed = 2\nstages = ["c"]\n[output]\n'
+                   'analysis = ["network.ue", "network.events", "network.cells", "communications.throughput"]\n'
+                   '[modules.net]\nstage = "c"\nplugin = "radio-network"\n[modules.net.params]\n'
+                   'channel = "38.901-uma"\nlink_model = "shannon"\n'
+                   'layout = { kind = "hex", rings = 0, isd_m = 500.0, ues_per_sector = 2 }\n')
+    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run(progress=False)
+    ues = [m.data for m in log.decoded("network.ue")]
+    assert len(ues) == 2 * 3 * 2 and {u["UE_Id"] for u in ues} == {f"drop{k}" for k in range(6)}

@@ -132,16 +132,16 @@ class Wraparound:
     def __init__(self, layout: LayoutSettings):
         from sionna.sys import HexGrid
 
-        grid = HexGrid(num_rings=layout.rings, isd=float(layout.isd_m), cell_height=float(layout.height_m))
-        mirrors = grid.mirror_cell_loc.detach().cpu().double().numpy()[..., :2]  # [site, 7, 2]
-        # Sionna's hexagonal grid is drawn turned by 90° from the 38.901 layout, so its sites
-        # differ; the 7 translations that tile the plane with copies of the layout are the
-        # same up to a mirror (y → −y), which gives the wraparound of
-        # gen_tr38901_multicell_topology (the tests check it UE by UE).
-        shifts = mirrors[0] - mirrors[0, 0]
-        shifts = np.stack([shifts[:, 0], -shifts[:, 1]], axis=-1)  # [7, 2]
-        if layout.rings == 0:  # one site: nothing to wrap
-            shifts = np.zeros((1, 2))
+        shifts = np.zeros((1, 2))  # (one site, rings = 0: nothing to wrap; Sionna's grid needs a ring)
+        if layout.rings > 0:
+            grid = HexGrid(num_rings=layout.rings, isd=float(layout.isd_m), cell_height=float(layout.height_m))
+            mirrors = grid.mirror_cell_loc.detach().cpu().double().numpy()[..., :2]  # [site, 7, 2]
+            # Sionna's hexagonal grid is drawn turned by 90° from the 38.901 layout, so its sites
+            # differ; the 7 translations that tile the plane with copies of the layout are the
+            # same up to a mirror (y → −y), which gives the wraparound of
+            # gen_tr38901_multicell_topology (the tests check it UE by UE).
+            shifts = mirrors[0] - mirrors[0, 0]
+            shifts = np.stack([shifts[:, 0], -shifts[:, 1]], axis=-1)  # [7, 2]
         self.images = site_positions(layout)[:, None, :] + shifts[None]  # [site, 7, 2], in the cells' order
 
     def site_xy(self, ues: np.ndarray) -> np.ndarray:
