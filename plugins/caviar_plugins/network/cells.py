@@ -173,18 +173,49 @@ def parse_sites(sites: Sequence[Mapping[str, Any]], defaults: Mapping[str, Any])
     return cells
 
 
+def local_angles_deg(theta_deg: np.ndarray, phi_deg: np.ndarray, bearing_deg: float, downtilt_deg: float,
+                     slant_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The zenith ``θ'`` and azimuth ``φ'`` (degrees, ``φ'`` in (−180, 180]) in an antenna's
+    local frame of directions given as zenith ``theta_deg`` and azimuth ``phi_deg`` in the
+    scene frame: TR 38.901 eq. 7.1-7 and 7.1-8, the frame rotated by ``R = Rz(α)·Ry(β)·Rx(γ)``
+    (bearing ``α`` counter-clockwise from +x, downtilt ``β`` positive down, slant ``γ``).
+
+    The two equations are the components of ``R⁻¹·ρ̂`` (``ρ̂`` the unit direction)::
+
+        z' = cos β cos γ cos θ + (sin β cos γ cos(φ−α) − sin γ sin(φ−α)) sin θ     (7.1-7: cos θ')
+        x' = cos β sin θ cos(φ−α) − sin β cos θ                                    (7.1-8: Re)
+        y' = cos β sin γ cos θ + (sin β sin γ cos(φ−α) + cos γ sin(φ−α)) sin θ     (7.1-8: Im)
+
+    and ``θ' = atan2(√(x'² + y'²), z')`` (``arccos z'``, without its loss of precision near
+    the poles), ``φ' = atan2(y', x')``. Without tilt and slant the rotation is about z alone:
+    ``θ' = θ`` and ``φ' = φ − α``, returned as such (bit for bit what they were)."""
+    theta = np.asarray(theta_deg, dtype=float)
+    phi = np.asarray(phi_deg, dtype=float)
+    if downtilt_deg == 0.0 and slant_deg == 0.0:
+        return theta, (phi - bearing_deg + 180.0) % 360.0 - 180.0
+    th, dphi = np.radians(theta), np.radians(phi - bearing_deg)
+    b, g = math.radians(downtilt_deg), math.radians(slant_deg)
+    st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(dphi), np.cos(dphi)
+    z = math.cos(b) * math.cos(g) * ct + (math.sin(b) * math.cos(g) * cp - math.sin(g) * sp) * st
+    x = math.cos(b) * st * cp - math.sin(b) * ct
+    y = math.cos(b) * math.sin(g) * ct + (math.sin(b) * math.sin(g) * cp + math.cos(g) * sp) * st
+    return np.degrees(np.arctan2(np.hypot(x, y), z)), np.degrees(np.arctan2(y, x))
+
+
 def pattern_gain_db(cell: Cell, theta_deg: np.ndarray, phi_deg: np.ndarray) -> np.ndarray:
     """TR 38.901 sector element gain (dBi) of ``cell`` toward directions of departure given
     as zenith ``theta_deg`` (90° at the horizon) and azimuth ``phi_deg`` (from +x, counter-
     clockwise), in the scene frame; the panel points at the cell's azimuth, tilted down
-    (mechanically). With a :class:`Column`, its array gain is added."""
-    phi = (np.asarray(phi_deg) - cell.azimuth_deg + 180.0) % 360.0 - 180.0
-    theta = np.asarray(theta_deg)
+    (mechanically). Table 7.3-1's pattern is taken at the panel's local angles, the exact
+    rotation of eq. 7.1-7 and 7.1-8 (:func:`local_angles_deg`: bearing the azimuth, downtilt
+    the tilt, no slant), the one the beams' phases use (``beams.panel_frequencies``). With a
+    :class:`Column`, its array gain (at the local zenith) is added."""
+    theta, phi = local_angles_deg(theta_deg, phi_deg, cell.azimuth_deg, cell.downtilt_deg)
     a_h = -np.minimum(12 * (phi / HALF_POWER_BEAMWIDTH_DEG) ** 2, FRONT_TO_BACK_DB)
-    a_v = -np.minimum(12 * ((theta - 90.0 - cell.downtilt_deg) / HALF_POWER_BEAMWIDTH_DEG) ** 2, SIDE_LOBE_DB)
+    a_v = -np.minimum(12 * ((theta - 90.0) / HALF_POWER_BEAMWIDTH_DEG) ** 2, SIDE_LOBE_DB)
     gain = ELEMENT_GAIN_DBI - np.minimum(-(a_h + a_v), FRONT_TO_BACK_DB)
     if cell.column is not None:
-        gain = gain + cell.column.gain_db(theta - cell.downtilt_deg)
+        gain = gain + cell.column.gain_db(theta)
     return gain
 
 
