@@ -52,9 +52,11 @@ def inline(params: dict | str) -> str:
     return "{ " + inside + " }"
 
 
-def table(header: str, keys: dict) -> str:
-    """``[header]`` and one ``key = value`` line a key."""
-    return f"[{header}]\n" + "".join(f"{k} = {value(v)}\n" for k, v in keys.items())
+def table(header: str, keys: dict, *, array: bool = False) -> str:
+    """``[header]`` (``[[header]]``, a table of an array of tables, with ``array``) and one
+    ``key = value`` line a key."""
+    brackets = ("[[", "]]") if array else ("[", "]")
+    return header.join(brackets) + "\n" + "".join(f"{k} = {value(v)}\n" for k, v in keys.items())
 
 
 def episode(ts: float, stages: list[str], steps: int | None = None, seed: int | None = None, **more) -> str:

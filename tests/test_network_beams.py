@@ -10,16 +10,25 @@ import numpy as np
 import pytest
 
 from caviar_plugins.network.beams import Codebook, beam_gains, beamformed_sinr_db, line_of_sight
-from caviar_plugins.network.cells import Cell
+from network_configs import (
+    OTHER,
+    SITE_B,
+    VICTIM,
+    last_reports,
+    ray_traced,
+    reported,
+    run_network,
+    sector,
+    two_sites,
+    ue_reports,
+)
 
 CARRIER, N = 3.5e9, 8
 LAMBDA = 299_792_458.0 / CARRIER
 NOISE_MW = 10 ** ((-174 + 10 * math.log10(20e6) + 7) / 10)
-
-
-def _cell(name, index, position, azimuth):
-    return Cell(name=name, site=name, index=index, position=position, azimuth_deg=azimuth, downtilt_deg=0.0,
-                tx_power_dbm=46.0, carrier_hz=CARRIER, bandwidth_hz=20e6, array=(1, N))
+# the two cells facing each other of network_configs.two_sites, 46 dBm, a 1×N array
+A = sector("A", 0, (0.0, 0.0, 25.0), 0.0, array=(1, N))
+B = sector("B", 1, (400.0, 0.0, 25.0), 180.0, array=(1, N))
 
 
 def _dirichlet(u, u_beam):
@@ -47,14 +56,23 @@ def _best(u):  # the DFT beam nearest to u: the codebook's best for a single pat
     return float(grid[np.argmin(np.abs(grid - u))])
 
 
+def _victim_by_hand(victim, other):
+    """The victim's SINR by hand: A's best beam toward it, B's best beam toward ``other``
+    leaking onto it. (SINR dB, the signal's and the leak's linear gains, u toward the victim)."""
+    _, u_a = _hand(A, victim, 0.0)
+    signal, _ = _hand(A, victim, _best(u_a))
+    _, u_b = _hand(B, other, 0.0)
+    leak, _ = _hand(B, victim, _best(u_b))
+    power = 10 ** (46 / 10)
+    return 10 * math.log10(power * signal / (NOISE_MW + power * leak)), signal, leak, u_a
+
+
 @pytest.mark.parametrize("toward_victim", [True, False])
 def test_two_cells_sinr_is_the_hand_array_factor_with_the_interferers_beam_on_or_off_the_victim(toward_victim):
-    a = _cell("A", 0, (0.0, 0.0, 25.0), 0.0)
-    b = _cell("B", 1, (400.0, 0.0, 25.0), 180.0)
-    victim = np.array([180.0, 60.0, 25.0])  # served by A
+    victim = np.array(VICTIM)  # served by A
     # B's own UE: on the line from B through the victim (B's beam then points at it), or off to B's other side.
-    other = b.position + 0.5 * (victim - b.position) if toward_victim else np.array([250.0, -120.0, 25.0])
-    cells, ues = [a, b], np.array([victim, other])
+    other = B.position + 0.5 * (victim - B.position) if toward_victim else np.array(OTHER)
+    cells, ues = [A, B], np.array([victim, other])
     codebook = Codebook(rows=1, cols=N, beams_h=N)
     amplitude, departure = line_of_sight(cells, ues)
     gains = np.stack([beam_gains(c, codebook, amplitude[:, k], departure[:, k]) for k, c in enumerate(cells)], 1)
@@ -62,22 +80,17 @@ def test_two_cells_sinr_is_the_hand_array_factor_with_the_interferers_beam_on_or
     sinr = beamformed_sinr_db(cells, gains, np.array([0, 1]), beam, scheduled_beam=beam, noise_mw=NOISE_MW)[0]
 
     # By hand: A's best beam toward the victim, B's best beam toward its own UE, on the victim.
-    _, u_a = _hand(a, victim, 0.0)
-    signal, _ = _hand(a, victim, _best(u_a))
-    _, u_b_own = _hand(b, other, 0.0)
-    leak, _ = _hand(b, victim, _best(u_b_own))
-    power = 10 ** (46 / 10)
-    hand = 10 * math.log10(power * signal / (NOISE_MW + power * leak))
+    hand, _, leak, _ = _victim_by_hand(victim, other)
     print(f"toward the victim: {toward_victim}: SINR {sinr:.3f} dB, by hand {hand:.3f} dB")
     assert sinr == pytest.approx(hand, abs=0.1)
     if toward_victim:
-        assert leak > 0.5 * N * (LAMBDA / (4 * math.pi * np.linalg.norm(victim - b.position))) ** 2  # near the peak
+        assert leak > 0.5 * N * (LAMBDA / (4 * math.pi * np.linalg.norm(victim - B.position))) ** 2  # near the peak
     else:
         assert hand > 10  # the interferer's beam points away
 
 
 def test_the_beams_tile_the_panel_and_a_beam_on_a_path_gains_the_array():
-    cell = _cell("A", 0, (0.0, 0.0, 0.0), 30.0)
+    cell = sector("A", 0, (0.0, 0.0, 0.0), 30.0)
     codebook = Codebook(rows=4, cols=8, beams_h=8, beams_v=4)
     w = codebook.weights()
     assert w.shape == (32, 32) and np.allclose(w @ w.conj().T, np.eye(32), atol=1e-12)  # orthonormal DFT beams
@@ -107,8 +120,7 @@ def test_the_ray_traced_paths_give_the_free_space_beams_in_an_empty_scene():
     departure directions are those of the straight line, beam by beam."""
     from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer
 
-    cells = [Cell(name=f"A/{k}", site="A", index=k, position=(0.0, 0.0, 30.0), azimuth_deg=az, downtilt_deg=6.0,
-                  tx_power_dbm=46.0, carrier_hz=CARRIER, bandwidth_hz=20e6, array=(4, 8))
+    cells = [sector(f"A/{k}", k, (0.0, 0.0, 30.0), az, site="A", downtilt_deg=6.0, array=(4, 8))
              for k, az in enumerate((0.0, 120.0, 240.0))]
     ues = np.array([[120.0, 40.0, 1.5], [-80.0, -60.0, 1.5], [60.0, 150.0, 40.0]])
     traced = SiteTracer("empty", dataclasses.replace(NETWORK_RAYS, max_depth=0, samples_per_src=1000), cells).trace(ues)
@@ -122,78 +134,25 @@ def test_the_ray_traced_paths_give_the_free_space_beams_in_an_empty_scene():
         assert (ray.argmax(axis=1) == straight.argmax(axis=1)).all()
 
 
-BEAMS = """
-[episode]
-ts = 0.01
-steps = 3
-seed = 4
-stages = ["mobility", "communications"]
-
-[output]
-analysis = ["communications.throughput", "network.ue", "network.events", "network.cells"]
-
-[modules.ues]
-stage = "mobility"
-plugin = "sample_plugins:LineMover"
-[[modules.ues.params.ues]]
-id = "victim"
-start = [180.0, 60.0, 25.0]
-end = [180.0, 60.0, 25.0]
-speed = 1.0
-[[modules.ues.params.ues]]
-id = "other"
-start = {other}
-end = {other}
-speed = 1.0
-
-[modules.net]
-stage = "communications"
-plugin = "radio-network"
-[modules.net.params]
-carrier_hz = 3.5e9
-bandwidth_hz = 20e6
-subcarrier_spacing_hz = 30e3
-tx_power_dbm = 46.0
-array = [1, 8]
-noise_figure_db = 7.0
-beams = {{ horizontal = {beams} }}
-handover = {{ offset_db = 0.0, hysteresis_db = 3.0 }}
-[[modules.net.params.sites]]
-name = "A"
-position = [0.0, 0.0, 25.0]
-azimuths_deg = [0.0]
-downtilt_deg = 0.0
-[[modules.net.params.sites]]
-name = "B"
-position = [400.0, 0.0, 25.0]
-azimuths_deg = [180.0]
-downtilt_deg = 0.0
-"""
+def _beams(other=OTHER, beams: int = N, **more) -> str:
+    """A and B (network_configs.two_sites) with ``beams`` horizontal SSB beams, 7 dB noise
+    figure and A3 with 3 dB hysteresis; ``more``: two_sites' steps, other params."""
+    return two_sites(other, noise_figure_db=7.0, beams={"horizontal": beams},
+                     handover={"offset_db": 0.0, "hysteresis_db": 3.0}, **more)
 
 
 @pytest.mark.parametrize("toward_victim", [True, False])
 def test_in_the_network_the_victims_sinr_is_the_hand_array_factor(tmp_path, toward_victim):
     """The radio-network plugin with beams: the same two cells and two UEs, through cell
     selection on L1-RSRP, the serving beam and the interferer's scheduled beam."""
-    import caviar
-
-    victim = np.array([180.0, 60.0, 25.0])
-    b = np.array([400.0, 0.0, 25.0])
-    other = b + 0.5 * (victim - b) if toward_victim else np.array([250.0, -120.0, 25.0])
-    cfg = tmp_path / "net.toml"
-    cfg.write_text(BEAMS.format(other=[float(v) for v in other], beams=N))
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
-    last = {m.data["UE_Id"]: m.data for m in log.decoded("network.ue")}
+    victim = np.array(VICTIM)
+    b = np.array(SITE_B["position"])
+    other = b + 0.5 * (victim - b) if toward_victim else np.array(OTHER)
+    log = run_network(tmp_path, _beams(other))
+    last = last_reports(log)
     assert last["victim"]["serving_cell"] == "A/0" and last["other"]["serving_cell"] == "B/0"
-    a_cell = _cell("A", 0, (0.0, 0.0, 25.0), 0.0)
-    b_cell = _cell("B", 1, tuple(b), 180.0)
-    _, u_a = _hand(a_cell, victim, 0.0)
-    signal, _ = _hand(a_cell, victim, _best(u_a))
-    _, u_b = _hand(b_cell, other, 0.0)
-    leak, _ = _hand(b_cell, victim, _best(u_b))
+    hand, signal, _, u_a = _victim_by_hand(victim, other)
     power = 10 ** (46 / 10)
-    noise = 10 ** ((-174 + 10 * math.log10(20e6) + 7) / 10)
-    hand = 10 * math.log10(power * signal / (noise + power * leak))
     assert last["victim"]["sinr_db"] == pytest.approx(hand, abs=0.1)
     # L1-RSRP: the best beam's received power per resource element.
     rsrp = 10 * math.log10(power * signal) - 10 * math.log10(12 * 51)
@@ -204,17 +163,14 @@ def test_in_the_network_the_victims_sinr_is_the_hand_array_factor(tmp_path, towa
     if not toward_victim:
         return
     # caviar-core report draws the serving beams on the map.
-    from caviar.report import main as report
-
-    assert report([str(tmp_path / "run"), "--out", str(tmp_path / "rep")]) == 0
-    assert (tmp_path / "rep" / "network-handovers.png").stat().st_size > 10_000
+    assert (reported(tmp_path) / "network-handovers.png").stat().st_size > 10_000
 
 
 def test_a_codebook_larger_than_the_panel_is_refused_before_the_run_naming_the_key(tmp_path):
     import caviar
 
     cfg = tmp_path / "net.toml"
-    cfg.write_text(BEAMS.format(other=[250.0, -120.0, 25.0], beams=16))
+    cfg.write_text(_beams(beams=16))
     with pytest.raises(caviar.ConfigError, match=r"net\.toml:\d+: modules\.net\.params\.beams: 16 horizontal beams "
                                                  r"on 8 columns"):
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
@@ -224,17 +180,11 @@ def test_a_codebook_larger_than_the_panel_is_refused_before_the_run_naming_the_k
 def test_in_an_empty_scene_the_ray_traced_beams_give_the_free_space_sinr(tmp_path):
     """A ray test through the plugin: the traced paths' departure directions and phases,
     moved with the UEs per subband, give the straight line's beams."""
-    import caviar
-
-    text = BEAMS.format(other=[250.0, -120.0, 25.0], beams=N)
     sinr = {}
     for channel in ("free-space", "ray-traced"):
-        extra = ('channel = "ray-traced"\nraytracing = { max_depth = 0, samples_per_src = 1000 }\n'
-                 if channel == "ray-traced" else "")
-        cfg = tmp_path / f"{channel}.toml"
-        cfg.write_text(text.replace("beams = {", extra + "beams = {"))
-        log = caviar.Simulation.from_toml(cfg, out=tmp_path / channel).run()
-        sinr[channel] = {m.data["UE_Id"]: m.data["sinr_db"] for m in log.decoded("network.ue")}
+        traced = ray_traced(max_depth=0, samples_per_src=1000) if channel == "ray-traced" else {}
+        log = run_network(tmp_path, _beams(**traced), channel, f"{channel}.toml")
+        sinr[channel] = {u["UE_Id"]: u["sinr_db"] for u in ue_reports(log)}
     assert sinr["ray-traced"] == pytest.approx(sinr["free-space"], abs=0.05)
 
 
@@ -246,7 +196,8 @@ def test_the_kept_beam_responses_give_each_cells_beam_gains_per_frequency():
     from caviar_plugins.network.beams import beam_responses, gains_of_responses
 
     rng = np.random.default_rng(12)
-    cells = [_cell("a", 0, (0.0, 0.0, 25.0), 0.0), _cell("b", 1, (300.0, 0.0, 25.0), 120.0)]
+    cells = [sector("a", 0, (0.0, 0.0, 25.0), 0.0, array=(1, N)),
+             sector("b", 1, (300.0, 0.0, 25.0), 120.0, array=(1, N))]
     codebooks = [Codebook(1, N, N), Codebook(1, N, 4)]
     n_ue, n_path, n_f = 5, 6, 3
     departure = rng.normal(size=(n_ue, 2, n_path, 3))
@@ -265,7 +216,6 @@ def test_the_kept_beam_responses_give_each_cells_beam_gains_per_frequency():
 def test_the_plugin_computes_the_beam_responses_once_per_trace(tmp_path, monkeypatch):
     """The paths' beam responses change only with a trace: over 6 steps with a trace every
     3, the plugin computes them twice, however often the gains are evaluated."""
-    import caviar
     from caviar_plugins.network import traced_channel
     from caviar_plugins.network.raytraced import SiteTracer
 
@@ -282,11 +232,7 @@ def test_the_plugin_computes_the_beam_responses_once_per_trace(tmp_path, monkeyp
 
     monkeypatch.setattr(traced_channel, "beam_responses", counted_responses)
     monkeypatch.setattr(SiteTracer, "trace", counted_trace)
-    text = BEAMS.format(other=[250.0, -120.0, 25.0], beams=N).replace("steps = 3", "steps = 6")
-    extra = ('channel = "ray-traced"\n'
-             'raytracing = { max_depth = 0, samples_per_src = 1000 }\nevolution = { refresh_s = 0.03 }\n')
-    cfg = tmp_path / "traced.toml"
-    cfg.write_text(text.replace("beams = {", extra + "beams = {"))
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
-    assert len(log.decoded("network.ue")) == 6 * 2  # every step measured both UEs
+    log = run_network(tmp_path, _beams(steps=6, **ray_traced(max_depth=0, samples_per_src=1000, refresh_s=0.03)),
+                      name="traced.toml")
+    assert len(ue_reports(log)) == 6 * 2  # every step measured both UEs
     assert calls == {"responses": 2, "traces": 2}

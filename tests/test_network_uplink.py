@@ -10,6 +10,7 @@ import pytest
 
 import caviar
 from caviar_plugins.network.uplink import UplinkSettings, noise_per_prb_mw, tx_power_dbm
+from network_configs import OTHER, VICTIM, last_reports, reported, run_network, two_sites, ue_reports
 
 LAMBDA = 299_792_458.0 / 3.5e9
 
@@ -29,53 +30,6 @@ def test_power_control_is_p0_plus_alpha_pathloss_within_the_ues_limit(alpha):
     np.testing.assert_allclose(received[below], -90.0 + (alpha - 1) * pl[below], atol=1e-4)
 
 
-UPLINK = """
-[episode]
-ts = 0.01
-steps = 3
-seed = 4
-stages = ["mobility", "communications"]
-
-[output]
-analysis = ["communications.throughput", "network.ue", "network.events", "network.cells"]
-
-[modules.ues]
-stage = "mobility"
-plugin = "sample_plugins:LineMover"
-[[modules.ues.params.ues]]
-id = "victim"
-start = [180.0, 60.0, 25.0]
-end = [180.0, 60.0, 25.0]
-speed = 1.0
-[[modules.ues.params.ues]]
-id = "other"
-start = [250.0, -120.0, 25.0]
-end = [250.0, -120.0, 25.0]
-speed = 1.0
-
-[modules.net]
-stage = "communications"
-plugin = "radio-network"
-[modules.net.params]
-carrier_hz = 3.5e9
-bandwidth_hz = 20e6
-subcarrier_spacing_hz = 30e3
-tx_power_dbm = 46.0
-array = [1, 8]
-uplink = {uplink}
-[[modules.net.params.sites]]
-name = "A"
-position = [0.0, 0.0, 25.0]
-azimuths_deg = [0.0]
-downtilt_deg = 0.0
-[[modules.net.params.sites]]
-name = "B"
-position = [400.0, 0.0, 25.0]
-azimuths_deg = [180.0]
-downtilt_deg = 0.0
-"""
-
-
 def _gain(site, azimuth, ue):
     """Friis × the TR 38.901 element on the horizon (linear), from a site toward a UE."""
     d = np.asarray(ue) - np.asarray(site)
@@ -85,13 +39,11 @@ def _gain(site, azimuth, ue):
 
 
 def test_the_uplink_sinr_is_the_hand_budget_with_the_other_cells_ue_interfering(tmp_path):
-    cfg = tmp_path / "net.toml"
-    cfg.write_text(UPLINK.format(uplink="{ p0_dbm = -90.0, alpha = 1.0, ue_max_power_dbm = 23.0 }"))
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
-    last = {m.data["UE_Id"]: m.data for m in log.decoded("network.ue")}
+    log = run_network(tmp_path, two_sites(uplink={"p0_dbm": -90.0, "alpha": 1.0, "ue_max_power_dbm": 23.0}))
+    last = last_reports(log)
     assert last["victim"]["serving_cell"] == "A/0" and last["other"]["serving_cell"] == "B/0"
-    a, b = ((0.0, 0.0, 25.0), 0.0), ((400.0, 0.0, 25.0), 180.0)
-    victim, other = (180.0, 60.0, 25.0), (250.0, -120.0, 25.0)
+    a, b = ((0.0, 0.0, 25.0), 0.0), ((400.0, 0.0, 25.0), 180.0)  # (network_configs.SITE_A, SITE_B)
+    victim, other = VICTIM, OTHER
     array = 10 * math.log10(8)
     # Each UE's pathloss from its cell's RSRP (array included); α = 1: full compensation.
     pl_victim = -(10 * math.log10(_gain(*a, victim)) + array)
@@ -108,20 +60,18 @@ def test_the_uplink_sinr_is_the_hand_budget_with_the_other_cells_ue_interfering(
     # caviar-core report adds the uplink's CDFs and percentiles.
     import json
 
-    from caviar.report import main as report
-
-    assert report([str(tmp_path / "run"), "--out", str(tmp_path / "rep")]) == 0
-    assert (tmp_path / "rep" / "network-cdf.png").stat().st_size > 20_000
-    ul = json.loads((tmp_path / "rep" / "network.json").read_text())["ue_types"]["car"]["ul_sinr_db"]
-    sinrs = [m.data["ul_sinr_db"] for m in log.decoded("network.ue")]
+    rep = reported(tmp_path)
+    assert (rep / "network-cdf.png").stat().st_size > 20_000
+    ul = json.loads((rep / "network.json").read_text())["ue_types"]["car"]["ul_sinr_db"]
+    sinrs = [u["ul_sinr_db"] for u in ue_reports(log)]
     assert ul["p50"] == pytest.approx(float(np.percentile(sinrs, 50)), abs=1e-3)
 
 
 def test_power_control_out_of_range_is_refused_before_the_run_naming_the_key(tmp_path):
     cfg = tmp_path / "net.toml"
-    for bad, key, what in (("{ alpha = 0.75 }", "alpha", "expected one of 0, 0.4"),
-                           ("{ p0_dbm = 30.0 }", "p0_dbm", "expected -202..24 dBm")):
-        cfg.write_text(UPLINK.format(uplink=bad))
+    for bad, key, what in (({"alpha": 0.75}, "alpha", "expected one of 0, 0.4"),
+                           ({"p0_dbm": 30.0}, "p0_dbm", "expected -202..24 dBm")):
+        cfg.write_text(two_sites(uplink=bad))
         with pytest.raises(caviar.ConfigError) as e:
             caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
         assert "net.toml:" in str(e.value) and f"uplink.{key}" in str(e.value) and what in str(e.value), e.value
@@ -129,13 +79,9 @@ def test_power_control_out_of_range_is_refused_before_the_run_naming_the_key(tmp
 
 
 def test_with_ssb_beams_the_ue_estimates_its_pathloss_from_the_best_beams_rsrp(tmp_path):
-    cfg = tmp_path / "net.toml"
-    text = UPLINK.format(uplink="{ p0_dbm = -90.0, alpha = 1.0 }").replace("uplink = {", "beams = { horizontal = 8 }\n"
-                                                                            "uplink = {")
-    cfg.write_text(text)
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    log = run_network(tmp_path, two_sites(beams={"horizontal": 8}, uplink={"p0_dbm": -90.0, "alpha": 1.0}))
     for ue in ("victim", "other"):
-        last = [m.data for m in log.decoded("network.ue") if m.data["UE_Id"] == ue][-1]
+        last = last_reports(log)[ue]
         rx = last["rsrp_dbm"][last["serving_cell"]] + 10 * math.log10(12 * 51)  # the best beam's, whole band
         pathloss = 46.0 - rx
         assert last["ul_tx_power_dbm"] == pytest.approx(-90 + pathloss + 10 * math.log10(51), abs=0.02)
