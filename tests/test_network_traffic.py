@@ -12,6 +12,20 @@ import pytest
 import caviar
 from caviar_plugins.network.traffic import Backlog, Carried, FtpSettings, Queues, TrafficSettings, Transfer
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
+from configs import episode, module, output, waypoint_uav
+from network_configs import (
+    BAND,
+    MAPS,
+    REPORTS,
+    STAGES,
+    line_movers,
+    mover,
+    radio_network,
+    reported,
+    run_network,
+    site,
+    ue_reports,
+)
 
 SLOT_S = 0.5e-3  # 30 kHz
 
@@ -86,66 +100,43 @@ def test_the_scheduler_grants_nothing_to_an_empty_buffer():
     assert res.decoded_bits[1] == pytest.approx(2e5)
 
 
-CARRY = """
-[episode]
-ts = 0.01
-steps = 8
-seed = 2
-stages = ["mobility", "communications", "after"]
+def _one_site(height: float, carried: dict, *, uplink: dict | None = None, traffic: dict | None = None,
+              **params) -> str:
+    """Site A (one sector, no downtilt) at ``height`` m, a 1×1 array, Shannon's link level,
+    the UEs' antennas at 0 m, uplink power control (P0 −90 dBm, α 1; ``uplink`` over it), no
+    load of its own (``traffic`` over that) and ``carried`` carried; ``params``: the others."""
+    return radio_network([site("A", [0.0, 0.0, height], [0.0], 0.0)], **BAND, **params, array=[1, 1],
+                         link_model="shannon", antenna_height_m=0.0,
+                         uplink={"p0_dbm": -90.0, "alpha": 1.0, **(uplink or {})},
+                         traffic={"downlink": "none", "uplink": "none", **(traffic or {}), "carry": [carried]})
 
-[output]
-analysis = ["communications.throughput", "network.ue", "network.events", "network.cells",
-            "network.radio_map", "view.radio_map", "network.transfers", "delivered.*"]
 
-[modules.ues]
-stage = "mobility"
-plugin = "sample_plugins:LineMover"
-[[modules.ues.params.ues]]
-id = "u1"
-start = [{x}, 0.0, 1.5]
-end = [{x}, 0.0, 1.5]
-speed = 1.0
-
-[modules.sender]
-stage = "mobility"
-plugin = "sample_plugins:Payloads"
-params = {{ ue = "u1", size = {size}, steps = [0, 1, 2] }}
-
-[modules.net]
-stage = "communications"
-plugin = "radio-network"
-[modules.net.params]
-carrier_hz = 3.5e9
-bandwidth_hz = 20e6
-subcarrier_spacing_hz = 30e3
-tx_power_dbm = 46.0
-array = [1, 1]
-link_model = "shannon"
-antenna_height_m = 0.0
-uplink = {{ p0_dbm = -90.0, alpha = 1.0, ue_max_power_dbm = 23.0 }}
-traffic = {{ downlink = "none", uplink = "none", carry = [{{ topic = "{topic}", deliver_to = "delivered" }}] }}
-[[modules.net.params.sites]]
-name = "A"
-position = [0.0, 0.0, 1.5]
-azimuths_deg = [0.0]
-downtilt_deg = 0.0
-"""
+def _carry(x: float = 200.0, size: int = 60_000, topic: str = "payload.*", sent=(0, 1, 2), modules: str = "",
+           **traffic) -> str:
+    """8 steps of 10 ms: u1 standing ``x`` m from site A (at its height) sends ``size`` bytes
+    at the steps ``sent`` (sample_plugins:Payloads), the network carries ``topic`` uplink and
+    delivers it on delivered.*; ``modules``: more modules before the network's."""
+    return (episode(0.01, [*STAGES, "after"], steps=8, seed=2)
+            + output(analysis=[*REPORTS, *MAPS, "network.transfers", "delivered.*"])
+            + line_movers(mover("u1", [x, 0.0, 1.5]))
+            + module("sender", "mobility", "sample_plugins:Payloads", {"ue": "u1", "size": size, "steps": list(sent)})
+            + modules
+            + _one_site(1.5, {"topic": topic, "deliver_to": "delivered"}, subcarrier_spacing_hz=30e3,
+                        tx_power_dbm=46.0, uplink={"ue_max_power_dbm": 23.0}, traffic=traffic))
 
 
 def test_a_carried_message_is_delivered_once_the_uplink_has_carried_its_bytes(tmp_path):
     """A UE 200 m from its cell sends 60 kB at steps 0, 1 and 2 (10 ms each): each message
     arrives on delivered.u1 at the step its last byte got through, its delay and UPT on
     network.transfers agree with the uplink's own throughput, and nothing more is sent."""
-    cfg = tmp_path / "net.toml"
-    cfg.write_text(CARRY.format(x=200.0, size=60_000, topic="payload.*"))
-    log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
+    log = run_network(tmp_path, _carry())
     transfers = [m.data for m in log.decoded("network.transfers")]
     assert [x["queued_s"] for x in transfers] == pytest.approx([0.0, 0.01, 0.02])
     assert all(x["source"].startswith("payload.") and x["direction"] == "uplink" for x in transfers)
     delivered = [(m.time, m.data) for m in log.decoded("delivered.u1")]
     assert [d[0] for d in delivered] == pytest.approx([math.floor(x["delivered_s"] / 0.01) * 0.01 for x in transfers])
     assert [bytes(d[1])[:1] for d in delivered] == [b"\x00", b"\x01", b"\x02"]  # the payloads, unchanged
-    ue = [m.data for m in log.decoded("network.ue")]
+    ue = ue_reports(log)
     sent_mbit = sum(u["ul_throughput_mbps"] * 0.01 for u in ue)
     assert sent_mbit == pytest.approx(3 * 60_000 * 8 / 1e6, rel=1e-6)  # only the queued bytes
     assert ue[-1]["ul_queue_bytes"] == 0
@@ -160,30 +151,27 @@ def test_a_carried_message_is_delivered_once_the_uplink_has_carried_its_bytes(tm
     # caviar-core report: the delay and user-perceived throughput CDFs, and their numbers.
     import json
 
-    from caviar.report import main as report
-
-    assert report([str(tmp_path / "run"), "--out", str(tmp_path / "rep")]) == 0
-    assert (tmp_path / "rep" / "network-transfers.png").stat().st_size > 15_000
-    group = json.loads((tmp_path / "rep" / "network.json").read_text())["transfers"]["payload.* uplink"]
+    rep = reported(tmp_path)
+    assert (rep / "network-transfers.png").stat().st_size > 15_000
+    group = json.loads((rep / "network.json").read_text())["transfers"]["payload.* uplink"]
     assert group["delivered"] == 3 and group["lost"] == 0 and group["bytes_mean"] == 60_000
     assert group["delay_s"]["p50"] == pytest.approx(hand, abs=1e-6)
 
 
 def test_traffic_naming_a_topic_no_module_publishes_is_refused_before_the_run(tmp_path):
     cfg = tmp_path / "net.toml"
-    cfg.write_text(CARRY.format(x=200.0, size=100, topic="camera.*"))
+    cfg.write_text(_carry(size=100, topic="camera.*"))
     with pytest.raises(caviar.ConfigError) as e:
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
     text = str(e.value)
     assert "net.toml:" in text and "modules.net.params.traffic.carry.0.topic" in text
     assert "'camera.*'" in text and "no other module publishes it" in text, text
     assert not (tmp_path / "run").exists()
-    cfg.write_text(CARRY.format(x=200.0, size=100, topic="payload.*").replace('uplink = "none"', 'uplink = "ftp4"'))
+    cfg.write_text(_carry(size=100, uplink="ftp4"))
     with pytest.raises(caviar.ConfigError) as e:
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
     assert "traffic.uplink" in str(e.value) and "full-buffer" in str(e.value), e.value
-    cfg.write_text(CARRY.format(x=200.0, size=100, topic="payload.*").replace(
-        'uplink = "none"', 'uplink = "none", by_type = { car = { downlink = "ftp4" } }'))
+    cfg.write_text(_carry(size=100, by_type={"car": {"downlink": "ftp4"}}))
     with pytest.raises(caviar.ConfigError) as e:
         caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
     assert "traffic.by_type.car.downlink" in str(e.value) and "ftp3" in str(e.value), e.value
@@ -210,15 +198,12 @@ def test_a_loaded_network_resumes_to_the_same_messages(tmp_path, cli):
     reference's messages, bit for bit."""
     import random
 
-    import sionna.rt as rt
-
     from conftest import write_config
-    from test_resume_plugins import NETWORK, _resumes_to_the_reference
+    from network_configs import cars_in_the_canyon
+    from test_resume_plugins import _resumes_to_the_reference
 
-    text = NETWORK.replace("SCENE", __import__("pathlib").Path(rt.scene.simple_street_canyon).as_posix())
-    text += ('\n[modules.net.params.uplink]\np0_dbm = -80.0\n'
-             '[modules.net.params.traffic]\ndownlink = "ftp3"\nuplink = "ftp3"\n'
-             'ftp = { file_bytes = 300000, arrival_rate_hz = 30.0 }\n')
+    text = cars_in_the_canyon(uplink={"p0_dbm": -80.0}, traffic={
+        "downlink": "ftp3", "uplink": "ftp3", "ftp": {"file_bytes": 300000, "arrival_rate_hz": 30.0}})
     cfg = write_config(tmp_path, text)
     kill = random.Random(41).randrange(9, 20)
     log = _resumes_to_the_reference(tmp_path, cli, cfg, [], kill, every=7, steps=24)
@@ -228,7 +213,7 @@ def test_a_loaded_network_resumes_to_the_same_messages(tmp_path, cli):
 
 
 def test_in_process_and_over_nats_a_carried_message_records_the_same(tmp_path, cli):
-    (tmp_path / "net.toml").write_text(CARRY.format(x=200.0, size=60_000, topic="payload.*"))
+    (tmp_path / "net.toml").write_text(_carry())
     cli("run", "net.toml", "-q", "--out", "inproc", check=0)
     cli("run", "net.toml", "-q", "--out", "nats", "--set", 'transport.kind="nats"', check=0)
     a, b = (caviar.load_run(tmp_path / d).messages.drop("seq") for d in ("inproc", "nats"))
@@ -236,49 +221,17 @@ def test_in_process_and_over_nats_a_carried_message_records_the_same(tmp_path, c
     assert (a["topic"] == "delivered.u1").sum() == 3
 
 
-MISSION = """
-[episode]
-ts = 0.1
-steps = 30
-seed = 5
-stages = ["mobility", "ai", "communications", "mission"]
-
-[output]
-analysis = ["network.ue", "network.events", "network.cells", "network.radio_map", "view.radio_map",
-            "network.transfers", "mission.rescue", "mission.result"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = {{ waypoints = "route.csv", frame = "scene", speed = 10.0, end_at_last = false }}
-
-[modules.eyes]
-stage = "ai"
-plugin = "sample_plugins:OneDetection"
-params = {{ at = 3 }}
-
-[modules.net]
-stage = "communications"
-plugin = "radio-network"
-[modules.net.params]
-carrier_hz = 3.5e9
-bandwidth_hz = 20e6
-array = [1, 1]
-link_model = "shannon"
-antenna_height_m = 0.0
-uplink = {{ p0_dbm = -90.0, alpha = 1.0 }}
-traffic = {{ downlink = "none", uplink = "none", carry = [{{ topic = "mission.upload", size_field = "bytes" }}] }}
-[[modules.net.params.sites]]
-name = "A"
-position = [0.0, 0.0, 30.0]
-azimuths_deg = [0.0]
-downtilt_deg = 0.0
-
-[modules.mission]
-stage = "mission"
-plugin = "mission"
-params = {{ upload = "{upload}", images = 2, image_mb = 1.0 }}
-"""
+def _mission(network: bool = True) -> str:
+    """30 steps of 0.1 s: the UAV flies route.csv, sees a person at step 3, and the mission
+    uploads 2 images of 1 MB over the network (without one: no radio network), carried by
+    site A at 30 m."""
+    return (episode(0.1, ["mobility", "ai", "communications", "mission"], steps=30, seed=5)
+            + output(analysis=["network.ue", "network.events", "network.cells", *MAPS, "network.transfers",
+                               "mission.rescue", "mission.result"])
+            + waypoint_uav(speed=10.0, end_at_last=False)
+            + module("eyes", "ai", "sample_plugins:OneDetection", {"at": 3})
+            + (_one_site(30.0, {"topic": "mission.upload", "size_field": "bytes"}) if network else "")
+            + module("mission", "mission", "mission", {"upload": "network", "images": 2, "image_mb": 1.0}))
 
 
 def test_with_the_network_option_the_uav_hovers_until_its_upload_is_delivered(tmp_path, cli):
@@ -287,7 +240,7 @@ def test_with_the_network_option_the_uav_hovers_until_its_upload_is_delivered(tm
     served from the next step (the mission runs after the network) and takes ⌈B / bits per
     slot⌉ slots of Shannon at the UAV's uplink SINR, by hand; the hover is that long."""
     (tmp_path / "route.csv").write_text("X,Y,Z\n300,0,30\n600,0,30\n")
-    (tmp_path / "net.toml").write_text(MISSION.format(upload="network"))
+    (tmp_path / "net.toml").write_text(_mission())
     cli("run", "net.toml", "-q", "--out", "run", check=0)
     log = caviar.load_run(tmp_path / "run")
     x = {round(m.time, 6): m.data["position"]["x"] for m in log.decoded("3D.mobility.positions")}
@@ -307,8 +260,7 @@ def test_with_the_network_option_the_uav_hovers_until_its_upload_is_delivered(tm
     assert rescue["uploaded"] and rescue["hover_s"] == pytest.approx(hand - 0.3, abs=1e-6)
     assert rescue["throughput"] == pytest.approx(16 / (hand - 0.3), rel=1e-5)
     # upload = "network" with no radio network to deliver: refused, naming the key.
-    text = MISSION.format(upload="network")
-    (tmp_path / "bad.toml").write_text(text[:text.index("[modules.net]")] + text[text.index("[modules.mission]"):])
+    (tmp_path / "bad.toml").write_text(_mission(network=False))
     p = cli("validate", "bad.toml", check=2)  # (a configuration error)
     assert "bad.toml:" in p.stderr and "modules.mission.params.upload" in p.stderr, p.stderr
     assert "'network.transfers' — no other module publishes it" in p.stderr, p.stderr
@@ -317,13 +269,10 @@ def test_with_the_network_option_the_uav_hovers_until_its_upload_is_delivered(tm
 def test_a_ue_that_leaves_reports_what_it_had_not_sent_as_lost(tmp_path):
     """Nothing is lost silently: 2 MB queued at step 0 at a UE that leaves at step 2 come out
     on network.transfers as lost, with the bytes still waiting; what it delivered before counts."""
-    text = CARRY.format(x=200.0, size=2_000_000, topic="payload.*").replace("steps = [0, 1, 2]", "steps = [0]")
-    text = text.replace("[modules.net]", '[modules.leave]\nstage = "mobility"\nplugin = "sample_plugins:Leaves"\n'
-                                         'params = { ue = "u1", at = 2 }\n\n[modules.net]')
-    (tmp_path / "net.toml").write_text(text)
-    log = caviar.Simulation.from_toml(tmp_path / "net.toml", out=tmp_path / "run").run()
+    leaves = module("leave", "mobility", "sample_plugins:Leaves", {"ue": "u1", "at": 2})
+    log = run_network(tmp_path, _carry(size=2_000_000, sent=[0], modules=leaves))
     (lost,) = [m.data for m in log.decoded("network.transfers")]
-    sent = sum(m.data["ul_throughput_mbps"] * 0.01 * 1e6 / 8 for m in log.decoded("network.ue"))
+    sent = sum(u["ul_throughput_mbps"] * 0.01 * 1e6 / 8 for u in ue_reports(log))
     assert lost["lost"] and lost["bytes"] == 2_000_000 and "delivered_s" not in lost
     assert 0 < sent < 2_000_000 and lost["bytes_left"] == pytest.approx(2_000_000 - sent, abs=1)
     assert not log.decoded("delivered.u1")

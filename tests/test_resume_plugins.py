@@ -17,7 +17,9 @@ import random
 import pytest
 
 import caviar
+from configs import episode, module, output, waypoint_uav
 from conftest import ROOT, write_config
+from network_configs import WEST, cars_in_the_canyon, ue_reports
 from test_resume import _kill_at, _messages
 
 BLUEPRINTS = ROOT / "blueprints"
@@ -56,49 +58,6 @@ def test_the_sar_mission_resumes_to_the_same_messages(tmp_path, cli):
                                           "communications.throughput", "3D.mobility.positions"}
 
 
-NETWORK = """
-[episode]
-ts = 0.02
-seed = 3
-stages = ["mobility", "communications"]
-
-[modules.ues]
-stage = "mobility"
-plugin = "sample_plugins:LineMover"
-[[modules.ues.params.ues]]
-id = "car1"
-start = [-20.0, 2.0, 0.0]
-end = [60.0, 2.0, 0.0]
-speed = 15.0
-[[modules.ues.params.ues]]
-id = "car2"
-start = [50.0, -2.0, 0.0]
-end = [-30.0, -2.0, 0.0]
-speed = 10.0
-
-[modules.net]
-stage = "communications"
-plugin = "radio-network"
-[modules.net.params]
-channel = "ray-traced"
-subcarrier_spacing_hz = 30e3
-harq_processes = 4
-subbands = 4
-handover = { time_to_trigger_s = 0.04 }
-scene = "SCENE"
-raytracing = { max_depth = 2, samples_per_src = 5000, threads = 1 }
-evolution = { refresh_s = 0.1 }
-[[modules.net.params.sites]]
-name = "west"
-position = [-80.0, 0.0, 10.0]
-azimuths_deg = [0.0]
-[[modules.net.params.sites]]
-name = "east"
-position = [80.0, 0.0, 10.0]
-azimuths_deg = [180.0]
-"""
-
-
 @pytest.mark.parametrize("sites", [2, 1])
 def test_the_radio_network_resumes_to_the_same_messages(tmp_path, cli, sites):
     """Sionna SYS's OLLA offsets, PF history (torch buffers of the scheduler), HARQ outcomes
@@ -106,15 +65,10 @@ def test_the_radio_network_resumes_to_the_same_messages(tmp_path, cli, sites):
     between refreshes: checkpoints fall between them). With one site both UEs share a cell,
     so the scheduler's history decides, and the shoot cache serves the traces (one source
     per solve): whether it had seen the scene is part of the checkpoint."""
-    import sionna.rt as rt
-
-    text = NETWORK.replace("SCENE", pathlib.Path(rt.scene.simple_street_canyon).as_posix())
-    if sites == 1:
-        text = text[:text.index('[[modules.net.params.sites]]\nname = "east"')]
-    cfg = write_config(tmp_path, text)
+    cfg = write_config(tmp_path, cars_in_the_canyon() if sites == 2 else cars_in_the_canyon(sites=[WEST]))
     kill = random.Random(23).randrange(9, 20)
     log = _resumes_to_the_reference(tmp_path, cli, cfg, [], kill, every=7, steps=24)
-    ue = [m.data for m in log.decoded("network.ue")]
+    ue = ue_reports(log)
     assert {u["UE_Id"] for u in ue} == {"car1", "car2"} and all("mcs" in u for u in ue if u["serving_cell"])
 
 
@@ -148,45 +102,26 @@ def test_the_ray_traced_link_with_shoot_cache_prediction_and_look_ahead_resumes(
 def test_the_radio_network_on_the_38901_channel_resumes_to_the_same_messages(tmp_path, cli):
     """The TR 38.901 channel: every UE's LOS state and shadow fading per site, and the
     random state of Sionna's draws (seeded from the call count) are in the checkpoint."""
-    text = NETWORK.replace('channel = "ray-traced"', 'channel = "38.901-uma"')
-    cfg = write_config(tmp_path, text)
+    # (the ray-traced network's other keys kept, its scene a name never read)
+    cfg = write_config(tmp_path, cars_in_the_canyon(scene="SCENE", channel="38.901-uma"))
     kill = random.Random(26).randrange(9, 20)
     log = _resumes_to_the_reference(tmp_path, cli, cfg, [], kill, every=7, steps=24)
-    ue = [m.data for m in log.decoded("network.ue")]
+    ue = ue_reports(log)
     assert {u["UE_Id"] for u in ue} == {"car1", "car2"}
     assert all(u["coupling_loss_db"] > 40 for u in ue if u["serving_cell"])
 
 
-ENERGY = """
-[episode]
-ts = 1.0
-seed = 1
-stages = ["mobility", "energy", "mission", "pace"]
+def _slow() -> str:
+    """Steps of 50 ms (sample_plugins:Slow in stage pace), for the kill to land on its step."""
+    return module("slow", "pace", "sample_plugins:Slow", {"seconds": 0.05})
 
-[output]
-name = "energy"
-analysis = ["3D.mobility.forecast", "mission.rescue", "mission.result"]
 
-[modules.slow]             # (steps of 50 ms, for the kill to land on its step)
-stage = "pace"
-plugin = "sample_plugins:Slow"
-params = { seconds = 0.05 }
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { waypoints = "route.csv", frame = "scene", speed = 10.0 }
-
-[modules.energy]
-stage = "energy"
-plugin = "uav-energy"
-params = { battery = { capacity_wh = 1.0, reserve = 0.2 }, return_speed_mps = 5.0 }
-
-[modules.mission]
-stage = "mission"
-plugin = "mission"
-subscribe = ["uav.energy", "caviar.episode.end"]
-"""
+ENERGY = (episode(1.0, ["mobility", "energy", "mission", "pace"], seed=1)
+          + output(name="energy", analysis=["3D.mobility.forecast", "mission.rescue", "mission.result"])
+          + _slow() + waypoint_uav(speed=10.0)
+          + module("energy", "energy", "uav-energy", {"battery": {"capacity_wh": 1.0, "reserve": 0.2},
+                                                      "return_speed_mps": 5.0})
+          + module("mission", "mission", "mission", subscribe=["uav.energy", "caviar.episode.end"]))
 
 
 def test_uav_energy_and_the_flight_home_resume_to_the_same_messages(tmp_path, cli):
@@ -199,44 +134,14 @@ def test_uav_energy_and_the_flight_home_resume_to_the_same_messages(tmp_path, cl
     assert len(log.decoded("mission.return")) == 1
 
 
-LIDAR = """
-[episode]
-ts = 0.1
-seed = 3
-stages = ["mobility", "sensing", "pace"]
-
-[output]
-name = "lidar"
-analysis = ["3D.mobility.forecast", "3D.lidar.*", "3D.lidar.*.sweep"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = { waypoints = "route.csv", frame = "scene", speed = 10.0, end_at_last = false }
-
-[modules.car]
-stage = "mobility"
-plugin = "sample_plugins:CarAt"
-params = { xs = [10.0, 11.0, 12.0, 13.0, 14.0, 15.0, 16.0, 17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0] }
-
-[modules.lidar]
-stage = "sensing"
-plugin = "lidar"
-[modules.lidar.params]
-scene = "scene.xml"
-raytracing = { threads = 1 }
-[modules.lidar.params.sensor]
-channels = 8
-horizontal_resolution_deg = 2.0
-range_noise_m = 0.05
-dropout = 0.1
-mount_offset_m = [0.0, 0.0, -1.0]
-
-[modules.slow]             # (steps of 50 ms, for the kill to land on its step)
-stage = "pace"
-plugin = "sample_plugins:Slow"
-params = { seconds = 0.05 }
-"""
+LIDAR = (episode(0.1, ["mobility", "sensing", "pace"], seed=3)
+         + output(name="lidar", analysis=["3D.mobility.forecast", "3D.lidar.*", "3D.lidar.*.sweep"])
+         + waypoint_uav(speed=10.0, end_at_last=False)
+         + module("car", "mobility", "sample_plugins:CarAt", {"xs": [10.0 + k for k in range(14)]})
+         + module("lidar", "sensing", "lidar", {"scene": "scene.xml", "raytracing": {"threads": 1}, "sensor": {
+             "channels": 8, "horizontal_resolution_deg": 2.0, "range_noise_m": 0.05, "dropout": 0.1,
+             "mount_offset_m": [0.0, 0.0, -1.0]}}, params_table=True)
+         + _slow())
 
 
 def test_the_lidar_resumes_to_the_same_point_clouds(tmp_path, cli):
