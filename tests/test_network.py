@@ -20,23 +20,37 @@ from caviar_plugins.network.cells import (
     ELEMENT_GAIN_DBI,
     element_gain_db,
     line_of_sight_gain_db,
-    parse_sites,
     rx_power_dbm,
     sinr_db,
 )
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.report import jain_index
 from caviar_plugins.radio.link_level import DATA_SYMBOLS_PER_SLOT, LinkLevel, LinkSettings
+from configs import episode, module, sionna_link
 from conftest import write_config
+from network_configs import (
+    BAND,
+    STAGES,
+    assert_decides_as,
+    canyon_scene,
+    in_the_canyon,
+    line_movers,
+    mover,
+    radio_network,
+    ray_traced,
+    reported,
+    run_network,
+    site,
+    site_cells,
+    ue_reports,
+)
 
 C = 299_792_458.0
-DEFAULTS = {"tx_power_dbm": 40.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "array": [1, 1]}
 
 
 def _two_cells_facing(d: float, height: float = 10.0):
     """Two one-sector sites 2d apart on the x axis, each pointing at the midpoint."""
-    return parse_sites([{"name": "W", "position": [-d, 0.0, height], "azimuths_deg": [0.0]},
-                        {"name": "E", "position": [d, 0.0, height], "azimuths_deg": [180.0]}], DEFAULTS)
+    return site_cells(site("W", [-d, 0.0, height], [0.0]), site("E", [d, 0.0, height], [180.0]))
 
 
 def test_two_equal_cells_give_0_db_and_one_alone_gives_friis_snr():
@@ -61,7 +75,7 @@ def test_two_equal_cells_give_0_db_and_one_alone_gives_friis_snr():
 
 
 def test_the_sector_pattern_follows_tr38901():
-    cells = parse_sites([{"name": "S", "position": [0.0, 0.0, 0.0], "azimuths_deg": [0.0]}], DEFAULTS)
+    cells = site_cells(site("S", [0.0, 0.0, 0.0], [0.0]))
     r = 100.0
     for phi, expected in [(0.0, 8.0), (32.5, 8.0 - 3.0), (65.0, 8.0 - 12.0), (180.0, 8.0 - 30.0)]:
         ue = np.array([[r * math.cos(math.radians(phi)), r * math.sin(math.radians(phi)), 0.0]])
@@ -175,11 +189,7 @@ def test_the_compiled_link_level_decides_as_eager_and_reaches_the_bler_target():
     settings = LinkSettings(num_prb=51, harq_processes=d, subbands=sub)
     eager = LinkLevel(settings, n_cell=1, seed=11).run(sinr, serving)
     compiled_ll = LinkLevel(dataclasses.replace(settings, compile=True), n_cell=1, seed=11)
-    compiled = compiled_ll.run(sinr, serving)
-    np.testing.assert_array_equal(compiled.mcs, eager.mcs)
-    np.testing.assert_array_equal(compiled.prbs, eager.prbs)
-    np.testing.assert_allclose(compiled.sinr_eff_db, eager.sinr_eff_db, atol=1e-4)
-    np.testing.assert_allclose(compiled.tbler, eager.tbler, atol=1e-5)
+    assert_decides_as(compiled_ll.run(sinr, serving), eager)
     # The whole group of slots is one compiled program: few torch operations run outside it (on a
     # GPU, each a kernel launch), where eager runs hundreds: what a group adds, calls of 1 and 11 groups.
     compiled_ll.run(sinr, serving)  # (its second call compiles once more: the blocks are built)
@@ -242,61 +252,26 @@ def test_no_ue_gets_more_than_the_shannon_bound_of_its_sinr():
     assert (res.decoded_bits > 0.3 * bound).all()
 
 
-NETWORK = """
-[episode]
-ts = 0.02
-duration = 24.0
-seed = 4
-stages = ["mobility", "communications"]
-
-[modules.ues]
-stage = "mobility"
-plugin = "sample_plugins:LineMover"
-[[modules.ues.params.ues]]
-id = "car1"
-start = [-150.0, 20.0, 1.5]
-end = [150.0, 20.0, 1.5]
-speed = 12.5
-[[modules.ues.params.ues]]
-id = "ped1"
-type = "pedestrian"
-start = [-160.0, -20.0, 1.5]
-end = [-160.0, -25.0, 1.5]
-speed = 1.0
-
-[modules.net]
-stage = "communications"
-plugin = "radio-network"
-[modules.net.params]
-carrier_hz = 3.5e9
-bandwidth_hz = 20e6
-subcarrier_spacing_hz = 15e3
-harq_processes = 10   # a step's 20 slots in 2 calls of Sionna SYS (slot by slot: 10x the calls, the same handover)
-handover = { offset_db = 0.0, hysteresis_db = 3.0, time_to_trigger_s = 0.16 }
-[[modules.net.params.sites]]
-name = "west"
-position = [-200.0, 0.0, 25.0]
-azimuths_deg = [0.0, 120.0, 240.0]
-[[modules.net.params.sites]]
-name = "east"
-position = [200.0, 0.0, 25.0]
-azimuths_deg = [180.0, 300.0, 60.0]
-"""
+NETWORK = (episode(0.02, STAGES, seed=4, duration=24.0)
+           + line_movers(mover("car1", [-150.0, 20.0, 1.5], [150.0, 20.0, 1.5], 12.5),
+                         mover("ped1", [-160.0, -20.0, 1.5], [-160.0, -25.0, 1.5], 1.0, type="pedestrian"))
+           + radio_network([site("west", [-200.0, 0.0, 25.0], [0.0, 120.0, 240.0]),
+                            site("east", [200.0, 0.0, 25.0], [180.0, 300.0, 60.0])],
+                           **BAND, subcarrier_spacing_hz=15e3,
+                           # a step's 20 slots in 2 calls of Sionna SYS (slot by slot: 10x the calls, the same handover)
+                           harq_processes=10,
+                           handover={"offset_db": 0.0, "hysteresis_db": 3.0, "time_to_trigger_s": 0.16}))
 
 
 @pytest.mark.filterwarnings("ignore::caviar.simulation.WiringWarning")  # outputs recorded only
 def test_a_car_crossing_between_two_sites_hands_over_once_in_the_loop(tmp_path):
-    cfg = tmp_path / "net.toml"
-    cfg.write_text(NETWORK)
-    sim = caviar.Simulation.from_toml(cfg, out=tmp_path / "run")
-    log = sim.run()
+    log = run_network(tmp_path, NETWORK)
     events = [m.data for m in log.decoded("network.events")]
     kinds = [(e["event"], e["UE_Id"]) for e in events]
     assert kinds.count(("attach", "car1")) == 1 and kinds.count(("attach", "ped1")) == 1
     hos = [e for e in events if e["event"] == "handover"]
     assert [(e["UE_Id"], e["from_cell"], e["to_cell"]) for e in hos] == [("car1", "west/0", "east/0")], hos
-    ues = [m.data for m in log.decoded("network.ue")]
-    car = [u for u in ues if u["UE_Id"] == "car1"]
+    car = [u for u in ue_reports(log) if u["UE_Id"] == "car1"]
     assert {u["serving_cell"] for u in car} == {"west/0", "east/0"}
     assert all(0 <= u["mcs"] <= 28 and u["throughput_mbps"] > 0 for u in car[5:])  # NR table 1: MCS 0-28
     # The paper's schema keeps working.
@@ -308,12 +283,10 @@ def test_a_car_crossing_between_two_sites_hands_over_once_in_the_loop(tmp_path):
     assert 10 * math.log10(16) - 1.0 < border["sinr_db"] <= 10 * math.log10(16), border
 
     # caviar-core report draws the CDFs and the handover map; its numbers are the log's.
-    from caviar.report import main as report
-
-    assert report([str(tmp_path / "run"), "--out", str(tmp_path / "rep")]) == 0
+    rep = reported(tmp_path)
     for name in ("network-cdf.png", "network-handovers.png", "modules.png"):
-        assert (tmp_path / "rep" / name).stat().st_size > 10_000, name
-    numbers = json.loads((tmp_path / "rep" / "network.json").read_text())
+        assert (rep / name).stat().st_size > 10_000, name
+    numbers = json.loads((rep / "network.json").read_text())
     car_sinr = np.array([u["sinr_db"] for u in car])
     assert numbers["ue_types"]["car"]["sinr_db"]["p50"] == pytest.approx(np.percentile(car_sinr, 50), abs=1e-3)
     assert numbers["ue_types"]["car"]["handovers"] == 1 and numbers["ue_types"]["pedestrian"]["handovers"] == 0
@@ -323,10 +296,10 @@ def test_a_car_crossing_between_two_sites_hands_over_once_in_the_loop(tmp_path):
 @pytest.mark.parametrize("edit, key", [
     ('name = "east"', "sites.1.name"),  # two sites named west
     ('azimuths_deg = [180.0, 300.0, 60.0]', "sites.1.array"),
-    ("subcarrier_spacing_hz = 15e3", "mcs_table"),
-    ("subcarrier_spacing_hz = 15e3", "bler_target"),
-    ("carrier_hz = 3.5e9", "carrier_hz"),
-    ("bandwidth_hz = 20e6", "num_prb"),
+    ("subcarrier_spacing_hz = 15000.0", "mcs_table"),
+    ("subcarrier_spacing_hz = 15000.0", "bler_target"),
+    ("carrier_hz = 3500000000.0", "carrier_hz"),
+    ("bandwidth_hz = 20000000.0", "num_prb"),
     # Nested tables are typed (HandoverSettings, TraceSettings): checked recursively, the whole key path named.
     ("time_to_trigger_s = 0.16", "handover.time_to_triger_s"),  # unknown key
     ("hysteresis_db = 3.0", "handover.hysteresis_db"),  # its own check
@@ -366,9 +339,7 @@ def test_ray_traced_gains_equal_friis_and_the_pattern_in_free_space():
     computation), for sites traced together in one solve."""
     from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer
 
-    cells = parse_sites([{"name": "A", "position": [0.0, 0.0, 30.0], "azimuths_deg": [0.0, 120.0, 240.0],
-                          "downtilt_deg": 6.0},
-                         {"name": "B", "position": [300.0, 50.0, 20.0], "azimuths_deg": [200.0]}], DEFAULTS)
+    cells = site_cells(site("A", [0.0, 0.0, 30.0], [0.0, 120.0, 240.0], 6.0), site("B", [300.0, 50.0, 20.0], [200.0]))
     ues = np.array([[120.0, 40.0, 1.5], [-80.0, -60.0, 1.5], [250.0, 300.0, 40.0]])
     tracer = SiteTracer("empty", dataclasses.replace(NETWORK_RAYS, max_depth=0, samples_per_src=1000), cells)
     for placed in (ues, ues[:2] + 10.0):  # (then the UEs move: the same receivers, new positions)
@@ -383,7 +354,7 @@ def _canyon_tracer(max_depth: int = 2):
 
     from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer
 
-    cells = parse_sites([{"name": "W", "position": [-80.0, 0.0, 10.0], "azimuths_deg": [0.0]}], DEFAULTS)
+    cells = site_cells(site("W", [-80.0, 0.0, 10.0], [0.0]))
     rays = dataclasses.replace(NETWORK_RAYS, max_depth=max_depth, samples_per_src=20_000)
     return cells, SiteTracer(rt.scene.simple_street_canyon, rays, cells, seed=2)
 
@@ -472,53 +443,15 @@ def test_proportional_fair_per_subband_serves_each_ue_where_its_channel_is_stron
     assert (res.decoded_bits <= bound).all()
 
 
-CANYON = """
-[episode]
-ts = 0.02
-duration = 1.0
-seed = 3
-stages = ["mobility", "communications"]
-
-[modules.ues]
-stage = "mobility"
-plugin = "sample_plugins:LineMover"
-[[modules.ues.params.ues]]
-id = "car1"
-start = [-20.0, 2.0, 0.0]
-end = [60.0, 2.0, 0.0]
-speed = 15.0
-
-[modules.net]
-stage = "communications"
-plugin = "radio-network"
-[modules.net.params]
-channel = "ray-traced"
-subcarrier_spacing_hz = 30e3
-harq_processes = 8
-subbands = 8
-scene = "SCENE"
-raytracing = { max_depth = 2, samples_per_src = 20000 }
-evolution = { refresh_s = 0.5 }
-[[modules.net.params.sites]]
-name = "west"
-position = [-80.0, 0.0, 10.0]
-azimuths_deg = [0.0]
-"""
-
-
 @pytest.mark.filterwarnings("ignore::caviar.simulation.WiringWarning")  # outputs recorded only
 def test_in_the_loop_the_ray_traced_sinr_fades_between_refreshes(tmp_path):
     """In a run: the car's SINR changes from step to step between two traces (refresh
     every 0.5 s, steps of 20 ms, 30 cm) as its paths' phases turn; with evolve = "hold"
     it is constant between traces."""
-    import sionna.rt as rt
-
     def sinrs(evolve: str) -> np.ndarray:
-        cfg = tmp_path / f"{evolve}.toml"
-        text = CANYON.replace("SCENE", pathlib.Path(rt.scene.simple_street_canyon).as_posix())
-        cfg.write_text(text.replace("refresh_s = 0.5", f'refresh_s = 0.5, mode = "{evolve}"'))
-        log = caviar.Simulation.from_toml(cfg, out=tmp_path / evolve).run()
-        ue = [m.data for m in log.decoded("network.ue")]
+        text = in_the_canyon(duration=1.0, subcarrier_spacing_hz=30e3, harq_processes=8, subbands=8, **ray_traced(
+            canyon_scene(), max_depth=2, samples_per_src=20000, refresh_s=0.5, mode=evolve))
+        ue = ue_reports(run_network(tmp_path, text, evolve, f"{evolve}.toml"))
         assert len(ue) == 50 and all(u["serving_cell"] == "west/0" for u in ue)
         return np.array([u["sinr_db"] for u in ue])
 
@@ -534,8 +467,7 @@ def test_the_radio_map_matches_friis_and_the_pattern_and_picks_the_facing_sector
     (Monte Carlo noise aside), and the best server is the sector facing the point."""
     from caviar_plugins.network.radio_map import MAP_RAYS, RadioMapSettings, best_server_map, save
 
-    cells = parse_sites([{"name": "A", "position": [0.0, 0.0, 30.0], "azimuths_deg": [0.0, 120.0, 240.0],
-                          "downtilt_deg": 6.0}], DEFAULTS)
+    cells = site_cells(site("A", [0.0, 0.0, 30.0], [0.0, 120.0, 240.0], 6.0))
     flat = RadioMapSettings(cell_size_m=10.0, margin_m=200.0, raytracing=dataclasses.replace(MAP_RAYS, max_depth=0))
     res = best_server_map(cells, flat, "empty", num_prb=106, noise_figure_db=7.0)
     x, y = np.meshgrid(res["x"], res["y"])
@@ -560,28 +492,12 @@ def test_sionna_link_with_the_sys_link_model(tmp_path):
     cell; each decodes at most log2(1 + SNR) bits per data resource element it was given,
     with the SNR of its used beam pair, and the paper's throughput schema stays."""
     route = (DATA / "central_park_path0_scene.csv").as_posix()
-    cfg = write_config(tmp_path, f"""
-[episode]
-ts = 0.1
-steps = 3
-seed = 5
-stages = ["mobility", "communications"]
-
-[modules.uav]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = {{ waypoints = "{route}", frame = "scene", ue_id = "uav1" }}
-
-[modules.uav2]
-stage = "mobility"
-plugin = "waypoint-flight"
-params = {{ waypoints = "{route}", frame = "scene", ue_id = "uav2", speed = 10.0 }}
-
-[modules.comm]
-stage = "communications"
-plugin = "sionna-link"
-params = {{ raytracing = {{ samples_per_src = 10000 }}, link_model = "sys", publish_channels = false }}
-""")
+    cfg = write_config(tmp_path, episode(0.1, STAGES, steps=3, seed=5)
+                       + module("uav", "mobility", "waypoint-flight", {"waypoints": route, "frame": "scene",
+                                                                       "ue_id": "uav1"})
+                       + module("uav2", "mobility", "waypoint-flight", {"waypoints": route, "frame": "scene",
+                                                                        "ue_id": "uav2", "speed": 10.0})
+                       + sionna_link(link_model="sys", publish_channels=False))
     log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run()
     links = [m.data for m in log.decoded("communications.link")]
     thr = [m.data for m in log.decoded("communications.throughput")]

@@ -16,6 +16,7 @@ from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.report import finite
 from caviar_plugins.network.ues import UeTable, rounded, ue_reports, uplink_fields
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, cuda_graphs_on
+from network_configs import assert_decides_as
 
 
 def _by_hand(s: HandoverSettings, names, state: dict, t: float, ue: str, rsrp: list[float], sinr):
@@ -223,10 +224,7 @@ def test_the_cuda_graph_mode_on_the_cpu_decides_as_eager():
     graphed = LinkLevel(dataclasses.replace(settings, compile=True, cuda_graphs=True), n_cell=1, seed=11)
     assert graphed.cuda_graphs and graphed._group == graphed._group_graphed
     first = graphed.run(sinr, serving)
-    np.testing.assert_array_equal(first.mcs, eager.mcs)
-    np.testing.assert_array_equal(first.prbs, eager.prbs)
-    np.testing.assert_allclose(first.sinr_eff_db, eager.sinr_eff_db, atol=1e-4)
-    np.testing.assert_allclose(first.tbler, eager.tbler, atol=1e-5)
+    assert_decides_as(first, eager)
     kept = first.decoded_bits.copy()
     second = graphed.run(np.concatenate([sinr, sinr]), serving)
     np.testing.assert_array_equal(first.decoded_bits, kept)

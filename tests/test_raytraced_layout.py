@@ -15,41 +15,19 @@ from caviar import _core
 from caviar_plugins.network.layout import LayoutSettings, site_positions
 from caviar_plugins.rt.scene import load_scene, open_sky
 from caviar_plugins.tools import calibration
+from configs import episode, output
+from network_configs import MAPS, REPORTS, radio_network, ray_traced, ue_reports
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OSM_CITY = ROOT / "blueprints" / "osm-city" / "scene" / "scene.xml"
 C = 299_792_458.0
 
-NETWORK = """
-[episode]
-ts = 0.001
-seed = 3
-steps = 2
-stages = ["communications"]
-
-[output]
-name = "rt-layout"
-analysis = ["communications.throughput", "network.ue", "network.events", "network.cells",
-            "network.radio_map", "view.radio_map"]
-
-[modules.net]
-stage = "communications"
-plugin = "radio-network"
-subscribe = []
-[modules.net.params]
-channel = "ray-traced"
-carrier_hz = 6e9
-tx_power_dbm = 44.0
-array = [1, 1]
-link_model = "shannon"
-report_cells = 1
-layout = { kind = "hex", rings = 1, isd_m = 200.0, height_m = 10.0, min_distance_m = 10.0, wraparound = false, \
-indoor_share = 0.0, ues_per_sector = 2, redrop = "every-step", center_m = [0.0, 0.0] }
-column = { elements = 10 }
-scene = "empty"
-raytracing = { max_depth = 1, samples_per_src = 10000 }
-evolution = { mode = "hold" }
-"""
+LAYOUT = {"kind": "hex", "rings": 1, "isd_m": 200.0, "height_m": 10.0, "min_distance_m": 10.0, "wraparound": False,
+          "indoor_share": 0.0, "ues_per_sector": 2, "redrop": "every-step", "center_m": [0.0, 0.0]}
+NETWORK = (episode(0.001, ["communications"], steps=2, seed=3) + output(name="rt-layout", analysis=[*REPORTS, *MAPS])
+           + radio_network(subscribe=[], carrier_hz=6e9, tx_power_dbm=44.0, array=[1, 1], link_model="shannon",
+                           report_cells=1, layout=LAYOUT, column={"elements": 10},
+                           **ray_traced("empty", max_depth=1, samples_per_src=10000, mode="hold")))
 
 
 def _run(tmp_path, text: str, name: str = "a") -> list[dict]:
@@ -58,7 +36,7 @@ def _run(tmp_path, text: str, name: str = "a") -> list[dict]:
     cfg = tmp_path / f"{name}.toml"
     cfg.write_text(text)
     with caviar.Simulation.from_toml(cfg, out=tmp_path / name) as sim:
-        return [m.data for m in sim.run(progress=False).decoded("network.ue")]
+        return ue_reports(sim.run(progress=False))
 
 
 def test_open_sky_is_false_inside_a_building_and_true_in_the_street_and_on_the_roof():
