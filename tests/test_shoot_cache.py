@@ -472,10 +472,10 @@ def test_the_default_turns_the_cache_on_for_the_cpu_and_off_on_cuda():
     """``shoot_cache = "auto"`` (the default) chooses by Dr.Jit backend from measurements: on
     for LLVM, where a cached solve is a fraction of Sionna's loop; off on CUDA, where it
     measured slower (docs/tutorials/gpu-machine.md). A bad value is refused by its key."""
-    from caviar_plugins.network.raytraced import TraceSettings
+    from caviar_plugins.network.raytraced import NETWORK_RAYS
     from caviar_plugins.rt.solver import use_shoot_cache
 
-    assert RadioConfig().shoot_cache == "auto" and TraceSettings().shoot_cache == "auto"
+    assert RadioConfig().raytracing.shoot_cache == "auto" and NETWORK_RAYS.shoot_cache == "auto"
     assert use_shoot_cache("auto", "llvm_ad_mono_polarized") and use_shoot_cache("auto", "llvm_ad_rgb")
     assert not use_shoot_cache("auto", "cuda_ad_mono_polarized") and not use_shoot_cache("auto", "cuda_ad_rgb")
     assert use_shoot_cache(True, "cuda_ad_mono_polarized") and not use_shoot_cache(False, "llvm_ad_rgb")
