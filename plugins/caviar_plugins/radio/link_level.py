@@ -213,11 +213,15 @@ class LinkLevel:
             import sionna.phy
             import sionna.sys
 
-            sionna.phy.config.seed = seed
             self._sys = sionna.sys
             self._torch = __import__("torch")
             self.device = resolve(settings.device)
-            self.phy = sionna.sys.PHYAbstraction(device=str(self.device))
+            # The link level's own random stream (no global seed set): the HARQ outcomes the PHY
+            # abstraction draws, eager from this generator, compiled from the device's default
+            # generator with this stream's state swapped in for the call (_group_compiled).
+            self._generator = adapter.own_generator(self.device, seed)
+            self._compiled_rng = adapter.own_generator(self.device, seed).get_state()
+            self.phy = adapter.phy_abstraction(self.device, self._generator)
             self.eesm = sionna.sys.EESM(device=str(self.device))
             self._prb_weights = to_torch(settings.subband_prbs, self.device, self._torch.float32)
             # each PRB's subband, [num_prb] (the EESM's input by one gather, of a fixed shape)
@@ -232,7 +236,9 @@ class LinkLevel:
             self.cuda_graphs = cuda_graphs_on(settings, self.device)
             self._compiled = self._torch.compile(self._group_eager, dynamic=False,
                                                  mode="reduce-overhead" if self.cuda_graphs else None)
-            self._group = self._group_graphed if self.cuda_graphs else self._compiled
+            self._group = self._group_graphed if self.cuda_graphs else self._group_compiled
+            if self.cuda_graphs:  # (a captured graph replays the device generator it captured: seeded here)
+                adapter.default_generator(self.device).set_state(self._compiled_rng)
             # Each UE capacity and each direction compiles its own entries (two each: before and
             # after Sionna's blocks are built); past torch's limit (8) it would fall back to eager.
             adapter.allow_recompiles(self._torch, 64)
@@ -273,7 +279,7 @@ class LinkLevel:
         return {"capacity": self.capacity,
                 "olla": adapter.block_state(self.olla), "pf": adapter.block_state(self.pf),
                 "harq": self.harq.clone(), "rate_last": self.rate_last.clone(),
-                "rng": self._rng().get_state()}
+                "rng": self._generator.get_state(), "compiled_rng": self._compiled_rng.clone()}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Puts back :meth:`state` into a link level built with the same settings."""
@@ -284,14 +290,8 @@ class LinkLevel:
         for obj, saved in ((self.olla, state["olla"]), (self.pf, state["pf"])):
             adapter.set_block_state(obj, saved)
         self.harq, self.rate_last = state["harq"].clone(), state["rate_last"].clone()
-        self._rng().set_state(state["rng"])
-
-    def _rng(self):
-        """Sionna's torch generator on the link level's device (``sionna.phy.config``), which
-        the PHY abstraction draws its block errors from."""
-        import sionna.phy
-
-        return sionna.phy.config.torch_rng(str(self.device))
+        self._generator.set_state(state["rng"])
+        self._compiled_rng = state["compiled_rng"].clone()
 
     def table_bler(self, mcs: int, sinr_db: float, cb_size: int) -> float:
         """The BLER this link level uses for ``mcs`` at ``sinr_db`` and code-block size
@@ -445,6 +445,19 @@ class LinkLevel:
             tbler_mean = np.where(sched_n > 0, tbler_n[:n_ue] / sched_n, np.nan)
         return SlotResults(delivered.sum(axis=0), sched_n, prbs_n[:n_ue], acks_n[:n_ue], nacks_n[:n_ue],
                            mcs_n[:n_ue], tbler_mean, eff_n[:n_ue], active_n, delivered)
+
+    def _group_compiled(self, *args):
+        """The compiled group, drawing from the link level's own stream: its random numbers come
+        from the device's default generator (what compiled code draws from), with this link
+        level's state swapped in for the call and the caller's put back."""
+        generator = adapter.default_generator(self.device)
+        caller = generator.get_state()
+        generator.set_state(self._compiled_rng)
+        try:
+            return self._compiled(*args)
+        finally:
+            self._compiled_rng = generator.get_state()
+            generator.set_state(caller)
 
     def _group_graphed(self, *args):
         """The compiled group replayed as a CUDA graph: a new step of the graph's memory,

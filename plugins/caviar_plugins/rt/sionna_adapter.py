@@ -316,3 +316,40 @@ def seeded(seed: int) -> Iterator[None]:
         torch.default_generator.set_state(cpu)
         for g, state in zip(torch.cuda.default_generators, gpus, strict=True):
             g.set_state(state)
+
+
+def own_generator(device: Any, seed: int) -> Any:
+    """A torch generator on ``device`` seeded as ``sionna.phy.config.seed = seed`` would seed
+    Sionna's generator for that device (``seed`` plus the device's index among Sionna's
+    devices), without setting Sionna's seed: a block's own random stream."""
+    import torch
+    from sionna.phy import config
+
+    name = str(device)
+    index = config.available_devices.index(name) if name in config.available_devices else 0
+    generator = torch.Generator(device=name)
+    generator.manual_seed((int(seed) + index) % 2**64)
+    return generator
+
+
+def default_generator(device: Any) -> Any:
+    """torch's default generator of ``device`` (what compiled code draws its random numbers from)."""
+    import torch
+
+    device = torch.device(device)
+    if device.type == "cuda":
+        return torch.cuda.default_generators[device.index if device.index is not None else torch.cuda.current_device()]
+    return torch.default_generator
+
+
+def phy_abstraction(device: Any, generator: Any) -> Any:
+    """Sionna SYS's ``PHYAbstraction`` on ``device`` drawing its HARQ outcomes from ``generator``
+    (its ``torch_rng``, which is Sionna's shared generator for the device otherwise)."""
+    import sionna.sys
+
+    class OwnStream(sionna.sys.PHYAbstraction):
+        @property
+        def torch_rng(self):
+            return generator
+
+    return OwnStream(device=str(device))
