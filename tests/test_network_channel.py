@@ -136,3 +136,24 @@ def test_one_site_with_wraparound_runs(tmp_path):
     log = caviar.Simulation.from_toml(cfg, out=tmp_path / "run").run(progress=False)
     ues = [m.data for m in log.decoded("network.ue")]
     assert len(ues) == 2 * 3 * 2 and {u["UE_Id"] for u in ues} == {f"drop{k}" for k in range(6)}
+
+
+def test_a_link_level_draws_from_its_own_stream_and_sets_no_global_seed():
+    """Two link levels (a downlink's and an uplink's) each keep their own stream: making the
+    second leaves the first's draws and Sionna's and torch's global generators as they were."""
+    import torch
+    from sionna.phy import config
+
+    from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
+
+    config.seed = 99
+    before = (config.seed, torch.default_generator.get_state().clone(), config.torch_rng("cpu").get_state().clone())
+    settings = LinkSettings(num_prb=51, subcarrier_spacing_hz=30e3, device="cpu")
+    down = LinkLevel(settings, n_cell=2, seed=1)
+    first = torch.rand(4, generator=down.phy.torch_rng)
+    alone = LinkLevel(settings, n_cell=2, seed=1)
+    LinkLevel(settings, n_cell=2, seed=2)  # (the uplink's, made after: it used to reseed the first)
+    assert torch.equal(torch.rand(4, generator=alone.phy.torch_rng), first)
+    assert down.phy.torch_rng is not alone.phy.torch_rng
+    after = (config.seed, torch.default_generator.get_state(), config.torch_rng("cpu").get_state())
+    assert after[0] == before[0] == 99 and torch.equal(after[1], before[1]) and torch.equal(after[2], before[2])
