@@ -336,9 +336,11 @@ def default_generator(device: Any) -> Any:
     """torch's default generator of ``device`` (what compiled code draws its random numbers from)."""
     import torch
 
-    device = torch.device(device)
-    if device.type == "cuda":
-        return torch.cuda.default_generators[device.index if device.index is not None else torch.cuda.current_device()]
+    from caviar_plugins.torch_device import is_cuda
+
+    if is_cuda(device):
+        index = torch.device(device).index
+        return torch.cuda.default_generators[index if index is not None else torch.cuda.current_device()]
     return torch.default_generator
 
 
