@@ -19,7 +19,7 @@ from typing import Any
 
 from caviar._core import RawMessage
 from caviar.errors import ConfigError
-from caviar.plugin import Context, Inbox, Message, PayloadKind, Plugin, building, encode
+from caviar.plugin import Context, Inbox, Message, PayloadKind, Plugin, building, encode, field_default
 from caviar.topics import matches
 
 OutgoingTuple = tuple[str, PayloadKind, "str | bytes", "str | None"]
@@ -170,15 +170,6 @@ def _example(new_key: str, value: Any) -> str:
     return f"{key} = {text}"
 
 
-def _default_of(field: dataclasses.Field) -> Any:
-    """A field's default value (made by its factory), or MISSING."""
-    if field.default is not dataclasses.MISSING:
-        return field.default
-    if field.default_factory is not dataclasses.MISSING:
-        return field.default_factory()
-    return dataclasses.MISSING
-
-
 def _key_paths(params: dict[str, Any], prefix: str = "") -> list[str]:
     """Every key a table wrote, those of its nested tables as dotted paths (``raytracing.los``)."""
     keys = []
@@ -218,7 +209,7 @@ def _build(schema: Any, params: dict[str, Any], path: str, owner: str, base: Any
         hint = hints.get(key, Any)
         table = _table_of(hint)
         if table is not None and isinstance(value, dict):
-            default = _default_of(fields[key])
+            default = field_default(fields[key])
             inner = {old[len(key) + 1:]: new for old, new in moved.items() if old.startswith(f"{key}.")}
             values[key] = _build(table, value, where, f"{owner}.{key}",
                                  base=default if isinstance(default, table) else None, moved_here=inner)

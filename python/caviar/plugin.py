@@ -228,7 +228,8 @@ def apply_preset(params: Any, preset: typing.Mapping[str, Any], name: str) -> No
         for table in tables:
             chain.append((owner, table))
             owner = getattr(owner, table)
-        default = _field_default(type(owner), field)
+        default = next(field_default(f) for f in dataclasses.fields(owner) if f.name == field)
+        default = None if default is dataclasses.MISSING else default
         current = getattr(owner, field)
         set_by_user = key in given if given is not None else current != default
         if set_by_user and current != value:
@@ -246,13 +247,13 @@ def apply_preset(params: Any, preset: typing.Mapping[str, Any], name: str) -> No
                 updated = dataclasses.replace(parent, **{table: updated})
 
 
-def _field_default(cls: Any, name: str) -> Any:
-    for f in dataclasses.fields(cls):
-        if f.name == name:
-            if f.default is not dataclasses.MISSING:
-                return f.default
-            return f.default_factory() if f.default_factory is not dataclasses.MISSING else None
-    return None
+def field_default(field: dataclasses.Field) -> Any:
+    """A dataclass field's default value (made by its factory), or ``dataclasses.MISSING``."""
+    if field.default is not dataclasses.MISSING:
+        return field.default
+    if field.default_factory is not dataclasses.MISSING:
+        return field.default_factory()
+    return dataclasses.MISSING
 
 
 class Plugin:
