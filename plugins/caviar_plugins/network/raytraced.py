@@ -103,15 +103,7 @@ class TracedChannels:
     def amplitudes_on(self, device: Any, position: np.ndarray, frequencies_hz: np.ndarray) -> Any:
         """:meth:`amplitudes` as a complex128 tensor on the torch ``device`` (a setting or a
         ``torch.device``), computed there: a step's channel at scale is millions of phases."""
-        import torch
-
-        dev = resolve(device)
-        f = to_torch(frequencies_hz, dev, torch.float64)
-        arrival, delay = to_torch(self.arrival, dev, torch.float64), to_torch(self.delay_s, dev, torch.float64)
-        moved = to_torch(np.asarray(position, dtype=float) - self.position, dev, torch.float64)
-        shorter = torch.einsum("ucpk,uk->ucp", arrival, moved)  # m
-        phase = 2 * np.pi * ((self.carrier_hz + f) * (shorter / SPEED_OF_LIGHT)[..., None] - delay[..., None] * f)
-        return to_torch(self.amplitude, dev, torch.complex128)[..., None] * torch.polar(torch.ones_like(phase), phase)
+        return EvolvingPaths(self, device, frequencies_hz).at(position)
 
     def gain_db(self, position: np.ndarray, frequencies_hz: np.ndarray) -> np.ndarray:
         """[ue, cell, freq]: |H|² (dB) with the UEs at ``position`` [ue, 3], at baseband
@@ -122,6 +114,36 @@ class TracedChannels:
         return TracedChannels(self.amplitude[index], self.delay_s[index], self.arrival[index],
                               self.position[index], self.carrier_hz, self.power_sum_db[index],
                               None if self.departure is None else self.departure[index])
+
+
+class EvolvingPaths:
+    """One trace's paths (:class:`TracedChannels`, the step's UEs' rows) on the torch ``device``
+    with what does not change until the next trace there too (the amplitudes, directions of
+    arrival, each path's delay times the ``frequencies_hz``): a step's :meth:`at` converts
+    and copies nothing of the size of the paths, only the UEs' displacements enter."""
+
+    def __init__(self, ch: TracedChannels, device: Any, frequencies_hz: np.ndarray):
+        import torch
+
+        self.device = dev = resolve(device)
+        self.position, self._torch = ch.position, torch
+        f = to_torch(frequencies_hz, dev, torch.float64)
+        self.carrier_f = ch.carrier_hz + f
+        self.arrival = to_torch(ch.arrival, dev, torch.float64)
+        self.delay_f = to_torch(ch.delay_s, dev, torch.float64)[..., None] * f
+        self.amplitude = to_torch(ch.amplitude, dev, torch.complex128)[..., None]
+        self.unit: Any = None  # (ones of the phases' shape, made once)
+
+    def at(self, position: np.ndarray) -> Any:
+        """[ue, cell, path, freq]: each path's coefficient with the UEs at ``position`` [ue, 3]
+        (:class:`TracedChannels`' evolution, a complex128 tensor on the device)."""
+        torch = self._torch
+        moved = to_torch(np.asarray(position, dtype=float) - self.position, self.device, torch.float64)
+        shorter = torch.einsum("ucpk,uk->ucp", self.arrival, moved)  # m
+        phase = 2 * np.pi * (self.carrier_f * (shorter / SPEED_OF_LIGHT)[..., None] - self.delay_f)
+        if self.unit is None or self.unit.shape != phase.shape:
+            self.unit = torch.ones_like(phase)
+        return self.amplitude * torch.polar(self.unit, phase)
 
 
 def summed_db(amplitudes: Any) -> np.ndarray:

@@ -16,7 +16,8 @@ import caviar
 from caviar_plugins.network.beams import beam_responses, gains_of_responses
 from caviar_plugins.network.cells import Cell
 from caviar_plugins.network.channel import UePlaces
-from caviar_plugins.network.raytraced import SiteTracer, TracedChannels, summed_db
+from caviar_plugins.network.raytraced import EvolvingPaths, SiteTracer, TracedChannels, summed_db
+from caviar_plugins.torch_device import to_torch
 
 
 class RayTracedChannel:
@@ -51,6 +52,10 @@ class RayTracedChannel:
         self._rows: tuple[Any, np.ndarray] = (None, np.zeros(0, dtype=np.int64))  # (ids, their rows) of the trace
         self.refreshed_at = -np.inf  # the last refresh on the refresh_s schedule
         self.amplitude: Any = None  # the step's evolved path amplitudes (the beams' too)
+        # (the trace, the rows of it, and those rows' paths on the device (EvolvingPaths) and beam
+        # responses: made once a trace or a change of the UEs, not each step)
+        self._evolving: tuple[Any, Any, Any] = (None, None, None)
+        self._responses_of_rows: tuple[Any, Any, Any] = (None, None, None)
 
     def _traced_rows(self, ids: list[str]) -> np.ndarray:
         """The rows of the last trace of ``ids`` (looked up again only when the UEs change)."""
@@ -68,10 +73,13 @@ class RayTracedChannel:
             if due:
                 self.refreshed_at = t
         assert self.channels is not None
-        ch = self.channels.rows(self._traced_rows(ids))
+        rows = self._traced_rows(ids)
         if self.flat:
-            return ch.power_sum_db[..., None]
-        self.amplitude = ch.amplitudes_on(self.device, pos, self.frequencies)  # (the beams' too; once a step)
+            return self.channels.power_sum_db[rows][..., None]
+        if self._evolving[0] is not self.channels or self._evolving[1] is not rows:
+            self._evolving = (self.channels, rows, EvolvingPaths(self.channels.rows(rows), self.device,
+                                                                 self.frequencies))
+        self.amplitude = self._evolving[2].at(pos)  # (the beams' too; once a step)
         gains = summed_db(self.amplitude)
         if self.band_average:
             return 10 * np.log10(np.mean(10 ** (gains / 10), axis=-1, keepdims=True))
@@ -86,7 +94,10 @@ class RayTracedChannel:
             self.responses = (ch, beam_responses(self.cells, codebooks, ch.departure, self.device))
         rows = self._traced_rows(ues.ids)
         amplitude = ch.amplitude[rows][..., None] if self.flat else self.amplitude
-        gains = gains_of_responses(amplitude, self.responses[1], rows)
+        if self._responses_of_rows[0] is not self.responses[1] or self._responses_of_rows[1] is not rows:
+            r = self.responses[1]  # (the rows' responses gathered once a trace or a change of the UEs)
+            self._responses_of_rows = (r, rows, r[to_torch(rows, r.device)])
+        gains = gains_of_responses(amplitude, self._responses_of_rows[2])
         if self.band_average:
             gains = gains.mean(axis=2, keepdims=True)
         return gains
