@@ -10,9 +10,16 @@
 #include "ns3/propagation-loss-model.h"
 #include "ns3/traffic-control-module.h"
 
+#include <cerrno>
+#include <csignal>
+#include <cstdio>
 #include <cstring>
+#include <exception>
 #include <map>
+#include <mutex>
 #include <string>
+#include <sys/wait.h>
+#include <unistd.h>
 #include <vector>
 
 namespace caviar_ns3
@@ -246,6 +253,27 @@ class Network
         }
     }
 
+    // The transmit buffer (bytes) of UE `ue`'s UM RLC entities, its data radio bearers';
+    // returns how many it set. LteRlcUm reads it as each packet arrives from PDCP.
+    uint32_t SetRlcBuffer(uint32_t ue, uint32_t bytes)
+    {
+        ObjectMapValue drbs;
+        DynamicCast<LteUeNetDevice>(ueDevs.Get(ue))->GetRrc()->GetAttribute("DataRadioBearerMap", drbs);
+        uint32_t n = 0;
+        for (auto it = drbs.Begin(); it != drbs.End(); ++it)
+        {
+            PointerValue rlc;
+            it->second->GetAttribute("LteRlc", rlc);
+            Ptr<LteRlcUm> um = DynamicCast<LteRlcUm>(rlc.Get<LteRlc>());
+            if (um)
+            {
+                um->SetAttribute("MaxTxBufferSize", UintegerValue(bytes));
+                ++n;
+            }
+        }
+        return n;
+    }
+
     uint16_t Rnti(uint32_t ue)
     {
         return DynamicCast<LteUeNetDevice>(ueDevs.Get(ue))->GetRrc()->GetRnti();
@@ -394,6 +422,215 @@ AttributeType(std::string path)
         return "";
     }
     return info.checker->GetValueTypeName();
+}
+
+// Keeps the last characters written to std::cerr, passing them on (or holding them back
+// meanwhile): ns-3 writes why it aborts there just before it does (NS_FATAL_ERROR, NS_ASSERT).
+class ErrTail : public std::streambuf
+{
+  public:
+    explicit ErrTail(std::streambuf* out)
+        : m_out(out)
+    {
+    }
+
+    std::streambuf* Out()
+    {
+        return m_out;
+    }
+
+    // Holds back what is written until Hold(false) passes it on (or Drop() drops it);
+    // meanwhile std::terminate aborts without libstdc++'s words.
+    void Hold(bool on)
+    {
+        std::lock_guard<std::mutex> lock(m_mutex);
+        m_hold = on;
+        if (on)
+        {
+            m_terminate = std::set_terminate([] { std::abort(); });
+        }
+        else
+        {
+            std::set_terminate(m_terminate);
+            Pass();
+        }
+    }
+
+    void Drop()
+    {
+        std::lock_guard<std::mutex> lock(m_mutex);
+        m_pending.clear();
+    }
+
+    uint64_t Written()
+    {
+        std::lock_guard<std::mutex> lock(m_mutex);
+        return m_written;
+    }
+
+    // What was written since Written() returned `mark` (at most the last 16 kB).
+    std::string Since(uint64_t mark)
+    {
+        std::lock_guard<std::mutex> lock(m_mutex);
+        uint64_t n = std::min<uint64_t>(m_written - std::min(mark, m_written), m_text.size());
+        return m_text.substr(m_text.size() - n);
+    }
+
+  protected:
+    int overflow(int c) override
+    {
+        if (c == EOF)
+        {
+            return 0;
+        }
+        char ch = char(c);
+        Keep(&ch, 1);
+        return c;
+    }
+
+    std::streamsize xsputn(const char* s, std::streamsize n) override
+    {
+        Keep(s, n);
+        return n;
+    }
+
+    int sync() override
+    {
+        return m_out->pubsync();
+    }
+
+  private:
+    void Keep(const char* s, std::streamsize n)
+    {
+        std::lock_guard<std::mutex> lock(m_mutex);
+        m_text.append(s, n);
+        m_written += n;
+        if (m_text.size() > 16384)
+        {
+            m_text.erase(0, m_text.size() - 16384);
+        }
+        m_pending.append(s, n);
+        if (!m_hold || m_pending.size() > 65536)
+        {
+            Pass();
+        }
+    }
+
+    void Pass()
+    {
+        if (!m_pending.empty())
+        {
+            m_out->sputn(m_pending.data(), m_pending.size());
+            m_out->pubsync();
+            m_pending.clear();
+        }
+    }
+
+    std::streambuf* m_out;
+    std::mutex m_mutex;
+    std::string m_text, m_pending;
+    uint64_t m_written = 0;
+    bool m_hold = false;
+    std::terminate_handler m_terminate = nullptr;
+};
+
+// std::cerr (and std::clog, where ns-3 writes the time before a fatal error's file and
+// line) through an ErrTail, once per process; returns it.
+inline ErrTail*
+Errors()
+{
+    static ErrTail* tail = [] {
+        auto* t = new ErrTail(std::cerr.rdbuf());
+        std::cerr.rdbuf(t);
+        std::clog.rdbuf(t);
+        return t;
+    }();
+    return tail;
+}
+
+// What ns-3 says of `value` for attribute `path` ("ns3::PointToPointNetDevice::DataRate"):
+// "" if it takes it, else its own words. ns-3 aborts the process on some values it cannot
+// parse (an enum name it does not know, a time or a rate it cannot read): the parse runs in
+// a child process (fork) that writes nothing but into a pipe and never returns here.
+inline std::string
+CheckValue(std::string path, std::string value)
+{
+    auto pos = path.rfind("::");
+    TypeId tid;
+    TypeId::AttributeInformation info;
+    if (pos == std::string::npos || !TypeId::LookupByNameFailSafe(path.substr(0, pos), &tid) ||
+        !tid.LookupAttributeByName(path.substr(pos + 2), &info))
+    {
+        return "ns-3 has no such attribute";
+    }
+    int fds[2];
+    if (pipe(fds) != 0)
+    {
+        return "cannot check it: pipe() failed";
+    }
+    std::fflush(nullptr);
+    pid_t pid = fork();
+    if (pid == 0)
+    {
+        for (int sig : {SIGABRT, SIGSEGV, SIGBUS, SIGILL, SIGFPE, SIGTRAP})
+        {
+            std::signal(sig, SIG_DFL); // no interpreter's crash handler (it would run gdb)
+        }
+        dup2(fds[1], 1);
+        dup2(fds[1], 2);
+        close(fds[0]);
+        std::cerr.rdbuf(Errors()->Out()); // straight to the pipe, never held back
+        bool ok = info.checker->CreateValidValue(StringValue(value)) != nullptr;
+        std::cerr.flush();
+        _exit(ok ? 0 : 3);
+    }
+    close(fds[1]);
+    if (pid < 0)
+    {
+        close(fds[0]);
+        return "cannot check it: fork() failed";
+    }
+    std::string said;
+    char buf[4096];
+    ssize_t n;
+    while ((n = read(fds[0], buf, sizeof buf)) > 0 || (n < 0 && errno == EINTR))
+    {
+        said.append(buf, n > 0 ? n : 0);
+    }
+    close(fds[0]);
+    int status = 0;
+    while (waitpid(pid, &status, 0) < 0 && errno == EINTR)
+    {
+    }
+    if (WIFEXITED(status) && WEXITSTATUS(status) == 0)
+    {
+        return "";
+    }
+    return said.empty() ? std::string("it does not parse") : said;
+}
+
+// The types ns-3 can build that derive from `base`, comma-separated ("ns3::PfFfMacScheduler,...").
+inline std::string
+ChildrenOf(std::string base)
+{
+    TypeId parent = TypeId::LookupByName(base);
+    std::string out;
+    for (uint16_t i = 0; i < TypeId::GetRegisteredN(); ++i)
+    {
+        TypeId tid = TypeId::GetRegistered(i);
+        if (tid != parent && tid.IsChildOf(parent) && tid.HasConstructor())
+        {
+            out += (out.empty() ? "" : ",") + tid.GetName();
+        }
+    }
+    return out;
+}
+
+// A rate CheckValue took ("10Mbps"), in bit/s.
+inline double
+RateBps(std::string rate)
+{
+    return double(DataRate(rate).GetBitRate());
 }
 
 // Sets an attribute's default ("ns3::LteUePhy::TxPower"); false if no such attribute or

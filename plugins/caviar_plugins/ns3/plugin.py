@@ -17,13 +17,15 @@ Each engine step it
 
 The packets carry the image's real size and an 8-byte (image, packet) header; the
 receiver takes each arrived packet's bytes from the image sent. That is the same as
-carrying the pixels, since ns-3 delivers a packet whole or not at all.
+carrying the pixels, since ns-3 delivers a packet whole or not at all. The header is the
+plugin's, not the application's: ``network.ns3.link`` counts image bytes only.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import Any
 
 import numpy as np
@@ -117,14 +119,16 @@ class Ns3Network(caviar.Plugin):
                 raise ValueError(f"loss_from: expected 'pair' or 'path', got {self.loss_from!r}")
             if not 64 <= self.payload_bytes <= 65000:
                 raise ValueError(f"payload_bytes: expected 64..65000, got {self.payload_bytes}")
-            if self.deadline_s < 0:
-                raise ValueError(f"deadline_s: expected >= 0 (0: one step), got {self.deadline_s}")
-            if len(self.enb_position) != 3:
-                raise ValueError(f"enb_position: expected [x, y, z], got {self.enb_position}")
+            if not (math.isfinite(self.deadline_s) and self.deadline_s >= 0):
+                raise ValueError(f"deadline_s: expected >= 0 s (0: one step), got {self.deadline_s}")
+            if len(self.enb_position) != 3 or not all(math.isfinite(v) for v in self.enb_position):
+                raise ValueError(f"enb_position: expected [x, y, z] in metres, got {self.enb_position}")
 
     @classmethod
     def check_params(cls, params, config_dir):
-        # ns-3 itself says whether each attribute exists (loads ns-3: about 3 s, once per process).
+        # ns-3 itself says whether each setting and attribute is one it takes (ns-3 loaded
+        # with the plugin; a value is parsed in a child process, which alone aborts if ns-3 does).
+        sim.check_settings(params.lte, params.p2p)
         if params.attributes:
             sim.check_attributes(params.attributes)
             sim.load().caviar_ns3.Reset()
@@ -145,6 +149,7 @@ class Ns3Network(caviar.Plugin):
         self.stream_sent = [0] * len(p.ues)
         self.stream_received = [0] * len(p.ues)
         self.loss_db: dict[str, float] = {}
+        self.warned: set[int] = set()
 
     def teardown(self):
         if getattr(self, "net", None) is not None:
@@ -222,6 +227,7 @@ class Ns3Network(caviar.Plugin):
             data = np.ascontiguousarray(m.data)
             image = self.next_image
             self.next_image += 1
+            self._check_fits(ue, data.nbytes)
             sent = self.net.send(i, image, data.nbytes, p.payload_bytes)
             if p.transport == "tcp":
                 if sent != data.nbytes:
@@ -230,12 +236,27 @@ class Ns3Network(caviar.Plugin):
             self.pending[image] = PendingImage(ue, image, self.ctx.step, now, data,
                                                sent if p.transport == "udp" else 0, stream_end=self.stream_sent[i])
 
+    def _check_fits(self, ue: str, nbytes: int) -> None:
+        """Warns (once per size) when a fixed RLC buffer cannot hold one image: its tail is
+        dropped at the UE, whatever the channel."""
+        p = self.p
+        fixed = p.lte.rlc_buffer_bytes if p.ran == "lte" else 0
+        need = sim.rlc_sdu_bytes(nbytes, p.payload_bytes, p.transport == "tcp")
+        if fixed and need > fixed and need not in self.warned:
+            self.warned.add(need)
+            warnings.warn(f"modules.{self.ctx.name}.params.lte.rlc_buffer_bytes = {fixed} cannot hold one image "
+                          f"of UE {ue!r} ({nbytes} bytes, {need} with its packets' headers): what does not fit is "
+                          "dropped at the UE's RLC on every image; raise it, or 0 to size it from the load",
+                          stacklevel=2)
+
     def _receive(self) -> list[int]:
-        """What reached the ground station in the step, onto the pending images; bytes per UE."""
+        """What reached the ground station in the step, onto the pending images; image bytes
+        per UE (UDP: less the plugin's 8-byte header of each packet)."""
         payload = self.p.payload_bytes
+        header = 0 if self.p.transport == "tcp" else sim.HEADER_BYTES
         delivered = [0] * len(self.p.ues)
         for a in self.net.arrivals():
-            delivered[a.ue] += a.bytes
+            delivered[a.ue] += a.bytes - header
             if self.p.transport == "tcp":
                 self._stream_arrival(a)
                 continue

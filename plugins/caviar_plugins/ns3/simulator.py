@@ -16,10 +16,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import pathlib
-import sys
 import time
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence, TypeVar
+
+from caviar_plugins.ns3.checks import check_attributes, check_seconds, check_settings
+from caviar_plugins.ns3.native import HEADERS, Ns3Aborted, Ns3Unavailable, guarded, load
+
+__all__ = ["HEADERS", "Ns3Aborted", "Ns3Unavailable", "check_attributes", "load"]
 
 RAN_KINDS = ("lte", "p2p")
 """Networks this plugin builds from the ``ns3`` wheel: ``lte`` (LTE with its EPC: the
@@ -41,90 +44,22 @@ HEADER_BYTES = 8
 """The plugin's own header on each UDP packet: image id and packet index (u32 each)."""
 PPP_BYTES = 2
 """The point-to-point header ns-3's PointToPointNetDevice adds."""
+PDCP_BYTES = 2
+"""The PDCP header on each packet into the RLC (12-bit sequence numbers)."""
+TCP_IP_BYTES = 20 + 20
+TCP_SEGMENT_BYTES = 536
+"""ns-3's default TCP segment (``ns3::TcpSocket::SegmentSize``)."""
+RLC_BUFFER_MIN = 128 * 1024
+"""The UE's RLC buffer when it is sized from the load, at least (bytes)."""
 
 
-class Ns3Unavailable(ImportError):
-    """The ``ns3`` package is not installed (``pip install -e 'plugins[ns3]'``)."""
-
-
-HEADERS = frozenset({"core", "network", "internet", "point-to-point", "mobility", "lte", "propagation",
-                     "spectrum", "traffic-control", "applications"})
-"""The ns-3 modules whose headers cppyy parses (their own includes bring the rest): the
-wheel's loader parses all 40-odd modules' (5.3 s on the 2-core machine), these 2.4 s. Every
-library is loaded all the same."""
-
-
-@functools.cache
-def load() -> Any:
-    """Imports ns-3 and compiles the plugin's C++ half, once per process (about 3 s: cppyy
-    parses the :data:`HEADERS` modules' headers). Returns cppyy's global namespace."""
-    try:
-        import cppyy
-
-        if "ns" in sys.modules:
-            from ns import ns  # noqa: F401  (someone loaded it whole already)
-        else:
-            _import_ns(cppyy)
-    except ImportError as e:  # pragma: no cover - the test environment installs it
-        raise Ns3Unavailable("the ns3-network plugin needs ns-3: pip install -e 'plugins[ns3]' "
-                             f"(PyPI's ns3 3.44 wheel); import failed: {e}") from e
-    cppyy.cppdef((pathlib.Path(__file__).with_name("caviar_ns3.h")).read_text())
-    return cppyy.gbl
-
-
-def _import_ns(cppyy: Any) -> None:
-    """``from ns import ns``, with cppyy including only the :data:`HEADERS` modules' headers."""
-    include = cppyy.include
-
-    def some(header: str, *args: Any, **kwargs: Any) -> Any:
-        module = header.removeprefix("ns3/").removesuffix("-module.h")
-        if header.startswith("ns3/") and header.endswith("-module.h") and module not in HEADERS:
-            return True
-        return include(header, *args, **kwargs)
-
-    cppyy.include = some
-    try:
-        from ns import ns  # noqa: F401  (loads the ns-3 libraries)
-    finally:
-        cppyy.include = include
-
-
-def check_attributes(attributes: Mapping[str, Any]) -> None:
-    """Sets ns-3 attribute defaults (``{"ns3::LteUePhy::TxPower": 23}``); raises
-    ``ValueError("attributes.NAME: ...")`` for one that does not exist or whose value
-    does not parse."""
-    if not attributes:
-        return
-    g = load()
-    for name, value in attributes.items():
-        text = _attribute_text(value)
-        kind = str(g.caviar_ns3.AttributeType(name))
-        if not kind:
-            raise ValueError(f'attributes."{name}": ns-3 has no such attribute (expected '
-                             '"ns3::Class::Attribute" = value, e.g. "ns3::LteUePhy::TxPower" = 23)')
-        # ns-3 aborts the process on a number it cannot parse: check those here.
-        if kind in _NUMERIC and not _parses(kind, text):
-            raise ValueError(f'attributes."{name}": expected {_NUMERIC[kind]} for this {kind}, got {text!r}')
-        if not g.caviar_ns3.SetDefault(name, text):
-            raise ValueError(f'attributes."{name}": ns-3 does not take the value {text!r} ({kind})')
-
-
-_NUMERIC = {"ns3::DoubleValue": "a number", "ns3::UintegerValue": "an integer >= 0",
-            "ns3::IntegerValue": "an integer"}
-
-
-def _parses(kind: str, text: str) -> bool:
-    try:
-        value = float(text) if kind == "ns3::DoubleValue" else int(text)
-    except ValueError:
-        return False
-    return kind != "ns3::UintegerValue" or value >= 0
-
-
-def _attribute_text(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    return str(value)
+def rlc_sdu_bytes(nbytes: int, payload_bytes: int, tcp: bool) -> int:
+    """What ``nbytes`` of image take in a UE's RLC buffer: the packets with their headers
+    (UDP: the plugin's 8 bytes, UDP/IP and PDCP; TCP: segments of ns-3's default size with
+    TCP/IP and PDCP)."""
+    if tcp:
+        return nbytes + math.ceil(nbytes / TCP_SEGMENT_BYTES) * (TCP_IP_BYTES + PDCP_BYTES)
+    return nbytes + math.ceil(nbytes / payload_bytes) * (HEADER_BYTES + UDP_IP_BYTES + PDCP_BYTES)
 
 
 @dataclasses.dataclass
@@ -165,16 +100,22 @@ class LteSettings:
     backhaul_delay_s: float = 0.001
     attach_loss_db: float = 100.0
     """The UE–eNB loss while the UEs attach (before the first loss is set)."""
-    rlc_buffer_bytes: int = 131072
-    """The UE's RLC transmit buffer (RLC UM); a packet that finds it full is dropped. About
-    two camera images: after an outage new images do not queue behind many stale ones
-    (ns-3's default, 10 kB, would drop most of every image)."""
+    rlc_buffer_bytes: int = 0
+    """The UE's RLC transmit buffer (RLC UM), bytes; a packet that finds it full is dropped.
+    0 (the default): sized from the load, to hold twice the images a UE is given in one
+    step, with their headers (at least :data:`RLC_BUFFER_MIN`): a step's images always fit,
+    and after an outage new images do not queue behind many stale ones. ns-3's own default, 10 kB, would drop most
+    of every image. Set, it is fixed; an image that cannot fit in it is warned about."""
 
     def __post_init__(self):
         if self.bandwidth_rb not in (6, 15, 25, 50, 75, 100):
             raise ValueError(f"bandwidth_rb: expected 6, 15, 25, 50, 75 or 100, got {self.bandwidth_rb}")
-        if self.rlc_buffer_bytes < 10240:
-            raise ValueError(f"rlc_buffer_bytes: expected >= 10240, got {self.rlc_buffer_bytes}")
+        if self.rlc_buffer_bytes != 0 and not 10240 <= self.rlc_buffer_bytes < 2**32:
+            raise ValueError(f"rlc_buffer_bytes: expected 0 (sized from the load) or 10240 .. 2**32 - 1, "
+                             f"got {self.rlc_buffer_bytes}")
+        check_seconds("backhaul_delay_s", self.backhaul_delay_s)
+        if not math.isfinite(self.attach_loss_db):
+            raise ValueError(f"attach_loss_db: expected a loss in dB, got {self.attach_loss_db}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,7 +125,38 @@ class P2pSettings:
     rate: str = "20Mbps"
     delay_s: float = 0.005
     queue: str = "100000p"
-    """The device's DropTail queue, in packets (``"100p"``) or bytes."""
+    """The device's DropTail queue, in packets (``"100p"``) or bytes (``"64KB"``)."""
+
+    def __post_init__(self):
+        check_seconds("delay_s", self.delay_s)
+
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+DOING = {"__init__": "while building the network", "run_until": "while running", "send": "while queuing an image",
+         "set_position": "while moving a node", "set_enb_position": "while moving the eNB",
+         "set_loss": "while setting a loss", "replay": "while replaying the journal",
+         "arrivals": "while reading arrivals", "uplink": "while reading the uplink's statistics",
+         "close": "while closing the network"}
+"""What a guarded method was doing, for the message of an abort inside it."""
+
+
+def _native(method: F) -> F:
+    """The method's calls into ns-3 cannot end the process: an abort inside raises
+    :class:`Ns3Aborted` naming what was being done, and the network is marked dead."""
+
+    @functools.wraps(method)
+    def call(self, *args, **kwargs):
+        if getattr(self, "aborted", None):
+            raise Ns3Aborted(f"ns-3 aborted earlier ({self.aborted}); this network cannot go on")
+
+        def dead(words: str) -> None:
+            self.aborted = words
+
+        with guarded(DOING.get(method.__name__, "in " + method.__name__), dead):
+            return method(self, *args, **kwargs)
+
+    return call  # type: ignore[return-value]
 
 
 class Ns3Simulation:
@@ -196,12 +168,17 @@ class Ns3Simulation:
     ns-3 time = engine time + that).
     """
 
+    aborted: str | None = None
+    """ns-3's words if it aborted inside a call: the network cannot go on."""
+
+    @_native
     def __init__(self, ues: int, ran: str = "lte", *, tcp: bool = False, seed: int = 1,
                  lte: LteSettings | None = None, p2p: P2pSettings | None = None,
                  attributes: Mapping[str, Any] | None = None, warmup_s: float = 0.1):
         if ran not in RAN_KINDS:
             raise ValueError(f"ran: expected one of {', '.join(RAN_KINDS)}, got {ran!r}"
                              + (f" ({NOT_IN_WHEEL[ran.lower()]})" if ran.lower() in NOT_IN_WHEEL else ""))
+        check_settings(lte or LteSettings(), p2p or P2pSettings())
         g = load()
         self.g, self.ns = g, g.ns3
         self.c = g.caviar_ns3
@@ -215,11 +192,16 @@ class Ns3Simulation:
             self.c.SetDefault("ns3::TcpSocket::RcvBufSize", str(64 << 20))
         if ran == "lte":
             self.lte = lte or LteSettings()
-            # Queue a few images rather than drop most of one at the RLC (ns-3's default
-            # buffer: 10 kB); stay attached out of coverage (images are lost, the UE does not
-            # re-attach). ns-3's PDCP discard timer acts only as a packet enters the RLC.
+            # Queue a step's images rather than drop most of one at the RLC (ns-3's default
+            # buffer: 10 kB; see LteSettings.rlc_buffer_bytes); stay attached out of coverage
+            # (images are lost, the UE does not re-attach). ns-3's PDCP discard timer acts
+            # only as a packet enters the RLC.
             self.c.SetDefault("ns3::LteEnbRrc::EpsBearerToRlcMapping", "RlcUmAlways")
-            self.c.SetDefault("ns3::LteRlcUm::MaxTxBufferSize", str(self.lte.rlc_buffer_bytes))
+            self.rlc_buffer = [self.lte.rlc_buffer_bytes or RLC_BUFFER_MIN] * ues
+            """Each UE's RLC transmit buffer now (bytes)."""
+            self._queued = [0] * ues
+            """RLC bytes each UE was given since the last run_until."""
+            self.c.SetDefault("ns3::LteRlcUm::MaxTxBufferSize", str(self.rlc_buffer[0]))
             self.c.SetDefault("ns3::LteUePhy::EnableRlfDetection", "false")
         check_attributes(attributes or {})
         self.wall_s = 0.0
@@ -250,29 +232,43 @@ class Ns3Simulation:
         self.rntis = [int(self.net.Rnti(i)) for i in range(ues)] if ran == "lte" else []
 
     # -- per step ----------------------------------------------------------------------
+    @_native
     def set_position(self, ue: int, xyz: Sequence[float]) -> None:
         x, y, z = (float(v) for v in xyz)
         self.journal.append(("position", ue, x, y, z))
         self.net.SetPosition(ue, x, y, z)
 
+    @_native
     def set_enb_position(self, xyz: Sequence[float]) -> None:
         if self.ran == "lte":
             x, y, z = (float(v) for v in xyz)
             self.journal.append(("enb", x, y, z))
             self.net.SetEnbPosition(x, y, z)
 
+    @_native
     def set_loss(self, ue: int, loss_db: float) -> None:
         """The UE–cell loss in dB (both directions), until set again (LTE only)."""
         if self.ran == "lte":
             self.journal.append(("loss", ue, float(loss_db)))
             self.net.SetLoss(ue, float(loss_db))
 
+    @_native
     def send(self, ue: int, image: int, nbytes: int, payload_bytes: int) -> int:
         """Queues ``nbytes`` of image ``image`` at UE ``ue`` now. UDP: returns the packets
-        (``payload_bytes`` of image each, plus the 8-byte header); TCP: the bytes queued."""
+        (``payload_bytes`` of image each, plus the 8-byte header); TCP: the bytes queued.
+        LTE with the RLC buffer sized from the load: the UE's grows first to hold twice what
+        it was given since the last :meth:`run_until`."""
         self.journal.append(("send", ue, image, nbytes, payload_bytes))
+        if self.ran == "lte" and not self.lte.rlc_buffer_bytes:
+            self._queued[ue] += rlc_sdu_bytes(nbytes, payload_bytes, self.tcp)
+            need = min(2 * self._queued[ue], 2**32 - 1)
+            if need > self.rlc_buffer[ue]:
+                self.rlc_buffer[ue] = need
+                self.net.SetRlcBuffer(ue, need)
+                self.c.SetDefault("ns3::LteRlcUm::MaxTxBufferSize", str(max(self.rlc_buffer)))  # bearers to come
         return int(self.net.senders[ue].Send(image, nbytes, payload_bytes))
 
+    @_native
     def replay(self, journal: Sequence[tuple]) -> None:
         """Brings this new network to where another one was after ``journal`` (its
         :attr:`journal`): ns-3 is deterministic, so the same calls give the same events.
@@ -297,8 +293,11 @@ class Ns3Simulation:
         """Engine time of ns-3's clock."""
         return round(float(self.ns.Simulator.Now().GetSeconds()) - self.warmup_s, 9)  # ns-3 counts ns
 
+    @_native
     def run_until(self, t_engine: float) -> None:
         self.journal.append(("run", t_engine))
+        if self.ran == "lte":
+            self._queued = [0] * self.n
         t0 = time.perf_counter()
         self._run_to(t_engine + self.warmup_s)
         self.wall_s += time.perf_counter() - t0
@@ -309,6 +308,7 @@ class Ns3Simulation:
             self.ns.Simulator.Stop(self.ns.Seconds(dt))
             self.ns.Simulator.Run()
 
+    @_native
     def arrivals(self) -> list[Arrival]:
         """The packets that reached the ground station since the last call (engine times)."""
         out = []
@@ -321,6 +321,7 @@ class Ns3Simulation:
                 r.Clear()
         return out
 
+    @_native
     def uplink(self) -> list[UplinkStep | None]:
         """Per UE, the eNB's view of its uplink since the last call (None for ``p2p``)."""
         if self.ran != "lte":
@@ -338,6 +339,11 @@ class Ns3Simulation:
         return out
 
     def close(self) -> None:
+        """Destroys the network and resets ns-3 for the next one (after an abort, ns-3's
+        state is undefined: the network is dropped as it is)."""
         if getattr(self, "net", None) is not None:
-            self.c.Reset()
-            self.net = None
+            net, self.net = self.net, None
+            if not self.aborted:
+                with guarded(DOING["close"]):
+                    self.c.Reset()
+            del net
