@@ -338,7 +338,7 @@ impl RunSession {
             engine.set_probe(probe);
         }
         let watchdog = connection.is_none().then(|| Deadlines {
-            step: Duration::from_secs_f64(cfg.step_timeout()),
+            step: Duration::from_secs_f64(transport::step_timeout(&cfg)),
             setup: Duration::from_secs_f64(cfg.setup_timeout()),
         });
         let mut monitor = Monitor::install(&mut engine, watchdog);

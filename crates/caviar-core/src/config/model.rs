@@ -174,14 +174,6 @@ impl LoadedConfig {
         ep.pace.map(|p| Pacer::new(p, ep.ts, behind))
     }
 
-    /// Seconds one module step may take: `episode.step_timeout`, or 600.
-    pub fn step_timeout(&self) -> f64 {
-        self.config
-            .episode
-            .step_timeout
-            .unwrap_or(DEFAULT_STEP_TIMEOUT)
-    }
-
     /// Steps between checkpoints: `output.checkpoint_every`, or 100; 0: none.
     pub fn checkpoint_every(&self) -> u64 {
         self.config

@@ -41,8 +41,15 @@ pub trait Transport {
         None
     }
 
-    /// Reads and checks `[transport.KIND]` (errors name the file, line and key).
+    /// Reads and checks `[transport.KIND]` (errors name the file, line and key). Called
+    /// whenever the file has the section, whichever transport runs, and when this one runs.
     fn check(&self, cfg: &LoadedConfig) -> Result<(), ConfigError>;
+
+    /// An older name of `episode.step_timeout` in this transport's section, if it has one
+    /// and the file gives it (it applies whichever transport runs).
+    fn step_timeout(&self, _cfg: &LoadedConfig) -> Option<f64> {
+        None
+    }
 
     /// Checks that the files the section names exist (what `validate` and the start of
     /// `run` check on the filesystem).

@@ -89,11 +89,29 @@ pub fn check(cfg: &LoadedConfig) -> Result<Option<Box<dyn Transport>>, ConfigErr
             }
         }
     }
-    let chosen = transports.into_iter().find(|t| t.kind() == kind);
-    if let Some(t) = &chosen {
-        t.check(cfg)?;
+    // A section is checked whether or not its transport runs: a typo in it is one either
+    // way (and `transport.nats.step_timeout` applies in process too).
+    for t in &transports {
+        if t.kind() == kind || cfg.config.transport.contains_key(t.kind()) {
+            t.check(cfg)?;
+        }
     }
-    Ok(chosen)
+    Ok(transports.into_iter().find(|t| t.kind() == kind))
+}
+
+/// Seconds one module step may take, whatever the transport: `episode.step_timeout`, or
+/// its older name in a transport's section (`transport.nats.step_timeout`), or 600.
+pub fn step_timeout(cfg: &LoadedConfig) -> f64 {
+    cfg.config
+        .episode
+        .step_timeout
+        .or_else(|| {
+            all()
+                .iter()
+                .filter(|t| cfg.config.transport.contains_key(t.kind()))
+                .find_map(|t| t.step_timeout(cfg))
+        })
+        .unwrap_or(crate::config::DEFAULT_STEP_TIMEOUT)
 }
 
 #[cfg(test)]
@@ -139,6 +157,31 @@ mod tests {
         assert_eq!(err.key.as_deref(), Some("modules.a.plugin"));
         assert!(err.message.contains("needs the nats transport"), "{err}");
         assert!(is_transport_builtin(nats::BRIDGE_PLUGIN) && !is_transport_builtin("x:Y"));
+    }
+
+    #[test]
+    fn a_section_is_checked_whether_or_not_its_transport_runs() {
+        for (section, key) in [
+            ("step_timout = 5", "transport.nats.step_timout"),
+            ("step_timeout = 0", "transport.nats.step_timeout"),
+            ("mirror = [\"a..b\"]", "transport.nats.mirror"),
+        ] {
+            let text = format!("{HEAD}plugin = \"x:Y\"\n[transport.nats]\n{section}\n");
+            let err = checked(&text).unwrap_err();
+            assert_eq!(
+                (err.key.as_deref(), err.line),
+                (Some(key), Some(8)),
+                "{err}"
+            );
+        }
+        // The older name of episode.step_timeout applies in process too.
+        let text = format!("{HEAD}plugin = \"x:Y\"\n[transport.nats]\nstep_timeout = 5\n");
+        assert_eq!(checked(&text).unwrap(), None);
+        let cfg = crate::config::parse(&text, "c.toml", std::path::Path::new("."), &[]).unwrap();
+        assert_eq!(step_timeout(&cfg), 5.0);
+        let plain = format!("{HEAD}plugin = \"x:Y\"\n");
+        let cfg = crate::config::parse(&plain, "c.toml", std::path::Path::new("."), &[]).unwrap();
+        assert_eq!(step_timeout(&cfg), crate::config::DEFAULT_STEP_TIMEOUT);
     }
 
     #[test]

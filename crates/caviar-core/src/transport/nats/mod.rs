@@ -79,6 +79,10 @@ impl Transport for Nats {
         NatsSettings::from_config(cfg)?.check_files(cfg)
     }
 
+    fn step_timeout(&self, cfg: &LoadedConfig) -> Option<f64> {
+        NatsSettings::from_config(cfg).ok()?.step_timeout
+    }
+
     fn prepare(
         &self,
         cfg: &LoadedConfig,

@@ -40,7 +40,7 @@ pub struct NatsSettings {
     /// Seconds to wait for every module's workers to connect and load their plugin.
     #[serde(default = "default_startup_timeout")]
     pub startup_timeout: f64,
-    /// Older name of `episode.step_timeout`, for the NATS transport only.
+    /// Older name of `episode.step_timeout`, for every transport (in process too).
     pub step_timeout: Option<f64>,
     /// Seconds without a heartbeat after which a worker counts as dead (workers beat every second).
     #[serde(default = "default_heartbeat_timeout")]
