@@ -128,3 +128,17 @@ def test_a_run_over_nats_killed_at_a_random_step_resumes_to_the_same_messages(tm
     s = caviar.load_run(tmp_path / "run").status
     assert s["status"] == "completed" and s["steps_done"] == 160 and len(s["resumed_at"]) == 1, s
     assert _messages(tmp_path / "run").equals(_messages(tmp_path / "reference"))
+
+
+def test_a_checkpoint_is_due_after_its_wall_time_whatever_the_steps(tmp_path, cli):
+    """``output.checkpoint_interval_s`` (60 s by default): a checkpoint once that much wall time
+    passed, before ``checkpoint_every`` steps; each step here sleeps longer than the interval, so
+    every step but the last writes one, and the run killed anywhere resumes."""
+    write_config(tmp_path, RESUMABLE.replace("steps = 160", "steps = 6")
+                 .replace("checkpoint_every = 20", "checkpoint_every = 1000\ncheckpoint_interval_s = 0.001"))
+    cli("run", "exp.toml", "-q", "--out", "run", check=0)
+    assert caviar.load_run(tmp_path / "run").status["checkpoint_step"] == 5
+    write_config(tmp_path, RESUMABLE.replace("steps = 160", "steps = 6")
+                 .replace("checkpoint_every = 20", "checkpoint_every = 1000\ncheckpoint_interval_s = 0"))
+    cli("run", "exp.toml", "-q", "--out", "steps-only", check=0)
+    assert caviar.load_run(tmp_path / "steps-only").status.get("checkpoint_step") is None

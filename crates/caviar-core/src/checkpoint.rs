@@ -1,7 +1,8 @@
 //! Checkpoints, and resuming a run from one (`caviar-core run --resume RUN_DIR`).
 //!
-//! Every `output.checkpoint_every` steps (100 by default; 0: never) the run writes
-//! `RUN_DIR/checkpoint.json`, atomically (a temporary file renamed over it), after the
+//! Every `output.checkpoint_every` steps (100 by default; 0: never), or sooner once
+//! `output.checkpoint_interval_s` of wall time passed since the last one (60 s by default;
+//! 0: by steps only), the run writes `RUN_DIR/checkpoint.json`, atomically (a temporary file renamed over it), after the
 //! step's messages are on disk: the first step still to run, the engine's clocks, and
 //! per module its state ([`ModuleState`]: the plugin's `state()` with its random
 //! stream, pickled, or "stateless") and its inbox (the messages delivered for its next
@@ -28,6 +29,9 @@ const VERSION: u32 = 1;
 
 /// `output.checkpoint_every` when not given.
 pub const DEFAULT_EVERY: u64 = 100;
+/// `output.checkpoint_interval_s` when not given: a checkpoint at least once a minute of
+/// wall time, so that any run killed after its first minute resumes.
+pub const DEFAULT_INTERVAL_S: f64 = 60.0;
 
 /// What a checkpoint holds.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -149,7 +153,7 @@ impl Checkpoint {
         let text = std::fs::read(&path).map_err(|e| {
             format!(
                 "{}: no checkpoint to resume from ({e}); checkpoints are written every \
-                 output.checkpoint_every steps",
+                 output.checkpoint_every steps or output.checkpoint_interval_s seconds",
                 path.display()
             )
         })?;

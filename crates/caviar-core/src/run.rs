@@ -8,7 +8,7 @@
 
 use std::fs;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use crate::assembly::{build_modules, refuse_unfed, wiring_warnings, PrepareError, REPLAY_PLUGIN};
 use crate::checkpoint::{Checkpoint, SavedState};
@@ -180,6 +180,9 @@ pub struct RunSession {
     connection: Option<Box<dyn Connection>>,
     warnings: Vec<String>,
     ended: Option<RunState>,
+    /// When the last checkpoint was written (or the run started): for
+    /// `output.checkpoint_interval_s`.
+    last_checkpoint: Instant,
 }
 
 impl RunSession {
@@ -353,6 +356,7 @@ impl RunSession {
             connection,
             warnings,
             ended: None,
+            last_checkpoint: Instant::now(),
         })
     }
 
@@ -378,7 +382,7 @@ impl RunSession {
     pub fn step(&mut self) -> Result<Option<StepReport>, EngineError> {
         let report = self.engine.step()?;
         if let Some(r) = &report {
-            checkpoint_due(&self.cfg, &mut self.engine, r)?;
+            checkpoint_due(&self.cfg, &mut self.engine, r, &mut self.last_checkpoint)?;
         }
         if let (Some(m), Some(_)) = (&mut self.monitor, &report) {
             m.after_step(&self.cfg, &self.engine);
@@ -392,12 +396,12 @@ impl RunSession {
         &mut self,
         mut on_step: impl FnMut(&Engine, &StepReport) -> bool,
     ) -> Result<(), EngineError> {
-        let (monitor, cfg) = (&mut self.monitor, &self.cfg);
+        let (monitor, cfg, last) = (&mut self.monitor, &self.cfg, &mut self.last_checkpoint);
         loop {
             let Some(report) = self.engine.step()? else {
                 return Ok(());
             };
-            checkpoint_due(cfg, &mut self.engine, &report)?;
+            checkpoint_due(cfg, &mut self.engine, &report, last)?;
             if let Some(m) = monitor.as_mut() {
                 m.after_step(cfg, &self.engine);
             }
@@ -449,17 +453,23 @@ impl Drop for RunSession {
 }
 
 /// Writes a checkpoint after `report`'s step when one is due (`output.checkpoint_every`
-/// steps; none after the last step). Its time counts in the step's wall time.
+/// steps, or `output.checkpoint_interval_s` of wall time since `last`; none after the last
+/// step). Its time counts in the step's wall time.
 fn checkpoint_due(
     cfg: &LoadedConfig,
     engine: &mut Engine,
     report: &StepReport,
+    last: &mut Instant,
 ) -> Result<(), EngineError> {
     let every = cfg.checkpoint_every();
-    if every == 0 || report.ended || !engine.steps_done().is_multiple_of(every) {
+    let by_time = cfg
+        .checkpoint_interval()
+        .is_some_and(|i| last.elapsed() >= i);
+    if every == 0 || report.ended || !(engine.steps_done().is_multiple_of(every) || by_time) {
         return Ok(());
     }
-    let t = std::time::Instant::now();
+    let t = Instant::now();
+    *last = t;
     let cp = engine.checkpoint()?;
     let resumable = !cp
         .modules

@@ -237,6 +237,17 @@ fn check_output(c: &LoadedConfig) -> Result<(), ConfigError> {
     if !(cfg.output.flush_interval.is_finite() && cfg.output.flush_interval >= 0.0) {
         return Err(c.error_at("output.flush_interval", "expected a number of seconds >= 0"));
     }
+    if let Some(s) = cfg.output.checkpoint_interval_s {
+        if !(s.is_finite() && s >= 0.0) {
+            return Err(c.error_at(
+                "output.checkpoint_interval_s",
+                format!(
+                    "expected a number of seconds >= 0 (0: by steps only), got {}",
+                    num(s)
+                ),
+            ));
+        }
+    }
     Ok(())
 }
 

@@ -11,6 +11,7 @@
 //!
 //! [output]
 //! checkpoint_every = 100   # steps between checkpoints for `run --resume` (default 100; 0: none)
+//! checkpoint_interval_s = 60.0  # or sooner, after this much wall time (default 60; 0: by steps only)
 //! pace = 1.0               # wall-clock pacing (1: real time); absent: as fast as possible
 //! behind = "catch-up"      # or "drop": what a paced run does when it falls behind
 //!

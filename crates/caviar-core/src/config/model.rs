@@ -107,8 +107,12 @@ pub struct Output {
     /// step, so a killed process loses at most the step in progress.
     #[serde(default)]
     pub flush_interval: f64,
-    /// Steps between checkpoints (`caviar-core run --resume`; default 100, 0: none).
+    /// Steps between checkpoints (`caviar-core run --resume`; default 100, 0: none at all).
     pub checkpoint_every: Option<u64>,
+    /// Wall-clock seconds after which a checkpoint is written even before
+    /// `checkpoint_every` steps (default 60, 0: by steps only): any run killed after its
+    /// first minute resumes.
+    pub checkpoint_interval_s: Option<f64>,
 }
 
 fn one() -> u64 {
@@ -180,6 +184,17 @@ impl LoadedConfig {
             .output
             .checkpoint_every
             .unwrap_or(crate::checkpoint::DEFAULT_EVERY)
+    }
+
+    /// Wall-clock seconds after which a checkpoint is due whatever the steps:
+    /// `output.checkpoint_interval_s`, or 60; `None`: by steps only (0, or no checkpoints).
+    pub fn checkpoint_interval(&self) -> Option<std::time::Duration> {
+        let s = self
+            .config
+            .output
+            .checkpoint_interval_s
+            .unwrap_or(crate::checkpoint::DEFAULT_INTERVAL_S);
+        (s > 0.0 && self.checkpoint_every() > 0).then(|| std::time::Duration::from_secs_f64(s))
     }
 
     /// Seconds one module's setup or teardown may take: `episode.setup_timeout`, or 600.
