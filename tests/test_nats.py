@@ -125,6 +125,7 @@ def test_a_killed_worker_ends_the_run_within_seconds_naming_module_and_step(tmp_
     log = caviar.load_run(tmp_path / "run")
     assert log.status["status"] == "failed" and log.status["error"]["module"] == "slow"
     step = log.status["error"]["step"]
+    assert log.status["steps_done"] == step  # (the steps that finished, as for any fault)
     assert log.topic("slow.tick")["step"].to_list() == list(range(step))  # all recorded up to the failure
     assert worker_pids("count") == []  # the other worker was told to leave
 

@@ -42,6 +42,8 @@ class _RunStatusFields(TypedDict):
     ts: float
     steps_planned: Optional[int]
     steps_done: int
+    """Steps that finished: for a run that failed at step k (0-based), k, whatever the fault
+    (an exception, an exit, a crash, a deadline; in process or over NATS)."""
     virtual_time_s: float
     wall_s: float
     record_s: float

@@ -119,7 +119,12 @@ impl Engine {
             }
         }
         let wall_s = t_step.elapsed().as_secs_f64();
-        self.next_step += 1;
+        if state.failure.is_none() {
+            // (`steps_done` counts finished steps: a step a module failed in is not one,
+            // whatever the fault, as when the process died in it. What its earlier stages
+            // published is recorded all the same.)
+            self.next_step += 1;
+        }
         let record_s = self.record_step(&state, wall_s)?;
         let wall_s = wall_s + record_s;
         self.wall_s += wall_s;

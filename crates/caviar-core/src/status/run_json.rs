@@ -117,6 +117,10 @@ pub struct RunStatus {
     pub seed: u64,
     pub ts: f64,
     pub steps_planned: Option<u64>,
+    /// Steps that finished, every module's part done: for a run that failed at step k
+    /// (0-based), whatever the fault (an exception, an exit, a crash, a deadline, in
+    /// process or over a transport), k. What the failed step's earlier stages published
+    /// is recorded all the same.
     pub steps_done: u64,
     pub virtual_time_s: f64,
     /// Wall-clock seconds in steps, recording included.
