@@ -43,6 +43,23 @@ def test_a_segfault_in_native_code_is_reported_at_once(tmp_path, cli):
     assert caviar.load_run(tmp_path / "run").status["status"] == "failed"
 
 
+@pytest.mark.parametrize("fault, says", [("at_step = 3", "exited (exit status: 3)"),
+                                         ("at_step = 3, segfault = true", "exited (signal: 11 (SIGSEGV))")])
+def test_over_nats_a_dying_worker_is_reported_as_in_process(tmp_path, cli, fault, says):
+    """The same run over NATS: the error names module, step and how the worker ended, then its
+    log's last lines or that the log is empty (never a bare "last lines of …:"); steps_done
+    is the steps that finished, 3, as in process and as for an exception."""
+    write_config(tmp_path, DYING.replace("params = { at_step = 5 }", f"params = {{ {fault} }}")
+                 .replace("[modules.counter]", '[transport]\nkind = "nats"\n[modules.counter]'))
+    p = cli("run", "exp.toml", "-q", "--out", "run")
+    assert p.returncode == 1, p.stderr
+    first = next(line for line in p.stderr.splitlines() if line.startswith("error: "))
+    assert first.startswith("error: module 'exiter' failed at step 3") and says in first, p.stderr
+    assert not first.endswith(":") and ("is empty" in first or "last lines of" in first), p.stderr
+    s = caviar.load_run(tmp_path / "run").status
+    assert s["status"] == "failed" and s["steps_done"] == 3 and s["error"]["step"] == 3, s
+
+
 def test_out_of_memory_is_named_when_the_kernel_counted_an_oom_kill():
     """The kernel's OOM killer cannot be provoked safely in a test: the words for it are
     checked against the cgroup counter the parent reads before and after."""

@@ -320,6 +320,13 @@ fn run(
         !interrupted()
     });
     bar.finish_and_clear();
+    // The cause at once: the teardown after it (worker processes given a grace to leave)
+    // may take seconds.
+    let told = result
+        .as_ref()
+        .err()
+        .inspect(|e| eprintln!("error: {e}"))
+        .is_some();
     let error = session.finish(result).err();
     drop(sigint);
     let state = session.ended().expect("finished");
@@ -327,6 +334,7 @@ fn run(
         session.engine(),
         state,
         error,
+        told,
         started.elapsed().as_secs_f64(),
     );
     if !quiet {
@@ -357,9 +365,15 @@ fn start_viewer(loader: &dyn PluginLoader, run_dir: &Path, port: u16) -> bool {
     }
 }
 
-/// The last line of a run (stdout when it completed, stderr with the error otherwise);
-/// returns the exit code.
-fn finish_line(engine: &Engine, status: RunState, error: Option<EngineError>, wall: f64) -> i32 {
+/// The last line of a run (stdout when it completed, stderr with the error otherwise,
+/// unless it was `told` already); returns the exit code.
+fn finish_line(
+    engine: &Engine,
+    status: RunState,
+    error: Option<EngineError>,
+    told: bool,
+    wall: f64,
+) -> i32 {
     let virtual_s = engine.virtual_time_s();
     let dir = engine.run_dir().display();
     let status = status.as_str();
@@ -374,7 +388,9 @@ fn finish_line(engine: &Engine, status: RunState, error: Option<EngineError>, wa
             0
         }
         Some(e) => {
-            eprintln!("error: {e}");
+            if !told {
+                eprintln!("error: {e}");
+            }
             eprintln!(
                 "{dir}: {status} after {} steps; what was recorded is in the run directory",
                 engine.steps_done()

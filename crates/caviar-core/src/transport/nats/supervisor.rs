@@ -82,10 +82,9 @@ impl Supervisor {
         {
             if let Ok(Some(status)) = p.child.try_wait() {
                 return Err(format!(
-                    "its worker process (pid {}) exited ({status}); last lines of {}:\n{}",
+                    "its worker process (pid {}) exited ({status}); {}",
                     p.child.id(),
-                    p.log.display(),
-                    tail(&p.log, 15)
+                    last_lines(&p.log)
                 ));
             }
         }
@@ -97,10 +96,9 @@ impl Supervisor {
         for p in self.processes.lock().unwrap().iter_mut() {
             if let Ok(Some(status)) = p.child.try_wait() {
                 return Err(format!(
-                    "the worker process of module '{}' exited during startup ({status}); last lines of {}:\n{}",
+                    "the worker process of module '{}' exited during startup ({status}); {}",
                     p.module,
-                    p.log.display(),
-                    tail(&p.log, 15)
+                    last_lines(&p.log)
                 ));
             }
         }
@@ -139,5 +137,16 @@ impl Supervisor {
         for m in modules {
             self.reap(&m, grace);
         }
+    }
+}
+
+/// "last lines of LOG:" and its last 15 lines, or that the log is empty (a process that
+/// died before writing a line, or whose buffered output died with it).
+fn last_lines(log: &Path) -> String {
+    let lines = tail(log, 15);
+    if lines.trim().is_empty() {
+        format!("its log {} is empty", log.display())
+    } else {
+        format!("last lines of {}:\n{lines}", log.display())
     }
 }
