@@ -179,3 +179,28 @@ def test_an_abort_inside_ns3_ends_the_run_naming_the_module_the_phase_and_ns3s_w
     error = status["error"]
     assert error["module"] == "net" and error["phase"] == "setup", error
     assert "illecit SRS periodicity value 7" in error["message"] and "\n" not in error["message"], error
+
+
+def test_a_fatal_error_inside_a_guarded_call_is_an_exception_with_ns3s_words():
+    """In this process: ns-3's NS_FATAL_ERROR ("Could not parse rate") becomes Ns3Aborted with
+    its message and source line, what ns-3 wrote goes on the exception, and ns-3 goes on
+    working for the next network."""
+    from caviar_plugins.ns3 import simulator as sim
+
+    g = sim.load()
+    with pytest.raises(sim.Ns3Aborted) as e:
+        with sim.guarded("parsing a rate"):
+            g.caviar_ns3.RateBps("fast")  # DataRate("fast"): NS_FATAL_ERROR
+    assert str(e.value).startswith("ns-3 aborted parsing a rate: Could not parse rate: fast (data-rate.cc:"), e.value
+    assert "NS_FATAL, terminating" in e.value.__notes__[0]
+    s = sim.Ns3Simulation(1, "p2p", p2p=sim.P2pSettings("10Mbps", 0.005, "100p"), warmup_s=0.0)
+    try:
+        assert s.send(0, 1, 5000, 1400) == 4
+        s.run_until(1.0)
+        assert [a.index for a in s.arrivals()] == [0, 1, 2, 3]
+    finally:
+        s.close()
+    # The same through an overloaded constructor, which cppyy reports as one TypeError:
+    with pytest.raises(sim.Ns3Aborted, match=r"ns-3 aborted parsing a rate: Could not parse rate: fast \(data-rate"):
+        with sim.guarded("parsing a rate"):
+            g.ns3.DataRate("fast")

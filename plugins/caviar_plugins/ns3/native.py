@@ -123,6 +123,9 @@ def ns3_words(text: str) -> str:
     return "; ".join(lines)
 
 
+_CRASH = r"\b(AbortSignal|SegmentationViolation|BusError|IllegalInstruction): "
+"""How cppyy names a signal it turned into an exception (cppyy.ll.FatalError's kinds)."""
+
 _depth = 0
 """Guarded calls in progress (one may call another: the policy is set at the outermost)."""
 
@@ -144,10 +147,14 @@ def guarded(what: str, on_abort: Callable[[str], None] | None = None) -> Iterato
     _depth += 1
     try:
         yield
-    except cppyy.ll.FatalError as e:
+    except (cppyy.ll.FatalError, TypeError) as e:
+        # (An overloaded call reports its overloads' failures as one TypeError.)
+        crash = [ln.strip() for ln in str(e).splitlines() if re.search(_CRASH, ln)]
+        if isinstance(e, TypeError) and not crash:
+            raise
         errors.Drop()
         said = str(errors.Since(mark))
-        words = ns3_words(said) or f"{type(e).__name__} ({str(e).splitlines()[-1].strip()})"
+        words = ns3_words(said) or (crash or [str(e)])[-1]  # "SegmentationViolation: segfault in C++; …"
         if on_abort is not None:
             on_abort(words)
         error = Ns3Aborted(f"ns-3 aborted {what}: {words}")
