@@ -46,25 +46,56 @@ def test_the_column_gain_is_the_array_factor_summed_element_by_element():
         assert ours.max() <= 10 * math.log10(col.elements) + 1e-9
 
 
+def _wrap_vectors(rings: int, isd: float) -> np.ndarray:
+    """The translations that repeat a hexagonal layout of ``rings`` rings, written out: (R + 1)
+    steps along one lattice axis (the centre site to the first, along +x) and R along the next
+    one (60° on), turned by 0°, 60° ... 300° (a 7-site layout repeats √7·ISD away, a 19-site one
+    √19·ISD)."""
+    a1, a2 = isd * np.array([1.0, 0.0]), isd * np.array([0.5, math.sqrt(3) / 2])
+    v = (rings + 1) * a1 + rings * a2
+    turns = [np.radians(60 * k) for k in range(6)]
+    return np.array([[v[0] * math.cos(t) - v[1] * math.sin(t), v[0] * math.sin(t) + v[1] * math.cos(t)]
+                     for t in turns])
+
+
 @pytest.mark.parametrize("rings", [1, 2])
-def test_the_wraparound_is_sionnas_ue_by_ue(rings):
+def test_the_wraparound_tiles_the_plane_and_every_ue_sees_its_own_site_nearest(rings):
     from sionna.phy import config
     from sionna.sys import gen_tr38901_multicell_topology
 
-    layout = LayoutSettings(rings=rings, isd_m=200.0, height_m=10.0)
+    isd = 200.0
+    layout = LayoutSettings(rings=rings, isd_m=isd, height_m=10.0)
     xy = site_positions(layout)
     assert len(xy) == 1 + 3 * rings * (rings + 1)
-    # The sites are ISD apart around the centre.
-    assert np.sort(np.linalg.norm(xy, axis=1))[1] == pytest.approx(200.0, rel=1e-5)
+    assert np.sort(np.linalg.norm(xy, axis=1))[1] == pytest.approx(isd, rel=1e-5)
+    # The layout and its 6 copies cover every site of the endless hexagonal lattice around it
+    # exactly once: they tile the plane.
+    shifts = _wrap_vectors(rings, isd)
+    copies = (xy[:, None, :] + np.concatenate([[[0.0, 0.0]], shifts])[None]).reshape(-1, 2)
+    lattice = np.array([i * np.array([isd, 0.0]) + j * np.array([isd / 2, isd * math.sqrt(3) / 2])
+                        for i in range(-12, 13) for j in range(-12, 13)])
+    near = lattice[np.linalg.norm(lattice, axis=1) < (rings + 1.5) * isd]
+    covered = (np.linalg.norm(near[:, None, :] - copies[None], axis=-1) < 0.01).sum(axis=1)  # (Sionna: float32)
+    assert covered.tolist() == [1] * len(near)
+    # Each UE of Sionna's drop sees each site at the nearest copy of the endless layout (here
+    # searched among 25 of them), which is the network's image; and its own site nearest of all.
     config.seed = 3
-    topo = gen_tr38901_multicell_topology("umi", 1, 4, 6e9, num_rings=rings)
+    topo = gen_tr38901_multicell_topology("umi", 1, 4, 6e9, num_rings=rings, isd=isd, bs_height=10.0,
+                                          min_bs_ut_dist=10.0, indoor_probability=0.8,
+                                          use_3gpp_calibration_defaults=False)
     ues = topo[0].double().numpy()[0]
-    sionna_virtual = topo[7].double().numpy()[0][::3, :, :2]  # [site, ue, 2] (3 sectors share a site)
-    ours = Wraparound(layout).site_xy(ues).transpose(1, 0, 2)
-    assert np.allclose(ours, sionna_virtual, atol=1e-3)
+    periodic = np.array([n * shifts[0] + m * shifts[1] for n in range(-2, 3) for m in range(-2, 3)])
+    candidates = xy[None, :, None, :] + periodic[None, None]  # [1, site, 25, 2]
+    d = np.linalg.norm(ues[:, None, None, :2] - candidates, axis=-1)
+    nearest = np.take_along_axis(np.broadcast_to(candidates, (len(ues),) + candidates.shape[1:]),
+                                 d.argmin(-1)[..., None, None], axis=2)[:, :, 0]
+    ours = Wraparound(layout).site_xy(ues)
+    assert np.allclose(ours, nearest, atol=1e-6)
+    home = np.arange(len(ues)) // 12  # (4 UEs in each of a site's 3 sectors)
+    assert (np.linalg.norm(ues[:, None, :2] - ours, axis=-1).argmin(axis=1) == home).all()
     # Without a wraparound a UE at the edge would see the far sites across the layout.
     far = np.linalg.norm(ues[:, None, :2] - xy[None], axis=-1).max()
-    assert np.linalg.norm(ues[:, None, :2] - ours.transpose(1, 0, 2), axis=-1).max() < far
+    assert np.linalg.norm(ues[:, None, :2] - ours, axis=-1).max() < far
 
 
 def _sionnas_calibration(drops: int, seed: int) -> dict[str, np.ndarray]:
@@ -81,13 +112,23 @@ def _sionnas_calibration(drops: int, seed: int) -> dict[str, np.ndarray]:
     )
 
     config.seed = seed
-    topo = gen_tr38901_multicell_topology("uma", drops, 10, 6e9)
-    ut, bs_virtual, in_state = topo[0], topo[7], topo[5]
+    topo, sites = gen_tr38901_multicell_topology("uma", drops, 10, 6e9, return_site_positions=True)
+    ut, in_state = topo[0], topo[5]
+    # Each sector seen from its site's nearest copy in the endless layout (Sionna 2.2's own
+    # bs_virtual_loc is made with translations 30° off its sites, which do not tile the plane).
+    shifts = np.concatenate([[[0.0, 0.0]], _wrap_vectors(2, 500.0)])
+    images = sites.double().numpy()[:, None, :] + shifts[None]  # [site, 7, 2]
+    u = ut.double().numpy()
+    d = np.linalg.norm(u[:, :, None, None, :2] - images[None, None], axis=-1)  # [drop, ue, site, 7]
+    best = np.take_along_axis(np.broadcast_to(images, d.shape + (2,)), d.argmin(-1)[..., None, None], axis=3)[..., 0, :]
+    virtual = np.repeat(best.transpose(0, 2, 1, 3), 3, axis=1)  # [drop, sector, ue, 2]
+    bs_virtual = torch.as_tensor(np.concatenate([virtual, np.full(virtual.shape[:-1] + (1,), 25.0)], axis=-1))
+    topo = (*topo[:7], bs_virtual, *topo[8:])
     array = PanelArray(num_rows_per_panel=1, num_cols_per_panel=1, polarization="single",
                        polarization_type="V", antenna_pattern="omni", carrier_frequency=6e9, precision="double")
     gains = {}
     for loss in ("low", "high"):
-        sc = UMaScenario(6e9, loss, array, array, "downlink", precision="double")
+        sc = UMaScenario(6e9, loss, array, array, "downlink", precision="double", spec_version="16.1")
         sc.set_topology(*[t.double() if torch.is_tensor(t) and t.is_floating_point() else t for t in topo])
         lsp = LSPGenerator(sc)
         lsp.topology_updated_callback()

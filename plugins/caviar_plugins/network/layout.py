@@ -8,11 +8,11 @@ over the sector's part of its site's hexagon, at least ``min_distance_m`` from t
 (2D, indoor distance included), indoor with probability ``indoor_share`` on floor
 ``n ~ U{1..N}``, ``N ~ U{4..8}`` (height ``3(n − 1) + 1.5`` m; TR 36.873), outdoor at 1.5 m.
 
-Sionna SYS ships all of it: :func:`sionna.sys.gen_tr38901_multicell_topology` (the sites,
-the drop, the indoor distances) and :class:`sionna.sys.HexGrid` (the mirror images of
-every site for the wraparound). This module turns them into the network's cells and UEs;
-it redoes none of them. With ``wraparound``, each UE sees every site at the image nearest
-to it (of the site and its 6 copies around the layout), so a UE at the layout's edge has
+Sionna SYS ships the sites, the drop and the indoor distances
+(:func:`sionna.sys.gen_tr38901_multicell_topology`); this module turns them into the network's
+cells and UEs and redoes none of them. With ``wraparound``, each UE sees every site at the
+image nearest to it (of the site and its 6 copies around the layout, :class:`Wraparound`:
+the translations that tile the plane, computed here), so a UE at the layout's edge has
 interferers all around it, as one in the middle does.
 """
 
@@ -127,22 +127,30 @@ def layout_cells(layout: LayoutSettings, defaults: Mapping[str, Any], column: Co
 
 class Wraparound:
     """Where each UE sees each site: the nearest of the site's 7 images (the site and its
-    6 copies around the layout, :attr:`sionna.sys.HexGrid.mirror_cell_loc`)."""
+    6 copies around the layout).
+
+    The copies are the layout moved by the 6 translations that tile the plane with it: for
+    ``rings`` = R, the site lattice's vector (R + 1)·a₁ + R·a₂ and its turns by 60° (a₁ from
+    the centre site to the first, a₂ that turned by 60°; √7·ISD for R = 1, √19·ISD for
+    R = 2). Every point then sees its own site nearest, as in an endless layout. (Sionna
+    2.2's ``gen_tr38901_multicell_topology`` returns images, ``bs_virtual_loc``, made with
+    translations 30° off its own sites, which do not tile: 7 % of a 2-ring drop's UEs see
+    a copy of another site nearer than their own, and the UMa calibration's median coupling
+    loss came out 1.1 dB low.)"""
 
     def __init__(self, layout: LayoutSettings):
-        from sionna.sys import HexGrid
-
-        shifts = np.zeros((1, 2))  # (one site, rings = 0: nothing to wrap; Sionna's grid needs a ring)
+        sites = site_positions(layout)
+        shifts = np.zeros((1, 2))  # (one site, rings = 0: nothing to wrap)
         if layout.rings > 0:
-            grid = HexGrid(num_rings=layout.rings, isd=float(layout.isd_m), cell_height=float(layout.height_m))
-            mirrors = grid.mirror_cell_loc.detach().cpu().double().numpy()[..., :2]  # [site, 7, 2]
-            # Sionna's hexagonal grid is drawn turned by 90° from the 38.901 layout, so its sites
-            # differ; the 7 translations that tile the plane with copies of the layout are the
-            # same up to a mirror (y → −y), which gives the wraparound of
-            # gen_tr38901_multicell_topology (the tests check it UE by UE).
-            shifts = mirrors[0] - mirrors[0, 0]
-            shifts = np.stack([shifts[:, 0], -shifts[:, 1]], axis=-1)  # [7, 2]
-        self.images = site_positions(layout)[:, None, :] + shifts[None]  # [site, 7, 2], in the cells' order
+            a1 = sites[1] - sites[0]
+            turn = np.radians(60.0 * np.arange(6))
+            rot = np.stack([np.stack([np.cos(turn), -np.sin(turn)], -1),
+                            np.stack([np.sin(turn), np.cos(turn)], -1)], -2)  # [6, 2, 2]
+            a2 = rot[1] @ a1
+            shift = (layout.rings + 1) * a1 + layout.rings * a2
+            shifts = np.concatenate([np.zeros((1, 2)), rot @ shift], axis=0)  # [7, 2]
+        self.shifts = shifts
+        self.images = sites[:, None, :] + shifts[None]  # [site, 7, 2], in the cells' order
 
     def site_xy(self, ues: np.ndarray) -> np.ndarray:
         """[n_ue, n_site, 2]: the image of every site nearest to every UE (2D)."""
