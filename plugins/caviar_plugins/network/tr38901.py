@@ -14,6 +14,10 @@ its position at every step. A UE that has not moved keeps its gains as they were
 
 Indoor UEs (the drop's) get the O2I loss of a low-loss or a high-loss building (Table
 7.4.3-2), ``o2i_high_loss_share`` of them the high-loss one.
+
+``spec_version`` chooses the release of TR 38.901 whose tables Sionna uses
+(:data:`SPEC_VERSIONS`). For this channel (pathloss, LOS probability, shadow fading, O2I;
+no fast fading) the two differ only in the high-loss building's IRR glass.
 """
 
 from __future__ import annotations
@@ -35,6 +39,15 @@ VALID_CARRIER_HZ = {"uma": (0.5e9, 100e9), "umi": (0.5e9, 100e9), "rma": (0.5e9,
 UE_HEIGHT_M = {"uma": (1.5, 22.5), "umi": (1.5, 22.5), "rma": (1.0, 10.0)}
 # Decorrelation distance of the shadow fading in NLOS (Table 7.5-6).
 REDRAW_M = {"uma": 50.0, "umi": 13.0, "rma": 120.0}
+SPEC_VERSIONS = {
+    "16.1": "TR 38.901 V16.1.0 (2019-12): the O2I high-loss IRR glass of 23 + 0.3·f dB (f in GHz), as in "
+            "TR 38.900 V14.0.0 (2016-06), with which the 3GPP phase-1 calibration (R1-165974) was made",
+    "19.2": "TR 38.901 V19.2.0 (Release 19): IRR glass of 25.4 + 0.11·f dB (the glass loses 1.3 dB more at "
+            "6 GHz, 3.3 dB less at 30 GHz, 10.9 dB less at 70 GHz), and Release 19's delay and angle spreads "
+            "(unused here)",
+}
+"""The releases of TR 38.901 Sionna's scenarios implement (their ``spec_version``), and what
+each means for this channel."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,8 +61,14 @@ class StochasticSettings:
     """How far a UE moves before its LOS state and shadow fading are drawn again; the
     scenario's NLOS shadow-fading decorrelation distance by default (UMa 50 m, UMi 13 m,
     RMa 120 m)."""
+    spec_version: str = "19.2"
+    """The release of TR 38.901's tables (:data:`SPEC_VERSIONS`): ``19.2`` (Sionna's default,
+    the latest) or ``16.1`` (the O2I model of the 2016 calibration)."""
 
     def __post_init__(self):
+        if self.spec_version not in SPEC_VERSIONS:
+            raise ValueError(f"spec_version: expected one of {list(SPEC_VERSIONS)} (the releases of TR 38.901 "
+                             f"Sionna implements), got {self.spec_version!r}")
         if not 0.0 <= self.o2i_high_loss_share <= 1.0:
             raise ValueError(f"o2i_high_loss_share: expected a share in [0, 1], got {self.o2i_high_loss_share!r}")
         if self.redraw_m is not None and not self.redraw_m > 0:
@@ -106,7 +125,8 @@ class StochasticChannel:
                            polarization_type="V", antenna_pattern="omni", carrier_frequency=carrier,
                            precision="double", device=self.device)
         kw = dict(carrier_frequency=carrier, ut_array=array, bs_array=array, direction="downlink",
-                  enable_shadow_fading=settings.shadow_fading, precision="double", device=self.device)
+                  enable_shadow_fading=settings.shadow_fading, precision="double", device=self.device,
+                  spec_version=settings.spec_version)
         self.models = {loss: model(o2i_model=loss, **kw) for loss in ("low", "high")}
         self.lsp = {loss: LSPGenerator(m) for loss, m in self.models.items()}
         self.seed = seed

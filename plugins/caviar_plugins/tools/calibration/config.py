@@ -22,22 +22,29 @@ BANDWIDTH = {6e9: (20e6, 30e3), 30e9: (100e6, 120e3), 70e9: (100e6, 120e3)}
 NOISE_FIGURE_DB = 9.0
 ELECTRICAL_TILT_DEG = 12.0  # a zenith of 102° (UMa and UMi)
 UES_PER_SECTOR = 10
+SPEC_VERSION = "16.1"
+"""The release of TR 38.901 the calibration runs by default: the companies' curves (2016) were made
+with TR 38.900 V14.0.0, whose O2I high-loss model Sionna's ``16.1`` tables keep (see
+:data:`~caviar_plugins.network.tr38901.SPEC_VERSIONS`)."""
 METRICS = ("coupling_loss_db", "geometry_sinr_db", "wideband_sir_db")
 # The companies' file names these metrics so (coupling loss as a gain there).
 REFERENCE_NAMES = {"coupling_loss_db": "coupling_loss", "geometry_sinr_db": "geometry_sinr",
                    "wideband_sir_db": "wideband_sir"}
 PERCENTILES = list(range(101))
-COMPANIES = DATA / "3gpp-phase1-uma-6ghz.json"
-"""The 20 companies' phase-1 CDFs of UMa at 6 GHz (R1-165974; ``Phase1Calibration_v42_CMCC.xlsx``
-as NVIDIA Aerial encodes it), shipped with the package: the band the calibration is drawn over."""
+COMPANIES = DATA / "3gpp-phase1.json"
+"""The 20 companies' phase-1 CDFs of the six cases, UMa and UMi at 6, 30 and 70 GHz
+(R1-165974; ``Phase1Calibration_v42_CMCC.xlsx`` as NVIDIA Aerial encodes it: the file's
+``provenance`` says where from), shipped with the package: the band the calibration is drawn
+over."""
 
 
 class CalibrationError(ValueError):
     """A scenario or carrier Table 7.8-1 does not define."""
 
 
-def settings(scenario: str, carrier_hz: float) -> dict[str, Any]:
-    """Table 7.8-1's settings of ``scenario`` (``UMa``, ``UMi``) at ``carrier_hz``."""
+def settings(scenario: str, carrier_hz: float, spec_version: str = SPEC_VERSION) -> dict[str, Any]:
+    """Table 7.8-1's settings of ``scenario`` (``UMa``, ``UMi``) at ``carrier_hz``, with the
+    38.901 channel's tables of release ``spec_version``."""
     key = scenario.lower()
     if key == "rma":
         raise CalibrationError("--scenario: TR 38.901 Table 7.8-1 defines the large-scale calibration for "
@@ -53,7 +60,7 @@ def settings(scenario: str, carrier_hz: float) -> dict[str, Any]:
             "layout": {"kind": "hex", "rings": 2, "sectors": 3, "wraparound": True, "indoor_share": 0.8,
                        "ues_per_sector": UES_PER_SECTOR, "redrop": "every-step", **LAYOUTS[key]},
             "column": {"elements": 10, "spacing_wavelengths": 0.5, "electrical_tilt_deg": ELECTRICAL_TILT_DEG},
-            "o2i_high_loss_share": 0.5, "ue_antenna": "omni, 0 dBi", "fast_fading": False,
+            "o2i_high_loss_share": 0.5, "spec_version": spec_version, "ue_antenna": "omni, 0 dBi", "fast_fading": False,
             "handover_margin_db": 0.0}
 
 
@@ -91,7 +98,7 @@ link_model = "shannon"
 report_cells = 1
 layout = {{ {layout} }}
 column = {{ {column} }}
-tr38901 = {{ o2i_high_loss_share = {s['o2i_high_loss_share']} }}
+tr38901 = {{ o2i_high_loss_share = {s['o2i_high_loss_share']}, spec_version = "{s['spec_version']}" }}
 handover = {{ offset_db = 0.0, hysteresis_db = 0.0, l3_filter_k = 0.0, min_rsrp_dbm = -1000.0 }}
 """
 

@@ -18,6 +18,7 @@ from caviar_plugins.tools.calibration.config import (
     REFERENCE_NAMES,
     SIDE_BY_SIDE_CHANNELS,
     SIDE_BY_SIDE_LAYOUT,
+    SPEC_VERSION,
     CalibrationError,
     cell_radius,
     config_toml,
@@ -40,23 +41,38 @@ def metrics_of(log) -> dict[str, np.ndarray]:
 def reference(path: pathlib.Path | None, scenario: str,
               carrier_hz: float) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
     """The companies' CDFs of the scenario per metric: (percentiles [n], values [company, n]),
-    coupling loss as a positive loss; None where the file has none."""
-    if path is None or not path.exists():
+    coupling loss as a positive loss; None where the file has none for this case. A file
+    that is not the companies' CDFs is a :class:`CalibrationError` naming ``--reference``."""
+    if path is None:
         return None
-    data = json.loads(path.read_text())
-    entry = data.get("scenarios", {}).get(f"{scenario}-{carrier_hz / 1e9:g}GHz")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise CalibrationError(f"--reference: {path} cannot be read as JSON ({e})") from None
+    entry = data.get("scenarios", {}).get(case_name(scenario, carrier_hz)) if isinstance(data, dict) else None
     if entry is None:
         return None
     out = {}
-    for metric, name in REFERENCE_NAMES.items():
-        table = entry["metrics"][name]
-        pct = np.array(table["cdf_percentiles"], dtype=float)
-        curves = np.array([c for c in table["data"].values()
-                           if len(c) == len(pct) and all(v is not None for v in c)], dtype=float)
-        if metric == "coupling_loss_db":  # a gain's percentile p is the loss's 100 − p
-            curves, pct = -curves[:, ::-1], 100.0 - pct[::-1]
-        out[metric] = (pct, curves)
+    try:
+        for metric, name in REFERENCE_NAMES.items():
+            table = entry["metrics"][name]
+            pct = np.array(table["cdf_percentiles"], dtype=float)
+            curves = np.array([c for c in table["data"].values()
+                               if len(c) == len(pct) and all(v is not None for v in c)], dtype=float)
+            if metric == "coupling_loss_db":  # a gain's percentile p is the loss's 100 − p
+                curves, pct = -curves[:, ::-1], 100.0 - pct[::-1]
+            if curves.ndim != 2 or not len(curves) or not all(np.any(pct == p) for p in (5, 50, 95)):
+                raise ValueError(f"no complete curve at the percentiles 5, 50, 95 for {name}")
+            out[metric] = (pct, curves)
+    except (KeyError, TypeError, ValueError) as e:
+        raise CalibrationError(f"--reference: {path}: {case_name(scenario, carrier_hz)} is not the companies' CDFs "
+                               f"({type(e).__name__}: {e})") from None
     return out
+
+
+def case_name(scenario: str, carrier_hz: float) -> str:
+    """The case as the companies' file names it (``UMa-6GHz``)."""
+    return f"{scenario}-{carrier_hz / 1e9:g}GHz"
 
 
 def compare(ours: dict[str, list[float]], ref: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
@@ -76,14 +92,18 @@ def compare(ours: dict[str, list[float]], ref: dict[str, tuple[np.ndarray, np.nd
 
 
 def calibrate(scenario: str, carrier_hz: float, drops: int, out: pathlib.Path, seed: int = 1,
-              reference_file: pathlib.Path | None = None, progress: bool = True) -> dict[str, Any]:
-    """Runs the calibration and writes ``out/<scenario>-<GHz>GHz.{json,png}``; returns
-    what the JSON holds."""
+              reference_file: pathlib.Path | None = None, progress: bool = True,
+              spec_version: str = SPEC_VERSION) -> dict[str, Any]:
+    """Runs the calibration (the 38.901 channel's tables of release ``spec_version``) and
+    writes ``out/<scenario>-<GHz>GHz.{json,png}``; returns what the JSON holds. Its
+    ``reference`` compares with the companies' curves of ``reference_file``, or says why
+    there are none (``missing``)."""
     import caviar
 
-    s = settings(scenario, carrier_hz)
+    s = settings(scenario, carrier_hz, spec_version)
     if drops < 1:
         raise CalibrationError(f"--drops: expected at least one drop, got {drops}")
+    ref = reference(reference_file, s["scenario"], carrier_hz)  # (read before the work: a bad file stops it)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="caviar-calibration-") as tmp:
@@ -98,11 +118,17 @@ def calibrate(scenario: str, carrier_hz: float, drops: int, out: pathlib.Path, s
         result[metric] = [round(float(x), 3) for x in np.percentile(v, PERCENTILES)]
     result.update(drops=drops, samples=int(values["coupling_loss_db"].size), seed=seed, settings=s,
                   wall_s=round(wall, 1))
-    ref = reference(reference_file, s["scenario"], carrier_hz)
+    case = case_name(s["scenario"], carrier_hz)
     if ref is not None:
         result["reference"] = {"file": reference_file.name if reference_file else None,
                                "companies": int(len(ref["coupling_loss_db"][1])), **compare(result, ref)}
-    stem = f"{s['scenario']}-{carrier_hz / 1e9:g}GHz"
+    elif reference_file is None:
+        result["reference"] = {"file": None, "missing": f"no companies' curves given (--reference) for {case}"}
+    else:
+        result["reference"] = {"file": reference_file.name,
+                               "missing": f"{reference_file.name} has no companies' curves for {case}: nothing to "
+                                          "compare with, the figure has no band"}
+    stem = case
     (out / f"{stem}.json").write_text(json.dumps(result, indent=1) + "\n")
     draw(result, ref, out / f"{stem}.png")
     return result

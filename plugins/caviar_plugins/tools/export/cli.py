@@ -10,7 +10,8 @@ a recorded run in another tool's format.
 in Raymobtime's files (:mod:`caviar_plugins.tools.export.raymobtime`).
 
 Exit status: 0 written; 2 bad input (no run directory, a run without path data, an OUT
-that exists, deepmimo missing, bad option), one line on stderr naming what is wrong;
+that exists, deepmimo missing, bad option), one line on stderr naming what is wrong (every
+argument and flag is checked before any work starts, the message begins with its name);
 1 an unexpected error (one line; ``--debug`` shows the traceback).
 """
 
@@ -20,6 +21,8 @@ import argparse
 import pathlib
 import sys
 from typing import Callable
+
+from caviar_plugins.tools import flags
 
 PROG = "caviar-core export"
 
@@ -78,17 +81,36 @@ def _exported(args, bad_input: type[Exception], work: Callable[[], object]) -> i
     return 0
 
 
-def _raymobtime(args) -> None:
-    from caviar_plugins.tools.export.raymobtime import ExportError, export_raymobtime
+MAX_GRID_CELLS = 10**8
+"""The most LiDAR grid cells (X·Y·Z) an export makes per record (--grid)."""
 
-    try:
-        grid = tuple(int(v) for v in args.grid.split(","))
-        tx = [float(v) for v in args.tx.split(",")] if args.tx else None
-    except ValueError:
-        raise ExportError(f"--grid/--tx: expected comma-separated numbers, got {args.grid!r} / {args.tx!r}") \
-            from None
-    if tx is not None and len(tx) != 3:
-        raise ExportError(f"--tx: expected X,Y,Z, got {args.tx!r}")
+
+def checked(args) -> None:
+    """Every argument and flag, before any work starts (:class:`~caviar_plugins.tools.flags.FlagError`
+    naming it)."""
+    flags.existing_dir(args.run_dir, "RUN_DIR", "the folder of a run of `caviar-core run`")
+    if not (args.run_dir / "run.json").is_file():
+        raise flags.FlagError("RUN_DIR", f"{args.run_dir} is not a run directory (no run.json); give the folder of "
+                                         "a run of `caviar-core run`")
+    flags.new_output(args.out, "OUT")
+    if args.format == "deepmimo":
+        if args.module is not None and not args.module.strip():
+            raise flags.FlagError("--module", "expected a module name, got an empty one")
+        return
+    grid = flags.numbers(args.grid, "--grid", 3, "X,Y,Z cells")
+    if not all(g == int(g) and g >= 1 for g in grid) or grid[0] * grid[1] * grid[2] > MAX_GRID_CELLS:
+        raise flags.FlagError("--grid", f"expected X,Y,Z: whole numbers of cells, at least 1 and at most "
+                                        f"{MAX_GRID_CELLS:.0e} in all, got {args.grid!r}")
+    flags.number(args.cell, "--cell", positive=True)
+    if args.tx is not None:
+        flags.numbers(args.tx, "--tx", 3, "X,Y,Z in metres")
+
+
+def _raymobtime(args) -> None:
+    from caviar_plugins.tools.export.raymobtime import export_raymobtime
+
+    grid = tuple(int(v) for v in flags.numbers(args.grid, "--grid", 3, "X,Y,Z cells"))
+    tx = list(flags.numbers(args.tx, "--tx", 3, "X,Y,Z in metres")) if args.tx else None
     meta = export_raymobtime(args.run_dir, args.out, grid=grid, cell_m=args.cell, tx=tx)  # type: ignore[arg-type]
     print(f"{args.out}: {meta['records']} records ({meta['lidar']['records']} with LiDAR, {meta['images']} with an "
           f"image)")
@@ -103,6 +125,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except SystemExit as e:  # --help
         return int(e.code or 0)
+    try:
+        checked(args)
+    except flags.FlagError as e:
+        print(f"{PROG} {args.format}: error: {e}", file=sys.stderr)
+        return 2
     if args.format == "raymobtime":
         from caviar_plugins.tools.export.raymobtime import ExportError as RaymobtimeError
 

@@ -5,8 +5,9 @@ and ``python -m caviar_plugins.tools.scene ...``.
                 [--decimate R] [--default-height M] [--roads] [--sumo]
 
 Exit status: 0 built; 2 bad input (missing or unreadable file, empty bbox, no buildings,
-bad option), one line on stderr naming the file and the reason; 1 an unexpected error
-(one line; ``--debug`` shows the traceback).
+bad option), one line on stderr naming the file and the reason (every flag is checked before
+any work starts, the message names it); 1 an unexpected error (one line; ``--debug`` shows
+the traceback).
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
+
+from caviar_plugins.tools import flags
 
 PROG = "caviar-core scene"
 
@@ -65,8 +68,30 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:  # --help
         return int(e.code or 0)
     if args.command == "build":
+        try:
+            checked(args)
+        except flags.FlagError as e:
+            print(f"{PROG} build: error: {e}", file=sys.stderr)
+            return 2
         return _build(args)
     return 2
+
+
+def checked(args) -> None:
+    """``scene build``'s input and flags, before any work starts (:class:`~caviar_plugins.tools.flags.FlagError`
+    naming the flag; the bounding box's own checks follow in :func:`_build`)."""
+    flags.existing_file(args.input, "INPUT", "an OpenStreetMap extract, .osm or .osm.pbf")
+    flags.output_dir(args.out, "--out")
+    if args.center is not None:
+        lat, lon = flags.numbers(args.center, "--center", 2, "LAT,LON in degrees")
+        if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+            raise flags.FlagError("--center", f"expected LAT in [-90, 90] and LON in [-180, 180] degrees, got "
+                                              f"{args.center!r}")
+    if args.radius is not None:
+        flags.number(args.radius, "--radius", positive=True)
+    if not (args.decimate > 0 and args.decimate <= 1):
+        raise flags.FlagError("--decimate", f"expected a fraction of faces to keep in (0, 1], got {args.decimate}")
+    flags.number(args.default_height, "--default-height", positive=True)
 
 
 def _build(args) -> int:
