@@ -24,6 +24,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 import caviar
+from caviar_plugins import limits
 from caviar_plugins.lidar.sensor import COLUMNS, Caster, LidarSettings
 from caviar_plugins.rt.scatterers import Body, ScattererPool
 from caviar_plugins.rt.scene import build_scene, itu_material
@@ -64,6 +65,9 @@ class Lidar(caviar.Plugin):
         view_points: int = 0
         """Draw each step's last sweep in the browser view (``view.lidar``), thinned to this
         many points, coloured by what they hit (0: not drawn)."""
+        allow_large: bool = False
+        """Lift the bounds on the rays of a sweep, the spin rate and the rays per second
+        (:mod:`caviar_plugins.limits`), for a machine that can cast more."""
 
         moved: ClassVar[dict[str, str]] = moved_keys("threads")
 
@@ -83,6 +87,15 @@ class Lidar(caviar.Plugin):
                 raise ValueError(f"ue_ids: expected one or more distinct UE ids, got {self.ue_ids!r}")
             if len(self.uav_body_m) != 3 or not all(v > 0 for v in self.uav_body_m):
                 raise ValueError(f"uav_body_m: expected [length, width, height] > 0 in metres, got {self.uav_body_m!r}")
+            s, allow = self.sensor, self.allow_large
+            rays = s.channels * s.columns
+            limits.bounded("sensor.channels" if s.channels > 1024 else "sensor.horizontal_resolution_deg", rays,
+                           limits.LIDAR_RAYS_PER_SWEEP, f"a sweep of {s.channels} channels × {s.columns:,} columns",
+                           allow, "rays")
+            limits.bounded("sensor.rate_hz", s.rate_hz, limits.LIDAR_RATE_HZ, "the spin rate", allow, "Hz")
+            limits.bounded("sensor.rate_hz", rays * s.rate_hz * len(self.ue_ids), limits.LIDAR_RAYS_PER_S,
+                           f"{len(self.ue_ids)} LiDAR(s) of {rays:,} rays a sweep at {s.rate_hz:g} Hz", allow,
+                           "rays a second")
 
     def setup(self, ctx):
         self.ctx = ctx

@@ -8,6 +8,9 @@ import dataclasses
 import pathlib
 from typing import Any, ClassVar, Sequence
 
+import numpy as np
+
+from caviar_plugins import limits
 from caviar_plugins.network.beams import BeamSettings
 from caviar_plugins.network.cells import Cell, Column
 from caviar_plugins.network.channel import Channel
@@ -120,6 +123,11 @@ class NetworkParams:
     :class:`~caviar_plugins.network.radio_map.RadioMapSettings`); written to
     ``radio-map.npz`` and ``radio-map.png`` and announced on ``network.radio_map``."""
 
+    allow_large: bool = False
+    """Lift the bounds on the UEs a layout drops, the FTP arrival rate, the panel's elements,
+    the rays traced and the radio map's cells (:mod:`caviar_plugins.limits`), for a machine
+    that can do more."""
+
     moved: ClassVar[dict[str, str]] = {"raytracing.scene": "scene", "raytracing.refresh_s": "evolution.refresh_s",
                                        "raytracing.evolve": "evolution.mode",
                                        "raytracing.paths_per_link": "evolution.paths_per_link"}
@@ -132,6 +140,9 @@ class NetworkParams:
         if self.beams is not None and self.channel not in ("free-space", "ray-traced"):
             raise ValueError(f"beams: need the channel's path directions, which the free-space and "
                              f"ray-traced channels have; got channel = {self.channel!r}")
+        for key in ("carrier_hz", "bandwidth_hz", "subcarrier_spacing_hz"):  # (every cell's, unless a site's)
+            if not getattr(self, key) > 0:
+                raise ValueError(f"{key}: expected a positive number of Hz, got {getattr(self, key)!r}")
         if self.interference not in INTERFERENCE:
             raise ValueError(f"interference: expected one of {list(INTERFERENCE)}, got {self.interference!r}")
         if self.num_prb is None:
@@ -142,7 +153,38 @@ class NetworkParams:
         if self.num_prb * 12 * self.subcarrier_spacing_hz > self.bandwidth_hz:
             raise ValueError(f"num_prb: {self.num_prb} PRBs of {12 * self.subcarrier_spacing_hz:g} Hz do not "
                              f"fit in bandwidth_hz = {self.bandwidth_hz:g}")
-        plan(self)  # (the cells, codebooks and link level it makes are checked now, before anything runs)
+        made = plan(self)  # (the cells, codebooks and link level it makes are checked now, before anything runs)
+        check_bounds(self, made.cells)
+
+
+def check_bounds(p: NetworkParams, cells: Sequence[Cell]) -> None:
+    """The work and memory the settings ask for, against :mod:`caviar_plugins.limits`
+    (``allow_large`` lifts them)."""
+    allow = p.allow_large
+    if p.layout is not None and p.layout.ues_per_sector:
+        limits.bounded("layout.ues_per_sector", p.layout.ues_per_sector * len(cells), limits.DROPPED_UES,
+                       f"{p.layout.ues_per_sector:,} UEs in each of {len(cells)} sectors", allow, "UEs")
+    if p.traffic is not None:
+        limits.bounded("traffic.ftp.arrival_rate_hz", p.traffic.ftp.arrival_rate_hz, limits.FTP_ARRIVAL_RATE_HZ,
+                       "the FTP arrival rate per UE", allow, "files a second")
+    tables_of = {s.get("name"): (i, s) for i, s in enumerate(p.sites)}  # (hand-placed sites)
+    for c in cells:
+        i, site = tables_of.get(c.site, (0, {}))
+        limits.bounded(f"sites.{i}.array" if "array" in site else "array", c.array[0] * c.array[1],
+                       limits.ARRAY_ELEMENTS, f"cell {c.name}'s panel of {c.array[0]} × {c.array[1]}", allow,
+                       "elements")
+    if p.radio_map is not None and cells:
+        m = p.radio_map
+        xy = np.array([c.position[:2] for c in cells])
+        nx, ny = np.ceil((xy.max(axis=0) - xy.min(axis=0) + 2 * m.margin_m) / m.cell_size_m)
+        limits.bounded("radio_map.cell_size_m", float(nx * ny), limits.MAP_CELLS,
+                       f"a map of {nx:,.0f} × {ny:,.0f} cells of {m.cell_size_m:g} m", allow, "cells")
+    tables = [("raytracing", p.raytracing)] if p.channel == "ray-traced" else []
+    if p.radio_map is not None:
+        tables.append(("radio_map.raytracing", p.radio_map.raytracing))
+    for key, rays in tables:
+        limits.bounded(f"{key}.samples_per_src", rays.samples_per_src, limits.SAMPLES_PER_SOURCE,
+                       "the rays traced from each source", allow, "rays")
 
 
 @dataclasses.dataclass(frozen=True)
