@@ -62,11 +62,27 @@ def resolve(setting: Any = "auto") -> Any:
 
 
 def check_setting(setting: str) -> str:
-    """``setting`` if it names a device (without importing torch), else a ValueError."""
+    """``setting`` if it names a device this machine has, else a ValueError naming ``device``:
+    ``auto`` and ``cpu`` always, ``cuda`` and ``cuda:N`` where torch sees that CUDA GPU
+    (torch is imported only for those)."""
     kind = setting.split(":", 1)[0]
     if kind not in ("auto", "cpu", "cuda") or (":" in setting and not setting.split(":", 1)[1].isdigit()):
         raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {setting!r}")
+    if kind == "cuda":
+        index = int(setting.split(":", 1)[1]) if ":" in setting else 0
+        count = cuda_devices()
+        if index >= count:
+            has = "no CUDA GPU that torch can use" if count == 0 else f"{count} CUDA GPU(s), cuda:0 to cuda:{count - 1}"
+            raise ValueError(f"device: {setting!r} names CUDA GPU {index}, and this machine has {has}; "
+                             f"set device = 'auto' (a GPU where there is one) or 'cpu'")
     return setting
+
+
+def cuda_devices() -> int:
+    """The CUDA GPUs torch can use here (0 without a driver or a CUDA build of torch)."""
+    import torch
+
+    return torch.cuda.device_count() if torch.cuda.is_available() else 0
 
 
 @contextlib.contextmanager
