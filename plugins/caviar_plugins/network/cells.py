@@ -109,13 +109,16 @@ def _fail(key: str, message: str) -> ValueError:
 
 def _number(table: Mapping[str, Any], key: str, where: str, default: float | None = None,
             positive: bool = False) -> float:
+    """``table[key]``, else the network-wide ``default``; an error names the key the value came
+    from (``sites.2.bandwidth_hz``, or the network's ``bandwidth_hz``)."""
     value = table.get(key, default)
+    at = f"{where}.{key}" if key in table else key
     if value is None:
         raise _fail(f"{where}.{key}", "this required key is missing")
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise _fail(f"{where}.{key}", f"expected a number, got {value!r}")
+        raise _fail(at, f"expected a number, got {value!r}")
     if positive and not value > 0:
-        raise _fail(f"{where}.{key}", f"expected a positive number, got {value!r}")
+        raise _fail(at, f"expected a positive number, got {value!r}")
     return float(value)
 
 
@@ -158,8 +161,8 @@ def parse_sites(sites: Sequence[Mapping[str, Any]], defaults: Mapping[str, Any])
         array = site.get("array", defaults.get("array"))
         if not (isinstance(array, list) and len(array) == 2
                 and all(isinstance(n, int) and not isinstance(n, bool) and n >= 1 for n in array)):
-            raise _fail(f"{where}.array", f"every sector needs an antenna array [rows, cols] of elements >= 1, "
-                                          f"got {array!r}")
+            raise _fail(f"{where}.array" if "array" in site else "array",
+                        f"every sector needs an antenna array [rows, cols] of elements >= 1, got {array!r}")
         power = _number(site, "tx_power_dbm", where, defaults.get("tx_power_dbm"))
         carrier = _number(site, "carrier_hz", where, defaults.get("carrier_hz"), positive=True)
         bandwidth = _number(site, "bandwidth_hz", where, defaults.get("bandwidth_hz"), positive=True)
