@@ -154,6 +154,14 @@ DATASET_RECORD = "dataset.record"
 """A record written by a dataset module (artifact)."""
 
 
+UE_TYPES = ("UAV", "car", "vehicle", "pedestrian", "bus", "truck", "motorcycle", "bicycle", "tram", "train",
+            "emergency", "dropped")
+"""The ``UE_type`` of the positions the shipped modules publish: ``UAV`` (waypoint-flight,
+mavlink-telemetry's default), SUMO's by vehicle class (``car``, ``bus``..., ``pedestrian``:
+:data:`caviar_plugins.traffic.sumo.UE_TYPES`) and ``dropped`` (a UE a radio network's layout
+dropped). A setting that names another type warns (a module of the user's may publish it)."""
+
+
 def _view_contract():
     """What the browser view draws of these topics (registered in group ``caviar.view``)."""
     from caviar.view.contract import ViewContract
@@ -209,3 +217,20 @@ def read_position(payload: Mapping[str, Any]) -> np.ndarray:
 def throughput_payload(ue_type: str, ue_id: str, mbps: float | np.floating | np.ndarray) -> dict[str, Any]:
     """The paper's throughput payload (Mbit/s)."""
     return {"UE_type": ue_type, "UE_Id": ue_id, "throughput": float(mbps)}
+
+
+PAYLOAD_FIELDS: dict[str, tuple[str, ...] | None] = {
+    UPLOAD: ("UE_Id", "bytes", "rescue"), THROUGHPUT: ("UE_type", "UE_Id", "throughput"),
+    per_ue(CAMERA, "uav1"): None, per_ue(LIDAR, "uav1"): None, per_ue(IMAGES, "uav1"): None,
+    per_ue(CHANNEL, "uav1"): None, per_ue(BEAM_GAINS, "uav1"): None, per_ue(PATHS, "uav1"): None,
+}
+"""The fields of the JSON payloads of a few topics above, and (None) topics whose payloads are
+binary (an array, a byte string: no fields), a per-UE topic by one UE's: what a setting that
+names a payload field (``traffic.carry``'s ``size_field``) is checked against before a run."""
+
+
+def fields_of(pattern: str) -> dict[str, tuple[str, ...] | None]:
+    """The topics of :data:`PAYLOAD_FIELDS` that ``pattern`` matches, with their fields."""
+    from caviar.topics import matches
+
+    return {topic: fields for topic, fields in PAYLOAD_FIELDS.items() if matches(pattern, topic)}

@@ -6,7 +6,7 @@ recorded runs (:func:`load_run`).
 """
 
 from caviar._core import __version__
-from caviar.errors import ConfigError, RunError
+from caviar.errors import ConfigError, ConfigWarning, RunError
 from caviar.plugin import Artifact, Context, Inbox, Message, Plugin, apply_preset, given_keys
 from caviar.runlog import RunLog, RunStatus, load_run
 from caviar.simulation import Simulation
@@ -19,7 +19,7 @@ STATUS_TOPIC = "caviar.status"
 served): ``caviar-core run`` shows each module's latest beside its progress."""
 
 __all__ = [
-    "Artifact", "ConfigError", "Context", "END_TOPIC", "Inbox", "Message", "Plugin", "RunError",
+    "Artifact", "ConfigError", "ConfigWarning", "Context", "END_TOPIC", "Inbox", "Message", "Plugin", "RunError",
     "RunLog", "RunStatus", "STATUS_TOPIC", "Simulation", "__version__", "apply_preset", "given_keys", "inspect",
     "load_run", "matches",
 ]

@@ -11,14 +11,16 @@ import importlib
 import json
 import os
 import pathlib
+import sys
 import traceback
 import types
 import typing
+import warnings
 from importlib import metadata
 from typing import Any
 
 from caviar._core import RawMessage
-from caviar.errors import ConfigError
+from caviar.errors import ConfigError, ConfigWarning
 from caviar.plugin import Context, Inbox, Message, PayloadKind, Plugin, building, encode, field_default
 from caviar.topics import matches
 
@@ -229,10 +231,25 @@ def _build(schema: Any, params: dict[str, Any], path: str, owner: str, base: Any
     if missing:
         raise ConfigError(f"missing required parameter(s) of {owner}: {', '.join(missing)}", path)
     try:
-        with building(_key_paths(params)):  # (what the configuration wrote: caviar.given_keys())
-            return schema(**values)
+        with building(_key_paths(params)), warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            built = schema(**values)  # (what the configuration wrote: caviar.given_keys())
     except (TypeError, ValueError) as e:  # __post_init__ checks of the plugin
         raise _keyed(e, fields, path) from None
+    _warn_again(caught, path)
+    return built
+
+
+def _warn_again(caught: list[warnings.WarningMessage], path: str) -> None:
+    """Issues again the warnings caught while a table at ``path`` was built: a
+    :class:`~caviar.errors.ConfigWarning`'s key made the full path (``params.traffic.by_type.Tank``)."""
+    for w in caught:
+        m = w.message
+        if isinstance(m, ConfigWarning):
+            key = path if m.key is None else m.key if m.key.startswith("params") else f"{path}.{m.key}"
+            warnings.warn(ConfigWarning(m.message, key), stacklevel=2)
+        else:
+            warnings.warn_explicit(m, w.category, w.filename, w.lineno)
 
 
 class Hosted:
@@ -340,14 +357,22 @@ def load_plugin(name: str, spec: str, params_json: str, config_dir: str
     its default subscriptions are optional inputs, and the inputs its parameters name
     (pattern, key)."""
     cls = resolve_plugin(spec)
-    params = check_params(cls, json.loads(params_json))
-    plugin_cls = cls
-    try:
-        plugin_cls.check_params(params, pathlib.Path(config_dir))
-    except (TypeError, ValueError) as e:  # ConfigError is a ValueError
-        schema = plugin_cls.Params
-        fields = [f.name for f in dataclasses.fields(schema)] if dataclasses.is_dataclass(schema) else params
-        raise _keyed(e, fields) from None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        params = check_params(cls, json.loads(params_json))
+        plugin_cls = cls
+        try:
+            plugin_cls.check_params(params, pathlib.Path(config_dir))
+        except (TypeError, ValueError) as e:  # ConfigError is a ValueError
+            schema = plugin_cls.Params
+            fields = [f.name for f in dataclasses.fields(schema)] if dataclasses.is_dataclass(schema) else params
+            raise _keyed(e, fields) from None
+    for w in caught:  # (a ConfigWarning as the core prints its own warnings, naming the key)
+        m = w.message
+        if isinstance(m, ConfigWarning):
+            print(f"warning: modules.{name}.{m.key or 'params'}: {m.message}", file=sys.stderr, flush=True)
+        else:
+            warnings.warn_explicit(m, w.category, w.filename, w.lineno)
     publishes = declared_publishes(cls)
     required = [(pattern, key) for pattern, key in cls.inputs(params).items()]
     subscribe = list(dict.fromkeys([*cls.subscribe, *(p for p, _ in required)]))

@@ -17,6 +17,18 @@ class ConfigError(ValueError):
         self.key = key
 
 
+class ConfigWarning(UserWarning):
+    """A configuration that runs but may not do what was meant (a UE type no module
+    publishes). Plugins issue it from parameter checks with ``warnings.warn``, ``key``
+    relative to the table being checked; ``caviar-core validate`` and ``run`` print it as
+    ``warning: modules.NAME.params.KEY: …``."""
+
+    def __init__(self, message: str, key: str | None = None):
+        super().__init__(message)
+        self.message = message
+        self.key = key
+
+
 class RunError(RuntimeError):
     """A run stopped: a module failed or the run was interrupted.
 

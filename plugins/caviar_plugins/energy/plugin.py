@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import Any
 
 import numpy as np
 
 import caviar
 from caviar_plugins.energy.rotary_wing import Battery, RotaryWing
-from caviar_plugins.schema import ENERGY, POSITIONS, VIEW_ENERGY, read_position
+from caviar_plugins.schema import ENERGY, POSITIONS, UE_TYPES, VIEW_ENERGY, read_position
 
 WH = 3600.0  # J
 
@@ -70,6 +71,12 @@ class UavEnergy(caviar.Plugin):
                 raise ValueError(f"return_speed_mps: expected a speed in (0, 100) m/s, got {self.return_speed_mps!r}")
             if not self.ue_types:
                 raise ValueError("ue_types: expected at least one UE type")
+            unknown = [t for t in self.ue_types if t not in UE_TYPES]
+            if unknown:
+                warnings.warn(caviar.ConfigWarning(
+                    f"no shipped module publishes UEs of type {', '.join(map(repr, unknown))} (they publish "
+                    f"{', '.join(UE_TYPES)}); unless a module of yours does, no UE of that type carries a battery",
+                    "ue_types"), stacklevel=2)
 
     def setup(self, ctx):
         self.ctx = ctx

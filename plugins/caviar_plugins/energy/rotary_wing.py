@@ -28,6 +28,8 @@ import math
 import numpy as np
 
 GRAVITY = 9.80665  # m/s²
+AIR_DENSITY = (0.1, 2.0)
+"""kg/m³ an airframe may fly in: from about 15 km up to cold air below sea level."""
 
 
 def _positive(name: str, value: float) -> None:
@@ -63,8 +65,17 @@ class RotaryWing:
             _positive(f.name, getattr(self, f.name))
         if self.rotor_solidity >= 1:
             raise ValueError(f"rotor_solidity: expected a share of the disc in (0, 1), got {self.rotor_solidity!r}")
-        if self.air_density > 2.0:
-            raise ValueError(f"air_density: expected kg/m³ of air (1.225 at sea level), got {self.air_density!r}")
+        if not AIR_DENSITY[0] <= self.air_density <= AIR_DENSITY[1]:
+            raise ValueError(f"air_density: expected kg/m³ of air in [{AIR_DENSITY[0]}, {AIR_DENSITY[1]}] "
+                             f"(1.225 at sea level, 0.41 at 10 km), got {self.air_density!r}")
+        try:  # (the model's powers, finite for this airframe: no overflow in set-up or a step)
+            finite = all(math.isfinite(p) for p in (self.hover_power_w, float(self.level_power_w(self.tip_speed)),
+                                                     self.induced_velocity))
+        except (OverflowError, ZeroDivisionError, ValueError):
+            finite = False
+        if not finite:
+            raise ValueError("weight_n: this airframe's hover and flight powers overflow (they are not finite "
+                             "numbers); check weight_n, rotor_radius_m, rotor_area_m2 and blade_angular_velocity")
 
     @property
     def tip_speed(self) -> float:

@@ -188,13 +188,18 @@ class RadioNetwork(caviar.Plugin):
             p = m.data["position"]
             position[self.ues.column(ue_id)] = (p["x"], p["y"], p["z"])
         if self.queues is not None:
-            for c in self.p.traffic.carry:
+            for i, c in enumerate(self.p.traffic.carry):
                 for m in inbox.on(c.topic):
                     sender = m.data["UE_Id"] if isinstance(m.data, dict) and "UE_Id" in m.data else ue_of(m.topic)
                     if sender not in self.ues:
-                        raise ValueError(f"traffic.carry: a message on {m.topic} is for UE {sender!r}, which has no "
-                                         f"position on {POSITIONS} (a UE must be placed to carry it)")
-                    self.queues.queue_message(t if m.time is None else m.time, sender, m.topic, m.data, c)
+                        raise caviar.ConfigError(f"a message on {m.topic} is for UE {sender!r}, which has no "
+                                                 f"position on {POSITIONS} (a UE must be placed to carry it)",
+                                                 f"params.traffic.carry.{i}.topic")
+                    try:
+                        self.queues.queue_message(t if m.time is None else m.time, sender, m.topic, m.data, c)
+                    except ValueError as e:  # (a payload without its size_field: the setting is wrong)
+                        raise caviar.ConfigError(f"a message on {m.topic}: {str(e).partition(': ')[2]}",
+                                                 f"params.traffic.carry.{i}.size_field") from None
 
     def _measure(self, t: float, ids: list[str], cols: np.ndarray):
         """Received power of every cell at every UE (per subband, and wideband) and RSRP;

@@ -28,11 +28,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import warnings
 from typing import Any
 
 import numpy as np
 
+from caviar.errors import ConfigWarning
 from caviar.topics import matches
+from caviar_plugins.schema import UE_TYPES, fields_of
 
 MODELS = ("full-buffer", "ftp3", "none")
 DIRECTIONS = ("downlink", "uplink")
@@ -82,6 +85,14 @@ class Carried:
                 matches(self.deliver_to + ".x", "x")
             except ValueError as e:
                 raise ValueError(f"deliver_to: expected a topic prefix, {e}") from None
+        if self.size_field is not None:
+            for topic, fields in fields_of(self.topic).items():  # (the topics whose payloads are known)
+                if fields is None:
+                    raise ValueError(f"size_field: {topic}'s payloads are binary, without fields; leave size_field "
+                                     f"out to count their bytes")
+                if self.size_field not in fields:
+                    raise ValueError(f"size_field: {topic}'s payloads have no field {self.size_field!r}; "
+                                     f"they have {', '.join(fields)}")
 
 
 @dataclasses.dataclass
@@ -111,6 +122,11 @@ class TrafficSettings:
                 if key not in DIRECTIONS or model not in MODELS:
                     raise ValueError(f"by_type.{ue_type}.{key}: expected downlink or uplink set to one of "
                                      f"{list(MODELS)}, got {key} = {model!r}")
+            if ue_type not in UE_TYPES:
+                warnings.warn(ConfigWarning(f"no shipped module publishes UEs of type {ue_type!r} (they publish "
+                                            f"{', '.join(UE_TYPES)}); unless a module of yours does, this load "
+                                            f"applies to no UE", f"by_type.{ue_type}"), stacklevel=2)
+
 
     def model(self, direction: str, ue_type: str | None = None) -> str:
         """The load of a UE of ``ue_type`` in ``direction``."""
@@ -124,11 +140,17 @@ class TrafficSettings:
 
 
 def payload_bytes(data: Any, size_field: str | None) -> int:
-    """A message's size in bytes: its ``size_field``, else the payload's own size."""
+    """A message's size in bytes: its ``size_field``, else the payload's own size (a
+    ValueError ``size_field: …`` for a payload without that field, or not a size there)."""
     if size_field is not None:
         if not isinstance(data, dict) or size_field not in data:
-            raise ValueError(f"size_field: the payload has no field {size_field!r}")
-        return int(data[size_field])
+            raise ValueError(f"size_field: the payload has no field {size_field!r}"
+                             + (f" (its fields: {', '.join(map(str, data))})" if isinstance(data, dict) else
+                                f" (it is {type(data).__name__}, not a table)"))
+        size = data[size_field]
+        if isinstance(size, bool) or not isinstance(size, (int, float)) or not 0 <= size < 2 ** 53:
+            raise ValueError(f"size_field: the payload's {size_field!r} is {size!r}, not a size in bytes")
+        return int(size)
     if isinstance(data, np.ndarray):
         return int(data.nbytes)
     if isinstance(data, (bytes, bytearray, memoryview)):
