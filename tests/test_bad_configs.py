@@ -84,16 +84,21 @@ def after(header: str, line: str, base: str = BASE) -> str:
 CASES: list[Case] = []
 
 
-def case(id: str, text: str, key: str | None, at: str | None = "") -> None:
+def make_case(id: str, text: str, key: str | None, at: str | None = "") -> Case:
     """``at=""``: the snippet is the value of the last component of ``key`` as written
-    (the first line that mentions it); None: no line expected."""
+    (the first line that mentions it); None: no line expected. (tests/test_bad_input_corpus.py
+    builds its cases with it too.)"""
     if at == "":
         at = None
         if key is not None:
             name = key.split(".")[-1]
             m = re.search(rf"^(?:{re.escape(name)}\s*=|\[[^\]]*\b{re.escape(name)}\])", text, re.M)
             at = m.group(0) if m else None
-    CASES.append(Case(id, text, key, at))
+    return Case(id, text, key, at)
+
+
+def case(id: str, text: str, key: str | None, at: str | None = "") -> None:
+    CASES.append(make_case(id, text, key, at))
 
 
 # --- syntax errors -------------------------------------------------------------------
