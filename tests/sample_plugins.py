@@ -205,7 +205,8 @@ class Checked(caviar.Plugin):
 
 class Exits(caviar.Plugin):
     """Ends the whole process (no cleanup) at step `at_step`, or hangs there for good, or
-    (`segfault`) crashes it in native code; `hang_in = "setup"` or `"teardown"` hangs
+    (`segfault`) crashes it in native code, or (`stall`) says so on stderr and stops the
+    whole process (SIGSTOP: alive, silent); `hang_in = "setup"` or `"teardown"` hangs
     there instead."""
 
     @dataclasses.dataclass
@@ -213,6 +214,7 @@ class Exits(caviar.Plugin):
         at_step: int = 5
         hang: bool = False
         segfault: bool = False
+        stall: bool = False
         hang_in: str = ""
 
     def setup(self, ctx):
@@ -236,6 +238,12 @@ class Exits(caviar.Plugin):
             if self.ctx.params.hang:
                 while True:
                     time.sleep(3600)
+            if self.ctx.params.stall:
+                import signal
+                import sys
+
+                print(f"exiter: stalling the whole process at step {self.ctx.step}", file=sys.stderr, flush=True)
+                os.kill(os.getpid(), signal.SIGSTOP)
             if self.ctx.params.segfault:
                 import ctypes
                 import faulthandler

@@ -60,6 +60,20 @@ def test_over_nats_a_dying_worker_is_reported_as_in_process(tmp_path, cli, fault
     assert s["status"] == "failed" and s["steps_done"] == 3 and s["error"]["step"] == 3, s
 
 
+def test_over_nats_a_silent_worker_is_reported_with_what_it_last_wrote(tmp_path, cli):
+    """A worker that stops beating but lives (SIGSTOP, as a native crash handler that runs
+    gdb for seconds would hold it): the error names module and step, the silence, and the
+    last lines of its log, where it said why."""
+    write_config(tmp_path, DYING.replace("params = { at_step = 5 }", "params = { at_step = 3, stall = true }")
+                 .replace("[modules.counter]", '[transport]\nkind = "nats"\n[transport.nats]\n'
+                          'heartbeat_timeout = 1.0\n[modules.counter]'))
+    p = cli("run", "exp.toml", "-q", "--out", "run")
+    assert p.returncode == 1, p.stderr
+    error = p.stderr[p.stderr.index("error: "):]
+    assert error.startswith("error: module 'exiter' failed at step 3") and "(no heartbeat)" in error, p.stderr
+    assert "last lines of " in error and "exiter: stalling the whole process at step 3" in error, p.stderr
+
+
 def test_out_of_memory_is_named_when_the_kernel_counted_an_oom_kill():
     """The kernel's OOM killer cannot be provoked safely in a test: the words for it are
     checked against the cgroup counter the parent reads before and after."""

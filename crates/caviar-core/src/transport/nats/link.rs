@@ -61,9 +61,11 @@ impl Link {
         self.procs.check_module(module)?;
         let silent = self.control.silent(expected, self.timeouts.heartbeat);
         if !silent.is_empty() && silent.len() == expected.len() {
+            let words = self.procs.last_words(module);
             return Err(format!(
-                "its worker stopped answering (no heartbeat): {}",
-                silent.join("; ")
+                "its worker stopped answering (no heartbeat): {}{}",
+                silent.join("; "),
+                words.map(|w| format!("; {w}")).unwrap_or_default()
             ));
         }
         self.conn.check_connected(self.timeouts.reconnect)

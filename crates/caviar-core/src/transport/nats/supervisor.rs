@@ -91,6 +91,19 @@ impl Supervisor {
         Ok(())
     }
 
+    /// What the worker processes of `module` that this run started last wrote (their logs'
+    /// last lines), if it started any: a worker that stopped beating may still live, and
+    /// what it last said is often why (a native crash handler at work, a deadlock's report).
+    pub fn last_words(&self, module: &str) -> Option<String> {
+        let procs = self.processes.lock().unwrap();
+        let words: Vec<String> = procs
+            .iter()
+            .filter(|p| p.module == module)
+            .map(|p| last_lines(&p.log))
+            .collect();
+        (!words.is_empty()).then(|| words.join("; "))
+    }
+
     /// Checks that every spawned worker process is still running (during startup).
     pub fn check_startup(&self) -> Result<(), String> {
         for p in self.processes.lock().unwrap().iter_mut() {
