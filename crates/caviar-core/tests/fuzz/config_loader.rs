@@ -132,7 +132,7 @@ fn the_config_loader_rejects_bad_files_and_overrides_by_name() {
                     prop_assert!(
                         loaded.config.episode.ts > 0.0 && loaded.config.episode.ts.is_finite()
                     );
-                    prop_assert!(loaded.step_timeout() > 0.0);
+                    prop_assert!(caviar_core::transport::step_timeout(&loaded) > 0.0);
                 }
                 Err(e) => {
                     prop_assert_eq!(&e.file, "fuzz.toml");
