@@ -222,13 +222,24 @@ def slot_beams(serving: np.ndarray, best_beam: np.ndarray, n_cells: int, slots: 
 
 
 def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, best_beam: np.ndarray,
-                 beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool, device: Any = HOST) -> np.ndarray:
+                 beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool, device: Any = HOST,
+                 linear: bool = False) -> Any:
     """[slot, ue, freq]: the SINR of every UE on its serving cell's best beam, the other cells
     on its carrier pointing ``beams`` [slot, cell] (:func:`slot_beams`), on the victim's channel
     ``gains`` [ue, cell, freq, beam] (linear). A cell serving nobody is silent with
     ``silent_idle``, and otherwise sends over its codebook evenly (its mean beam gain).
     ``noise_mw`` [ue] (0: the SIR); NaN for a UE without a cell. Computed on the torch
-    ``device`` (a setting or a ``torch.device``; at scale, tens of millions of products)."""
+    ``device`` (a setting or a ``torch.device``; at scale, tens of millions of products).
+    ``linear``: the ratio itself, a float64 tensor left on the device (what a link level
+    takes, :meth:`~caviar_plugins.radio.link_level.LinkLevel.run_linear`), not its dB in numpy."""
+    return slot_sinrs_db(cells, gains, serving, best_beam, beams, (noise_mw,), silent_idle, device, linear)[0]
+
+
+def slot_sinrs_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, best_beam: np.ndarray,
+                  beams: np.ndarray, noises_mw: Sequence[np.ndarray], silent_idle: bool, device: Any = HOST,
+                  linear: bool = False) -> list[Any]:
+    """:func:`slot_sinr_db` for each of ``noises_mw`` (the SINR and the SIR, say), the
+    interference summed once for all of them."""
     import torch
 
     dev = resolve(device)
@@ -254,10 +265,17 @@ def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, 
         interference = interference + (idle @ mean).reshape(n_slot, n_ue, n_f)
     ue = np.arange(n_ue)
     signal = to_torch(power[s][:, None] * gains[ue, s, :, np.asarray(best_beam)[ue]], dev, torch.float64)  # [ue, freq]
-    noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
-    out = 10 * torch.log10(signal[None] / (noise[None, :, None] + interference))  # (no signal: -inf; SIR alone: NaN)
     unserved = to_torch(serving < 0, dev)[None, :, None]
-    return to_numpy(torch.where(unserved, float("nan"), out))  # (a mask, not an indexing: no wait on a GPU)
+    out: list[Any] = []
+    for noise_mw in noises_mw:
+        noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
+        ratio = signal[None] / (noise[None, :, None] + interference)
+        if linear:
+            out.append(torch.where(unserved, float("nan"), ratio))
+            continue
+        db = 10 * torch.log10(ratio)  # (no signal: -inf; SIR alone: NaN)
+        out.append(to_numpy(torch.where(unserved, float("nan"), db)))  # (a mask, not an indexing: no wait on a GPU)
+    return out
 
 
 def scene_direction(cell: Cell, u: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from caviar_plugins.network.beams import slot_beams, slot_sinr_db
+from caviar_plugins.network.beams import slot_beams, slot_sinr_db, slot_sinrs_db
 from caviar_plugins.network.cells import Cell, noise_dbm, rsrp_dbm, rx_power_dbm, sinr_db
 
 
@@ -38,14 +38,18 @@ def received(cells: Sequence[Cell], gains_db: np.ndarray, subband_prbs: np.ndarr
 def downlink_sinr(cells: Sequence[Cell], rx: np.ndarray, wideband: np.ndarray, serving: np.ndarray,
                   talking: np.ndarray | None, *, noise_figure_db: float, scheduled: bool,
                   beams: tuple[np.ndarray, np.ndarray] | None = None, slots: int = 1,
-                  subband_prbs: np.ndarray | None = None, device: Any = "auto"):
+                  subband_prbs: np.ndarray | None = None, device: Any = "auto", linear: bool = False):
     """Per slot and subband [slot or 1, ue, subband], and wideband [ue], SINR and SIR (dB).
+    ``linear``: with beams, the per-slot SINR as a ratio, a float64 tensor left on the torch
+    ``device`` where it is computed (:func:`~caviar_plugins.network.ues.run_link` gives it to the
+    link level there); without, the per-slot SINR is numpy's dB all the same (one row, small).
     ``rx``: received power [ue, cell, subband] and ``wideband`` [ue, cell] (dBm);
     ``serving`` [ue] (-1: none). With ``scheduled`` (``interference = "scheduled"``) only
     cells with data for someone (``talking`` [ue]; None: all) send. ``beams``: the beam gains
     [ue, cell, subband, beam] and each UE's best beam per cell [ue, cell]."""
     if beams is not None:
-        return _beamformed(cells, beams, serving, talking, noise_figure_db, scheduled, slots, subband_prbs, device)
+        return _beamformed(cells, beams, serving, talking, noise_figure_db, scheduled, slots, subband_prbs, device,
+                           linear)
     load = None
     if scheduled:
         on = serving if talking is None else serving[talking]
@@ -57,7 +61,7 @@ def downlink_sinr(cells: Sequence[Cell], rx: np.ndarray, wideband: np.ndarray, s
 
 def _beamformed(cells: Sequence[Cell], beams: tuple[np.ndarray, np.ndarray], serving: np.ndarray,
                 talking: np.ndarray | None, noise_figure_db: float, scheduled: bool, slots: int,
-                subband_prbs: np.ndarray | None, device: Any):
+                subband_prbs: np.ndarray | None, device: Any, linear: bool = False):
     """With beams: per slot and subband, and wideband (the slots' mean); the other cells
     point at the UEs they schedule among ``talking`` (None: all)."""
     gains, best_beams = beams
@@ -67,11 +71,11 @@ def _beamformed(cells: Sequence[Cell], beams: tuple[np.ndarray, np.ndarray], ser
     chosen = slot_beams(pointed, best, len(cells), slots)
     bandwidth = np.array([c.bandwidth_hz for c in cells])[np.maximum(serving, 0)]
     noise = 10 ** (noise_dbm(bandwidth, noise_figure_db) / 10)
-    per_slot = slot_sinr_db(cells, gains, serving, best, chosen, noise, scheduled, device)
+    per_slot = slot_sinr_db(cells, gains, serving, best, chosen, noise, scheduled, device, linear)
     weights = subband_prbs if gains.shape[2] > 1 and subband_prbs is not None else np.ones(gains.shape[2])
     flat = np.average(gains, axis=2, weights=weights)[:, :, None, :]
+    # (the SINR and the SIR of the slots' wideband channel: one interference sum for both)
+    sinr, sir = slot_sinrs_db(cells, flat, serving, best, chosen, (noise, np.zeros(len(serving))), scheduled, device)
     with np.errstate(divide="ignore"):  # (no signal: -inf, reported as None)
-        sinr, sir = (10 * np.log10(np.mean(10 ** (slot_sinr_db(cells, flat, serving, best, chosen, n, scheduled,
-                                                               device)[:, :, 0] / 10), axis=0))
-                     for n in (noise, np.zeros(len(serving))))
+        sinr, sir = (10 * np.log10(np.mean(10 ** (x[:, :, 0] / 10), axis=0)) for x in (sinr, sir))
     return per_slot, sinr, sir

@@ -39,8 +39,8 @@ from caviar_plugins.network.radio_map import best_server_map, layer_message, sav
 from caviar_plugins.network.settings import NetworkParams, make_channel, plan
 from caviar_plugins.network.tr38901 import CHANNELS as STOCHASTIC
 from caviar_plugins.network.traffic import Queues, in_columns, transfer_record
-from caviar_plugins.network.ues import UeTable, link_columns, link_fields, ue_extras, ue_reports, uplink_fields
-from caviar_plugins.network.uplink import uplink
+from caviar_plugins.network.ues import UeTable, link_fields, run_link, ue_extras, ue_reports, uplink_fields
+from caviar_plugins.network.uplink import mean_sinr_db, uplink
 from caviar_plugins.radio.link_level import LinkLevel
 from caviar_plugins.schema import (
     ARRIVED,
@@ -240,9 +240,8 @@ class RadioNetwork(caviar.Plugin):
         per_slot, sinr, sir = downlink_sinr(
             self.cells, rx, wideband, serving, talking, noise_figure_db=self.p.noise_figure_db,
             scheduled=self.p.interference == "scheduled", beams=self.beams, slots=self.slots,
-            subband_prbs=self.subband_prbs, device=self.device)
-        sinr_cols, serving_cols = link_columns(per_slot, serving, cols, self.slots)
-        res = self.link.run(sinr_cols, serving_cols, backlog=in_columns(backlog, cols))
+            subband_prbs=self.subband_prbs, device=self.device, linear=True)
+        res = run_link(self.link, per_slot, serving, cols, self.slots, in_columns(backlog, cols))
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         yield from ((NETWORK_EVENTS, e) for e in events)
         yield from self._delivered(t, ids, "downlink", res.delivered_bits[:, cols])
@@ -294,11 +293,8 @@ class RadioNetwork(caviar.Plugin):
         backlog, talking = self._backlog(t, ids, types, "uplink")
         beam_gains, best = self.beams if self.beams is not None else (None, None)
         tx, per_slot = uplink(self.cells, self.p.uplink, serving, rx, beam_gains, best, self.p.num_prb,
-                              self.p.subcarrier_spacing_hz, self.slots, self.device, talking)
-        sinr_cols, serving_cols = link_columns(per_slot, serving, cols, self.slots)
-        res = self.ul_link.run(sinr_cols, serving_cols, backlog=in_columns(backlog, cols))
+                              self.p.subcarrier_spacing_hz, self.slots, self.device, talking, linear=True)
+        res = run_link(self.ul_link, per_slot, serving, cols, self.slots, in_columns(backlog, cols))
         yield from self._delivered(t, ids, "uplink", res.delivered_bits[:, cols])
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
-        with np.errstate(divide="ignore"):  # (a UE whose paths to its cell are gone: no signal)
-            mean = 10 * np.log10(np.mean(10 ** (per_slot / 10), axis=(0, 2)))
-        return uplink_fields(tx, mean, mbps[cols], link_fields(res, cols))
+        return uplink_fields(tx, mean_sinr_db(per_slot), mbps[cols], link_fields(res, cols))

@@ -175,6 +175,26 @@ def link_columns(per_slot: np.ndarray, serving: np.ndarray, cols: np.ndarray, sl
     return np.broadcast_to(sinr_cols, (slots, *sinr_cols.shape[1:])), serving_cols
 
 
+def run_link(link: Any, per_slot: Any, serving: np.ndarray, cols: np.ndarray, slots: int, backlog: Any = None) -> Any:
+    """A link level's call on the step's UE rows, in its UE columns (stable across steps):
+    ``per_slot`` [slot or 1, ue, subband] numpy dB (:func:`link_columns`, then
+    :meth:`~caviar_plugins.radio.link_level.LinkLevel.run`) or a torch tensor of linear SINRs
+    (placed in the columns where it is, then
+    :meth:`~caviar_plugins.radio.link_level.LinkLevel.run_linear`: no way through numpy)."""
+    if isinstance(per_slot, np.ndarray):
+        return link.run(*link_columns(per_slot, serving, cols, slots), backlog=backlog)
+    width = int(cols.max()) + 1
+    serving_cols = np.full(width, -1)
+    serving_cols[cols] = serving
+    if width != len(cols) or not np.array_equal(cols, np.arange(width)):  # (columns left free, or out of order)
+        from caviar_plugins.torch_device import to_torch
+
+        placed = per_slot.new_full((per_slot.shape[0], width, per_slot.shape[2]), float("nan"))
+        placed[:, to_torch(cols, per_slot.device)] = per_slot
+        per_slot = placed
+    return link.run_linear(per_slot, serving_cols, slots, backlog=backlog)
+
+
 def ue_extras(ids: list[str], types: list[str], serving: np.ndarray, ul: list[dict] | None,
               beam_reports: list[list[dict]] | None, best_beams: np.ndarray | None, queues: Any,
               directions: tuple[str, ...]) -> Callable[[int, bool], dict[str, Any]]:

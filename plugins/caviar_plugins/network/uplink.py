@@ -78,7 +78,7 @@ SLOTS_AT_ONCE = 50
 
 def slot_sinr_db(desired: np.ndarray, gains: np.ndarray, receive: np.ndarray, serving: np.ndarray,
                  carrier_of: np.ndarray, prb_power_dbm: np.ndarray, scheduled: np.ndarray, noise_prb_mw: float,
-                 device: Any = HOST) -> np.ndarray:
+                 device: Any = HOST, linear: bool = False) -> Any:
     """[slot, ue, freq]: uplink SINR of every UE at its serving cell.
 
     ``desired`` [ue, freq]: gain from the UE to its cell (receive beam or array included);
@@ -86,7 +86,8 @@ def slot_sinr_db(desired: np.ndarray, gains: np.ndarray, receive: np.ndarray, se
     "beam", the element pattern, without beams); ``receive`` [ue]: the beam its serving cell
     receives the UE on; ``prb_power_dbm`` [ue]: power per PRB; ``scheduled`` [slot, cell]
     (:func:`~caviar_plugins.network.beams.scheduled_ues`); ``carrier_of`` [cell]. NaN for a UE
-    without a cell. Computed on the torch ``device`` (a setting or a ``torch.device``).
+    without a cell. Computed on the torch ``device`` (a setting or a ``torch.device``);
+    ``linear``: the ratio itself, a float64 tensor left there (not its dB in numpy).
 
     What a victim hears depends on it only through its cell and receive beam: the interference
     is summed once per (cell, beam) and slot, over the UEs the other cells schedule, then read
@@ -111,8 +112,11 @@ def slot_sinr_db(desired: np.ndarray, gains: np.ndarray, receive: np.ndarray, se
         weight = (v >= 0) * p[who]  # [slot, cell]
         per_beam = torch.einsum("sc,kc,sckfb->skbf", weight, heard_t, g[who])  # [slot, cell k, beam, freq]
         parts.append(per_beam[:, s, rx])  # [slot, ue, freq]
-    out = 10 * torch.log10(signal[None] / (noise_prb_mw + torch.cat(parts)))  # (no path to its cell: -inf)
+    ratio = signal[None] / (noise_prb_mw + torch.cat(parts))
     unserved = to_torch(serving < 0, dev)[None, :, None]
+    if linear:
+        return torch.where(unserved, float("nan"), ratio)
+    out = 10 * torch.log10(ratio)  # (no path to its cell: -inf)
     return to_numpy(torch.where(unserved, float("nan"), out))  # (a mask, not an indexing: no wait on a GPU)
 
 
@@ -129,24 +133,24 @@ def pathloss_db(tx_power_dbm: np.ndarray, rx_dbm: np.ndarray) -> np.ndarray:
 def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm: np.ndarray,
            beam_gains: np.ndarray | None, best_beams: np.ndarray | None, num_prb: int,
            subcarrier_spacing_hz: float, slots: int, device: str = "auto",
-           talking: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+           talking: np.ndarray | None = None, linear: bool = False) -> tuple[np.ndarray, Any]:
     """Every UE's PUSCH power (dBm, [ue]) and SINR ([slot, ue, freq]) from the downlink's
     measurements: ``rx_dbm`` [ue, cell, freq] the cells' received power (power, array gain
     and channel), and with SSB beams their gains [ue, cell, freq, beam] and each UE's best
     beam per cell [ue, cell]. The channel is reciprocal: the same gains both ways.
-    ``talking`` [ue]: the UEs with data to send, the only ones other cells schedule (None: all)."""
+    ``talking`` [ue]: the UEs with data to send, the only ones other cells schedule (None: all).
+    ``linear``: the SINR as a ratio, a float64 tensor on the torch ``device`` (:func:`slot_sinr_db`)."""
     n = len(serving)
     ue, sv = np.arange(n), np.maximum(np.asarray(serving), 0)
     power = np.array([c.tx_power_dbm for c in cells])
     array = np.array([c.array_gain_db for c in cells])
-    rx_lin = np.mean(10 ** (np.asarray(rx_dbm) / 10), axis=-1)  # [ue, cell] (over the band)
     if beam_gains is not None and best_beams is not None:
         best = best_beams[ue, sv]
-        rsrp_gain = np.mean(beam_gains[ue, sv, :, best], axis=-1)
-        pl = -10 * np.log10(np.maximum(rsrp_gain, 1e-40))
         desired = beam_gains[ue, sv, :, best]  # [ue, freq]
+        pl = -10 * np.log10(np.maximum(np.mean(desired, axis=-1), 1e-40))
         gains, receive = beam_gains, best  # (UE v into the beam cell k receives u on)
     else:
+        rx_lin = np.mean(10 ** (np.asarray(rx_dbm) / 10), axis=-1)  # [ue, cell] (over the band)
         pl = pathloss_db(power[sv], 10 * np.log10(np.maximum(rx_lin[ue, sv], 1e-40)))
         channel = 10 ** ((np.asarray(rx_dbm) - (power + array)[None, :, None]) / 10)  # [ue, cell, freq]
         desired = channel[ue, sv] * 10 ** (array[sv] / 10)[:, None]
@@ -155,5 +159,16 @@ def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm
     scheduled = scheduled_ues(serving if talking is None else np.where(talking, serving, -1), len(cells), slots)
     carriers = np.array([c.carrier_hz for c in cells])
     sinr = slot_sinr_db(desired, gains, receive, serving, carriers, tx - 10 * np.log10(num_prb), scheduled,
-                        noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db), device)
+                        noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db), device, linear)
     return tx, sinr
+
+
+def mean_sinr_db(per_slot: Any) -> np.ndarray:
+    """[ue]: the SINR over a step's slots and subbands (their linear mean, in dB) of the
+    per-slot linear SINRs [slot, ue, freq] (a tensor, :func:`uplink`'s ``linear``; NaN for a
+    UE without a cell, -inf for one without a path), averaged where they are."""
+    import torch
+
+    from caviar_plugins.torch_device import to_numpy
+
+    return to_numpy(10 * torch.log10(per_slot.mean(dim=(0, 2))))

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from caviar_plugins.radio.link_queue import CallQueue as _Queue
 from caviar_plugins.rt import sionna_adapter as adapter
 from caviar_plugins.torch_device import check_setting, resolve, to_numpy, to_torch
 
@@ -336,7 +337,42 @@ class LinkLevel:
         queue = _Queue(n_slots, n_ue, backlog)
         if self._sys is None:
             return self._shannon(sinr_db, serving, queue)
-        return self._sys_slots(sinr_db, serving, queue)
+        return self._sys_slots(self._linear_in(sinr_db, serving), serving, queue)
+
+    def run_linear(self, sinr: Any, serving: np.ndarray, slots: int, backlog: Any = None) -> SlotResults:
+        """:meth:`run` on linear SINRs as a torch tensor, [n_slots or 1 (every slot's), n_ue,
+        subbands] (NaN: a UE without a cell): they become the link level's float32 SINRs where
+        they are, without a way through numpy (at 1,000 UEs a step's are millions), the same
+        float32 numbers as :meth:`run` makes of their dB. ``slots``: the slots to run."""
+        n_ue, n_sub = sinr.shape[1], sinr.shape[2]
+        if sinr.ndim != 3 or n_sub != self.s.subbands or sinr.shape[0] not in (1, slots):
+            raise ValueError(f"sinr: expected [{slots} or 1, n_ue, {self.s.subbands}], got shape {tuple(sinr.shape)}")
+        self.ensure(n_ue)
+        queue = _Queue(slots, n_ue, backlog)
+        if self._sys is None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                db = 10 * np.log10(to_numpy(sinr))
+            return self._shannon(np.broadcast_to(db, (slots, n_ue, n_sub)), serving, queue)
+        torch, dev = self._torch, self.device
+        x = sinr.to(dev)
+        lin = torch.zeros((x.shape[0], n_sub, self.capacity), dtype=torch.float32, device=dev)
+        lin[:, :, :n_ue] = torch.where(to_torch(np.asarray(serving) >= 0, dev)[None, :, None], x, 0.0).transpose(1, 2)
+        if x.shape[0] != slots:  # (every slot the same SINRs: repeated on the device)
+            lin = lin.expand(slots, n_sub, self.capacity).contiguous()
+        return self._sys_slots(lin, serving, queue)
+
+    def _linear_in(self, sinr_db: np.ndarray, serving: np.ndarray) -> Any:
+        """The link level's float32 linear SINRs [n_slots, subbands, capacity] on its device,
+        from dB [n_slots, n_ue, subbands] (NaN: none; 0 for a UE without a cell)."""
+        torch = self._torch
+        n_slots, n_ue, n_sub = sinr_db.shape
+        # Every slot the same SINRs (a broadcast, as a flat channel's): converted once, repeated on the device.
+        same = n_slots > 1 and sinr_db.strides[0] == 0
+        lin = np.zeros((1 if same else n_slots, n_sub, self.capacity))
+        block = np.nan_to_num(sinr_db[:1] if same else sinr_db, nan=-300.0).transpose(0, 2, 1)  # [slot, S, n_ue]
+        lin[:, :, :n_ue] = np.where((np.asarray(serving) >= 0)[None, None, :], 10 ** (block / 10), 0.0)
+        lin_all = to_torch(lin, self.device, torch.float32)  # (the call's one way in)
+        return lin_all.expand(n_slots, n_sub, self.capacity).contiguous() if same else lin_all
 
     def _shannon(self, sinr_db: np.ndarray, serving: np.ndarray, queue: _Queue) -> SlotResults:
         n_slots, n_ue, _ = sinr_db.shape
@@ -370,14 +406,15 @@ class LinkLevel:
         counts = np.bincount(serving[eligible], minlength=self.n_cell)
         return counts, np.where(eligible, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
 
-    def _sys_slots(self, sinr_db: np.ndarray, serving: np.ndarray, queue: _Queue) -> SlotResults:
-        """The slots through Sionna SYS. Everything stays on the link level's device from the
-        first slot to the last: the call's SINRs enter torch once, the scheduler, the loops,
-        the queues and the tallies work there, and the results leave once, at the end (on a
-        GPU, no copy and no wait per slot; with queues, one flag per group of slots says
-        whether anyone has bits)."""
+    def _sys_slots(self, lin_all: Any, serving: np.ndarray, queue: _Queue) -> SlotResults:
+        """The slots through Sionna SYS, on linear SINRs ``lin_all`` [n_slots, subbands,
+        capacity] (float32, on the device: :meth:`_linear_in`). Everything stays on the link
+        level's device from the first slot to the last: the call's SINRs enter torch once, the
+        scheduler, the loops, the queues and the tallies work there, and the results leave once,
+        at the end (on a GPU, no copy and no wait per slot; with queues, one flag per group of
+        slots says whether anyone has bits)."""
         torch = self._torch
-        n_slots, n_ue, n_sub = sinr_db.shape
+        n_slots, n_ue = queue.delivered.shape
         d, cap, n_cell, dev = self.s.harq_processes, self.capacity, self.n_cell, self.device
         if n_slots % d:
             raise ValueError(f"{n_slots} slots are not whole groups of harq_processes = {d}")
@@ -385,15 +422,7 @@ class LinkLevel:
         member = np.zeros((n_cell, cap), dtype=bool)
         on = np.flatnonzero(serving >= 0)
         member[serving[on], on] = True
-        # Every slot the same SINRs (a broadcast, as a flat channel's): converted once, repeated on the device.
-        same = n_slots > 1 and sinr_db.strides[0] == 0
-        lin = np.zeros((1 if same else n_slots, n_sub, cap))
-        block = np.nan_to_num(sinr_db[:1] if same else sinr_db, nan=-300.0).transpose(0, 2, 1)  # [slot, S, n_ue]
-        lin[:, :, :n_ue] = np.where((serving >= 0)[None, None, :], 10 ** (block / 10), 0.0)
-        # (the call's one way in)
-        member_all, lin_all = to_torch(member, dev), to_torch(lin, dev, torch.float32)
-        if same:
-            lin_all = lin_all.expand(n_slots, n_sub, cap).contiguous()
+        member_all = to_torch(member, dev)
         queue.on_device(dev, torch, cap)
         groups: list[tuple] = []  # each group's slots, as tensors: tallied once, after the loop
         member_t = member_all
@@ -536,52 +565,3 @@ class LinkLevel:
         turn = (first_slot + torch.arange(d, device=self.device))[:, None] % count[None, :]  # [D, C]
         pick = member[None] & (rank[None] == turn[..., None])  # [D, C, cap]
         return pick[:, :, None, :].expand(d, member.shape[0], n_sub, member.shape[1])
-
-
-class _Queue:
-    """One call's bits per UE: what is queued (full buffer: unbounded), what arrives at each
-    slot, and what each slot delivered."""
-
-    def __init__(self, n_slots: int, n_ue: int, backlog: Any):
-        self.finite = backlog is not None
-        self.left = np.full(n_ue, np.inf) if backlog is None else np.asarray(backlog.queued_bits, float).copy()
-        self.arrivals = None if backlog is None else np.asarray(backlog.arrivals_bits, float)
-        if self.arrivals is not None and self.arrivals.shape != (n_slots, n_ue):
-            raise ValueError(f"backlog: expected arrivals of shape {(n_slots, n_ue)}, got {self.arrivals.shape}")
-        self.arrived_to = -1  # the last slot whose arrivals are in self.left
-        self.delivered = np.zeros((n_slots, n_ue))
-        self._minimum: Any = lambda bits, left: np.minimum(np.asarray(bits, float), left)
-
-    def on_device(self, device: Any, torch: Any, cap: int) -> None:
-        """The queue's arrays as float64 tensors on ``device``, ``cap`` columns wide (the SYS
-        loop's; the columns past the call's UEs have nothing queued)."""
-        n_slots, n_ue = self.delivered.shape
-        pad = ((0, cap - n_ue),)
-        self.left = to_torch(np.pad(self.left, pad), device, torch.float64)
-        if self.arrivals is not None:
-            self.arrivals = to_torch(np.pad(self.arrivals, ((0, 0), *pad)), device, torch.float64)
-        self.delivered = torch.zeros((n_slots, cap), dtype=torch.float64, device=device)
-        self._minimum = torch.minimum
-
-    def _arrive(self, slot: int) -> None:
-        if self.arrivals is not None:
-            while self.arrived_to < slot:
-                self.arrived_to += 1
-                self.left += self.arrivals[self.arrived_to]
-
-    def eligible(self, slot: int) -> np.ndarray:
-        """[n_ue]: UEs with bits queued at the start of ``slot``."""
-        self._arrive(slot)
-        return self.left > 0
-
-    def take_group(self, first: int, bits: Any) -> None:
-        """Slots ``first``, ``first + 1``, ... decoded ``bits`` [slots, n_ue] per UE."""
-        for j in range(len(bits)):
-            self.take(first + j, bits[j])
-
-    def take(self, slot: int, bits: np.ndarray) -> None:
-        """``slot`` decoded ``bits`` per UE: those of the queue are delivered."""
-        self._arrive(slot)
-        got = self._minimum(bits, self.left)
-        self.left -= got
-        self.delivered[slot] = got
