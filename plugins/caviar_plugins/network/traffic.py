@@ -127,7 +127,6 @@ class TrafficSettings:
                                             f"{', '.join(UE_TYPES)}); unless a module of yours does, this load "
                                             f"applies to no UE", f"by_type.{ue_type}"), stacklevel=2)
 
-
     def model(self, direction: str, ue_type: str | None = None) -> str:
         """The load of a UE of ``ue_type`` in ``direction``."""
         return self.by_type.get(ue_type or "", {}).get(direction, getattr(self, direction))
@@ -194,6 +193,9 @@ class Queues:
         self.queues: dict[tuple[str, str], list[Transfer]] = {}
         self.next_file: dict[tuple[str, str], float] = {}  # (UE, direction) -> next FTP arrival (s)
         self.lost: list[Transfer] = []  # transfers of UEs that left, to report (:meth:`finished`)
+        # Per step's UEs (the same list objects until a UE comes or goes): each row's model per
+        # direction, each UE's row, each row's next FTP arrival (NaN: none drawn yet) per direction.
+        self._rows: dict[str, Any] = {}
 
     def state(self) -> dict[str, Any]:
         return {"rng": self.rng.bit_generator.state, "queues": self.queues, "next_file": self.next_file,
@@ -202,6 +204,7 @@ class Queues:
     def restore(self, state: dict[str, Any]) -> None:
         self.rng.bit_generator.state = state["rng"]
         self.queues, self.next_file, self.lost = state["queues"], state["next_file"], state["lost"]
+        self._rows = {}
 
     def step_backlog(self, t: float, ids: list[str], types: list[str], direction: str, slots: int, slot_s: float,
                      scheduled: bool) -> tuple[Backlog | None, np.ndarray | None]:
@@ -245,31 +248,68 @@ class Queues:
             left += self.queues.pop((ue, d), [])
             self.next_file.pop((ue, d), None)
         self.lost += left
+        self._rows = {}
         return left
+
+    def _of_rows(self, key: str, ids: list[str], types: list[str] | None, make: Any) -> Any:
+        """What ``make()`` gives for these rows, made once while the step's UEs stay the same
+        objects (the network's :meth:`~caviar_plugins.network.ues.UeTable.view`)."""
+        held = self._rows.get(key)
+        if held is None or held[0] is not ids or held[1] is not types:
+            held = self._rows[key] = (ids, types, make())
+        return held[2]
+
+    def _models(self, ids: list[str], types: list[str], direction: str) -> np.ndarray:
+        """[row]: each UE's load in ``direction`` (one look-up per UE type)."""
+        def make() -> np.ndarray:
+            of_type = {k: self.model(direction, k) for k in set(types)}
+            return np.array([of_type[k] for k in types], dtype=object)
+        return self._of_rows("models " + direction, ids, types, make)
+
+    def _queued_rows(self, ids: list[str], direction: str) -> list[tuple[int, list[Transfer]]]:
+        """(row, queue) of the UEs with transfers queued in ``direction``, in row order: what a
+        step's queue work goes through (not every UE)."""
+        rows = self._of_rows("rows", ids, None, lambda: {u: i for i, u in enumerate(ids)})
+        found = [(rows[u], q) for (u, d), q in self.queues.items() if d == direction and q and u in rows]
+        return sorted(found, key=lambda x: x[0])
 
     def backlog(self, t: float, ids: list[str], types: list[str], direction: str, slots: int,
                 slot_s: float) -> Backlog:
         """The step's :class:`Backlog` of UEs ``ids`` (rows, of ``types``) in ``direction``:
         queued bits (a full buffer: unbounded), and FTP files arriving in the step's slots
-        [t, t + slots·slot_s) (queued as they arrive)."""
+        [t, t + slots·slot_s) (queued as they arrive). Work per UE with a file due or bits
+        queued, not per UE: the next arrivals are an array, compared at once."""
         queued = np.zeros(len(ids))
         arrivals = np.zeros((slots, len(ids)))
         end = t + slots * slot_s
-        for i, (u, ue_type) in enumerate(zip(ids, types, strict=True)):
-            key = (u, direction)
-            model = self.model(direction, ue_type)
-            if model == "full-buffer":
-                queued[i] = math.inf
-                continue
-            if model == "ftp3":
-                rate, size = self.s.ftp.arrival_rate_hz, self.s.ftp.file_bytes
-                at = self.next_file.setdefault(key, t + self.rng.exponential(1 / rate))
+        models = self._models(ids, types, direction)
+        full = models == "full-buffer"
+        queued[full] = math.inf
+        ftp = np.flatnonzero(models == "ftp3")
+        if len(ftp):
+            next_at = self._of_rows("next " + direction, ids, types, lambda: np.array(
+                [self.next_file.get((u, direction), np.nan) for u in ids]))
+            rate, size = self.s.ftp.arrival_rate_hz, self.s.ftp.file_bytes
+            # Each FTP UE draws one arrival a step (a first one, or one it discards: the stream as it
+            # always was), then each file it gets: its row's draw after those of the rows before it.
+            # The rows in between draw theirs at once.
+            drawn = 0
+            for j in np.flatnonzero(~(next_at[ftp] >= end)).tolist():  # (due, or none drawn yet)
+                first = float(self.rng.exponential(1 / rate, size=j - drawn + 1)[-1])
+                drawn, i = j + 1, int(ftp[j])
+                u = ids[i]
+                at = self.next_file.setdefault((u, direction), t + first)
                 while at < end:
                     slot = min(max(int((at - t) // slot_s), 0), slots - 1)
                     self._enqueue(Transfer(u, direction, "ftp", at, int(size), 8.0 * int(size), arrival_slot=slot))
                     at += self.rng.exponential(1 / rate)
-                self.next_file[key] = at
-            for x in self.queues.get(key, []):
+                self.next_file[(u, direction)] = next_at[i] = at
+            if drawn < len(ftp):
+                self.rng.exponential(1 / rate, size=len(ftp) - drawn)
+        for i, queue in self._queued_rows(ids, direction):
+            if full[i]:
+                continue
+            for x in queue:
                 if x.arrival_slot < 0:
                     queued[i] += x.left_bits
                 else:
@@ -279,13 +319,11 @@ class Queues:
     def serve(self, t: float, ids: list[str], direction: str, delivered_bits: np.ndarray,
               slot_s: float) -> list[tuple[Transfer, float]]:
         """Takes what the link level delivered ([slot, UE row] bits) off the queues' heads;
-        returns the transfers completed and when (the end of the slot their last bit was in)."""
+        returns the transfers completed and when (the end of the slot their last bit was in),
+        in row order. Work per UE with transfers queued."""
         done = []
-        for i, u in enumerate(ids):
-            queue = self.queues.get((u, direction))
-            if not queue:
-                continue
-            for k in range(delivered_bits.shape[0]):
+        for i, queue in self._queued_rows(ids, direction):
+            for k in np.flatnonzero(delivered_bits[:, i] > 0).tolist():
                 bits = float(delivered_bits[k, i])
                 while bits > 0:
                     # the first in priority order that has arrived (the link level counted no other)
@@ -302,6 +340,20 @@ class Queues:
             for x in queue:  # (waiting at the next step's first slot)
                 x.arrival_slot = -1
         return done
+
+    def reports(self, ids: list[str], types: list[str], directions: tuple[str, ...]) -> list[tuple[str, list]]:
+        """Every UE's :meth:`report` at once, a column per direction: (``dl_queue_bytes`` or
+        ``ul_queue_bytes``, [row] bytes, None for a full buffer). The bytes of the UEs with
+        transfers queued are summed, the others' are 0."""
+        columns = []
+        for d in directions:
+            queued = np.zeros(len(ids), dtype=np.int64)
+            for i, queue in self._queued_rows(ids, d):
+                queued[i] = int(round(sum(x.left_bits for x in queue) / 8))
+            full = self._models(ids, types, d) == "full-buffer"
+            columns.append((d[0] + "l_queue_bytes", [None if f else q for f, q in zip(full.tolist(), queued.tolist(),
+                                                                                    strict=True)]))
+        return columns
 
     def report(self, ue: str, ue_type: str, directions: tuple[str, ...]) -> dict[str, int]:
         """``network.ue``'s ``dl_queue_bytes`` / ``ul_queue_bytes`` (none for a full buffer)."""

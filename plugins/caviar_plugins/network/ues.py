@@ -207,13 +207,16 @@ def ue_extras(ids: list[str], types: list[str], serving: np.ndarray, ul: list[di
         beams = [beam_reports[s][b] for s, b in
                  zip(sv.tolist(), best_beams[np.arange(len(sv)), sv].tolist(), strict=True)]
 
+    queued = None if queues is None else queues.reports(ids, types, directions)
+
     def extras(i: int, covered: bool) -> dict[str, Any]:
         out: dict[str, Any] = {}
         if ul is not None and covered:
             out.update(ul[i])
         if beams is not None and covered:
             out.update(beams[i])
-        if queues is not None:
-            out.update(queues.report(ids[i], types[i], directions))
+        for name, column in queued or ():
+            if column[i] is not None:
+                out[name] = column[i]
         return out
     return extras
