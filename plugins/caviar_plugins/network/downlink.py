@@ -25,9 +25,10 @@ def received(cells: Sequence[Cell], gains_db: np.ndarray, subband_prbs: np.ndarr
     RSRP then the best beam's (L1-RSRP)."""
     rx = rx_power_dbm(cells, gains_db)
     weights = subband_prbs if gains_db.shape[-1] > 1 else np.ones(1)
-    wideband = 10 * np.log10(np.average(10 ** (rx / 10), axis=-1, weights=weights))
     best = None
-    if beam_gains is not None:
+    if beam_gains is None:
+        wideband = 10 * np.log10(np.average(10 ** (rx / 10), axis=-1, weights=weights))
+    else:
         tx = np.array([c.tx_power_dbm for c in cells])[None, :]
         per_beam = 10 * np.log10(np.maximum(np.average(beam_gains, axis=2, weights=weights), 1e-40))
         wideband = tx + per_beam.max(axis=-1)
