@@ -147,7 +147,7 @@ def test_the_console_script_refuses_them_without_an_abort(cid, tmp_path):
     (tmp_path / "cfg.toml").write_text(text_of(lines))
     for command in ("validate", "run"):
         p = subprocess.run([caviar_core(), command, "cfg.toml"], cwd=tmp_path, env=caviar_env(), capture_output=True,
-                           text=True, timeout=120)
+                           text=True, timeout=300)
         assert p.returncode == 2, f"{command}: exit {p.returncode}\n{p.stdout}{p.stderr}"
         _check(p.stderr, p.stdout, key, words)
         assert len(p.stderr.splitlines()) == 1, p.stderr
@@ -164,7 +164,7 @@ def test_an_abort_inside_ns3_ends_the_run_naming_the_module_the_phase_and_ns3s_w
     text = text_of(SRS) + (nats_transport() if transport == "nats" else "")
     (tmp_path / "cfg.toml").write_text(text)
     p = subprocess.run([caviar_core(), "validate", "cfg.toml"], cwd=tmp_path, env=caviar_env(), capture_output=True,
-                       text=True, timeout=120)
+                       text=True, timeout=300)
     assert p.returncode == 0, p.stderr  # no check can see it
     p = subprocess.run([caviar_core(), "run", "cfg.toml", "-q", "--out", "run"], cwd=tmp_path, env=caviar_env(),
                        capture_output=True, text=True, timeout=300)
