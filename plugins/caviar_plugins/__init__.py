@@ -26,6 +26,10 @@ configuration's ``plugin = "..."`` gives), by subpackage:
   tracer's scene with the moving bodies.
 * :mod:`~caviar_plugins.ns3`: ``ns3-network`` (:class:`Ns3Network`), the UAVs' images over the
   real ns-3 (LTE with its EPC, or point-to-point) in lockstep with the engine.
+* :mod:`~caviar_plugins.twin`: ``scene-fitter`` (:class:`SceneFitter`), the twin's radio
+  materials learned from measurements while a run goes (differentiable ray tracing), and
+  ``measurement-emulator`` (:class:`MeasurementEmulator`), a stand-in for a vehicle's
+  measurements.
 
 Besides: :mod:`~caviar_plugins.rt`, ray tracing in one home (Sionna RT scene, path solver,
 shoot cache, the adapter to Sionna's internals); :mod:`~caviar_plugins.osm`, scenes from
@@ -36,7 +40,7 @@ knows how messages travel. The five of SUMO, the network, MAVLink and ns-3 are i
 first use (``caviar_plugins.SumoTraffic``): their packages are optional extras.
 
 Offline tools live above the plugins, in :mod:`~caviar_plugins.tools`, which no plugin
-imports: the commands ``caviar-core export``, ``scene`` and ``calibrate``, and, with
+imports: the commands ``caviar-core export``, ``scene``, ``calibrate`` and ``fit-scene``, and, with
 ``python -m``, training (``caviar_plugins.tools.training.train_tree``,
 ``caviar_plugins.tools.training.train_detector``), baselines and result tables
 (``caviar_plugins.tools.results.sar``).
@@ -58,7 +62,8 @@ from caviar_plugins.vision import Camera, ImageLink, PersonDetector
 _ON_FIRST_USE = {"SumoTraffic": "caviar_plugins.traffic.plugin", "SionnaTrafficLink": "caviar_plugins.traffic.link",
                  "RadioNetwork": "caviar_plugins.network.plugin",
                  "MavlinkTelemetry": "caviar_plugins.live.mavlink_telemetry",
-                 "Ns3Network": "caviar_plugins.ns3.plugin"}
+                 "Ns3Network": "caviar_plugins.ns3.plugin", "SceneFitter": "caviar_plugins.twin.plugin",
+                 "MeasurementEmulator": "caviar_plugins.twin.plugin"}
 
 
 def __getattr__(name: str) -> Any:
@@ -68,6 +73,6 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = ["DATA", "SCENES", "BeamDataset", "BeamSelector", "Camera", "FreeSpaceLink", "ImageLink", "Lidar",
-           "LinkMonitor", "MavlinkTelemetry", "Mission", "Ns3Network", "PersonDetector", "RadioNetwork",
-           "RandomWaypointFlight", "SionnaLink", "SionnaTrafficLink", "SumoTraffic", "UavEnergy", "WaypointFlight",
-           "schema"]
+           "LinkMonitor", "MavlinkTelemetry", "MeasurementEmulator", "Mission", "Ns3Network", "PersonDetector",
+           "RadioNetwork", "RandomWaypointFlight", "SceneFitter", "SionnaLink", "SionnaTrafficLink", "SumoTraffic",
+           "UavEnergy", "WaypointFlight", "schema"]

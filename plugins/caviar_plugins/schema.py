@@ -149,6 +149,18 @@ ENERGY = "uav.energy"
 (propulsion, communication and computing), the energy used since the start, the battery
 left, and the energy to fly home at ``return_speed_mps``."""
 
+# The self-calibrating twin (caviar_plugins.twin)
+MEASUREMENTS = "measurements"
+"""Prefix: ``measurements.<UE_Id>`` a vehicle's radio measurements, one sample or
+``{"samples": [...]}`` (:mod:`caviar_plugins.twin.measurements` names the fields)."""
+MATERIALS = "twin.materials"
+"""``{"time", "materials": {material: {property: value}}}``: the twin's learned radio
+materials, which the ray-traced links apply from then on."""
+TWIN_FIT = "twin.fit"
+"""Per step with new measurements ``{"time", "samples", "new", "prediction_error_db"}`` (the
+new samples as the twin predicted them before learning from them), and per refit ``{"time",
+"samples", "refit", "rmse_db", "learned", "not_identifiable"}``."""
+
 # Datasets
 DATASET_RECORD = "dataset.record"
 """A record written by a dataset module (artifact)."""

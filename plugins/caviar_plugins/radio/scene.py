@@ -20,6 +20,7 @@ from caviar_plugins.assets import SCENES
 from caviar_plugins.radio.beams import beam_gains, dft_codebook, flat_dft_codebook
 from caviar_plugins.radio.link_report import line_of_sight_paths
 from caviar_plugins.radio.path_data import PathData, receiver_paths
+from caviar_plugins.rt.materials import apply_materials
 from caviar_plugins.rt.scene import (
     OUT_OF_THE_WAY_M,
     AntennaArray,
@@ -184,9 +185,20 @@ class RadioScene:
         """Solves that traced (not those that reused the last one)."""
         self._body_template = s.objects.get("Cube")
         self._bodies_on = cfg.uav_mesh
+        self.materials: dict[str, dict[str, float]] = {}
+        """The material properties set after loading (:meth:`set_materials`)."""
         self.keep_paths = False
         """Attach every receiver's :class:`~caviar_plugins.radio.path_data.PathData` to its
         :class:`Link` (costs the paths' interactions and vertices on each solve)."""
+
+    def set_materials(self, values: dict[str, dict[str, float]]) -> None:
+        """Sets radio material properties (``{material: {property: value}}``, e.g. what a
+        ``scene-fitter`` learned; :func:`~caviar_plugins.rt.materials.apply_materials`) from
+        the next solve on; they are kept in :meth:`snapshot`."""
+        apply_materials(self.scene, values)
+        for name, props in values.items():
+            self.materials.setdefault(name, {}).update(props)
+        self._solved = None
 
     @property
     def shoot_cache(self):
@@ -273,7 +285,7 @@ class RadioScene:
         offset = np.asarray(self.cfg.antenna_offset, dtype=float)
         return {"receivers": [(k, self._where[k] - offset) for k in self.receivers],
                 "placed": self._placed, "solved": self._solved,
-                "geometry_seen": self.tracer.cache_seen,
+                "geometry_seen": self.tracer.cache_seen, "materials": self.materials,
                 "counts": (self.solves, *((self.shoot_cache.connects, self.shoot_cache.shoots)
                                           if self.shoot_cache is not None else ()))}
 
@@ -281,6 +293,8 @@ class RadioScene:
         """Rebuilds :meth:`snapshot`'s state in a freshly set-up scene: the receivers and
         UAV bodies where they were, and, when the shoot cache had seen this geometry, one
         solve that lets it see it again, so the next solve is served as it would have been."""
+        if snapshot.get("materials"):
+            self.set_materials(snapshot["materials"])
         if snapshot["receivers"]:
             self.place(dict(snapshot["receivers"]))
             if snapshot["geometry_seen"]:

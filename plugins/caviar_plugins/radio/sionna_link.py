@@ -13,6 +13,8 @@ positions, ray traces them in one solver call and publishes, per UAV:
   delays, angles, interactions; :class:`~caviar_plugins.radio.path_data.PathData`), binary;
 
 and then ``communications.state`` ``"Ready"``. Beam pair index = rx_beam · 64 + tx_beam.
+Radio materials a ``scene-fitter`` learned (``twin.materials``) apply from the step they
+arrive in.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from caviar_plugins.rt.scene import scene_path
 from caviar_plugins.schema import (
     BEAM_SELECTION,
     FORECAST,
+    MATERIALS,
     PATHS,
     POSITIONS,
     PREDICTION,
@@ -146,8 +149,9 @@ class SionnaLinkParams(LinkBudgetParams, RadioConfig):
 
 
 class SionnaLink(caviar.Plugin):
-    subscribe = [POSITIONS, BEAM_SELECTION, FORECAST]
-    optional = (BEAM_SELECTION, FORECAST)  # (without them: the best pair, no look-ahead)
+    subscribe = [POSITIONS, BEAM_SELECTION, FORECAST, MATERIALS]
+    # (without them: the best pair, no look-ahead, the scene's own materials)
+    optional = (BEAM_SELECTION, FORECAST, MATERIALS)
     publishes = (*LINK_TOPICS, STATE, PREDICTION, every_ue(PATHS), caviar.STATUS_TOPIC)
     Params = SionnaLinkParams
 
@@ -213,6 +217,8 @@ class SionnaLink(caviar.Plugin):
                     self.forecaster.observe(m.data["UE_Id"], _time(m, t) - float(m.data.get("age_s", 0.0)),
                                             self.positions[m.data["UE_Id"]],
                                             None if v is None else read_position({"position": v}))
+            elif m.topic == MATERIALS:  # a scene-fitter's learned materials, from this step's solve on
+                self.radio.set_materials(m.data["materials"])
             elif m.topic == BEAM_SELECTION:
                 self.selected[m.data["UE_Id"]] = int(m.data["beam_pair"])
             elif m.topic == FORECAST:

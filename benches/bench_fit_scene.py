@@ -1,0 +1,153 @@
+"""Learning osm-city's radio materials from a flight's measurements (issue #56), written to
+docs/results/fit-scene.json (and fit-scene.png).
+
+A hidden ground truth: the osm-city scene (central Helsinki from OpenStreetMap) with its
+building concrete, its glass and its ground (the ground and road surfaces, a group of their
+own) changed by factors of 2 to 5. A UAV flies osm-city's route at ``--altitude`` and
+measures the power from the rooftop transmitter at ``--positions`` places, with ``--noise-db``
+of Gaussian noise; ``--holdout`` of them are never fitted. The twin starts from the scene's
+ITU materials and learns every material's permittivity and conductivity
+(:func:`caviar_plugins.twin.fit.fit_materials`); the report gives the held-out RMSE before
+and after, the recovered values against the truth, what could not be identified, and the
+wall time on this machine.
+
+    .venv/bin/python benches/bench_fit_scene.py            # about 20-40 min on 2 cores
+    .venv/bin/python benches/bench_fit_scene.py --probe    # only: how far truth and guess differ
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+from bench_common import machine
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SCENE = ROOT / "blueprints" / "osm-city" / "scene" / "scene.xml"
+ROUTE = ROOT / "blueprints" / "osm-city" / "route.csv"
+TX = (81.0, -41.0, 32.0)
+"""osm-city's transmitter: 5 m above a 27 m roof at the corner of the route."""
+GROUPS = {"streets": ("ground", "roads")}
+"""The ground and road surfaces get a material of their own, "streets" (they share the buildings' concrete
+in the scene file)."""
+FACTORS = {("itu_concrete", "relative_permittivity"): 3.0, ("itu_concrete", "conductivity"): 0.25,
+           ("itu_glass", "relative_permittivity"): 2.0, ("streets", "relative_permittivity"): 4.0,
+           ("streets", "conductivity"): 5.0}
+"""The hidden truth: each property's factor on the scene's ITU value at the carrier."""
+
+
+def flight(n: int, altitude: float) -> np.ndarray:
+    """``n`` positions evenly spaced along osm-city's route at ``altitude`` (m)."""
+    route = np.loadtxt(ROUTE, delimiter=",", skiprows=1)[:, :2]
+    seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
+    s = np.concatenate([[0], np.cumsum(seg)])
+    at = np.linspace(0, s[-1], n)
+    xy = np.stack([np.interp(at, s, route[:, 0]), np.interp(at, s, route[:, 1])], axis=1)
+    return np.c_[xy, np.full(n, altitude)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    a.add_argument("--positions", type=int, default=500)
+    a.add_argument("--altitude", type=float, default=10.0)
+    a.add_argument("--noise-db", type=float, default=1.0)
+    a.add_argument("--holdout", type=float, default=0.2)
+    a.add_argument("--frequency", type=float, default=3.5e9)
+    a.add_argument("--samples", type=int, default=200_000)
+    a.add_argument("--iterations", type=int, default=30)
+    a.add_argument("--search-points", type=int, default=40)
+    a.add_argument("--search-sweeps", type=int, default=1)
+    a.add_argument("--probe", action="store_true")
+    a.add_argument("--out", type=pathlib.Path, default=ROOT / "docs" / "results" / "fit-scene.json")
+    args = a.parse_args(argv)
+
+    from caviar_plugins.rt.materials import apply_materials, scene_materials, split_material
+    from caviar_plugins.rt.received_power import ReceivedPower
+    from caviar_plugins.rt.scene import load_scene
+    from caviar_plugins.tools.fit_scene.report import plot_fit
+    from caviar_plugins.twin.fit import FIT_RAYS, FitSettings, fit_materials
+    from caviar_plugins.twin.measurements import Measurements
+
+    rays = dataclasses.replace(FIT_RAYS, samples_per_src=args.samples)
+    t0 = time.perf_counter()
+
+    def scene():
+        s = load_scene(str(SCENE), merge_shapes=False)
+        s.frequency = args.frequency
+        for g, patterns in GROUPS.items():
+            split_material(s, g, patterns)
+        return s
+
+    rx = flight(args.positions, args.altitude)
+    n = len(rx)
+    truth_scene = scene()
+    start = scene_materials(truth_scene)
+    truth = {k: getattr(start[k[0]], k[1]) * f for k, f in FACTORS.items()}
+    model = ReceivedPower(truth_scene, rays, seed=0)
+    model.place(rx, np.array([TX]))
+    pairs = np.stack([np.arange(n), np.zeros(n, dtype=int)], axis=1)
+    guess = model.predict(pairs, 30.0)
+    table: dict[str, dict[str, float]] = {}
+    for (m, p), v in truth.items():
+        table.setdefault(m, {})[p] = v
+    apply_materials(truth_scene, table)
+    true_power = model.predict(pairs, 30.0)
+    seen = np.isfinite(true_power)
+    noise = np.random.default_rng(7).normal(0.0, args.noise_db, n)
+    print(f"{int(seen.sum())} of {n} positions have a path; truth vs guess: "
+          f"{np.sqrt(np.mean((true_power[seen & np.isfinite(guess)] - guess[seen & np.isfinite(guess)]) ** 2)):.2f} dB "
+          f"RMS ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    if args.probe:
+        return 0
+    rx, measured = rx[seen], (true_power + noise)[seen]
+    k = len(rx)
+    data = Measurements(np.arange(k, dtype=float), rx, np.tile(TX, (k, 1)), measured, np.full(k, 30.0),
+                        args.frequency, 20e6)
+    settings = FitSettings(learn=("relative_permittivity", "conductivity"), materials=tuple(sorted(start)),
+                           holdout=args.holdout, iterations=args.iterations, noise_db=args.noise_db,
+                           search_points=args.search_points, search_sweeps=args.search_sweeps, seed=1)
+    t_fit = time.perf_counter()
+    fit_scene = scene()
+
+    def progress(row):
+        if row["phase"] == "descent" or row.get("fit_rmse_db", 99) < 1.5:
+            print(f"  {row['phase']}: fit {row['fit_rmse_db']:.3f} dB, held out {row['held_out_rmse_db']:.3f} dB "
+                  f"({time.perf_counter() - t_fit:.0f} s)", file=sys.stderr, flush=True)
+
+    result = fit_materials(fit_scene, data, settings, rays, progress=progress)
+    wall = time.perf_counter() - t_fit
+    ident = result.identifiability
+    recovered = {}
+    for u, v in result.learned.items():
+        name = f"{u[0]}.{u[1]}"
+        ok = u in ident.identifiable and u not in ident.ambiguous
+        recovered[name] = {"start": round(result.start[u], 5), "truth": round(truth[u], 5) if u in truth else None,
+                           "learned": round(v, 5),
+                           "error_vs_truth": round(v / truth[u] - 1, 4) if u in truth else None,
+                           "identifiable": ok,
+                           **({"ambiguous_with": ident.ambiguous[u]} if u in ident.ambiguous else {})}
+    report = {
+        "what": "osm-city's materials learned from a flight's received power (benches/bench_fit_scene.py)",
+        "machine": machine(), "wall_s_fit": round(wall, 1), "wall_s_total": round(time.perf_counter() - t0, 1),
+        "setup": {"positions": n, "with_a_path": k, "altitude_m": args.altitude, "tx": TX, "noise_db": args.noise_db,
+                  "holdout": args.holdout, "frequency_hz": args.frequency, "rays": dataclasses.asdict(rays),
+                  "groups": {g: list(p) for g, p in GROUPS.items()},
+                  "truth_factors": {f"{m}.{p}": f for (m, p), f in FACTORS.items()}},
+        "rmse_db": result.rmse_db, "recovered": recovered, "stopped": result.stopped,
+        "samples": result.samples, "target": {"held_out_rmse_after_db": 1.5, "permittivity_within": 0.2},
+        "history": result.history,
+    }
+    args.out.write_text(json.dumps(report, indent=1))
+    plot_fit(result, data, args.out.with_suffix(".png"))
+    print(json.dumps({k: report[k] for k in ("rmse_db", "recovered", "wall_s_fit")}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

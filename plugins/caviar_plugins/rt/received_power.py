@@ -1,0 +1,134 @@
+"""Received power through Sionna RT, with its derivatives with respect to the scene's radio
+materials: what a fit of the materials to measurements descends on
+(:mod:`caviar_plugins.twin.fit`).
+
+:class:`ReceivedPower` places receivers and transmitters (single antennas) in a scene, traces
+every transmitter to every receiver in one solve, and gives, per measured (receiver,
+transmitter) pair, the local-average received power in dBm:
+
+    P = P_tx + 10·log10( Σ_paths |a_p|² )
+
+the sum of the paths' powers (Sionna's coefficients ``a`` include the antenna patterns and
+every interaction), which is what a power measurement averaged over the bandwidth or a few
+wavelengths of track reports. With :meth:`ReceivedPower.loss_and_gradient`, the mean squared
+error in dB over the pairs it is given and its gradient with respect to each material property
+come from Dr.Jit's automatic differentiation through Sionna's field computation (the solver's
+``loop_mode = "evaluated"``): a path's geometry does not depend on the materials, its
+coefficient does.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from caviar_plugins.rt.drjit_setup import jit
+from caviar_plugins.rt.materials import fix_at_carrier, material_of
+from caviar_plugins.rt.scene import AntennaArray, planar_array, sionna_rt
+from caviar_plugins.rt.settings import TraceSettings
+
+Unknown = tuple[str, str]
+"""(material, property): one quantity a fit can learn."""
+
+RX_PREFIX, TX_PREFIX = "meas-rx-", "meas-tx-"
+
+
+class ReceivedPower:
+    """The received power of measured pairs in ``scene`` (already loaded, at its carrier),
+    traced as ``settings`` say with the solver's seed from ``seed``."""
+
+    def __init__(self, scene: Any, settings: TraceSettings, seed: int = 0, antenna: AntennaArray | None = None):
+        rt = sionna_rt()
+        self.scene = scene
+        fix_at_carrier(scene)
+        array = planar_array(antenna or AntennaArray())
+        scene.tx_array = array
+        scene.rx_array = array
+        self.options = settings.path_options(seed)
+        self.max_num_paths_per_src = settings.max_num_paths_per_src
+        self._solver = rt.PathSolver()
+        self._diff_solver = rt.PathSolver()
+        self._diff_solver.loop_mode = "evaluated"
+        self.n_rx = self.n_tx = 0
+
+    def place(self, rx_positions: np.ndarray, tx_positions: np.ndarray) -> None:
+        """Receivers at ``rx_positions`` (N × 3, m) and transmitters at ``tx_positions``
+        (M × 3), in place of those the scene had."""
+        rt = sionna_rt()
+        for name in list(self.scene.receivers):
+            self.scene.remove(name)
+        for name in list(self.scene.transmitters):
+            self.scene.remove(name)
+        for i, p in enumerate(np.asarray(tx_positions, dtype=float).reshape(-1, 3)):
+            self.scene.add(rt.Transmitter(f"{TX_PREFIX}{i}", position=[float(v) for v in p]))
+        for i, p in enumerate(np.asarray(rx_positions, dtype=float).reshape(-1, 3)):
+            self.scene.add(rt.Receiver(f"{RX_PREFIX}{i}", position=[float(v) for v in p]))
+        self.n_rx, self.n_tx = len(self.scene.receivers), len(self.scene.transmitters)
+
+    def _set(self, values: Mapping[Unknown, float], grad: bool) -> dict[Unknown, Any]:
+        dr, mi = jit()
+        handles = {}
+        for (material, prop), v in values.items():
+            x = mi.Float(float(v))
+            if grad:
+                dr.enable_grad(x)
+            setattr(material_of(self.scene, material), prop, x)
+            handles[(material, prop)] = x
+        return handles
+
+    def _pair_power(self, solver: Any, pairs: np.ndarray) -> Any:
+        """Σ|a|² per pair (a Dr.Jit array, in pair order) for ``pairs`` ((rx, tx) rows)."""
+        dr, mi = jit()
+        paths = solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src, synthetic_array=True,
+                       **self.options)
+        a_re, a_im = paths.a
+        power = dr.square(a_re) + dr.square(a_im)  # [rx, rx_ant, tx, tx_ant, paths]
+        n_ant = power.shape[1] * power.shape[3]
+        per_pair = dr.sum(dr.sum(dr.sum(power, axis=-1), axis=3), axis=1) / n_ant  # [rx, tx]
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        index = mi.UInt32(pairs[:, 0] * self.n_tx + pairs[:, 1])
+        return dr.gather(mi.Float, per_pair.array, index)
+
+    def predict(self, pairs: np.ndarray, tx_power_dbm: np.ndarray | float,
+                values: Mapping[Unknown, float] | None = None) -> np.ndarray:
+        """Received power (dBm) of each (rx, tx) pair; -inf where no path joins them.
+        ``values`` sets material properties first."""
+        if values:
+            self._set(values, grad=False)
+        power = np.array(self._pair_power(self._solver, pairs), dtype=np.float64)
+        with np.errstate(divide="ignore"):
+            return np.asarray(tx_power_dbm, dtype=np.float64) + 10.0 * np.log10(power)
+
+    def loss_and_gradient(self, pairs: np.ndarray, tx_power_dbm: np.ndarray | float, measured_dbm: np.ndarray,
+                          weights: np.ndarray, values: Mapping[Unknown, float]
+                          ) -> tuple[np.ndarray, float, dict[Unknown, float]]:
+        """For material properties ``values``: the predicted dBm of every pair (-inf: no
+        path), the weighted mean squared error Σ w·(P − measured)² / Σ w over the pairs
+        with a path (dB²), and its derivative with respect to each property of ``values``."""
+        dr, mi = jit()
+        handles = self._set(values, grad=True)
+        power = self._pair_power(self._diff_solver, pairs)
+        dr.eval(power)
+        p = np.array(power, dtype=np.float64)
+        w = np.where(p > 0, np.asarray(weights, dtype=np.float64), 0.0)
+        if w.sum() <= 0:
+            raise ValueError("no measured pair that is fitted has a ray-traced path in the scene")
+        tx = np.broadcast_to(np.asarray(tx_power_dbm, dtype=np.float64), p.shape)
+        target = mi.Float((np.asarray(measured_dbm, dtype=np.float64) - tx).astype(np.float32))
+        db = 10.0 * dr.log(dr.maximum(power, 1e-30)) / np.log(10.0)
+        loss = dr.sum(mi.Float((w / w.sum()).astype(np.float32)) * dr.square(db - target))
+        dr.backward(loss)
+        grads = {key: float(dr.grad(x)[0]) for key, x in handles.items()}
+        with np.errstate(divide="ignore"):
+            predicted = tx + 10.0 * np.log10(p)
+        return predicted, float(loss[0]), grads
+
+
+def unknowns_of(scene: Any, materials: Sequence[str], properties: Sequence[str]) -> list[Unknown]:
+    """Every (material, property) of ``materials`` × ``properties``, checked against the
+    scene."""
+    for m in materials:
+        material_of(scene, m)
+    return [(m, p) for m in materials for p in properties]
