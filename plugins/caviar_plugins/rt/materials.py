@@ -1,7 +1,7 @@
 """A scene's radio materials as numbers: what they are at the scene's carrier
 (:func:`scene_materials`), changing them (:func:`apply_materials`), a material of its own for
-a group of objects (:func:`split_material`), and a scene file with other materials
-(:func:`write_scene_xml`).
+a group of objects (:func:`split_material`), and a scene file with learned materials (:func:`write_scene_xml`,
+each named :func:`fitted_name`).
 
 The properties are Sionna RT's (ITU-R P.2040): the real relative permittivity
 ``relative_permittivity`` (ε_r ≥ 1), the conductivity ``conductivity`` (σ, S/m), the
@@ -111,13 +111,21 @@ def split_material(scene: Any, group: str, patterns: Iterable[str]) -> list[str]
     return [o.name for o in objs]
 
 
+def fitted_name(name: str) -> str:
+    """The name a learned material has in a written scene: ``fitted-`` and its name without
+    ``itu_`` (Sionna reads every material named ``itu_…``, or named like an ITU material, as
+    that ITU material, whatever its values)."""
+    base = name[4:] if name.startswith(("itu_", "itu-")) else name
+    return f"fitted-{base}"
+
+
 def write_scene_xml(source: pathlib.Path, target: pathlib.Path, values: Mapping[str, MaterialValues],
-                    groups: Mapping[str, list[str]] | None = None) -> pathlib.Path:
+                    groups: Mapping[str, list[str]] | None = None) -> dict[str, str]:
     """Writes ``source`` (a Mitsuba/Sionna XML scene) to ``target`` with every material of
-    ``values`` a plain ``radio-material`` of those values (its id kept), and the shapes of
-    each group of ``groups`` (``{group: [shape names]}``) on a new material ``group``.
-    Mesh paths are made relative to ``target``'s folder, so the new file loads from where
-    it is. Returns ``target``."""
+    ``values`` a plain ``radio-material`` of those values, named :func:`fitted_name`, and the
+    shapes of each group of ``groups`` (``{group: [shape names]}``) on a material of their own.
+    Mesh paths are made relative to ``target``'s folder, so the new file loads from where it
+    is. Returns ``{material: its name in the new file}``."""
     source, target = pathlib.Path(source), pathlib.Path(target)
     tree = ET.parse(source)
     root = tree.getroot()
@@ -125,13 +133,14 @@ def write_scene_xml(source: pathlib.Path, target: pathlib.Path, values: Mapping[
     for name in groups or {}:
         if name in by_name:
             raise ValueError(f"group '{name}': the scene already has a material of that name")
-        by_name[name] = ET.Element("bsdf", {"type": "radio-material", "id": f"mat-{name}"})
+        by_name[name] = ET.Element("bsdf", {"type": "radio-material", "id": name})
         root.insert(0, by_name[name])
+    _move_shapes(root, groups or {}, source)
+    renamed = {}
     for name, v in values.items():
         if name not in by_name:
             raise KeyError(f"material '{name}': not in {source}")
-        _write_material(by_name[name], v)
-    _move_shapes(root, groups or {}, source)
+        renamed[name] = _write_material(root, by_name[name], fitted_name(name), v)
     for node in root.iter("string"):
         if node.get("name") == "filename":
             mesh = (source.parent / node.get("value", "")).resolve()
@@ -139,7 +148,7 @@ def write_scene_xml(source: pathlib.Path, target: pathlib.Path, values: Mapping[
     target.parent.mkdir(parents=True, exist_ok=True)
     ET.indent(tree)
     tree.write(target, encoding="unicode")
-    return target
+    return renamed
 
 
 def _material_name(bsdf: ET.Element) -> str:
@@ -148,12 +157,20 @@ def _material_name(bsdf: ET.Element) -> str:
     return bsdf_id[4:] if bsdf_id.startswith("mat-") else bsdf_id
 
 
-def _write_material(bsdf: ET.Element, v: MaterialValues) -> None:
+def _write_material(root: ET.Element, bsdf: ET.Element, name: str, v: MaterialValues) -> str:
+    """Makes ``bsdf`` a plain radio material ``name`` of values ``v`` (the shapes' references
+    follow); returns ``name``."""
+    old = bsdf.get("id", "")
+    for ref in root.iter("ref"):
+        if ref.get("id") == old:
+            ref.set("id", name)
+    bsdf.attrib["id"] = name
     bsdf.attrib["type"] = "radio-material"
     for child in list(bsdf):
         bsdf.remove(child)
     for prop, value in v.as_dict().items():
         ET.SubElement(bsdf, "float", {"name": prop, "value": repr(float(value))})
+    return name
 
 
 def _move_shapes(root: ET.Element, groups: Mapping[str, list[str]], source: pathlib.Path) -> None:
@@ -166,4 +183,4 @@ def _move_shapes(root: ET.Element, groups: Mapping[str, list[str]], source: path
                 raise KeyError(f"group '{name}': shape '{member}' not in {source}")
             for ref in shape.iter("ref"):
                 if ref.get("name") == "bsdf":
-                    ref.set("id", f"mat-{name}")
+                    ref.set("id", name)

@@ -188,7 +188,9 @@ def _fit(args, settings, rays, data) -> int:
                    "raytracing": dataclasses.asdict(rays), "wall_s": round(time.perf_counter() - t0, 1)})
     source = scene_path(args.scene)
     if source is not None:
-        write_scene_xml(source, args.out / "scene.xml", result.materials, result.groups)
+        learned = {m for m, _ in result.learned}
+        report["names_in_scene_xml"] = write_scene_xml(
+            source, args.out / "scene.xml", {m: v for m, v in result.materials.items() if m in learned}, result.groups)
     (args.out / "fit.json").write_text(json.dumps(report, indent=1))
     plot_fit(result, data, args.out / "fit.png")
     rm = result.rmse_db
