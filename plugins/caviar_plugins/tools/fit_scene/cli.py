@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import pathlib
 import sys
 import time
@@ -94,20 +93,23 @@ def _check(args):
     TraceSettings, Measurements) or a _Usage naming the flag."""
     from caviar_plugins.rt.scene import scene_path
     from caviar_plugins.rt.settings import TraceSettings
+    from caviar_plugins.tools import flags
     from caviar_plugins.twin.fit import FIT_RAYS, FitSettings
     from caviar_plugins.twin.measurements import MeasurementError, read_measurements
 
-    for flag, v in (("--holdout", args.holdout), ("--learning-rate", args.learning_rate),
-                    ("--noise-db", args.noise_db), ("--max-log-std", args.max_log_std)):
-        if not math.isfinite(v):
-            raise _Usage(f"{flag}: expected a finite number, got {v}")
-    for flag, v, lo, hi in (("--samples", args.samples, 1, 10**8), ("--max-depth", args.max_depth, 0, 10),
-                            ("--iterations", args.iterations, 1, 10_000),
-                            ("--search-points", args.search_points, 1, 1000),
-                            ("--search-sweeps", args.search_sweeps, 0, 10), ("--threads", args.threads, 0, 4096),
-                            ("--seed", args.seed, 0, 2**31 - 1)):
-        if not lo <= v <= hi:
-            raise _Usage(f"{flag}: expected a whole number from {lo} to {hi}, got {v}")
+    try:
+        for flag, v in (("--holdout", args.holdout), ("--learning-rate", args.learning_rate),
+                        ("--noise-db", args.noise_db), ("--max-log-std", args.max_log_std)):
+            flags.number(v, flag)
+        for flag, v, lo, hi in (("--samples", args.samples, 1, 10**8), ("--max-depth", args.max_depth, 0, 10),
+                                ("--iterations", args.iterations, 1, 10_000),
+                                ("--search-points", args.search_points, 1, 1000),
+                                ("--search-sweeps", args.search_sweeps, 0, 10), ("--threads", args.threads, 0, 4096),
+                                ("--seed", args.seed, 0, 2**31 - 1)):
+            flags.integer(v, flag, lo, hi)
+        flags.output_dir(args.out)
+    except flags.FlagError as e:
+        raise _Usage(str(e)) from None
     try:
         settings = FitSettings(learn=_names(args.learn, "--learn"), materials=_names(args.materials, "--materials"),
                                groups=_groups(args.group), holdout=args.holdout, iterations=args.iterations,
@@ -124,20 +126,11 @@ def _check(args):
         scene_path(args.scene)
     except FileNotFoundError as e:
         raise _Usage(f"SCENE: {e}") from None
-    out = args.out
-    if out.exists() and not out.is_dir():
-        raise _Usage(f"--out: {out} exists and is not a directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".fit-scene-write-test"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as e:
-        raise _Usage(f"--out: cannot write to {out} ({e.strerror or e})") from None
     try:
         data = read_measurements(args.measurements)
     except MeasurementError as e:
         raise _Usage(f"MEASUREMENTS: {e}") from None
+    args.out.mkdir(parents=True, exist_ok=True)
     return settings, rays, data
 
 
@@ -166,7 +159,6 @@ def main(argv: list[str] | None = None) -> int:
 def _fit(args, settings, rays, data) -> int:
     from caviar_plugins.rt.materials import write_scene_xml
     from caviar_plugins.rt.scene import load_scene, scene_path
-    from caviar_plugins.rt.settings import TraceSettings  # noqa: F401 (documented type of rays)
     from caviar_plugins.tools.fit_scene.report import plot_fit
     from caviar_plugins.twin.fit import fit_materials
 
