@@ -33,6 +33,9 @@ on this CPU warm, with what it would cost on an H200 from the solve figures meas
 ``git archive HEAD plugins | tar -x -C DIR``), each size's runs of the two interleaved, in
 processes of their own, for the before/after ratios. Writes ``docs/results/host-overhead.json``.
 
+On a machine other work keeps busy, run it with ``OMP_NUM_THREADS=1``: torch's second thread,
+waiting for a busy core, stalls steps by up to 10× at random, old and new code alike.
+
     .venv/bin/python benches/bench_host_overhead.py [--steps 5] [--baseline /tmp/base]
 """
 
@@ -55,6 +58,8 @@ TARGETS = {"host_ms_per_step_1000_ues": 10.0, "torch_launches_per_group": 30}
 H200_SOLVE = {"one_uav_1e6_samples_ms": {"warm": 39, "kernels": 17, "host": 18},
               "ten_uavs_1e6_samples_ms": {"warm": 117, "kernels": 43, "host": 65}}
 """One Sionna RT solve on an H200 (issue #53's figures): 1 UAV and 10 UAVs, 1e6 samples."""
+RUNS = ("run", "run_linear")
+"""A link level's calls (numpy dB SINRs, or linear ones as a tensor): the link levels' phases."""
 
 
 def _timed(obj, name: str, into: dict, key: str) -> None:
@@ -79,11 +84,16 @@ def _launches(net, step) -> tuple[int, int, int, float]:
     device kernels on a GPU)."""
     from torch.profiler import ProfilerActivity, profile, record_function
 
-    for link in (net.link, net.ul_link):
-        def annotated(*args, _inner=link.run, **kwargs):
+    def annotated(inner):
+        def call(*args, **kwargs):
             with record_function("link_run"):
-                return _inner(*args, **kwargs)
-        link.run = annotated
+                return inner(*args, **kwargs)
+        return call
+
+    for link in (net.link, net.ul_link):
+        for name in RUNS:
+            if hasattr(link, name):  # (a baseline's link level may have no run_linear)
+                setattr(link, name, annotated(getattr(link, name)))
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         step()
     top = [e for e in prof.events() if e.name.startswith("aten::")
@@ -146,7 +156,9 @@ def one(n_ue: int, steps: int, samples: int) -> dict:
         _timed(sys.modules[RadioNetwork.__module__], "downlink_sinr", timing, "downlink_sinr")
         _timed(sys.modules[RadioNetwork.__module__], "uplink", timing, "uplink_sinr")  # (powers and SINR)
         for link, key in ((net.link, "dl_link_run"), (net.ul_link, "ul_link_run")):
-            _timed(link, "run", timing, key)
+            for name in RUNS:
+                if hasattr(link, name):
+                    _timed(link, name, timing, key)
         messages, per_step = 0, []
         for k in range(1, steps + 1):
             before, a = dict(timing), time.perf_counter()
@@ -170,7 +182,8 @@ def one(n_ue: int, steps: int, samples: int) -> dict:
             "phases_ms": phases,
             "groups_per_step": groups, "top_level_torch_ops_per_step": top,
             "top_level_torch_ops_per_group": round(in_links / groups, 2),
-            "compiled_regions_per_group": round(compiled / groups, 2), "torch": torch.__version__}
+            "compiled_regions_per_group": round(compiled / groups, 2), "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads()}
 
 
 def refresh(n_ue: int, samples: int) -> dict:
