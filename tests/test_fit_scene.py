@@ -143,6 +143,16 @@ def test_gradient_of_received_power_matches_a_finite_difference(rt):
         model.predict(pairs, 30.0, {key: eps if material == "marble" else 5.24})
 
 
+def test_no_path_at_all_is_minus_infinity_not_a_crash(rt):
+    """Free space traced without the line of sight has no path: every pair is -inf dBm (the
+    emulator then reports nothing), where Dr.Jit's sum over the empty path axis would fail."""
+    from caviar_plugins.rt.received_power import ReceivedPower
+
+    model = ReceivedPower(rt.load_scene(), RAYS, seed=0)
+    model.place(np.array([[0.0, 0.0, 1.5], [5.0, 0.0, 1.5]]), np.array([TX]))
+    assert np.all(model.predict(np.array([[0, 0], [1, 0]]), 30.0) == -np.inf)
+
+
 def test_a_fit_finds_a_known_permittivity_back_and_says_what_it_cannot_see(rt):
     """Concrete's ε_r is 3x the scene's (5.24 -> 15.7) in the "true" street; 16 measurements
     with 0.5 dB of noise, 4 held out. The fit learns concrete's permittivity within 10 % and

@@ -159,7 +159,8 @@ materials, which the ray-traced links apply from then on."""
 TWIN_FIT = "twin.fit"
 """Per step with new measurements ``{"time", "samples", "new", "prediction_error_db"}`` (the
 new samples as the twin predicted them before learning from them), and per refit ``{"time",
-"samples", "refit", "rmse_db", "learned", "not_identifiable"}``."""
+"samples", "refit", "rmse_db", "learned", "not_identifiable", "ambiguous"}`` (``ambiguous``: per
+property, the other values that fit as well)."""
 
 # Datasets
 DATASET_RECORD = "dataset.record"

@@ -85,9 +85,11 @@ class ReceivedPower:
                        **self.options)
         a_re, a_im = paths.a
         power = dr.square(a_re) + dr.square(a_im)  # [rx, rx_ant, tx, tx_ant, paths]
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        if power.shape[-1] == 0:  # no path at all (Dr.Jit cannot sum an empty axis)
+            return dr.zeros(mi.Float, len(pairs))
         n_ant = power.shape[1] * power.shape[3]
         per_pair = dr.sum(dr.sum(dr.sum(power, axis=-1), axis=3), axis=1) / n_ant  # [rx, tx]
-        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         index = mi.UInt32(pairs[:, 0] * self.n_tx + pairs[:, 1])
         return dr.gather(mi.Float, per_pair.array, index)
 

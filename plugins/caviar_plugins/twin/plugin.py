@@ -152,7 +152,9 @@ class SceneFitter(caviar.Plugin):
         yield TWIN_FIT, {"time": t, "samples": len(data), "refit": self.refits, "rmse_db": result.rmse_db,
                           "learned": {f"{m}.{p}": v for (m, p), v in result.learned.items()},
                           "not_identifiable": [f"{m}.{p}" for (m, p) in result.start
-                                               if (m, p) not in result.identifiability.identifiable]}
+                                               if (m, p) not in result.identifiability.identifiable],
+                          "ambiguous": {f"{m}.{p}": [round(v, 4) for v in values]
+                                        for (m, p), values in result.identifiability.ambiguous.items()}}
         self.predictor = None  # the fit placed its own receivers
 
     def state(self):
