@@ -61,12 +61,19 @@ class SceneFitterParams:
     iterations: int = 10
     """Gradient steps per refit (each starts from the last fit's values)."""
     learn: list[str] = dataclasses.field(default_factory=lambda: ["relative_permittivity"])
+    """The properties learned per material (``relative_permittivity``, ``conductivity``,
+    ``scattering_coefficient``)."""
     materials: list[str] = dataclasses.field(default_factory=list)
     """The materials learned (empty: every material the scene's objects use)."""
-    learning_rate: float = 0.1
+    learning_rate: float = 0.02
+    """Adam's step in the properties' logs (:class:`~caviar_plugins.twin.fit.FitSettings`)."""
     holdout: float = 0.2
+    """The share of the samples each refit holds out to judge itself (``twin.fit``'s
+    ``rmse_db.held_out``)."""
     noise_db: float = 1.0
+    """The measurements' noise (dB): the identifiability bound."""
     max_log_std: float = 0.2
+    """A property is learned only if the data bound its log within this (Cramér–Rao)."""
     max_samples: int = 1000
     """The most recent samples a refit uses (at most :data:`MAX_SAMPLES`)."""
     search_points: int = 40

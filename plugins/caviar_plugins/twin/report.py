@@ -51,7 +51,8 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
         t, e = np.array(rows).T
         ax.plot(t, np.abs(e), ".", ms=4, alpha=0.6, label="|error| of each new measurement")
         k = min(10, len(e))
-        ax.plot(t, np.sqrt(np.convolve(e**2, np.ones(k) / k, mode="same")), label=f"RMS over {k} steps")
+        trailing = [np.sqrt(np.mean(e[max(0, i - k + 1):i + 1] ** 2)) for i in range(len(e))]
+        ax.plot(t, trailing, label=f"RMS of the last {k}")
     for r in summary["refits"]:
         ax.axvline(r["time"], color="grey", lw=0.8, ls="--")
     ax.set(xlabel="time (s)", ylabel="prediction error (dB)",
