@@ -239,6 +239,38 @@ def test_a_ue_keeps_its_draw_and_its_gain_follows_the_uma_pathloss_as_it_moves()
     assert ch.state["u"].anchor[0] == pytest.approx(270.0)
 
 
+def test_an_indoor_ue_that_moves_keeps_its_outdoor_los_and_its_o2i_loss():
+    """An indoor UE's pathloss is PL_b of its LOS state outdoors (TR 38.901 §7.4.3), plus the
+    O2I loss of its building, whose random term belongs to the UE: moving 20 m (within the
+    redraw distance) changes its gain by the UMa formula of the state it was drawn with alone."""
+    from caviar_plugins.network.cells import element_gain_db
+
+    cells = parse_sites([{"name": "A", "position": [0.0, 0.0, 25.0], "azimuths_deg": [0.0]},
+                         {"name": "B", "position": [400.0, 0.0, 25.0], "azimuths_deg": [180.0]}],
+                        {"tx_power_dbm": 49.0, "carrier_hz": 6e9, "bandwidth_hz": 20e6, "array": [1, 1]})
+    ch = StochasticChannel("uma", cells, StochasticSettings(spec_version="16.1"), seed=5)
+    n = 40
+    ids = [f"i{k}" for k in range(n)]
+    here = np.stack([50.0 + 2.0 * np.arange(n), np.full(n, 10.0), np.full(n, 1.5)], axis=-1)
+    first = ch.gains_db(ids, here, indoor=np.ones(n, bool), distance_2d_in=np.full(n, 5.0))
+    draws = [ch.state[u] for u in ids]
+    los = np.array([d.los for d in draws])  # [ue, site]
+    # Outdoor LOS toward A is likely at 50-130 m (UMa: 0.3-0.6): some indoor UEs have it.
+    assert 0 < los[:, 0].sum() < n
+    o2i = np.array([d.o2i_db for d in draws])  # [ue, site]: the wall, 0.5 dB/m indoors, one random term a UE
+    assert all(d.indoor for d in draws) and np.allclose(o2i, o2i[:, :1]) and o2i.mean() > 10.0
+    there = here + [20.0, 0.0, 0.0]
+    moved = ch.gains_db(ids, there)
+    for i, d in enumerate(draws):
+        assert np.array_equal(ch.state[ids[i]].los, los[i])
+        for k, c in enumerate(cells):
+            d0, d1 = (float(np.linalg.norm(p[i] - np.array(c.position))) for p in (here, there))
+            pl = _uma_los_pathloss_db if los[i, k] else (lambda d, f: _uma_nlos_pathloss_db(d, f, 1.5))
+            pattern = element_gain_db([c], there[i:i + 1])[0, 0] - element_gain_db([c], here[i:i + 1])[0, 0]
+            assert moved[i, k] - first[i, k] == pytest.approx(pl(d0, 6e9) - pl(d1, 6e9) + pattern, abs=1e-6), \
+                (ids[i], c.name, los[i, k])
+
+
 NETWORK_38901 = (episode(0.05, ["communications"], steps=3, seed=1)
                  + output(analysis=["communications.throughput", "network.ue", "network.events", "network.cells",
                                     "network.radio_map", "view.radio_map"])

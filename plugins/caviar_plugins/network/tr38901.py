@@ -7,8 +7,8 @@ Large-scale parameters belong to a **site**, not a sector (TR 38.901 §7.5: co-s
 sectors share them): Sionna draws them per site, and each sector adds its pattern toward
 the UE, seen from the site's image nearest to the UE when the layout wraps around.
 
-A UE keeps its LOS state and shadow fading while it moves less than ``redraw_m`` from
-where they were drawn (a piecewise-constant stand-in for the spatial consistency of
+A UE keeps its LOS state, shadow fading and (indoors) O2I loss while it moves less than
+``redraw_m`` from where they were drawn (a piecewise-constant stand-in for the spatial consistency of
 §7.6.3: the decorrelation distances of Table 7.5-6 are 37–120 m); the pathloss follows
 its position at every step. A UE that has not moved keeps its gains as they were.
 
@@ -85,16 +85,22 @@ def check_carrier(scenario: str, carrier_hz: float, key: str) -> None:
 @dataclasses.dataclass
 class _Draw:
     """What a UE keeps between steps: where its state was drawn, its LOS state and shadow
-    fading per site, its building, and the gains it last had (and where)."""
+    fading per site, its building and O2I loss, and the gains it last had (and where).
+
+    ``los`` is the outdoor part's LOS state (Sionna's ``outdoor_los``), which chooses the
+    pathloss formula for an indoor UE too (TR 38.901 §7.4.3: PL_b of the outdoor distance);
+    Sionna's ``los`` is False for every indoor UE (an O2I link has no LOS component)."""
 
     anchor: np.ndarray
-    los: np.ndarray  # [site] bool
+    los: np.ndarray  # [site] bool: the outdoor part's
     sf_db: np.ndarray  # [site]
     indoor: bool
     distance_2d_in: float
     high_loss: bool
     position: np.ndarray
     site_gain_db: np.ndarray  # [site]: −pathloss − shadow fading
+    o2i_db: np.ndarray | None = None  # [site]: the O2I loss drawn with it (0 outdoors; None: a checkpoint
+    # written before it was kept, whose moves draw it again)
 
 
 class StochasticChannel:
@@ -146,8 +152,8 @@ class StochasticChannel:
     # -- Sionna ------------------------------------------------------------------------
     def _sample(self, loss: str, pos: np.ndarray, site_xy: np.ndarray, indoor: np.ndarray,
                 d_in: np.ndarray, los: np.ndarray | None):
-        """Pathloss (dB) and shadow fading (dB) per [ue, site] from Sionna's model, with
-        ``los`` [ue, site] forced (None: drawn)."""
+        """Pathloss (dB), its O2I part (dB) and shadow fading (dB) per [ue, site] from Sionna's
+        model, and the outdoor LOS state, with ``los`` [ue, site] forced (None: drawn)."""
         torch = self.torch
         model = self.models[loss]
         n_ue, n_site = len(pos), len(self.sites)
@@ -175,11 +181,12 @@ class StochasticChannel:
         self.lsp[loss].topology_updated_callback()  # (what SystemLevelChannel.set_topology does)
         lsp = self.lsp[loss]()
         pl = lsp.pathloss.detach().cpu().double().numpy()[0].T  # [ue, site]
+        o2i = pl - model.basic_pathloss.detach().cpu().double().numpy()[0].T
         sf = 10 * np.log10(lsp.sf.detach().cpu().double().numpy()[0].T)
         if not self.settings.shadow_fading:
             sf = np.zeros_like(sf)
-        drawn = model.los.detach().cpu().numpy()[0].T if los is None else los
-        return pl, sf, drawn.astype(bool)
+        drawn = model.outdoor_los.detach().cpu().numpy()[0].T if los is None else los
+        return pl, o2i, sf, drawn.astype(bool)
 
     # -- the network's side -------------------------------------------------------------
     def forget(self, ue: str) -> None:
@@ -222,16 +229,17 @@ class StochasticChannel:
                 ind = np.array([kept[i][1] for i in rows])
                 din = np.array([kept[i][2] for i in rows])
                 los = np.array([self.state[ids[i]].los for i in rows]) if forced else None
-                pl, sf, los_drawn = self._sample(loss, pos[r], site_xy[r], ind, din, los)
+                pl, o2i, sf, los_drawn = self._sample(loss, pos[r], site_xy[r], ind, din, los)
                 for k, i in enumerate(rows):
-                    if forced:
+                    if forced:  # the pathloss at the new position, the O2I loss kept (its random term)
                         s = self.state[ids[i]]
-                        s.position, s.site_gain_db = pos[i].copy(), -pl[k] - s.sf_db
+                        kept_o2i = o2i[k] if s.o2i_db is None else s.o2i_db
+                        s.position, s.site_gain_db = pos[i].copy(), -(pl[k] - o2i[k] + kept_o2i) - s.sf_db
                     else:
                         self.state[ids[i]] = _Draw(anchor=pos[i].copy(), los=los_drawn[k], sf_db=sf[k],
                                                    indoor=bool(ind[k]), distance_2d_in=float(din[k]),
                                                    high_loss=loss == "high", position=pos[i].copy(),
-                                                   site_gain_db=-pl[k] - sf[k])
+                                                   site_gain_db=-pl[k] - sf[k], o2i_db=o2i[k])
         site_gain = np.array([self.state[u].site_gain_db for u in ids]).reshape(n, len(self.sites))
         return site_gain[:, self.cell_site] + self._patterns(pos, site_xy)
 
