@@ -77,8 +77,9 @@ class SceneFitterParams:
     max_samples: int = 1000
     """The most recent samples a refit uses (at most :data:`MAX_SAMPLES`)."""
     search_points: int = 40
-    """The first refit searches each property over this many values before it descends
-    (:func:`~caviar_plugins.twin.fit.coarse_search`); later refits descend from the last."""
+    """A refit searches each property over this many values before it descends
+    (:func:`~caviar_plugins.twin.fit.coarse_search`) when the samples have at least doubled
+    since the last search (the first refit always); the others descend from the last values."""
     raytracing: TraceSettings = dataclasses.field(default_factory=lambda: FIT_RAYS)
 
     def __post_init__(self):
@@ -108,6 +109,8 @@ class SceneFitter(caviar.Plugin):
         self.samples: list[dict[str, float]] = []
         self.last_refit = None
         self.refits = 0
+        self.searched_with = 0
+        """The samples the last refit that searched had."""
         self.carrier: tuple[float, float] | None = None
         self.rejected = 0
         """Measurements dropped for a bad field (each warned about)."""
@@ -149,7 +152,10 @@ class SceneFitter(caviar.Plugin):
 
     def _refit(self, t: float):
         data = from_messages([_Sample(s) for s in self.samples])
-        fit = self.p.fit if self.refits == 0 else dataclasses.replace(self.p.fit, search_sweeps=0)
+        search = len(data) >= 2 * self.searched_with
+        fit = self.p.fit if search else dataclasses.replace(self.p.fit, search_sweeps=0)
+        if search:
+            self.searched_with = len(data)
         result = fit_materials(self.scene, data, fit, self.p.raytracing, run_seed=self.seed)
         self.refits += 1
         merged: dict[str, dict[str, float]] = {}
@@ -166,13 +172,13 @@ class SceneFitter(caviar.Plugin):
 
     def state(self):
         return {"samples": self.samples, "last_refit": self.last_refit, "refits": self.refits,
-                "rejected": self.rejected, "carrier": self.carrier,
+                "rejected": self.rejected, "carrier": self.carrier, "searched_with": self.searched_with,
                 "materials": {k: v.as_dict() for k, v in scene_materials(self.scene).items()}}
 
     def restore(self, state):
         self.samples, self.last_refit, self.refits = state["samples"], state["last_refit"], state["refits"]
         self.rejected = state["rejected"]
-        self.carrier = state["carrier"]
+        self.carrier, self.searched_with = state["carrier"], state["searched_with"]
         apply_materials(self.scene, state["materials"])
 
 
