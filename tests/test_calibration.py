@@ -46,12 +46,20 @@ def test_the_column_gain_is_the_array_factor_summed_element_by_element():
         assert ours.max() <= 10 * math.log10(col.elements) + 1e-9
 
 
-def _wrap_vectors(rings: int, isd: float) -> np.ndarray:
+def _turned(xy: np.ndarray, deg: float) -> np.ndarray:
+    t = math.radians(deg)
+    return np.stack([xy[..., 0] * math.cos(t) - xy[..., 1] * math.sin(t),
+                     xy[..., 0] * math.sin(t) + xy[..., 1] * math.cos(t)], axis=-1)
+
+
+def _wrap_vectors(rings: int, isd: float, first_deg: float = 30.0) -> np.ndarray:
     """The translations that repeat a hexagonal layout of ``rings`` rings, written out: (R + 1)
-    steps along one lattice axis (the centre site to the first, along +x) and R along the next
-    one (60° on), turned by 0°, 60° ... 300° (a 7-site layout repeats √7·ISD away, a 19-site one
-    √19·ISD)."""
-    a1, a2 = isd * np.array([1.0, 0.0]), isd * np.array([0.5, math.sqrt(3) / 2])
+    steps along one lattice axis (the centre site to the first, at ``first_deg``: 30° in 3GPP's
+    layout, 0° in Sionna's) and R along the next one (60° on), turned by 0°, 60° ... 300° (a
+    7-site layout repeats √7·ISD away, a 19-site one √19·ISD)."""
+    f = math.radians(first_deg)
+    a1, a2 = isd * np.array([math.cos(f), math.sin(f)]), isd * np.array([math.cos(f + math.pi / 3),
+                                                                          math.sin(f + math.pi / 3)])
     v = (rings + 1) * a1 + rings * a2
     turns = [np.radians(60 * k) for k in range(6)]
     return np.array([[v[0] * math.cos(t) - v[1] * math.sin(t), v[0] * math.sin(t) + v[1] * math.cos(t)]
@@ -72,8 +80,8 @@ def test_the_wraparound_tiles_the_plane_and_every_ue_sees_its_own_site_nearest(r
     # exactly once: they tile the plane.
     shifts = _wrap_vectors(rings, isd)
     copies = (xy[:, None, :] + np.concatenate([[[0.0, 0.0]], shifts])[None]).reshape(-1, 2)
-    lattice = np.array([i * np.array([isd, 0.0]) + j * np.array([isd / 2, isd * math.sqrt(3) / 2])
-                        for i in range(-12, 13) for j in range(-12, 13)])
+    lattice = _turned(np.array([i * np.array([isd, 0.0]) + j * np.array([isd / 2, isd * math.sqrt(3) / 2])
+                                for i in range(-12, 13) for j in range(-12, 13)]), 30.0)  # (3GPP's: 30°, 90° …)
     near = lattice[np.linalg.norm(lattice, axis=1) < (rings + 1.5) * isd]
     covered = (np.linalg.norm(near[:, None, :] - copies[None], axis=-1) < 0.01).sum(axis=1)  # (Sionna: float32)
     assert covered.tolist() == [1] * len(near)
@@ -84,6 +92,7 @@ def test_the_wraparound_tiles_the_plane_and_every_ue_sees_its_own_site_nearest(r
                                           min_bs_ut_dist=10.0, indoor_probability=0.8,
                                           use_3gpp_calibration_defaults=False)
     ues = topo[0].double().numpy()[0]
+    ues[:, :2] = _turned(ues[:, :2], 30.0)  # (Sionna's drop turned as the layout is: each UE in its site's hexagon)
     periodic = np.array([n * shifts[0] + m * shifts[1] for n in range(-2, 3) for m in range(-2, 3)])
     candidates = xy[None, :, None, :] + periodic[None, None]  # [1, site, 25, 2]
     d = np.linalg.norm(ues[:, None, None, :2] - candidates, axis=-1)
@@ -113,6 +122,43 @@ def _o2i_loss_db(high: bool, fc_ghz: float, d_in: np.ndarray, rng: np.random.Gen
 _UMA_SF_DB = {"los": 4.0, "nlos": 6.0, "o2i": 7.0}
 
 
+@pytest.mark.parametrize("isd, min_distance", [(500.0, 35.0), (200.0, 10.0)])
+def test_each_boresight_points_at_a_neighbouring_site_and_each_sector_drops_in_its_cell(isd, min_distance):
+    """3GPP's layout (TR 36.814 Figure A.2.1.1-2): from every site, wrapped around, a site stands
+    ISD away along each boresight (30°, 150°, 270°); a sector's UEs fill its cell, the hexagon of
+    radius ISD/3 centred ISD/3 along the boresight, uniformly, none nearer the site than the
+    minimum distance. Checked with the geometry written out, not the layout's."""
+    from caviar_plugins.network.layout import drop_ues
+
+    layout = LayoutSettings(rings=2, isd_m=isd, height_m=10.0, min_distance_m=min_distance, ues_per_sector=300,
+                            indoor_share=0.0)
+    xy = site_positions(layout)
+    copies = (xy[:, None, :] + np.concatenate([[[0.0, 0.0]], _wrap_vectors(2, isd)])[None]).reshape(-1, 2)
+    bores = np.radians([30.0, 150.0, 270.0])
+    ahead = xy[:, None, :] + isd * np.stack([np.cos(bores), np.sin(bores)], -1)[None]  # [site, 3, 2]
+    gap = np.linalg.norm(ahead[:, :, None, :] - copies[None, None], axis=-1).min(-1)
+    assert gap.max() < 0.01  # (Sionna's float32 sites)
+    # Half-way to the corners instead (30° off): no site there.
+    off = xy[:, None, :] + isd * np.stack([np.cos(bores + np.pi / 6), np.sin(bores + np.pi / 6)], -1)[None]
+    assert np.linalg.norm(off[:, :, None, :] - copies[None, None], axis=-1).min() > 0.4 * isd
+    drop = drop_ues(layout, "umi", 6e9, seed=11)
+    p = drop.positions[:, :2]
+    sector = np.arange(len(p)) // 300
+    site, bore = sector // 3, bores[sector % 3]
+    centre = xy[site] + isd / 3 * np.stack([np.cos(bore), np.sin(bore)], -1)
+    rel = p - centre
+    # Inside the cell: a hexagon with corners at 30° + 60° k (one at the site), |rel·n| <= R·√3/2 for its
+    # three edge normals (0°, 60°, 120°).
+    normals = np.stack([np.cos(np.radians([0.0, 60.0, 120.0])), np.sin(np.radians([0.0, 60.0, 120.0]))], -1)
+    assert (np.abs(rel @ normals.T) <= isd / 3 * math.sqrt(3) / 2 + 1e-6).all()
+    assert (np.linalg.norm(p - xy[site], axis=1) >= min_distance - 1e-6).all()
+    # Uniform: the share within half the cell's inradius of its centre is that disk's area over the
+    # hexagon's (π/8/√3·… = 0.227 without the minimum distance's hole, which lies far from it).
+    inner = np.linalg.norm(rel, axis=1) <= isd / 3 * math.sqrt(3) / 4
+    expected = math.pi * (math.sqrt(3) / 4) ** 2 / (3 * math.sqrt(3) / 2 - math.pi * (min_distance * 3 / isd) ** 2 / 3)
+    assert inner.mean() == pytest.approx(expected, abs=4 * math.sqrt(expected * (1 - expected) / len(p)))
+
+
 def _sionnas_calibration(drops: int, seed: int) -> dict[str, np.ndarray]:
     """UMa 6 GHz phase 1 computed with Sionna's drop, LOS draw and basic UMa pathloss, the rest
     written here: the O2I loss of the 2016 calibration, shadow fading drawn per site (co-sited
@@ -131,11 +177,17 @@ def _sionnas_calibration(drops: int, seed: int) -> dict[str, np.ndarray]:
 
     config.seed = seed
     topo, sites = gen_tr38901_multicell_topology("uma", drops, 10, 6e9, return_site_positions=True)
-    ut, in_state = topo[0], topo[5]
+    # Turned by 30° to 3GPP's layout (the boresights 30°, 150°, 270° at neighbouring sites): the UEs
+    # stay where Sionna drops them about their site, uniform over the plane as in 3GPP's cells.
+    ut = topo[0].double().clone()
+    ut[..., :2] = torch.as_tensor(_turned(ut[..., :2].numpy(), 30.0))
+    topo = (ut, *topo[1:])
+    in_state = topo[5]
+    sites = _turned(sites.double().numpy(), 30.0)
     # Each sector seen from its site's nearest copy in the endless layout (Sionna 2.2's own
     # bs_virtual_loc is made with translations 30° off its sites, which do not tile the plane).
     shifts = np.concatenate([[[0.0, 0.0]], _wrap_vectors(2, 500.0)])
-    images = sites.double().numpy()[:, None, :] + shifts[None]  # [site, 7, 2]
+    images = sites[:, None, :] + shifts[None]  # [site, 7, 2]
     u = ut.double().numpy()
     d = np.linalg.norm(u[:, :, None, None, :2] - images[None, None], axis=-1)  # [drop, ue, site, 7]
     best = np.take_along_axis(np.broadcast_to(images, d.shape + (2,)), d.argmin(-1)[..., None, None], axis=3)[..., 0, :]

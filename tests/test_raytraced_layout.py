@@ -84,9 +84,13 @@ def test_a_drop_in_a_city_puts_every_ue_outdoors_in_its_own_sector(tmp_path):
     positions = np.array([u["position_m"] for u in ues])
     assert open_sky(scene, positions).all()
     sites = site_positions(layout)
-    home = np.arange(len(ues)) // 2 // 3  # drop<k>: sector k // 2, site sector // 3
+    sector = np.arange(len(ues)) // 2  # drop<k>: sector k // 2, site sector // 3
+    home = sector // 3
     d = np.linalg.norm(positions[:, :2] - sites[home], axis=1)
-    assert (d >= 10.0 - 1e-6).all() and (d <= 200.0 / math.sqrt(3) + 1e-6).all()
+    # In its sector's cell: the hexagon of radius ISD/3 centred ISD/3 along the boresight (30°, 150°, 270°).
+    bore = np.radians(30.0 + 120.0 * (sector % 3))
+    centre = sites[home] + 200.0 / 3 * np.stack([np.cos(bore), np.sin(bore)], -1)
+    assert (d >= 10.0 - 1e-6).all() and (np.linalg.norm(positions[:, :2] - centre, axis=1) <= 200.0 / 3 + 1e-6).all()
     # The same drop in free space (nothing to move): the UEs it put under a roof, and only they, moved.
     first = np.array([u["position_m"] for u in _run(tmp_path, NETWORK.replace("steps = 2", "steps = 1").replace(
         "center_m = [0.0, 0.0]", "center_m = [10.0, 0.0]"), "free")])
@@ -114,8 +118,11 @@ def test_a_site_under_a_roof_stops_the_run_before_its_first_step_naming_the_cent
     scene = load_scene(str(OSM_CITY))
     sites = site_positions(LayoutSettings(rings=1, isd_m=200.0, height_m=10.0))
     grid = np.stack(np.meshgrid(np.arange(-100, 101, 10.0), np.arange(-300, 301, 10.0)), -1).reshape(-1, 2)
-    inside = ~open_sky(scene, np.c_[grid + sites[0], np.full(len(grid), 10.0)])
-    x, y = grid[int(np.argmax(inside))]
+    # A centre that puts the centre site, and it alone, under a roof.
+    spots = (grid[:, None, :] + sites[None]).reshape(-1, 2)
+    inside = ~open_sky(scene, np.c_[spots, np.full(len(spots), 10.0)]).reshape(len(grid), len(sites))
+    x, y = grid[int(np.argmax(inside[:, 0] & ~inside[:, 1:].any(axis=1)))]
+    assert inside[int(np.argmax(inside[:, 0] & ~inside[:, 1:].any(axis=1))), 0]
     text = NETWORK.replace('scene = "empty"', f'scene = "{OSM_CITY.as_posix()}"').replace(
         "center_m = [0.0, 0.0]", f"center_m = [{x}, {y}]")
     cfg = tmp_path / "net.toml"
@@ -153,8 +160,8 @@ def test_side_by_side_writes_both_channels_cdfs_and_their_difference(tmp_path, c
 
 @pytest.mark.parametrize("argv, says", [
     (["--center", "ten"], "--center: expected X,Y"),
-    (["--scene", "no/such/scene.xml"], "--scene: expected a Mitsuba scene file"),
-    (["--drops", "0"], "--drops: expected at least one drop"),
+    (["--scene", "no/such/scene.xml"], "--scene: no/such/scene.xml does not exist (expected a Mitsuba scene file"),
+    (["--drops", "0"], "--drops: expected a whole number from 1 to 10000, got 0"),
 ])
 def test_side_by_side_refuses_bad_arguments(argv, says, capsys, tmp_path):
     assert calibration.main(["ray-traced", *argv, "--out", str(tmp_path)]) == 2

@@ -4,16 +4,27 @@ UE drops.
 ``layout = { kind = "hex", rings = 2, isd_m = 500, sectors = 3, height_m = 25,
 wraparound = true, ues_per_sector = 10 }`` gives 19 sites × 3 sectors (sector boresights
 30°, 150°, 270°) and drops 10 UEs in every sector as TR 38.901 Table 7.8-1 says: uniform
-over the sector's part of its site's hexagon, at least ``min_distance_m`` from the site
-(2D, indoor distance included), indoor with probability ``indoor_share`` on floor
-``n ~ U{1..N}``, ``N ~ U{4..8}`` (height ``3(n − 1) + 1.5`` m; TR 36.873), outdoor at 1.5 m.
+over the sector's cell, at least ``min_distance_m`` from the site (2D, indoor distance
+included), indoor with probability ``indoor_share`` on floor ``n ~ U{1..N}``, ``N ~ U{4..8}``
+(height ``3(n − 1) + 1.5`` m; TR 36.873), outdoor at 1.5 m.
+
+The layout is 3GPP's (TR 36.814 Figure A.2.1.1-2, ITU-R M.2412's): the sites stand on a
+hexagonal lattice with neighbours at 30°, 90°, … 330°, so each sector's boresight points at a
+neighbouring site, and a sector's cell is a hexagon of radius ISD/3 centred ISD/3 from its
+site along the boresight (the "clover leaf": the three cells of a site meet at it).
 
 Sionna SYS ships the sites, the drop and the indoor distances
 (:func:`sionna.sys.gen_tr38901_multicell_topology`); this module turns them into the network's
-cells and UEs and redoes none of them. With ``wraparound``, each UE sees every site at the
-image nearest to it (of the site and its 6 copies around the layout, :class:`Wraparound`:
-the translations that tile the plane, computed here), so a UE at the layout's edge has
-interferers all around it, as one in the middle does.
+cells and UEs. Sionna's lattice has its neighbours at 0°, 60°, …, so its boresights point at
+the corners of each site's hexagon and each sector's UEs fill a third of it (a rhombus around
+the boresight): the layout and the drop are turned here by :data:`LATTICE_TURN_DEG`, and each
+UE moved from that rhombus to the same place in its sector's cell (:func:`to_cells`: a
+translation by the lattice and a turn by 120° about its site, which keeps the drop uniform, the
+UE's distance from a site within ``min_distance_m`` excluded, and its floor and indoor distance).
+
+With ``wraparound``, each UE sees every site at the image nearest to it (of the site and its
+6 copies around the layout, :class:`Wraparound`: the translations that tile the plane, computed
+here), so a UE at the layout's edge has interferers all around it, as one in the middle does.
 """
 
 from __future__ import annotations
@@ -29,6 +40,10 @@ from caviar_plugins.network.cells import Cell, Column, parse_sites
 
 KINDS = ("hex",)
 SECTOR_AZIMUTHS_DEG = (30.0, 150.0, 270.0)  # TR 38.901 Table 7.8 (and Sionna's topology)
+LATTICE_TURN_DEG = 30.0
+"""How far the layout is turned from Sionna's (whose neighbouring sites stand at 0°, 60°, …): to
+3GPP's, where each boresight of :data:`SECTOR_AZIMUTHS_DEG` points at a neighbouring site
+(Sionna's point at its hexagon's corners, and the wideband SIR came out 0.4–0.8 dB low)."""
 DROP_SCENARIOS = ("uma", "umi", "rma")
 REDROP = ("never", "every-step")
 
@@ -100,9 +115,16 @@ class LayoutSettings:
         return 1 + 3 * self.rings * (self.rings + 1)
 
 
+def _turn(xy: np.ndarray, deg: float = LATTICE_TURN_DEG) -> np.ndarray:
+    """Points [..., 2] turned by ``deg`` about the origin."""
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], axis=-1)
+
+
 def site_positions(layout: LayoutSettings) -> np.ndarray:
-    """The sites' (x, y) in metres, [num_sites, 2], in Sionna's order (centre first). (Sionna
-    drops a UE per sector on the way: under a seed of its own, Sionna's random state put back.)"""
+    """The sites' (x, y) in metres, [num_sites, 2], in Sionna's order (centre first), turned
+    by :data:`LATTICE_TURN_DEG` to 3GPP's orientation. (Sionna drops a UE per sector on the
+    way: under a seed of its own, Sionna's random state put back.)"""
     from sionna.sys import gen_tr38901_multicell_topology
 
     from caviar_plugins.rt.sionna_adapter import seeded
@@ -112,7 +134,37 @@ def site_positions(layout: LayoutSettings) -> np.ndarray:
             "uma", batch_size=1, num_ut_per_sector=1, carrier_frequency=6e9, num_rings=layout.rings,
             use_3gpp_calibration_defaults=False, isd=float(layout.isd_m), bs_height=float(layout.height_m),
             min_bs_ut_dist=0.0, indoor_probability=0.0, return_site_positions=True)
-    return xy.detach().cpu().double().numpy() + np.array(layout.center_m)
+    return _turn(xy.detach().cpu().double().numpy()) + np.array(layout.center_m)
+
+
+def to_cells(points: np.ndarray, sites: np.ndarray, isd: float, ues_per_sector: int) -> np.ndarray:
+    """UEs [n, 2] dropped by Sionna (turned to the 3GPP lattice ``sites`` [site, 2], about the
+    layout's centre at the origin), UE ``k`` in sector ``k // ues_per_sector`` (site-major, 3 a
+    site), each moved to the same place in its sector's cell: the hexagon of radius ISD/3
+    centred ISD/3 from its site along the sector's boresight.
+
+    Sionna's sector, turned with the layout, is a third of its site's hexagon (a rhombus
+    centred 30° past the boresight); its sides are vectors of the cells' lattice (√3·ISD/3 long,
+    at 0°, 60°, …), so it and the cell hold the same points up to the cells' lattice. Moved by the vector of the sites'
+    lattice that puts it in one of its own site's three cells, and turned by 120° about the site
+    into its sector's cell, each point of the third lands on one point of the cell, the same
+    area about (uniform stays uniform); within ISD/3 of the site nothing moves but by the turn,
+    so the disk ``min_distance_m`` keeps out of the drop stays out of it."""
+    r = isd / 3.0
+    sector = np.arange(len(points)) // ues_per_sector
+    site, j = sector // 3, sector % 3
+    rel = points - sites[site]
+    bores = np.radians(SECTOR_AZIMUTHS_DEG)
+    centres = r * np.stack([np.cos(bores), np.sin(bores)], -1)  # [3, 2]: a site's cells
+    turns = np.radians(LATTICE_TURN_DEG + 60.0 * np.arange(6))
+    near = np.concatenate([np.zeros((1, 2)), isd * np.stack([np.cos(turns), np.sin(turns)], -1)])  # [7, 2]
+    cand = near[:, None, :] + centres[None]  # [7 sites, 3 cells, 2]
+    d = np.linalg.norm(rel[:, None, None, :] - cand[None], axis=-1).reshape(len(points), -1)
+    best = d.argmin(axis=1)
+    v, m = near[best // 3], best % 3
+    a = np.radians(120.0 * (j - m))
+    x, y = (rel - v).T
+    return sites[site] + np.stack([np.cos(a) * x - np.sin(a) * y, np.sin(a) * x + np.cos(a) * y], axis=-1)
 
 
 def layout_cells(layout: LayoutSettings, defaults: Mapping[str, Any], column: Column | None) -> list[Cell]:
@@ -208,13 +260,16 @@ def drop_ues(layout: LayoutSettings, scenario: str, carrier_hz: float, seed: int
             scenario, batch_size=1, num_ut_per_sector=layout.ues_per_sector, carrier_frequency=float(carrier_hz),
             num_rings=layout.rings, use_3gpp_calibration_defaults=False, isd=float(layout.isd_m),
             bs_height=float(layout.height_m), min_bs_ut_dist=float(layout.min_distance_m),
-            indoor_probability=float(layout.indoor_share))
+            indoor_probability=float(layout.indoor_share), return_site_positions=True)
+    topo, site_xy = topo
     ut_loc, in_state, d_in = topo[0], topo[5], topo[10]
     d_in = d_in.detach().cpu().double().numpy()[0]
     if d_in.ndim == 2:  # link-specific below 6 GHz ([cell, ut]): the home site's value
         home = np.arange(d_in.shape[1]) // layout.ues_per_sector
         d_in = d_in[home, np.arange(d_in.shape[1])]
     positions = ut_loc.detach().cpu().double().numpy()[0]
+    sites = _turn(site_xy.detach().cpu().double().numpy())  # (site_positions' without the centre)
+    positions[:, :2] = to_cells(_turn(positions[:, :2]), sites, float(layout.isd_m), layout.ues_per_sector)
     positions[:, :2] += np.array(layout.center_m)
     return Drop(positions=positions,
                 indoor=in_state.detach().cpu().numpy()[0].astype(bool), distance_2d_in=d_in)
