@@ -89,6 +89,9 @@ def main(argv: list[str] | None = None) -> int:
     truth_scene = scene()
     start = scene_materials(truth_scene)
     truth = {k: getattr(start[k[0]], k[1]) * f for k, f in FACTORS.items()}
+    for m in sorted(start):  # what the truth does not change is the scene's own value
+        for p in ("relative_permittivity", "conductivity"):
+            truth.setdefault((m, p), getattr(start[m], p))
     model = ReceivedPower(truth_scene, rays, seed=0)
     model.place(rx, np.array([TX]))
     pairs = np.stack([np.arange(n), np.zeros(n, dtype=int)], axis=1)
