@@ -139,7 +139,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main_side_by_side(args: argparse.Namespace) -> int:
-    center = None if args.center == "auto" else flags.numbers(args.center, "--center", 2, "X,Y in metres, or auto")
+    center: tuple[float, float] | None = None
+    if args.center != "auto":
+        x, y = flags.numbers(args.center, "--center", 2, "X,Y in metres, or auto")
+        center = (x, y)
     try:
         result = side_by_side(args.scene, args.drops, args.out, center, args.seed, args.samples, args.max_depth)
     except CalibrationError as e:
