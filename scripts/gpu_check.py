@@ -67,6 +67,7 @@ def blueprint_runs(steps: int) -> dict[str, tuple[pathlib.Path, list[str], list[
         "beam-lidar": (BLUEPRINTS / "beam-lidar/config.toml", [], ["sionna.rt"]),
         "beam-dataset": (BLUEPRINTS / "beam-dataset/config.toml", [], ["sionna.rt"]),
         "sar-ns3": (BLUEPRINTS / "sar-ns3/config.toml", [], ["sionna.rt", "ns"]),
+        "self-calibrating": (BLUEPRINTS / "self-calibrating/config.toml", [], ["sionna.rt"]),
     }
     # Not here: legacy (a module of the original CAVIAR over an outside NATS server: nothing
     # of it runs on a GPU).

@@ -226,9 +226,9 @@ def test_bad_input_gets_a_clear_error_and_exit_2(exported, cli, tmp_path):
     _, _, folder = exported
     run = folder.parent / "run"
     p = cli("export", "deepmimo", tmp_path / "nowhere", tmp_path / "x", check=2)
-    assert "nowhere: not a run directory (no run.json)" in p.stderr
+    assert "RUN_DIR:" in p.stderr and "nowhere does not exist (expected the folder of a run" in p.stderr
     p = cli("export", "deepmimo", run, folder, check=2)
-    assert f"{folder}: exists" in p.stderr
+    assert f"OUT: {folder} already exists" in p.stderr
     p = cli("export", "deepmimo", run, tmp_path / "Scen", check=2)
     assert "lower-case" in p.stderr and "'scen'" in p.stderr
     p = cli("export", "deepmimo", run, tmp_path / "x", "--module", "uav1", check=2)

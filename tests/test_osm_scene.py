@@ -348,7 +348,7 @@ def test_bad_input_exits_2_with_one_line_naming_the_file(case, tmp_path):
     lines = p.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in p.stderr + p.stdout, p.stderr
     assert path.name in lines[0]
-    reason = {"missing": "no such file", "corrupt-pbf": "not a readable OSM file",
+    reason = {"missing": "does not exist", "corrupt-pbf": "not a readable OSM file",
               "corrupt-xml": "not a readable OSM file", "empty-bbox": "empty or invalid bbox",
               "no-buildings": "no buildings in the bbox"}[case]
     assert reason in lines[0], lines[0]

@@ -74,9 +74,9 @@ def test_export_raymobtime_writes_every_modality_of_every_record(tmp_path, cli):
 
 
 @pytest.mark.parametrize("args, says", [
-    (["raymobtime", "nothing", "out"], "not a run directory"),
-    (["raymobtime", "run", "out", "--grid", "a,b"], "--grid/--tx: expected comma-separated numbers"),
-    (["raymobtime", "run", "out", "--grid", "0,10,10"], "expected three cell counts >= 1"),
+    (["raymobtime", "nothing", "out"], "RUN_DIR: nothing does not exist"),
+    (["raymobtime", "run", "out", "--grid", "a,b"], "--grid: expected X,Y,Z cells (numbers)"),
+    (["raymobtime", "run", "out", "--grid", "0,10,10"], "--grid: expected X,Y,Z: whole numbers of cells, at least 1"),
 ])
 def test_export_raymobtime_refuses_bad_input(tmp_path, cli, args, says):
     (tmp_path / "run").mkdir()

@@ -109,7 +109,7 @@ def detector(params: str) -> str:
 @pytest.mark.parametrize("params, expected", [
     ('runtime = "tensorrt"', "params.runtime = 'tensorrt': expected one of auto, onnxruntime, torch"),
     ('runtime = "torch", device = "gpu"', "params.device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'gpu'"),
-    ('runtime = "torch", device = "cuda:0"', "device = 'cuda:0': torch sees no CUDA GPU here"),
+    ('runtime = "torch", device = "cuda:0"', "params.device: 'cuda:0' names CUDA GPU 0, and this machine has no"),
 ])
 def test_the_detectors_bad_runtime_settings_stop_the_run_naming_the_key(tmp_path, params, expected):
     import torch

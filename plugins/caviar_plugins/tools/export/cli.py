@@ -22,6 +22,7 @@ import pathlib
 import sys
 from typing import Callable
 
+from caviar.rundir import RunDir
 from caviar_plugins.tools import flags
 
 PROG = "caviar-core export"
@@ -89,9 +90,9 @@ def checked(args) -> None:
     """Every argument and flag, before any work starts (:class:`~caviar_plugins.tools.flags.FlagError`
     naming it)."""
     flags.existing_dir(args.run_dir, "RUN_DIR", "the folder of a run of `caviar-core run`")
-    if not (args.run_dir / "run.json").is_file():
-        raise flags.FlagError("RUN_DIR", f"{args.run_dir} is not a run directory (no run.json); give the folder of "
-                                         "a run of `caviar-core run`")
+    if not RunDir(args.run_dir).exists():
+        raise flags.FlagError("RUN_DIR", f"{args.run_dir} is not a run directory (no run status); give the folder "
+                                         "of a run of `caviar-core run`")
     flags.new_output(args.out, "OUT")
     if args.format == "deepmimo":
         if args.module is not None and not args.module.strip():
