@@ -4,12 +4,26 @@ print as one line and exit 2 on."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
 import pathlib
 import tempfile
 from typing import Any
+
+
+class Usage(Exception):
+    """A command line argparse refuses (a missing or unknown flag, a bad choice): printed as
+    one line, exit 2."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse's parser that raises :class:`Usage` instead of printing its usage and exiting,
+    so that each tool prints one line of its own."""
+
+    def error(self, message):  # one line, exit 2 (argparse's own convention)
+        raise Usage(message)
 
 
 class FlagError(ValueError):

@@ -38,19 +38,12 @@ import sys
 from caviar_plugins.tools import flags
 from caviar_plugins.tools.calibration.config import COMPANIES, SPEC_VERSION, CalibrationError, settings
 from caviar_plugins.tools.calibration.runs import calibrate, side_by_side
+from caviar_plugins.tools.flags import Parser as _Parser
+from caviar_plugins.tools.flags import Usage as _Usage
 
 PROG = "caviar-core calibrate"
 MAX_SEED = 2**32 - 1  # (the run's seed is mixed into Sionna's and torch's, which take 64 bits)
 SPEC_VERSIONS = ("16.1", "19.2")  # (caviar_plugins.network.tr38901.SPEC_VERSIONS: Sionna's releases)
-
-
-class _Usage(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, exit 2 (argparse's own convention)
-        raise _Usage(message)
 
 
 def parser() -> argparse.ArgumentParser:

@@ -24,17 +24,10 @@ from typing import Callable
 
 from caviar.rundir import RunDir
 from caviar_plugins.tools import flags
+from caviar_plugins.tools.flags import Parser as _Parser
+from caviar_plugins.tools.flags import Usage as _Usage
 
 PROG = "caviar-core export"
-
-
-class _Usage(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, exit 2 (argparse's own convention)
-        raise _Usage(message)
 
 
 def parser() -> argparse.ArgumentParser:

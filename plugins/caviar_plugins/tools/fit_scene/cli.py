@@ -27,16 +27,10 @@ import pathlib
 import sys
 import time
 
+from caviar_plugins.tools.flags import Parser as _Parser
+from caviar_plugins.tools.flags import Usage as _Usage
+
 PROG = "caviar-core fit-scene"
-
-
-class _Usage(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):
-        raise _Usage(message)
 
 
 def parser() -> argparse.ArgumentParser:

@@ -17,17 +17,10 @@ import pathlib
 import sys
 
 from caviar_plugins.tools import flags
+from caviar_plugins.tools.flags import Parser as _Parser
+from caviar_plugins.tools.flags import Usage as _Usage
 
 PROG = "caviar-core scene"
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, exit 2 (argparse's own convention)
-        raise _Usage(message)
-
-
-class _Usage(Exception):
-    pass
 
 
 def parser() -> argparse.ArgumentParser:
