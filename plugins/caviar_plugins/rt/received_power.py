@@ -19,7 +19,7 @@ coefficient does.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -127,10 +127,3 @@ class ReceivedPower:
             predicted = tx + 10.0 * np.log10(p)
         return predicted, float(loss[0]), grads
 
-
-def unknowns_of(scene: Any, materials: Sequence[str], properties: Sequence[str]) -> list[Unknown]:
-    """Every (material, property) of ``materials`` × ``properties``, checked against the
-    scene."""
-    for m in materials:
-        material_of(scene, m)
-    return [(m, p) for m in materials for p in properties]
