@@ -83,3 +83,13 @@ def test_a_radio_scene_with_set_materials_traces_as_one_loaded_with_them(street)
     assert after == pytest.approx(expected, rel=1e-5)
     assert abs(10 * np.log10(after / before)) > 0.1, "the materials changed what the link sees"
     assert radio.snapshot()["materials"] == {"concrete": {"relative_permittivity": TRUTH}}
+
+
+def test_a_material_the_scene_does_not_have_stops_the_set_up_naming_the_key(tmp_path, street):
+    import caviar
+
+    text = (episode(1.0, ["twin"], steps=1)
+            + module("twin", "twin", "scene-fitter", {"scene": street, "materials": ["unobtainium"]},
+                     params_table=True))
+    with pytest.raises(caviar.RunError, match=r"params.materials: 'unobtainium' is not a material an object of"):
+        run_config(tmp_path, text)

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 import caviar
-from caviar_plugins.rt.materials import PROPERTIES, apply_materials, scene_materials
+from caviar_plugins.rt.materials import PROPERTIES, apply_materials, scene_materials, used_materials
 from caviar_plugins.rt.received_power import ReceivedPower
 from caviar_plugins.rt.scene import build_scene
 from caviar_plugins.rt.settings import TraceSettings
@@ -105,6 +105,10 @@ class SceneFitter(caviar.Plugin):
         self.p = p
         self.seed = ctx.seed
         self.scene = build_scene(p.scene, ctx.config_dir, threads=p.raytracing.threads)
+        unknown = sorted(set(p.materials) - set(used_materials(self.scene)))
+        if unknown:
+            raise caviar.ConfigError(f"'{unknown[0]}' is not a material an object of {p.scene} uses "
+                                     f"({', '.join(used_materials(self.scene))})", "params.materials")
         self.predictor: ReceivedPower | None = None
         self.samples: list[dict[str, float]] = []
         self.last_refit = None
