@@ -15,6 +15,14 @@ error in dB over the pairs it is given and its gradient with respect to each mat
 come from Dr.Jit's automatic differentiation through Sionna's field computation (the solver's
 ``loop_mode = "evaluated"``): a path's geometry does not depend on the materials, its
 coefficient does.
+
+So, with diffuse reflection off (``reuse_geometry``, the default then), the paths are traced
+once per placement and only their fields are computed again for each material guess
+(:func:`~caviar_plugins.rt.sionna_adapter.trace_geometry` and
+:func:`~caviar_plugins.rt.sionna_adapter.path_powers`: Sionna's own solver split in its two
+halves): the same powers as a whole solve with the same seed, at a fraction of its cost. With
+diffuse reflection on, Sionna samples a diffuse bounce with a probability the scattering
+coefficient sets, so every guess is traced afresh.
 """
 
 from __future__ import annotations
@@ -24,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from caviar_plugins.rt import sionna_adapter
 from caviar_plugins.rt.drjit_setup import jit
 from caviar_plugins.rt.materials import fix_at_carrier, material_of
 from caviar_plugins.rt.scene import AntennaArray, planar_array, sionna_rt
@@ -39,7 +48,8 @@ class ReceivedPower:
     """The received power of measured pairs in ``scene`` (already loaded, at its carrier),
     traced as ``settings`` say with the solver's seed from ``seed``."""
 
-    def __init__(self, scene: Any, settings: TraceSettings, seed: int = 0, antenna: AntennaArray | None = None):
+    def __init__(self, scene: Any, settings: TraceSettings, seed: int = 0, antenna: AntennaArray | None = None,
+                 reuse_geometry: bool | None = None):
         rt = sionna_rt()
         self.scene = scene
         fix_at_carrier(scene)
@@ -52,6 +62,17 @@ class ReceivedPower:
         self._diff_solver = rt.PathSolver()
         self._diff_solver.loop_mode = "evaluated"
         self.n_rx = self.n_tx = 0
+        if reuse_geometry is None:
+            reuse_geometry = not settings.diffuse_reflection and sionna_adapter.problem() is None
+        elif reuse_geometry and settings.diffuse_reflection:
+            raise ValueError("reuse_geometry: a diffuse bounce is sampled with a probability the materials set, "
+                             "so paths traced with diffuse_reflection cannot be reused")
+        self.reuse_geometry = bool(reuse_geometry)
+        """Trace once per placement and compute only the fields for each material guess."""
+        self._traced: Any = None
+        self.solves = 0
+        """Whole traces made (the count a fit's cost follows)."""
+        self.field_evaluations = 0
 
     def place(self, rx_positions: np.ndarray, tx_positions: np.ndarray) -> None:
         """Receivers at ``rx_positions`` (N × 3, m) and transmitters at ``tx_positions``
@@ -66,12 +87,13 @@ class ReceivedPower:
         for i, p in enumerate(np.asarray(rx_positions, dtype=float).reshape(-1, 3)):
             self.scene.add(rt.Receiver(f"{RX_PREFIX}{i}", position=[float(v) for v in p]))
         self.n_rx, self.n_tx = len(self.scene.receivers), len(self.scene.transmitters)
+        self._traced = None
 
     def _set(self, values: Mapping[Unknown, float], grad: bool) -> dict[Unknown, Any]:
         dr, mi = jit()
         handles = {}
         for (material, prop), v in values.items():
-            x = mi.Float(float(v))
+            x = dr.opaque(mi.Float, float(v))  # not a literal: one kernel for every value
             if grad:
                 dr.enable_grad(x)
             setattr(material_of(self.scene, material), prop, x)
@@ -80,7 +102,10 @@ class ReceivedPower:
 
     def _pair_power(self, solver: Any, pairs: np.ndarray) -> Any:
         """Σ|a|² per pair (a Dr.Jit array, in pair order) for ``pairs`` ((rx, tx) rows)."""
+        if self.reuse_geometry:
+            return self._pair_power_reused(solver, pairs)
         dr, mi = jit()
+        self.solves += 1
         paths = solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src, synthetic_array=True,
                        **self.options)
         a_re, a_im = paths.a
@@ -92,6 +117,22 @@ class ReceivedPower:
         per_pair = dr.sum(dr.sum(dr.sum(power, axis=-1), axis=3), axis=1) / n_ant  # [rx, tx]
         index = mi.UInt32(pairs[:, 0] * self.n_tx + pairs[:, 1])
         return dr.gather(mi.Float, per_pair.array, index)
+
+    def _pair_power_reused(self, solver: Any, pairs: np.ndarray) -> Any:
+        dr, mi = jit()
+        if self._traced is None:
+            self._traced = sionna_adapter.trace_geometry(
+                self._solver, self.scene, max_num_paths_per_src=self.max_num_paths_per_src, **self.options)
+            self.solves += 1
+        self.field_evaluations += 1
+        traced = self._traced
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        per_pair = dr.zeros(mi.Float, self.n_rx * self.n_tx)
+        if traced.num_paths:
+            power = sionna_adapter.path_powers(solver, self.scene, traced)
+            pair_of_path = traced.target_indices * self.n_tx + traced.source_indices
+            dr.scatter_reduce(dr.ReduceOp.Add, per_pair, power, pair_of_path)
+        return dr.gather(mi.Float, per_pair, mi.UInt32(pairs[:, 0] * self.n_tx + pairs[:, 1]))
 
     def predict(self, pairs: np.ndarray, tx_power_dbm: np.ndarray | float,
                 values: Mapping[Unknown, float] | None = None) -> np.ndarray:

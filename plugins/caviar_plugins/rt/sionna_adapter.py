@@ -61,6 +61,9 @@ _NEEDED = (
     ("sionna.rt.path_solvers.paths_buffer", "PathsBuffer.paths_counter", "storing connected paths"),
     ("sionna.rt.path_solvers.sample_data", "SampleData.SampleDataFields", "the shoot phase's sample data"),
     ("sionna.rt.path_solvers.sample_data", "source_index_per_sample", "the shoot phase"),
+    ("sionna.rt.path_solvers.paths_buffer", "PathsBuffer.shrink", "paths traced once, their fields many times"),
+    ("sionna.rt.path_solvers.paths_buffer", "PathsBuffer.detach_geometry",
+     "paths traced once, their fields many times"),
     ("sionna.rt.constants", "InteractionType", "interaction flags"),
     ("sionna.rt.utils", "WedgeGeometry", "diffraction"),
     ("sionna.rt.utils", "fibonacci_lattice", "the rays' directions"),
@@ -74,6 +77,7 @@ _POSITIONAL = (
 )
 # Instance attributes of a fresh generator / solver.
 _GENERATOR_ATTRIBUTES = ("_sampler", "plane_hash_functions", "edge_hash_functions")
+_SOLVER_ATTRIBUTES = ("_candidate_generator", "_image_method", "_field_calculator")
 
 
 def _resolve(module: str, path: str) -> Any:
@@ -112,10 +116,18 @@ def _check() -> str | None:
         if len(names) <= index or names[index] != parameter:
             return (f"sionna-rt {version}: SBCandidateGenerator.{method} does not take {parameter!r} as "
                     f"positional argument {index}")
+    return _check_instances(rt, version, generator_class)
+
+
+def _check_instances(rt: Any, version: str, generator_class: Any) -> str | None:
+    """A fresh solver's and generator's private attributes."""
     try:
         solver = rt.PathSolver()
     except Exception as e:  # noqa: BLE001 - any failure means the internals cannot be used
         return f"sionna-rt {version}: PathSolver() failed ({e})"
+    for name in _SOLVER_ATTRIBUTES:
+        if not hasattr(solver, name):
+            return f"sionna-rt {version}: PathSolver has no attribute {name!r}"
     generator = getattr(solver, "_candidate_generator", None)
     if not isinstance(generator, generator_class):
         return f"sionna-rt {version}: PathSolver has no _candidate_generator of type SBCandidateGenerator"
@@ -189,6 +201,93 @@ def set_doppler(paths: Any, doppler) -> None:
                                    f"added (checked against sionna-rt {'.'.join(map(str, TESTED_VERSION))})")
     doppler = np.asarray(doppler, dtype=np.float32)
     paths._doppler = dr.reshape(mi.TensorXf, mi.Float(doppler.ravel().tolist()), doppler.shape)
+
+
+# --- paths traced once, their fields computed many times (a fit of the materials) -----------
+
+class TracedGeometry:
+    """What :func:`trace_geometry` keeps of one solve: Sionna's path buffer with the paths'
+    geometry (detached: it does not depend on the materials), the sources' and targets'
+    positions, orientations and antenna patterns, and the paths' validity before any field
+    was computed."""
+
+    def __init__(self, buffer: Any, valid: Any, samples_per_src: int, diffraction: bool, frame: tuple):
+        self.buffer, self.valid, self.samples_per_src, self.diffraction = buffer, valid, samples_per_src, diffraction
+        self.frame = frame
+
+    @property
+    def num_paths(self) -> int:
+        return int(self.buffer.buffer_size)
+
+    @property
+    def source_indices(self) -> Any:
+        return self.buffer.source_indices
+
+    @property
+    def target_indices(self) -> Any:
+        return self.buffer.target_indices
+
+
+def trace_geometry(solver: Any, scene: Any, *, max_num_paths_per_src: int, samples_per_src: int, max_depth: int,
+                   los: bool, specular_reflection: bool, diffuse_reflection: bool, refraction: bool,
+                   diffraction: bool, edge_diffraction: bool = False, diffraction_lit_region: bool = True,
+                   seed: int = 42) -> TracedGeometry:
+    """The first half of ``PathSolver.__call__`` (sionna-rt 2.2, ``synthetic_array = True``):
+    candidates and the image method, not the fields. Valid for any material values as long as
+    the paths' geometry does not depend on them: with diffuse reflection off (Sionna samples a
+    diffuse bounce with a probability the scattering coefficient sets)."""
+    import drjit as dr
+
+    require()
+    scene.all_set(radio_map=False)
+    src_positions, src_orientations, _, _ = scene.sources(True, True)
+    tgt_positions, tgt_orientations, _, _ = scene.targets(True, True)
+    dr.make_opaque(src_positions, tgt_positions, src_orientations, tgt_orientations)
+    buffer = solver._candidate_generator(
+        mi_scene=scene.mi_scene, src_positions=src_positions, tgt_positions=tgt_positions,
+        samples_per_src=samples_per_src, max_num_paths_per_src=max_num_paths_per_src, max_depth=max_depth, los=los,
+        specular_reflection=specular_reflection, diffuse_reflection=diffuse_reflection, refraction=refraction,
+        diffraction=diffraction, edge_diffraction=edge_diffraction, seed=seed)
+    buffer.schedule()
+    dr.eval()
+    buffer.shrink()
+    buffer.detach_geometry()
+    buffer = solver._image_method(scene=scene.mi_scene, paths=buffer, src_positions=src_positions,
+                                  tgt_positions=tgt_positions, diffraction=diffraction,
+                                  diffraction_lit_region=diffraction_lit_region)
+    frame = (src_positions, tgt_positions, src_orientations, tgt_orientations,
+             scene.tx_array.antenna_pattern.patterns, scene.rx_array.antenna_pattern.patterns)
+    valid = dr.copy(buffer.valid) if buffer.buffer_size else buffer.valid
+    dr.eval(valid)
+    return TracedGeometry(buffer, valid, samples_per_src, diffraction, frame)
+
+
+def path_powers(solver: Any, scene: Any, traced: TracedGeometry) -> Any:
+    """Each traced path's power Σ|a|² averaged over the pairs of antenna patterns (a Dr.Jit
+    ``Float``, 0 for an invalid path), with the scene's materials as they are now: the second
+    half of ``PathSolver.__call__`` (the field calculator, in ``solver``'s loop mode, so that
+    gradients flow to the materials when it is "evaluated")."""
+    import drjit as dr
+    import mitsuba as mi
+
+    require()
+    buffer = traced.buffer
+    if traced.num_paths == 0:
+        return dr.zeros(mi.Float, 0)
+    buffer.valid = dr.copy(traced.valid)  # the calculator narrows it to the paths with a field
+    src_positions, tgt_positions, src_orientations, tgt_orientations, src_patterns, tgt_patterns = traced.frame
+    buffer = solver._field_calculator(
+        wavelength=scene.wavelength, paths=buffer, samples_per_src=traced.samples_per_src,
+        diffraction=traced.diffraction, src_positions=src_positions, tgt_positions=tgt_positions,
+        src_orientations=src_orientations, tgt_orientations=tgt_orientations,
+        src_antenna_patterns=src_patterns, tgt_antenna_patterns=tgt_patterns)
+    power = dr.zeros(mi.Float, traced.num_paths)
+    count = 0
+    for row in buffer.a:
+        for a in row:
+            power += dr.square(dr.real(a)) + dr.square(dr.imag(a))
+            count += 1
+    return dr.select(buffer.valid, power / count, 0.0)
 
 
 # --- the generator's parts (the shoot cache) -------------------------------------------------
