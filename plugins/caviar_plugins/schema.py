@@ -159,8 +159,9 @@ materials, which the ray-traced links apply from then on."""
 TWIN_FIT = "twin.fit"
 """Per step with new measurements ``{"time", "samples", "new", "prediction_error_db"}`` (the
 new samples as the twin predicted them before learning from them), and per refit ``{"time",
-"samples", "refit", "rmse_db", "learned", "not_identifiable", "ambiguous"}`` (``ambiguous``: per
-property, the other values that fit as well)."""
+"samples", "refit", "rmse_db", "learned", "not_identifiable", "confounded", "ambiguous"}``
+(``confounded``: per learned property, the fixed ones whose effect it cannot be told from;
+``ambiguous``: per property, the other values that fit as well)."""
 
 # Datasets
 DATASET_RECORD = "dataset.record"

@@ -59,14 +59,17 @@ class SceneFitterParams:
     min_samples: int = 10
     """Samples needed before the first refit."""
     iterations: int = 10
-    """Gradient steps per refit (each starts from the last fit's values)."""
+    """Descent iterations per refit (each starts from the last fit's values)."""
     learn: list[str] = dataclasses.field(default_factory=lambda: ["relative_permittivity"])
     """The properties learned per material (``relative_permittivity``, ``conductivity``,
     ``scattering_coefficient``)."""
     materials: list[str] = dataclasses.field(default_factory=list)
     """The materials learned (empty: every material the scene's objects use)."""
+    method: str = "lm"
+    """The descent: ``"lm"`` (Levenberg–Marquardt) or ``"adam"``
+    (:class:`~caviar_plugins.twin.fit.FitSettings`)."""
     learning_rate: float = 0.02
-    """Adam's step in the properties' logs (:class:`~caviar_plugins.twin.fit.FitSettings`)."""
+    """With ``method = "adam"``: Adam's step in the properties' logs."""
     holdout: float = 0.2
     """The share of the samples each refit holds out to judge itself (``twin.fit``'s
     ``rmse_db.held_out``)."""
@@ -76,10 +79,13 @@ class SceneFitterParams:
     """A property is learned only if the data bound its log within this (Cramér–Rao)."""
     max_samples: int = 1000
     """The most recent samples a refit uses (at most :data:`MAX_SAMPLES`)."""
-    search_points: int = 40
+    search_points: int = 160
     """A refit searches each property over this many values before it descends
     (:func:`~caviar_plugins.twin.fit.coarse_search`) when the samples have at least doubled
     since the last search (the first refit always); the others descend from the last values."""
+    restarts: int = 4
+    """A searching refit then starts this many more rounds from random values
+    (:attr:`~caviar_plugins.twin.fit.FitSettings.restarts`)."""
     raytracing: TraceSettings = dataclasses.field(default_factory=lambda: FIT_RAYS)
 
     def __post_init__(self):
@@ -90,9 +96,11 @@ class SceneFitterParams:
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_SAMPLES:
                 raise ValueError(f"{key}: expected a whole number from 1 to {MAX_SAMPLES}, got {v!r}")
         self.fit = FitSettings(learn=tuple(self.learn), materials=tuple(self.materials), holdout=self.holdout,
-                               iterations=self.iterations, learning_rate=self.learning_rate,
+                               iterations=self.iterations, method=self.method,
+                               learning_rate=self.learning_rate,
                                noise_db=self.noise_db, max_log_std=self.max_log_std, patience=self.iterations,
-                               search_points=self.search_points, search_sweeps=1)
+                               search_points=self.search_points, search_sweeps=2,
+                               restarts=self.restarts)
 
 
 class SceneFitter(caviar.Plugin):
@@ -157,7 +165,7 @@ class SceneFitter(caviar.Plugin):
     def _refit(self, t: float):
         data = from_messages([_Sample(s) for s in self.samples])
         search = len(data) >= 2 * self.searched_with
-        fit = self.p.fit if search else dataclasses.replace(self.p.fit, search_sweeps=0)
+        fit = self.p.fit if search else dataclasses.replace(self.p.fit, search_sweeps=0, restarts=0)
         if search:
             self.searched_with = len(data)
         result = fit_materials(self.scene, data, fit, self.p.raytracing, run_seed=self.seed)
@@ -170,6 +178,8 @@ class SceneFitter(caviar.Plugin):
                           "learned": {f"{m}.{p}": v for (m, p), v in result.learned.items()},
                           "not_identifiable": [f"{m}.{p}" for (m, p) in result.start
                                                if (m, p) not in result.identifiability.identifiable],
+                          "confounded": {f"{m}.{p}": [f"{a}.{b}" for a, b in fixed]
+                                         for (m, p), fixed in result.identifiability.confounded.items()},
                           "ambiguous": {f"{m}.{p}": [round(v, 4) for v in values]
                                         for (m, p), values in result.identifiability.ambiguous.items()}}
         self.predictor = None  # the fit placed its own receivers

@@ -34,7 +34,8 @@ def summarize(log) -> dict[str, Any] | None:
     return {"prediction_error_db": {"before_first_refit": rms([r for r in errors if r[0] <= first]),
                                     "after_last_refit": rms([r for r in errors if r[0] > last])},
             "refits": [{"time": r["time"], "samples": r["samples"], "learned": r["learned"], "rmse_db": r["rmse_db"],
-                        "not_identifiable": r["not_identifiable"], "ambiguous": r.get("ambiguous", {})}
+                        "not_identifiable": r["not_identifiable"], "confounded": r.get("confounded", {}),
+                        "ambiguous": r.get("ambiguous", {})}
                        for r in refits]}
 
 

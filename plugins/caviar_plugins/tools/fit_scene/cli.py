@@ -3,8 +3,8 @@ differentiable ray tracing (:func:`caviar_plugins.twin.fit.fit_materials`).
 
     fit-scene SCENE MEASUREMENTS --out DIR [--learn P[,P]] [--materials M[,M]]
               [--group NAME=GLOB[,GLOB]]... [--holdout 0.2] [--iterations 100]
-              [--learning-rate 0.1] [--noise-db 1] [--max-log-std 0.2]
-              [--search-points 40] [--search-sweeps 2] [--samples 200000] [--max-depth 3]
+              [--method lm] [--learning-rate 0.1] [--noise-db 1] [--max-log-std 0.2]
+              [--search-points 160] [--search-sweeps 3] [--restarts 8] [--samples 200000] [--max-depth 3]
               [--diffraction] [--diffuse] [--seed 0] [--threads 0] [--quiet]
 
 SCENE is a shipped scene's name or a Mitsuba XML file; MEASUREMENTS a CSV or Parquet file
@@ -46,12 +46,16 @@ def parser() -> argparse.ArgumentParser:
                    help="objects (name globs) that get a material NAME of their own; repeatable")
     p.add_argument("--holdout", type=float, default=0.2, help="share of samples held out of the fit (default 0.2)")
     p.add_argument("--iterations", type=int, default=100, help="gradient steps at most (default 100)")
-    p.add_argument("--learning-rate", type=float, default=0.1, help="Adam's step in the properties' logs")
+    p.add_argument("--method", default="lm", help="the descent: lm (Levenberg-Marquardt, default) or adam")
+    p.add_argument("--learning-rate", type=float, default=0.1, help="with --method adam: Adam's step in the "
+                   "properties' logs")
     p.add_argument("--noise-db", type=float, default=1.0, help="measurement noise, dB (identifiability bound)")
     p.add_argument("--max-log-std", type=float, default=0.2, help="learn a property only if its log is "
                    "determined within this (Cramér-Rao bound; default 0.2)")
-    p.add_argument("--search-points", type=int, default=40, help="values per property in the coarse search")
-    p.add_argument("--search-sweeps", type=int, default=2, help="rounds of the coarse search (0: none)")
+    p.add_argument("--search-points", type=int, default=160, help="values per property in the coarse search")
+    p.add_argument("--search-sweeps", type=int, default=3, help="rounds of a coarse search and a descent (0: no "
+                   "search; default 3, fewer when a round finds nothing better)")
+    p.add_argument("--restarts", type=int, default=8, help="rounds from random values after the search (default 8)")
     p.add_argument("--samples", type=int, default=200_000, help="rays per transmitter (default 2e5)")
     p.add_argument("--max-depth", type=int, default=3, help="interactions per path at most (default 3)")
     p.add_argument("--diffraction", action="store_true", help="trace diffraction too")
@@ -98,7 +102,8 @@ def _check(args):
         for flag, v, lo, hi in (("--samples", args.samples, 1, 10**8), ("--max-depth", args.max_depth, 0, 10),
                                 ("--iterations", args.iterations, 1, 10_000),
                                 ("--search-points", args.search_points, 1, 1000),
-                                ("--search-sweeps", args.search_sweeps, 0, 10), ("--threads", args.threads, 0, 4096),
+                                ("--search-sweeps", args.search_sweeps, 0, 10),
+                                ("--restarts", args.restarts, 0, 1000), ("--threads", args.threads, 0, 4096),
                                 ("--seed", args.seed, 0, 2**31 - 1)):
             flags.integer(v, flag, lo, hi)
         flags.output_dir(args.out)
@@ -107,9 +112,9 @@ def _check(args):
     try:
         settings = FitSettings(learn=_names(args.learn, "--learn"), materials=_names(args.materials, "--materials"),
                                groups=_groups(args.group), holdout=args.holdout, iterations=args.iterations,
-                               learning_rate=args.learning_rate, noise_db=args.noise_db,
+                               method=args.method, learning_rate=args.learning_rate, noise_db=args.noise_db,
                                max_log_std=args.max_log_std, seed=args.seed, search_points=args.search_points,
-                               search_sweeps=args.search_sweeps)
+                               search_sweeps=args.search_sweeps, restarts=args.restarts)
     except ValueError as e:
         key, _, rest = str(e).partition(":")
         raise _Usage(f"--{key.replace('_', '-')}:{rest}") from None
