@@ -40,7 +40,7 @@ def test_each_channel_is_one_model_of_its_own_module_behind_the_protocol(kind, m
     from caviar_plugins.network.channel import UePlaces
     from caviar_plugins.network.plugin import RadioNetwork
     from caviar_plugins.network.settings import make_channel, plan
-    from caviar_plugins.torch_device import resolve
+    from caviar_plugins.torch_device import resolve, to_numpy
 
     p = check_params(RadioNetwork, {"sites": SITES, "channel": kind, "link_model": "shannon", "carrier_hz": 3.5e9,
                                     "raytracing": {"samples_per_src": 1000, "max_depth": 0}})
@@ -51,6 +51,7 @@ def test_each_channel_is_one_model_of_its_own_module_behind_the_protocol(kind, m
         assert hasattr(channel, member), member
     ues = UePlaces(["u1", "u2"], np.array([[100.0, 30.0, 1.5], [300.0, -40.0, 1.5]]), np.zeros(2, bool), np.zeros(2))
     gains = channel.gains_db(0.0, ues)
+    gains = gains if isinstance(gains, np.ndarray) else to_numpy(gains)  # (a tensor where the channel computes)
     assert gains.shape[:2] == (2, len(made.cells)) and np.isfinite(gains).all()
     assert gains.shape[2] == (1 if channel.flat else made.link.subbands)
     assert channel.outdoors(ues.positions).all()  # (free space, an empty scene, no scene)

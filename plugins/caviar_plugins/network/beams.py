@@ -191,26 +191,33 @@ def beam_responses(cells: Sequence[Cell], codebooks: Sequence[Codebook], departu
     return to_torch(out, resolve(device), torch.complex128)
 
 
-def gains_of_responses(amplitude: Any, responses: Any, rows: np.ndarray | None = None) -> np.ndarray:
+def gains_of_responses(amplitude: Any, responses: Any, rows: np.ndarray | None = None, keep: bool = False) -> Any:
     """[ue, cell, freq, beam]: ``|Σ_p a_p e(k_p)ᵀ w_b|²`` for path amplitudes [ue, cell, path,
     freq] (numpy or a tensor) and the paths' :func:`beam_responses` (of the UEs ``rows`` of
-    them, None: all): one batched product, on the responses' device."""
+    them, None: all): one batched product, on the responses' device. ``keep``: the float64
+    tensor left there (what the network's step reads there), not numpy."""
     import torch
 
     dev = responses.device
     r = responses if rows is None else responses[to_torch(rows, dev)]
     a = to_torch(amplitude, dev, torch.complex128)
-    return to_numpy(torch.abs(torch.matmul(a.transpose(2, 3), r)) ** 2)
+    gains = torch.abs(torch.matmul(a.transpose(2, 3), r)) ** 2
+    return gains if keep else to_numpy(gains)
 
 
 def scheduled_ues(serving: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
     """[slot, cell]: the UE (index) each cell schedules in each slot, its UEs in turn (UE
-    order), one per slot; -1 for a cell that serves nobody."""
+    order), one per slot; -1 for a cell that serves nobody. Array work: the UEs sorted by
+    cell (stably, so in UE order within one), each cell's turn an offset into its run."""
+    serving = np.asarray(serving)
+    on = np.flatnonzero(serving >= 0)
+    order = on[np.argsort(serving[on], kind="stable")]  # the served UEs, cell by cell, in UE order
+    counts = np.bincount(serving[on], minlength=n_cells)[:n_cells]
+    starts = np.cumsum(counts) - counts
     out = np.full((slots, n_cells), -1)
-    for c in range(n_cells):
-        mine = np.flatnonzero(np.asarray(serving) == c)
-        if len(mine):
-            out[:, c] = mine[np.arange(slots) % len(mine)]
+    if len(order):
+        pick = starts[None, :] + np.arange(slots)[:, None] % np.maximum(counts, 1)[None, :]  # [slot, cell]
+        out[:] = np.where(counts[None, :] > 0, order[np.minimum(pick, len(order) - 1)], -1)
     return out
 
 
@@ -221,13 +228,14 @@ def slot_beams(serving: np.ndarray, best_beam: np.ndarray, n_cells: int, slots: 
     return np.where(ue >= 0, np.asarray(best_beam)[np.maximum(ue, 0)], -1)
 
 
-def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, best_beam: np.ndarray,
+def slot_sinr_db(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,
                  beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool, device: Any = HOST,
                  linear: bool = False) -> Any:
     """[slot, ue, freq]: the SINR of every UE on its serving cell's best beam, the other cells
     on its carrier pointing ``beams`` [slot, cell] (:func:`slot_beams`), on the victim's channel
-    ``gains`` [ue, cell, freq, beam] (linear). A cell serving nobody is silent with
-    ``silent_idle``, and otherwise sends over its codebook evenly (its mean beam gain).
+    ``gains`` [ue, cell, freq, beam] (linear; numpy, or a tensor on ``device``). A cell serving
+    nobody is silent with ``silent_idle``, and otherwise sends over its codebook evenly (its mean
+    beam gain).
     ``noise_mw`` [ue] (0: the SIR); NaN for a UE without a cell. Computed on the torch
     ``device`` (a setting or a ``torch.device``; at scale, tens of millions of products).
     ``linear``: the ratio itself, a float64 tensor left on the device (what a link level
@@ -235,7 +243,7 @@ def slot_sinr_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, 
     return slot_sinrs_db(cells, gains, serving, best_beam, beams, (noise_mw,), silent_idle, device, linear)[0]
 
 
-def slot_sinrs_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray, best_beam: np.ndarray,
+def slot_sinrs_db(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,
                   beams: np.ndarray, noises_mw: Sequence[np.ndarray], silent_idle: bool, device: Any = HOST,
                   linear: bool = False) -> list[Any]:
     """:func:`slot_sinr_db` for each of ``noises_mw`` (the SINR and the SIR, say), the
@@ -263,8 +271,8 @@ def slot_sinrs_db(cells: Sequence[Cell], gains: np.ndarray, serving: np.ndarray,
         idle = to_torch(beams < 0, dev, torch.float64)  # [slot, cell]
         mean = weighted.mean(dim=-1).permute(1, 0, 2).reshape(n_cell, n_ue * n_f)
         interference = interference + (idle @ mean).reshape(n_slot, n_ue, n_f)
-    ue = np.arange(n_ue)
-    signal = to_torch(power[s][:, None] * gains[ue, s, :, np.asarray(best_beam)[ue]], dev, torch.float64)  # [ue, freq]
+    ue, s_t, best_t = (to_torch(x, dev) for x in (np.arange(n_ue), s, np.asarray(best_beam)))
+    signal = to_torch(power[s][:, None], dev, torch.float64) * g[ue, s_t, :, best_t]  # [ue, freq]
     unserved = to_torch(serving < 0, dev)[None, :, None]
     out: list[Any] = []
     for noise_mw in noises_mw:

@@ -285,13 +285,13 @@ def sinr_db(cells: Sequence[Cell], rx_dbm: np.ndarray, serving: np.ndarray, nois
     # Interferers without their array gain (their beams serve their own UEs).
     load = load / 10 ** (np.array([c.array_gain_db for c in cells]) / 10)
     extra = (1,) * (rx_dbm.ndim - 2)
-    for u in range(n_ue):
-        s = int(serving[u])
-        if s < 0:
-            continue
-        co = (carrier == carrier[s]) & (np.arange(n_cell) != s)
-        interference = (rx_mw[u, co] * load[co].reshape(-1, *extra)).sum(axis=0)
-        noise = 10 ** (noise_dbm(bandwidth[s], noise_figure_db) / 10)
-        with np.errstate(divide="ignore"):  # (the SIR of a UE alone on its carrier: +inf)
-            out[u] = 10 * np.log10(rx_mw[u, s] / (noise + interference))
+    # Every UE at once: the other cells on its serving cell's carrier, weighted by their load.
+    served = np.asarray(serving) >= 0
+    s = np.maximum(np.asarray(serving), 0)
+    co = (carrier[None, :] == carrier[s][:, None]) & (np.arange(n_cell)[None, :] != s[:, None])  # [ue, cell]
+    interference = (rx_mw * (co * load[None, :]).reshape(n_ue, n_cell, *extra)).sum(axis=1)
+    noise = (10 ** (noise_dbm(bandwidth[s], noise_figure_db) / 10)).reshape(n_ue, *extra)
+    with np.errstate(divide="ignore", invalid="ignore"):  # (the SIR of a UE alone on its carrier: +inf)
+        sinr = 10 * np.log10(rx_mw[np.arange(n_ue), s] / (noise + interference))
+    out[served] = sinr[served]
     return out

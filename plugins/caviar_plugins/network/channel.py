@@ -43,14 +43,17 @@ class Channel(Protocol):
     flat: bool
     """Whether it is flat in frequency (one value for the whole band)."""
 
-    def gains_db(self, t: float, ues: UePlaces) -> np.ndarray:
+    def gains_db(self, t: float, ues: UePlaces) -> Any:
         """Channel gains (path and sector pattern, dB) of every cell toward ``ues`` at virtual
-        time ``t``: [ue, cell, frequency] (one frequency when :attr:`flat`)."""
+        time ``t``: [ue, cell, frequency] (one frequency when :attr:`flat`). numpy, or a
+        float64 tensor on the network's torch device where the channel computes there (the
+        network reads only what it needs of it: :func:`~caviar_plugins.network.downlink.received`)."""
         ...
 
-    def beam_gains(self, ues: UePlaces, codebooks: Sequence[Any]) -> np.ndarray:
+    def beam_gains(self, ues: UePlaces, codebooks: Sequence[Any]) -> Any:
         """[ue, cell, frequency, beam]: every cell's SSB beams toward ``ues`` (linear), for the
-        places of the last :meth:`gains_db` (only where :attr:`directions`)."""
+        places of the last :meth:`gains_db` (only where :attr:`directions`); numpy, or a
+        float64 tensor on the network's torch device."""
         ...
 
     def forget(self, ue: str) -> None:

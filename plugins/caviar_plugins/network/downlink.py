@@ -14,31 +14,43 @@ import numpy as np
 
 from caviar_plugins.network.beams import slot_beams, slot_sinr_db, slot_sinrs_db
 from caviar_plugins.network.cells import Cell, noise_dbm, rsrp_dbm, rx_power_dbm, sinr_db
+from caviar_plugins.torch_device import HOST, resolve, to_numpy, to_torch
 
 
-def received(cells: Sequence[Cell], gains_db: np.ndarray, subband_prbs: np.ndarray, num_prb: int,
-             beam_gains: np.ndarray | None = None):
+def received(cells: Sequence[Cell], gains_db: Any, subband_prbs: np.ndarray, num_prb: int,
+             beam_gains: Any = None):
     """What every UE receives of every cell from the channel's ``gains_db`` [ue, cell,
     subband] (dB): power [ue, cell, subband] and wideband (the subbands weighted by their
     PRBs) [ue, cell] in dBm, RSRP [ue, cell] and, with ``beam_gains`` [ue, cell, subband,
     beam] (linear), each cell's best beam [ue, cell] (None without), the wideband power and
-    RSRP then the best beam's (L1-RSRP)."""
-    rx = rx_power_dbm(cells, gains_db)
+    RSRP then the best beam's (L1-RSRP). ``gains_db`` and ``beam_gains`` are numpy, or tensors
+    on the network's torch device (the ray-traced channel's): with beams the per-beam sums are
+    made there and only the wideband power and best beams [ue, cell] are read to the host, once;
+    the power per subband then stays there too (no step reads it with beams)."""
     weights = subband_prbs if gains_db.shape[-1] > 1 else np.ones(1)
-    best = None
     if beam_gains is None:
+        rx = rx_power_dbm(cells, gains_db if isinstance(gains_db, np.ndarray) else to_numpy(gains_db))
         wideband = 10 * np.log10(np.average(10 ** (rx / 10), axis=-1, weights=weights))
-    else:
-        tx = np.array([c.tx_power_dbm for c in cells])[None, :]
-        per_beam = 10 * np.log10(np.maximum(np.average(beam_gains, axis=2, weights=weights), 1e-40))
-        wideband = tx + per_beam.max(axis=-1)
-        best = per_beam.argmax(axis=-1)
+        return rx, wideband, rsrp_dbm(cells, wideband, [num_prb] * len(cells)), None
+    import torch
+
+    g = beam_gains if isinstance(beam_gains, torch.Tensor) else to_torch(beam_gains, HOST, torch.float64)
+    dev = g.device
+    tx = np.array([c.tx_power_dbm for c in cells])
+    rx = rx_power_dbm(cells, gains_db) if isinstance(gains_db, np.ndarray) else \
+        to_torch(tx + np.array([c.array_gain_db for c in cells]), dev, torch.float64)[None, :, None] + gains_db
+    w = to_torch(np.asarray(weights, dtype=float), dev, torch.float64)
+    per_beam = 10 * torch.log10(torch.clamp((g * w[:, None]).sum(dim=2) / w.sum(), min=1e-40))  # [ue, cell, beam]
+    best_t = torch.argmax(per_beam, dim=-1)
+    strongest = per_beam.gather(-1, best_t[..., None])[..., 0]
+    read = to_numpy(torch.stack([strongest, best_t.to(torch.float64)]))  # (the host's one read)
+    wideband, best = tx[None, :] + read[0], read[1].astype(np.int64)
     return rx, wideband, rsrp_dbm(cells, wideband, [num_prb] * len(cells)), best
 
 
 def downlink_sinr(cells: Sequence[Cell], rx: np.ndarray, wideband: np.ndarray, serving: np.ndarray,
                   talking: np.ndarray | None, *, noise_figure_db: float, scheduled: bool,
-                  beams: tuple[np.ndarray, np.ndarray] | None = None, slots: int = 1,
+                  beams: tuple[Any, np.ndarray] | None = None, slots: int = 1,
                   subband_prbs: np.ndarray | None = None, device: Any = "auto", linear: bool = False):
     """Per slot and subband [slot or 1, ue, subband], and wideband [ue], SINR and SIR (dB).
     ``linear``: with beams, the per-slot SINR as a ratio, a float64 tensor left on the torch
@@ -60,23 +72,29 @@ def downlink_sinr(cells: Sequence[Cell], rx: np.ndarray, wideband: np.ndarray, s
     return sinr_db(cells, rx, serving, noise_figure_db, load)[None], sinr, sir
 
 
-def _beamformed(cells: Sequence[Cell], beams: tuple[np.ndarray, np.ndarray], serving: np.ndarray,
+def _beamformed(cells: Sequence[Cell], beams: tuple[Any, np.ndarray], serving: np.ndarray,
                 talking: np.ndarray | None, noise_figure_db: float, scheduled: bool, slots: int,
                 subband_prbs: np.ndarray | None, device: Any, linear: bool = False):
     """With beams: per slot and subband, and wideband (the slots' mean); the other cells
     point at the UEs they schedule among ``talking`` (None: all)."""
+    import torch
+
     gains, best_beams = beams
+    dev = gains.device if isinstance(gains, torch.Tensor) else resolve(device)
     ue = np.arange(len(serving))
     best = np.where(serving >= 0, best_beams[ue, np.maximum(serving, 0)], 0)
     pointed = serving if talking is None else np.where(talking, serving, -1)
     chosen = slot_beams(pointed, best, len(cells), slots)
     bandwidth = np.array([c.bandwidth_hz for c in cells])[np.maximum(serving, 0)]
     noise = 10 ** (noise_dbm(bandwidth, noise_figure_db) / 10)
-    per_slot = slot_sinr_db(cells, gains, serving, best, chosen, noise, scheduled, device, linear)
-    weights = subband_prbs if gains.shape[2] > 1 and subband_prbs is not None else np.ones(gains.shape[2])
-    flat = np.average(gains, axis=2, weights=weights)[:, :, None, :]
-    # (the SINR and the SIR of the slots' wideband channel: one interference sum for both)
-    sinr, sir = slot_sinrs_db(cells, flat, serving, best, chosen, (noise, np.zeros(len(serving))), scheduled, device)
-    with np.errstate(divide="ignore"):  # (no signal: -inf, reported as None)
-        sinr, sir = (10 * np.log10(np.mean(10 ** (x[:, :, 0] / 10), axis=0)) for x in (sinr, sir))
+    per_slot = slot_sinr_db(cells, gains, serving, best, chosen, noise, scheduled, dev, linear)
+    g = to_torch(gains, dev, torch.float64)
+    weights = subband_prbs if g.shape[2] > 1 and subband_prbs is not None else np.ones(g.shape[2])
+    w = to_torch(np.asarray(weights, dtype=float), dev, torch.float64)
+    flat = ((g * w[:, None]).sum(dim=2) / w.sum())[:, :, None, :]  # (the subbands' weighted mean)
+    # (the SINR and the SIR of the slots' wideband channel: one interference sum for both, their
+    # ratios averaged over the slots where they are, read to the host once)
+    ratios = slot_sinrs_db(cells, flat, serving, best, chosen, (noise, np.zeros(len(serving))), scheduled, dev,
+                           linear=True)
+    sinr, sir = to_numpy(10 * torch.log10(torch.stack([r[:, :, 0].mean(dim=0) for r in ratios])))
     return per_slot, sinr, sir

@@ -30,6 +30,7 @@ import dataclasses
 import numpy as np
 
 import caviar
+from caviar.topics import matches
 from caviar_plugins.network.beams import beam_report
 from caviar_plugins.network.channel import UePlaces
 from caviar_plugins.network.downlink import downlink_sinr, received
@@ -174,22 +175,17 @@ class RadioNetwork(caviar.Plugin):
     def _read(self, t: float, inbox) -> None:
         """UEs that left free their column; positions update (and add) UEs; the messages the
         UEs carry are queued."""
-        for m in inbox.on(ARRIVED):
-            if m.data["UE_Id"] in self.ues:
+        others = [m for m in inbox if m.topic != POSITIONS]  # (the few that are not a UE's position)
+        for m in others:
+            if m.topic == ARRIVED and m.data["UE_Id"] in self.ues:
                 self._forget(m.data["UE_Id"])
                 self.ues.pop(m.data["UE_Id"])
-        position, lift = self.ues.position, self.ues.lift
-        for m in inbox.on(POSITIONS):  # (one message a UE: its numbers into the arrays)
-            ue_id = m.data["UE_Id"]
-            if ue_id not in self.ues:
-                col = self.ues.add(ue_id, m.data["UE_type"])
-                position, lift = self.ues.position, self.ues.lift
-                lift[col] = self.p.antenna_height_m
-            p = m.data["position"]
-            position[self.ues.column(ue_id)] = (p["x"], p["y"], p["z"])
+        # (one message a UE: their numbers gathered by list, into the arrays at once)
+        self.ues.place([m.data for m in inbox if m.topic == POSITIONS], self.p.antenna_height_m)
         if self.queues is not None:
             for i, c in enumerate(self.p.traffic.carry):
-                for m in inbox.on(c.topic):
+                for m in inbox.on(c.topic) if matches(c.topic, POSITIONS) else [m for m in others
+                                                                                  if matches(c.topic, m.topic)]:
                     sender = m.data["UE_Id"] if isinstance(m.data, dict) and "UE_Id" in m.data else ue_of(m.topic)
                     if sender not in self.ues:
                         raise caviar.ConfigError(f"a message on {m.topic} is for UE {sender!r}, which has no "

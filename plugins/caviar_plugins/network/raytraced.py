@@ -146,15 +146,17 @@ class EvolvingPaths:
         return self.amplitude * torch.polar(self.unit, phase)
 
 
-def summed_db(amplitudes: Any) -> np.ndarray:
+def summed_db(amplitudes: Any, keep: bool = False) -> Any:
     """[ue, cell, freq]: |Σ_paths a|² (dB) of path coefficients [ue, cell, path, freq]
     (:meth:`TracedChannels.amplitudes`, numpy, or :meth:`TracedChannels.amplitudes_on`, a
-    tensor, summed where it is), floored at ``NO_PATH_DB``."""
+    tensor, summed where it is), floored at ``NO_PATH_DB``. ``keep``: the float64 tensor left
+    where it was computed, not numpy."""
     import torch
 
     a = amplitudes if isinstance(amplitudes, torch.Tensor) else to_torch(amplitudes, HOST)
     power = torch.abs(a.sum(dim=-2)) ** 2
-    return to_numpy(10 * torch.log10(torch.clamp(power, min=10 ** (NO_PATH_DB / 10))))
+    db = 10 * torch.log10(torch.clamp(power, min=10 ** (NO_PATH_DB / 10)))
+    return db if keep else to_numpy(db)
 
 
 class SiteTracer:

@@ -63,7 +63,11 @@ class RayTracedChannel:
             self._rows = (ids, np.array([self.traced[u] for u in ids], dtype=np.int64))
         return self._rows[1]
 
-    def gains_db(self, t: float, ues: UePlaces) -> np.ndarray:
+    def gains_db(self, t: float, ues: UePlaces) -> Any:
+        """Numpy with ``evolution.mode = "hold"``; else a float64 tensor on the device, as the
+        step's beam gains (:meth:`beam_gains`) are (the network reads what it needs of them)."""
+        import torch
+
         ids, pos = ues.ids, ues.positions
         due = t - self.refreshed_at >= self.evolution.refresh_s - 1e-9
         if due or (self._rows[0] is not ids and any(u not in self.traced for u in ids)):
@@ -80,14 +84,14 @@ class RayTracedChannel:
             self._evolving = (self.channels, rows, EvolvingPaths(self.channels.rows(rows), self.device,
                                                                  self.frequencies))
         self.amplitude = self._evolving[2].at(pos)  # (the beams' too; once a step)
-        gains = summed_db(self.amplitude)
+        gains = summed_db(self.amplitude, keep=True)  # (left on the device: read only where it is needed)
         if self.band_average:
-            return 10 * np.log10(np.mean(10 ** (gains / 10), axis=-1, keepdims=True))
+            return 10 * torch.log10(torch.mean(10 ** (gains / 10), dim=-1, keepdim=True))
         return gains
 
-    def beam_gains(self, ues: UePlaces, codebooks: Sequence[Any]) -> np.ndarray:
+    def beam_gains(self, ues: UePlaces, codebooks: Sequence[Any]) -> Any:
         """From the paths :meth:`gains_db` just moved (their beam responses kept until the
-        next trace)."""
+        next trace): a float64 tensor on the device, where the step's SINRs are computed."""
         ch = self.channels
         assert ch is not None and ch.departure is not None
         if self.responses[0] is not ch:  # (kept on the device, from one trace to the next)
@@ -97,9 +101,9 @@ class RayTracedChannel:
         if self._responses_of_rows[0] is not self.responses[1] or self._responses_of_rows[1] is not rows:
             r = self.responses[1]  # (the rows' responses gathered once a trace or a change of the UEs)
             self._responses_of_rows = (r, rows, r[to_torch(rows, r.device)])
-        gains = gains_of_responses(amplitude, self._responses_of_rows[2])
+        gains = gains_of_responses(amplitude, self._responses_of_rows[2], keep=True)  # (a tensor on the device)
         if self.band_average:
-            gains = gains.mean(axis=2, keepdims=True)
+            gains = gains.mean(dim=2, keepdim=True)
         return gains
 
     def forget(self, ue: str) -> None:

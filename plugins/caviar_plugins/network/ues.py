@@ -7,7 +7,9 @@ from those arrays in one pass (:func:`ue_reports`), their numbers converted in b
 
 from __future__ import annotations
 
+import itertools
 import math
+import operator
 from typing import Any, Callable, Iterator
 
 import numpy as np
@@ -54,6 +56,21 @@ class UeTable:
         self.ues[ue] = {"type": ue_type, "column": col}
         self._view = None
         return col
+
+    def place(self, payloads: list[dict[str, Any]], lift_m: float) -> None:
+        """The positions of ``payloads`` (``3D.mobility.positions``' messages, in delivery order)
+        into :attr:`position`, at once; a UE not yet here is added first (in the order it first
+        appears, its antenna ``lift_m`` above its position). A UE with two messages: the last."""
+        if not payloads:
+            return
+        last = {d["UE_Id"]: d for d in payloads}  # (first appearance's order, last message)
+        for u, d in last.items():
+            if u not in self.ues:
+                col = self.add(u, d["UE_type"])  # (first: it may grow the arrays)
+                self.arrays["lift"][col] = lift_m
+        cols = [self.ues[u]["column"] for u in last]
+        xyz = operator.itemgetter("x", "y", "z")
+        self.arrays["position"][cols] = [xyz(d["position"]) for d in last.values()]
 
     def pop(self, ue: str) -> int:
         """Removes ``ue``; its column is free again."""
@@ -133,36 +150,46 @@ def uplink_fields(tx: np.ndarray, sinr: np.ndarray, mbps: np.ndarray, link: dict
 
 def ue_reports(names: list[str], ids: list[str], types: list[str], serving: np.ndarray, sinr: np.ndarray,
                sir: np.ndarray, loss: np.ndarray, rsrp: np.ndarray, listed: np.ndarray | None, mbps: np.ndarray,
-               link: dict[str, np.ndarray] | None, extras: Callable[[int, bool], dict[str, Any]],
+               link: dict[str, np.ndarray] | None,
+               extras: list[dict[str, Any]] | Callable[[int, bool], dict[str, Any]],
                position: np.ndarray) -> Iterator[tuple[str, dict[str, Any]]]:
     """Every UE's ``communications.throughput`` and ``network.ue``, in UE order, from the step's
     arrays ([ue]; ``rsrp`` [ue, cell] and the cells ``listed`` of each UE [ue, k], None: all;
     ``link`` the link level's ``mcs``, ``tbler``, ``harq_ack``, ``harq_nack``, ``prbs`` [ue],
-    None for a Shannon link); ``extras(i, covered)``: UE i's fields beyond them."""
+    None for a Shannon link); ``extras``: each UE's fields beyond them (:func:`ue_extras`'s
+    list, or ``extras(i, covered)``). The messages are made by list comprehensions over the
+    columns, not a function call per UE."""
     covered = (serving >= 0).tolist()
-    cell = [names[s] if c else None for s, c in zip(serving.tolist(), covered, strict=True)]
     sinr_l, sir_l, loss_l = _finite(sinr, 3), _finite(sir, 3), rounded(loss, 3)
     mbps_l = rounded(mbps, 6)
     rsrp_l = rounded(rsrp, 2)
-    listed_l = None if listed is None else listed.tolist()
-    pos_l = rounded(position, 2)
-    summary = None if link is None else _summaries(link)
-    for i, u in enumerate(ids):
-        ue_type, c, r = types[i], covered[i], rsrp_l[i]
-        yield THROUGHPUT, {"UE_type": ue_type, "UE_Id": u, "throughput": mbps_l[i]}
-        listed_rsrp = dict(zip(names, r, strict=True)) if listed_l is None else {names[k]: r[k] for k in listed_l[i]}
-        report = {"UE_type": ue_type, "UE_Id": u, "serving_cell": cell[i],
-                  "sinr_db": sinr_l[i] if c else None,  # (None: no signal, paths gone)
-                  "sir_db": sir_l[i] if c else None,
-                  "coupling_loss_db": loss_l[i] if c else None,
-                  "rsrp_dbm": listed_rsrp,
-                  "throughput_mbps": mbps_l[i]}
-        if ue_type == "dropped":  # (no other module publishes where the network dropped it)
-            report["position_m"] = pos_l[i]
-        if summary is not None:
-            report.update(summary[i])
-        report.update(extras(i, c))
-        yield NETWORK_UE, report
+    thr = [{"UE_type": t, "UE_Id": u, "throughput": m} for t, u, m in zip(types, ids, mbps_l, strict=True)]
+    if listed is None:
+        listed_rsrp = [dict(zip(names, r, strict=True)) for r in rsrp_l]
+    else:
+        listed_rsrp = [dict(zip(map(names.__getitem__, ks), map(r.__getitem__, ks), strict=True))
+                       for r, ks in zip(rsrp_l, listed.tolist(), strict=True)]  # (no Python frame a UE)
+    # (None where the UE has no cell: no signal, paths gone)
+    reports = [{"UE_type": t, "UE_Id": u, "serving_cell": names[s] if c else None, "sinr_db": si if c else None,
+                "sir_db": sr if c else None, "coupling_loss_db": lo if c else None, "rsrp_dbm": r,
+                "throughput_mbps": m}
+               for t, u, s, c, si, sr, lo, r, m in zip(types, ids, serving.tolist(), covered, sinr_l, sir_l, loss_l,
+                                                       listed_rsrp, mbps_l, strict=True)]
+    dropped = [i for i, t in enumerate(types) if t == "dropped"]
+    if dropped:  # (no other module publishes where the network dropped it)
+        pos_l = rounded(position[dropped], 2)
+        for i, p in zip(dropped, pos_l, strict=True):
+            reports[i]["position_m"] = p
+    if link is not None:
+        for report, summary in zip(reports, _summaries(link), strict=True):
+            report.update(summary)
+    tails = extras if isinstance(extras, list) else [extras(i, c) for i, c in enumerate(covered)]
+    for report, tail in zip(reports, tails, strict=True):
+        if tail:
+            report.update(tail)
+    for a, b in zip(thr, reports, strict=True):
+        yield THROUGHPUT, a
+        yield NETWORK_UE, b
 
 
 def link_columns(per_slot: np.ndarray, serving: np.ndarray, cols: np.ndarray, slots: int):
@@ -197,26 +224,24 @@ def run_link(link: Any, per_slot: Any, serving: np.ndarray, cols: np.ndarray, sl
 
 def ue_extras(ids: list[str], types: list[str], serving: np.ndarray, ul: list[dict] | None,
               beam_reports: list[list[dict]] | None, best_beams: np.ndarray | None, queues: Any,
-              directions: tuple[str, ...]) -> Callable[[int, bool], dict[str, Any]]:
-    """``extras(i, covered)``: UE ``i``'s ``network.ue`` fields beyond the downlink's, from the
-    step's arrays: its uplink's (``ul``: :func:`uplink_fields`), its best beam's on the serving
-    cell (``beam_reports[cell][beam]``, ``best_beams`` [ue, cell]) and its queues'."""
-    beams: list[dict] | None = None
+              directions: tuple[str, ...]) -> list[dict[str, Any]]:
+    """Every UE's ``network.ue`` fields beyond the downlink's, from the step's arrays, [ue]: for a
+    UE with a cell its uplink's (``ul``: :func:`uplink_fields`) and its best beam's on the
+    serving cell (``beam_reports[cell][beam]``, ``best_beams`` [ue, cell]), then its queues'
+    (those not None). Made by comprehensions; a UE without any shares one empty dict."""
+    covered = (serving >= 0).tolist()
+    none: dict[str, Any] = {}
+    beams: Any = itertools.repeat(none)
     if beam_reports is not None and best_beams is not None:
         sv = np.maximum(serving, 0)
         beams = [beam_reports[s][b] for s, b in
                  zip(sv.tolist(), best_beams[np.arange(len(sv)), sv].tolist(), strict=True)]
-
-    queued = None if queues is None else queues.reports(ids, types, directions)
-
-    def extras(i: int, covered: bool) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        if ul is not None and covered:
-            out.update(ul[i])
-        if beams is not None and covered:
-            out.update(beams[i])
-        for name, column in queued or ():
-            if column[i] is not None:
-                out[name] = column[i]
-        return out
-    return extras
+    queued: Any = itertools.repeat(none)
+    if queues is not None:
+        columns = queues.reports(ids, types, directions)
+        keys = [name for name, _ in columns]
+        present = zip(*([v is not None for v in column] for _, column in columns), strict=True)
+        queued = [dict(itertools.compress(zip(keys, row, strict=True), mask))  # (those not None; no frame a UE)
+                  for row, mask in zip(zip(*(column for _, column in columns), strict=True), present, strict=True)]
+    uls = itertools.repeat(none) if ul is None else ul
+    return [{**u, **b, **q} if c else q for c, u, b, q in zip(covered, uls, beams, queued, strict=False)]

@@ -55,29 +55,31 @@ class UplinkSettings:
             raise ValueError(f"mcs_table: expected an NR PUSCH MCS table index 1-2, got {self.mcs_table!r}")
 
 
-def tx_power_dbm(s: UplinkSettings, pathloss_db: np.ndarray, num_prb: int, device: str = "auto") -> np.ndarray:
+def tx_power_dbm(s: UplinkSettings, pathloss_db: Any, num_prb: int, device: Any = "auto", keep: bool = False) -> Any:
     """[ue]: each UE's PUSCH power over ``num_prb`` PRBs, by Sionna SYS's open-loop power
-    control (``pathloss_db`` [ue] from the serving cell's RSRP), on the torch ``device`` of
-    the link level (:mod:`caviar_plugins.torch_device`)."""
+    control (``pathloss_db`` [ue] from the serving cell's RSRP: numpy, or a tensor on the
+    device), on the torch ``device`` of the link level (:mod:`caviar_plugins.torch_device`).
+    ``keep``: a float64 tensor left there, not numpy."""
     import torch
     from sionna.sys import open_loop_uplink_power_control
 
     from caviar_plugins.torch_device import resolve, to_numpy, to_torch
 
     where = resolve(device)
-    pl = to_torch(10 ** (np.asarray(pathloss_db, dtype=float) / 10), where, torch.float32)
-    subcarriers = to_torch(np.full(pl.shape, 12 * num_prb), where, torch.int32)
+    pl = (10 ** (to_torch(pathloss_db, where, torch.float64) / 10)).to(torch.float32)
+    subcarriers = torch.full(pl.shape, 12 * num_prb, dtype=torch.int32, device=where)
     watts = open_loop_uplink_power_control(pl, subcarriers, alpha=s.alpha, p0_dbm=s.p0_dbm,
                                            ut_max_power_dbm=s.ue_max_power_dbm)
-    return 10 * np.log10(to_numpy(watts).astype(float)) + 30
+    dbm = 10 * torch.log10(watts.to(torch.float64)) + 30
+    return dbm if keep else to_numpy(dbm)
 
 
 SLOTS_AT_ONCE = 50
 """Slots of the uplink's interference gathered at once ([slot, cell, cell, freq, beam] each time)."""
 
 
-def slot_sinr_db(desired: np.ndarray, gains: np.ndarray, receive: np.ndarray, serving: np.ndarray,
-                 carrier_of: np.ndarray, prb_power_dbm: np.ndarray, scheduled: np.ndarray, noise_prb_mw: float,
+def slot_sinr_db(desired: Any, gains: Any, receive: np.ndarray, serving: np.ndarray,
+                 carrier_of: np.ndarray, prb_power_dbm: Any, scheduled: np.ndarray, noise_prb_mw: float,
                  device: Any = HOST, linear: bool = False) -> Any:
     """[slot, ue, freq]: uplink SINR of every UE at its serving cell.
 
@@ -86,7 +88,8 @@ def slot_sinr_db(desired: np.ndarray, gains: np.ndarray, receive: np.ndarray, se
     "beam", the element pattern, without beams); ``receive`` [ue]: the beam its serving cell
     receives the UE on; ``prb_power_dbm`` [ue]: power per PRB; ``scheduled`` [slot, cell]
     (:func:`~caviar_plugins.network.beams.scheduled_ues`); ``carrier_of`` [cell]. NaN for a UE
-    without a cell. Computed on the torch ``device`` (a setting or a ``torch.device``);
+    without a cell. ``desired``, ``gains`` and ``prb_power_dbm``: numpy, or tensors on ``device``.
+    Computed on the torch ``device`` (a setting or a ``torch.device``);
     ``linear``: the ratio itself, a float64 tensor left there (not its dB in numpy).
 
     What a victim hears depends on it only through its cell and receive beam: the interference
@@ -101,13 +104,13 @@ def slot_sinr_db(desired: np.ndarray, gains: np.ndarray, receive: np.ndarray, se
     n_slot, n_cell = scheduled.shape
     # heard[k, c]: cell k hears cell c's UEs (the others on its carrier).
     heard = (carrier_of[None, :] == carrier_of[:, None]) & ~np.eye(n_cell, dtype=bool)
-    p = to_torch(10 ** (np.asarray(prb_power_dbm, dtype=float) / 10), dev, torch.float64)
+    p = 10 ** (to_torch(prb_power_dbm, dev, torch.float64) / 10)
     g, heard_t = to_torch(gains, dev, torch.float64), to_torch(heard, dev, torch.float64)
     s, rx = to_torch(np.maximum(serving, 0), dev), to_torch(np.asarray(receive), dev)
     signal = p[:, None] * to_torch(desired, dev, torch.float64)  # [ue, freq]
-    parts = []
+    parts, heard_ues = [], to_torch(np.asarray(scheduled), dev, torch.int64)  # [slot, cell]: the UE each cell hears
     for a in range(0, n_slot, SLOTS_AT_ONCE):
-        v = to_torch(scheduled[a:a + SLOTS_AT_ONCE], dev, torch.int64)  # [slot, cell]: the UE each cell hears
+        v = heard_ues[a:a + SLOTS_AT_ONCE]
         who = torch.clamp(v, min=0)
         weight = (v >= 0) * p[who]  # [slot, cell]
         per_beam = torch.einsum("sc,kc,sckfb->skbf", weight, heard_t, g[who])  # [slot, cell k, beam, freq]
@@ -130,8 +133,8 @@ def pathloss_db(tx_power_dbm: np.ndarray, rx_dbm: np.ndarray) -> np.ndarray:
     return np.asarray(tx_power_dbm, dtype=float) - np.asarray(rx_dbm, dtype=float)
 
 
-def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm: np.ndarray,
-           beam_gains: np.ndarray | None, best_beams: np.ndarray | None, num_prb: int,
+def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm: Any,
+           beam_gains: Any, best_beams: np.ndarray | None, num_prb: int,
            subcarrier_spacing_hz: float, slots: int, device: str = "auto",
            talking: np.ndarray | None = None, linear: bool = False) -> tuple[np.ndarray, Any]:
     """Every UE's PUSCH power (dBm, [ue]) and SINR ([slot, ue, freq]) from the downlink's
@@ -140,27 +143,36 @@ def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm
     beam per cell [ue, cell]. The channel is reciprocal: the same gains both ways.
     ``talking`` [ue]: the UEs with data to send, the only ones other cells schedule (None: all).
     ``linear``: the SINR as a ratio, a float64 tensor on the torch ``device`` (:func:`slot_sinr_db`)."""
+    import torch
+
+    from caviar_plugins.torch_device import resolve, to_numpy, to_torch
+
     n = len(serving)
     ue, sv = np.arange(n), np.maximum(np.asarray(serving), 0)
     power = np.array([c.tx_power_dbm for c in cells])
     array = np.array([c.array_gain_db for c in cells])
-    if beam_gains is not None and best_beams is not None:
+    dev = beam_gains.device if isinstance(beam_gains, torch.Tensor) else resolve(device)
+    desired: Any
+    pl: Any
+    gains: Any
+    if beam_gains is not None and best_beams is not None:  # (on the device, where the beam gains are)
         best = best_beams[ue, sv]
-        desired = beam_gains[ue, sv, :, best]  # [ue, freq]
-        pl = -10 * np.log10(np.maximum(np.mean(desired, axis=-1), 1e-40))
-        gains, receive = beam_gains, best  # (UE v into the beam cell k receives u on)
+        gains = to_torch(beam_gains, dev, torch.float64)
+        desired = gains[to_torch(ue, dev), to_torch(sv, dev), :, to_torch(best, dev)]  # [ue, freq]
+        pl = -10 * torch.log10(torch.clamp(desired.mean(dim=-1), min=1e-40))
+        receive = best  # (UE v into the beam cell k receives u on)
     else:
         rx_lin = np.mean(10 ** (np.asarray(rx_dbm) / 10), axis=-1)  # [ue, cell] (over the band)
         pl = pathloss_db(power[sv], 10 * np.log10(np.maximum(rx_lin[ue, sv], 1e-40)))
         channel = 10 ** ((np.asarray(rx_dbm) - (power + array)[None, :, None]) / 10)  # [ue, cell, freq]
         desired = channel[ue, sv] * 10 ** (array[sv] / 10)[:, None]
         gains, receive = channel[..., None], np.zeros(n, dtype=np.int64)  # element pattern only (the array serves u)
-    tx = tx_power_dbm(s, pl, num_prb, device)
+    tx = tx_power_dbm(s, pl, num_prb, dev, keep=True)
     scheduled = scheduled_ues(serving if talking is None else np.where(talking, serving, -1), len(cells), slots)
     carriers = np.array([c.carrier_hz for c in cells])
     sinr = slot_sinr_db(desired, gains, receive, serving, carriers, tx - 10 * np.log10(num_prb), scheduled,
-                        noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db), device, linear)
-    return tx, sinr
+                        noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db), dev, linear)
+    return to_numpy(tx), sinr
 
 
 def mean_sinr_db(per_slot: Any) -> np.ndarray:
