@@ -8,7 +8,6 @@ from those arrays in one pass (:func:`ue_reports`), their numbers converted in b
 from __future__ import annotations
 
 import itertools
-import math
 import operator
 from typing import Any, Callable, Iterator
 
@@ -122,7 +121,8 @@ def rounded(values: np.ndarray, digits: int) -> list:
 
 def _finite(values: np.ndarray, digits: int) -> list[float | None]:
     """Rounded as :func:`~caviar_plugins.network.report.finite` rounds, in bulk (None: not finite)."""
-    return [r if math.isfinite(r) else None for r in rounded(values, digits)]
+    finite = np.isfinite(np.asarray(values, dtype=float)).tolist()  # (rounding keeps a value finite or not)
+    return [r if f else None for r, f in zip(rounded(values, digits), finite, strict=True)]
 
 
 def link_fields(res: Any, cols: np.ndarray) -> dict[str, np.ndarray]:
@@ -135,9 +135,10 @@ def link_fields(res: Any, cols: np.ndarray) -> dict[str, np.ndarray]:
 def _summaries(link: dict[str, np.ndarray], prefix: str = "") -> list[dict[str, Any]]:
     """Every UE's link summary (``mcs``, ``tbler``, ``harq_ack``, ``harq_nack``, ``prbs``)."""
     columns = [link[k].tolist() for k in ("mcs", "harq_ack", "harq_nack", "prbs")]
-    columns.insert(1, rounded(link["tbler"], 4))
-    return [{prefix + "mcs": m, prefix + "tbler": None if math.isnan(b) else b, prefix + "harq_ack": a,
-             prefix + "harq_nack": n, prefix + "prbs": p} for m, b, a, n, p in zip(*columns, strict=True)]
+    columns[1:1] = [rounded(link["tbler"], 4), np.isnan(link["tbler"]).tolist()]
+    k_mcs, k_tbler, k_ack, k_nack, k_prbs = (prefix + k for k in ("mcs", "tbler", "harq_ack", "harq_nack", "prbs"))
+    return [{k_mcs: m, k_tbler: None if nan else b, k_ack: a, k_nack: n, k_prbs: p}
+            for m, b, nan, a, n, p in zip(*columns, strict=True)]
 
 
 def uplink_fields(tx: np.ndarray, sinr: np.ndarray, mbps: np.ndarray, link: dict[str, np.ndarray]) -> list[dict]:
