@@ -18,8 +18,9 @@ import sys
 import numpy as np
 import pytest
 
-from caviar_plugins.twin.fit import FIT_RAYS, FitSettings, fit_materials, search_grid
+from caviar_plugins.twin.fit import FIT_RAYS, FitSettings, fit_materials
 from caviar_plugins.twin.measurements import FIELDS, MeasurementError, Measurements, from_rows, read_measurements
+from caviar_plugins.twin.search import search_grid
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 RAYS = dataclasses.replace(FIT_RAYS, los=False, max_depth=2, samples_per_src=20_000, threads=1)
@@ -238,7 +239,7 @@ def test_a_fit_finds_a_known_permittivity_back_and_says_what_it_cannot_see(rt):
 def test_rival_minima_are_the_other_basins_that_fit_within_the_noise():
     """A profile with its best at 4 and another basin at 9 within the threshold (and one at 1
     beyond it): 9 is a rival, 1 is not, and the best's own basin (3-5) is not."""
-    from caviar_plugins.twin.fit import rival_minima
+    from caviar_plugins.twin.search import rival_minima
 
     values = np.arange(12.0)
     sse = np.array([9.0, 8.0, 9.0, 5.0, 1.0, 3.0, 7.0, 6.0, 4.0, 2.5, 6.0, 8.0])
@@ -316,7 +317,7 @@ def test_fit_scene_writes_the_scene_the_report_and_the_figure(rt, tmp_path):
     m = data.write_csv(tmp_path / "m.csv")
     r = _cli(str(rt.scene.simple_street_canyon), str(m), "--out", str(tmp_path / "fit"), "--materials", "marble",
              "--learn", "relative_permittivity", "--iterations", "3", "--search-points", "8", "--samples", "20000",
-             "--max-depth", "2", "--threads", "1", "--holdout", "0.25")
+             "--max-depth", "2", "--threads", "1", "--holdout", "0.25", "--restarts", "1")
     assert r.returncode == 0, r.stderr
     assert "iteration 0: fit" in r.stderr and "held-out RMSE" in r.stderr
     report = json.loads((tmp_path / "fit" / "fit.json").read_text())

@@ -37,7 +37,7 @@ def test_the_twin_learns_in_the_loop_and_the_link_uses_it(tmp_path, street):
                       "truth": {"concrete": {"relative_permittivity": TRUTH}}}, params_table=True)
             + module("twin", "twin", "scene-fitter",
                      {"scene": street, "refit_s": 4.0, "min_samples": 4, "iterations": 3, "search_points": 40,
-                      "materials": ["concrete"], "holdout": 0.25, "noise_db": 0.5, "raytracing": RAYS},
+                      "restarts": 1, "materials": ["concrete"], "holdout": 0.25, "noise_db": 0.5, "raytracing": RAYS},
                      params_table=True))
     log = run_config(tmp_path, text)
     measured = log.decoded("measurements.*")

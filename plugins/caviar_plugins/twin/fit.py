@@ -1,6 +1,6 @@
-"""Learning a scene's radio materials from measurements by gradient descent through Sionna RT
-(differentiable ray tracing; the method of Hoydis et al., "Learning radio environments by
-differentiable ray tracing", 2024).
+"""Learning a scene's radio materials from measurements through Sionna RT (differentiable ray
+tracing; the method of Hoydis et al., "Learning radio environments by differentiable ray
+tracing", 2024).
 
 :func:`fit_materials` takes a scene (loaded at the measurements' carrier), measurements
 (:class:`~caviar_plugins.twin.measurements.Measurements`) and :class:`FitSettings`, and:
@@ -11,16 +11,17 @@ differentiable ray tracing", 2024).
    log given ``noise_db`` of measurement noise. A property whose bound is wider than
    ``max_log_std`` (0.2: about ±20 %), alone or because another one explains the same data,
    is not learned and is reported as not identifiable;
-3. searches each identifiable property coarsely over its physical range
-   (:data:`SEARCH_RANGE`, ``search_points`` values, ``search_sweeps`` rounds, the others held):
-   a wall's reflection oscillates with its permittivity (the two faces of a slab of
-   ``thickness`` interfere), so the error has several minima and a descent from a wrong guess
-   stops in the nearest one;
-4. descends (Adam) on the mean squared error in dB of the fit samples with respect to the
-   identifiable properties' logs (ε_r − 1, σ and the logit of S: each stays in its physical
-   range), with Dr.Jit's gradient through Sionna's field computation, until the error stops
-   falling by ``plateau`` over ``patience`` iterations or ``iterations`` are done;
-5. reports the RMSE in dB before and after on the fit and the held-out samples (the honest
+3. traces the measured places once: each guess computes only the fields along the found paths
+   (:class:`~caviar_plugins.rt.received_power.ReceivedPower`);
+4. searches each identifiable property over its physical range, the others held, and
+   descends from the best (Levenberg–Marquardt, or Adam on Dr.Jit's gradient), in rounds; then
+   restarts from random values (a wall's reflection oscillates with its permittivity, so the
+   error has many narrow minima, and two walls can make up for each other); the search and
+   the descents are :mod:`caviar_plugins.twin.search`;
+5. takes the bound again at the solution, and tests each property left out by a
+   likelihood-ratio test; reports a learned property that makes up for a fixed one as
+   confounded, and other minima that fit as well as ambiguous;
+6. reports the RMSE in dB before and after on the fit and the held-out samples (the honest
    figure), and the learned values beside the starting ones.
 """
 
@@ -37,20 +38,23 @@ from caviar_plugins.rt.materials import PROPERTIES, scene_materials, split_mater
 from caviar_plugins.rt.received_power import ReceivedPower, Unknown
 from caviar_plugins.rt.settings import TraceSettings
 from caviar_plugins.twin.measurements import Measurements
+from caviar_plugins.twin.search import (
+    adam,
+    coarse_search,
+    from_log,
+    levenberg_marquardt,
+    likelihood_ratio_inclusion,
+    record,
+    restart_rounds,
+    rmse,
+    to_log,
+)
 
 FIT_RAYS = TraceSettings(samples_per_src=200_000, max_depth=3, diffuse_reflection=False, refraction=False,
                          diffraction=False, shoot_cache=False)
 """How a fit traces by default: 2e5 rays to depth 3, line of sight and specular reflections
 (what received power at street level is made of; add diffraction or diffuse reflection with
 ``raytracing``: diffuse reflection is what makes a scattering coefficient identifiable)."""
-LOWER = {"relative_permittivity": 1.0 + 1e-3, "conductivity": 1e-6, "scattering_coefficient": 1e-4}
-SEARCH_RANGE = {"relative_permittivity": (1.5, 80.0), "conductivity": (1e-3, 10.0),
-                "scattering_coefficient": (0.01, 0.9)}
-"""Where the coarse search looks for each property (the span of ITU-R P.2040's materials)."""
-JACOBIAN_STEP = 0.01
-"""The central difference's step in a property's log for the Levenberg–Marquardt Jacobian."""
-MAX_LOG_STEP = 0.3
-"""A Levenberg–Marquardt step moves no log by more than this (about ±35 %)."""
 METHODS = ("lm", "adam")
 CONFOUNDED = 0.9
 """Two unknowns whose sensitivities over the fit samples align this closely (|cosine|) are
@@ -92,7 +96,7 @@ class FitSettings:
     seed: int = 0
     """Draws the held-out samples."""
     search_points: int = 160
-    """Values per property in the coarse search (:func:`search_grid`). The permittivity's
+    """Values per property in the coarse search (:func:`~caviar_plugins.twin.search.search_grid`). The permittivity's
     grid must resolve the slab's oscillation, whose period in √ε_r is λ/(2·thickness) (0.43
     for 10 cm walls at 3.5 GHz) and whose minima are a fraction of it wide: 160 points over
     1.5–80 step 0.05 in √ε_r, an eighth of that period. (With 40, a step of half a period,
@@ -105,7 +109,7 @@ class FitSettings:
     first sweep set to make up for another's wrong start)."""
     restarts: int = 8
     """Then this many more rounds from random values of every learned property (drawn over
-    :data:`SEARCH_RANGE` with ``seed``), each a search sweep and a descent: two properties
+    :data:`~caviar_plugins.twin.search.SEARCH_RANGE` with ``seed``), each a search sweep and a descent: two properties
     that trade off (a high permittivity on one wall making up for a low one on another) hold
     a coordinate search in a wrong pair of basins, which a start elsewhere leaves. The best
     round wins; another round's minimum that fits as well within the noise (the likelihood
@@ -133,33 +137,6 @@ class FitSettings:
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{key}: expected a number > 0, got {v!r}")
-
-
-def to_log(prop: str, v: float) -> float:
-    """The unconstrained coordinate a fit moves ``prop`` in."""
-    v = max(v, LOWER[prop])
-    if prop == "relative_permittivity":
-        return math.log(v - 1.0)
-    if prop == "scattering_coefficient":
-        v = min(v, 1 - 1e-4)
-        return math.log(v / (1 - v))
-    return math.log(v)
-
-
-def from_log(prop: str, x: float) -> float:
-    if prop == "relative_permittivity":
-        return 1.0 + math.exp(x)
-    if prop == "scattering_coefficient":
-        return 1.0 / (1.0 + math.exp(-x))
-    return math.exp(x)
-
-
-def dvalue_dlog(prop: str, v: float) -> float:
-    if prop == "relative_permittivity":
-        return v - 1.0
-    if prop == "scattering_coefficient":
-        return v * (1.0 - v)
-    return v
 
 
 @dataclasses.dataclass
@@ -192,7 +169,7 @@ class Identifiability:
         return {f"{m}.{p}": {"sensitivity_db": round(self.sensitivity_db[(m, p)], 4),
                              "log_std": (round(self.log_std[(m, p)], 4) if math.isfinite(self.log_std[(m, p)])
                                          else None),
-                             "learned": (m, p) in self.learned, "identifiable": self.identified((m, p)),
+                             "learned_from_the_data": (m, p) in self.learned, "identifiable": self.identified((m, p)),
                              **({"confounded_with": [f"{a}.{b}" for a, b in self.confounded[(m, p)]]}
                                 if (m, p) in self.confounded else {}),
                              **({"ambiguous_with": [round(v, 4) for v in self.ambiguous[(m, p)]]}
@@ -228,11 +205,6 @@ class FitResult:
                 "search_evaluations": sum(r["phase"] == "search" for r in self.history), "groups": self.groups,
                 "materials": {k: v.as_dict() for k, v in self.materials.items()}, "cost": self.cost,
                 "history": self.history}
-
-
-def rmse(pred: np.ndarray, measured: np.ndarray, mask: np.ndarray) -> float:
-    m = mask & np.isfinite(pred)
-    return float(np.sqrt(np.mean((pred[m] - measured[m]) ** 2))) if m.any() else float("nan")
 
 
 class _Problem:
@@ -306,248 +278,6 @@ def identifiability(J: np.ndarray, mask: np.ndarray, unknowns: list[Unknown], se
     return Identifiability(sens, std, [unknowns[k] for k in keep], confounded=confounded)
 
 
-def search_grid(prop: str, n: int) -> np.ndarray:
-    """``n`` values of ``prop`` over :data:`SEARCH_RANGE`: evenly spaced in √ε_r for the
-    permittivity (a slab's reflection oscillates with its electrical thickness, ∝ √ε_r),
-    in log σ for the conductivity, linearly for the scattering coefficient."""
-    lo, hi = SEARCH_RANGE[prop]
-    if prop == "relative_permittivity":
-        return np.linspace(np.sqrt(lo), np.sqrt(hi), n) ** 2
-    if prop == "conductivity":
-        return np.geomspace(lo, hi, n)
-    return np.linspace(lo, hi, n)
-
-
-def rival_minima(values: np.ndarray, sse: np.ndarray, threshold: float) -> list[float]:
-    """The values at local minima of a profile ``sse`` (over ``values``) other than the best's
-    own basin whose Σ err² is within ``threshold`` of the best."""
-    best = int(np.argmin(sse))
-    # the best's basin: from its minimum out to the maxima on either side
-    lo = best
-    while lo > 0 and sse[lo - 1] >= sse[lo]:
-        lo -= 1
-    hi = best
-    while hi < len(sse) - 1 and sse[hi + 1] >= sse[hi]:
-        hi += 1
-    out = []
-    for i in range(len(sse)):
-        if lo <= i <= hi:
-            continue
-        left = i == 0 or sse[i] <= sse[i - 1]
-        right = i == len(sse) - 1 or sse[i] <= sse[i + 1]
-        if left and right and sse[i] - sse[best] <= threshold:
-            out.append(float(values[i]))
-    return out
-
-
-def _record(problem: _Problem, x: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
-            history: list[dict[str, Any]], progress: Callable[[dict[str, Any]], None] | None,
-            pred: np.ndarray | None = None, **label: Any) -> float:
-    """Appends a history row for ``x`` (predicting it unless ``pred`` is given); returns
-    the fit RMSE (dB)."""
-    if pred is None:
-        pred = problem.predict(x)
-    measured = problem.data.power_dbm
-    err = rmse(pred, measured, fit_mask)
-    row = {**label, "fit_rmse_db": err, "held_out_rmse_db": rmse(pred, measured, held),
-           **{f"{m}.{p}": val for (m, p), val in problem.values(x).items()}}
-    history.append(row)
-    if progress is not None:
-        progress(row)
-    return err
-
-
-def coarse_search(problem: _Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
-                  settings: FitSettings, history: list[dict[str, Any]],
-                  progress: Callable[[dict[str, Any]], None] | None,
-                  sweep: int = 0, restart: int | None = None) -> tuple[np.ndarray, dict[Unknown, list[float]]]:
-    """Step 3 of the module, one sweep: per free unknown in turn, the best of
-    ``search_points`` values over its range, the others held. Returns the best logs, and per
-    unknown the other values that its profile says fit as well (:func:`rival_minima`)."""
-    x = x.copy()
-    best = rmse(problem.predict(x), problem.data.power_dbm, fit_mask)
-    rivals: dict[Unknown, list[float]] = {}
-    n_fit = int(fit_mask.sum())
-    for k in np.flatnonzero(free):
-        prop = problem.unknowns[k][1]
-        grid = search_grid(prop, settings.search_points)
-        profile = []
-        for v in grid:
-            trial = x.copy()
-            trial[k] = to_log(prop, float(v))
-            label: dict[str, Any] = {"sweep": sweep} if restart is None else {"restart": restart}
-            err = _record(problem, trial, fit_mask, held, history, progress, None, phase="search", **label)
-            profile.append(n_fit * err**2 if np.isfinite(err) else np.inf)
-            if err < best:
-                best, x = err, trial
-        found = rival_minima(grid, np.array(profile), 3.84 * settings.noise_db**2)
-        if found:
-            rivals[problem.unknowns[k]] = found
-    return x, rivals
-
-
-def _iteration(history: list[dict[str, Any]]) -> int:
-    return sum(r["phase"] == "descent" for r in history)
-
-
-def _plateaued(history: list[dict[str, Any]], settings: FitSettings, since: int) -> bool:
-    errs = [r["fit_rmse_db"] ** 2 for r in history[since:] if r["phase"] == "descent"]
-    return len(errs) > settings.patience and errs[-1 - settings.patience] - errs[-1] < settings.plateau * errs[
-        -1 - settings.patience]
-
-
-def levenberg_marquardt(problem: _Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray,
-                        held: np.ndarray, settings: FitSettings, history: list[dict[str, Any]],
-                        progress: Callable[[dict[str, Any]], None] | None) -> tuple[np.ndarray, str]:
-    """Step 4 of the module (``method = "lm"``): Levenberg–Marquardt on the fit samples'
-    residuals in dB, in the free unknowns' logs, with the Jacobian by central differences of
-    :data:`JACOBIAN_STEP` (1 %: well inside a slab's ±5 % basins). A step is taken only if
-    it lowers the fit RMSE; the damping grows until one does, and the descent stops when none
-    does, on a plateau or after ``iterations``. Unlike a fixed-step descent it moves
-    correlated properties together (two walls' permittivities that trade off), in few
-    iterations."""
-    idx = np.flatnonzero(free)
-    measured = problem.data.power_dbm
-    since = len(history)
-    pred = problem.predict(x)
-    err = _record(problem, x, fit_mask, held, history, progress, pred=pred, phase="descent",
-                  iteration=_iteration(history))
-    damping = 1e-3
-    for _ in range(settings.iterations):
-        if _plateaued(history, settings, since):
-            return x, f"plateau after {_iteration(history) - 1} iterations"
-        J = problem.jacobian(x, step=JACOBIAN_STEP)[:, idx]
-        rows = fit_mask & np.isfinite(pred) & np.all(np.isfinite(J), axis=1)
-        if not rows.any():
-            return x, "no fitted sample has a path"
-        r, Jr = pred[rows] - measured[rows], J[rows]
-        A, g = Jr.T @ Jr, Jr.T @ r
-        for _try in range(12):
-            delta = -np.linalg.solve(A + damping * (np.diag(np.diag(A)) + 1e-9 * np.eye(len(idx))), g)
-            delta *= min(1.0, MAX_LOG_STEP / max(float(np.max(np.abs(delta))), 1e-12))
-            trial = x.copy()
-            trial[idx] += delta
-            trial_pred = problem.predict(trial)
-            trial_err = rmse(trial_pred, measured, fit_mask)
-            if np.isfinite(trial_err) and trial_err < err:
-                x, pred, err = trial, trial_pred, trial_err
-                damping = max(damping / 3.0, 1e-9)
-                break
-            damping *= 4.0
-        else:
-            problem.predict(x)
-            return x, f"converged after {_iteration(history) - 1} iterations (no step lowers the error)"
-        _record(problem, x, fit_mask, held, history, progress, pred=pred, phase="descent",
-                iteration=_iteration(history))
-    return x, f"{settings.iterations} iterations"
-
-
-def adam(problem: _Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
-         settings: FitSettings, history: list[dict[str, Any]],
-         progress: Callable[[dict[str, Any]], None] | None) -> tuple[np.ndarray, str]:
-    """Step 4 of the module (``method = "adam"``): Adam on the mean squared error in dB with
-    the gradient by Dr.Jit's automatic differentiation through Sionna's field computation,
-    ``learning_rate`` in the logs; returns the best point it visited."""
-    model, data, unknowns = problem.model, problem.data, problem.unknowns
-    measured = data.power_dbm
-    m1, m2 = np.zeros_like(x), np.zeros_like(x)
-    best = (math.inf, x.copy())
-    since = len(history)
-    for it in range(settings.iterations + 1):
-        values = problem.values(x)
-        pred, loss, grads = model.loss_and_gradient(problem.pairs, data.tx_power_dbm, measured,
-                                                    fit_mask.astype(float), values)
-        _record(problem, x, fit_mask, held, history, progress, pred=pred, phase="descent",
-                iteration=_iteration(history))
-        if loss < best[0]:
-            best = (loss, x.copy())
-        if _plateaued(history, settings, since):
-            return best[1], f"plateau after {it} iterations"
-        if it == settings.iterations:
-            break
-        g = np.array([grads[u] * dvalue_dlog(u[1], values[u]) for u in unknowns]) * free
-        m1 = 0.9 * m1 + 0.1 * g
-        m2 = 0.999 * m2 + 0.001 * g**2
-        step = settings.learning_rate * (m1 / (1 - 0.9 ** (it + 1))) / (np.sqrt(m2 / (1 - 0.999 ** (it + 1))) + 1e-12)
-        x = x - np.where(free, step, 0.0)
-    return best[1], f"{settings.iterations} iterations"
-
-
-def restart_rounds(problem: _Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
-                   settings: FitSettings, history: list[dict[str, Any]],
-                   progress: Callable[[dict[str, Any]], None] | None, ident: Identifiability) -> np.ndarray:
-    """``settings.restarts`` rounds from random values (see :attr:`FitSettings.restarts`):
-    returns the best logs, and adds to ``ident.ambiguous`` the values of every other round's
-    minimum that fits within the likelihood bound and lies outside the best's bound."""
-    measured = problem.data.power_dbm
-    rng = np.random.default_rng(settings.seed + 1)
-    descend = levenberg_marquardt if settings.method == "lm" else adam
-    minima = [(rmse(problem.predict(x), measured, fit_mask), x)]
-    for r in range(settings.restarts):
-        trial = x.copy()
-        for k in np.flatnonzero(free):
-            prop = problem.unknowns[k][1]
-            grid = search_grid(prop, settings.search_points)
-            if prop == "relative_permittivity":
-                v = rng.uniform(np.sqrt(grid[0]), np.sqrt(grid[-1])) ** 2
-            elif prop == "conductivity":
-                v = math.exp(rng.uniform(math.log(grid[0]), math.log(grid[-1])))
-            else:
-                v = rng.uniform(grid[0], grid[-1])
-            trial[k] = to_log(prop, float(v))
-        if settings.search_sweeps:
-            trial, _ = coarse_search(problem, trial, free, fit_mask, held, settings, history, progress, restart=r)
-        trial, _ = descend(problem, trial, free, fit_mask, held, settings, history, progress)
-        minima.append((rmse(problem.predict(trial), measured, fit_mask), trial))
-    err, best = min(minima, key=lambda m: m[0] if np.isfinite(m[0]) else np.inf)
-    n_fit = int(fit_mask.sum())
-    for e, other in minima:
-        if not np.isfinite(e) or n_fit * (e**2 - err**2) > 3.84 * settings.noise_db**2:
-            continue
-        for k in np.flatnonzero(free):
-            if abs(other[k] - best[k]) > settings.max_log_std:
-                u = problem.unknowns[k]
-                value = from_log(u[1], float(other[k]))
-                rivals = ident.ambiguous.setdefault(u, [])
-                if all(abs(to_log(u[1], v) - other[k]) > settings.max_log_std for v in rivals):
-                    rivals.append(value)
-    problem.predict(best)
-    return best
-
-
-def likelihood_ratio_inclusion(problem: _Problem, x: np.ndarray, free: np.ndarray, start: dict[Unknown, float],
-                               fit_mask: np.ndarray, held: np.ndarray, settings: FitSettings,
-                               history: list[dict[str, Any]], progress: Callable[[dict[str, Any]], None] | None
-                               ) -> tuple[np.ndarray, list[Unknown]]:
-    """The global check the local bound cannot make: for each property left at its start, a
-    search over it and a descent of it with the learned ones; if that lowers the fit samples'
-    Σ err² by more than a likelihood-ratio test at 95 % allows (3.84·noise_db²), the data do
-    see it (a ground's conductivity, whose effect its permittivity mimics near the start but
-    not over the whole flight): it is learned from then on (``free`` is updated). Returns the
-    logs and the properties so learned."""
-    measured = problem.data.power_dbm
-    n_fit = int(fit_mask.sum())
-    descend = levenberg_marquardt if settings.method == "lm" else adam
-    err = rmse(problem.predict(x), measured, fit_mask)
-    seen: list[Unknown] = []
-    for k in [int(k) for k in np.flatnonzero(~free)]:
-        u = problem.unknowns[k]
-        trial_free = free.copy()
-        trial_free[k] = True
-        problem.frozen = {v: start[v] for v, f in zip(problem.unknowns, trial_free, strict=True) if not f}
-        only = np.zeros_like(free)
-        only[k] = True
-        trial, _ = coarse_search(problem, x, only, fit_mask, held, settings, history, progress, sweep=-1)
-        trial, _ = descend(problem, trial, trial_free, fit_mask, held, settings, history, progress)
-        trial_err = rmse(problem.predict(trial), measured, fit_mask)
-        if np.isfinite(trial_err) and n_fit * (err**2 - trial_err**2) > 3.84 * settings.noise_db**2:
-            x, err, free[k] = trial, trial_err, True
-            seen.append(u)
-    problem.frozen = {v: start[v] for v, f in zip(problem.unknowns, free, strict=True) if not f}
-    problem.predict(x)
-    return x, seen
-
-
 def fit_materials(scene: Any, data: Measurements, settings: FitSettings = FitSettings(),
                   raytracing: TraceSettings = FIT_RAYS, *, run_seed: int = 0,
                   progress: Callable[[dict[str, Any]], None] | None = None) -> FitResult:
@@ -592,7 +322,7 @@ def fit_materials(scene: Any, data: Measurements, settings: FitSettings = FitSet
             break
         last = err
     if not free.any():
-        _record(problem, x, fit_mask, held, history, progress, phase="descent", iteration=0)
+        record(problem, x, fit_mask, held, history, progress, phase="descent", iteration=0)
     else:
         x = restart_rounds(problem, x, free, fit_mask, held, settings, history, progress, ident)
         # the bound at the estimate, where it belongs: a property that the start hid (a
@@ -606,7 +336,8 @@ def fit_materials(scene: Any, data: Measurements, settings: FitSettings = FitSet
             problem.frozen = {u: start[u] for u, f in zip(unknowns, free, strict=True) if not f}
             descend = levenberg_marquardt if settings.method == "lm" else adam
             x, stopped = descend(problem, x, free, fit_mask, held, settings, history, progress)
-        x, seen = likelihood_ratio_inclusion(problem, x, free, start, fit_mask, held, settings, history, progress)
+        x, seen = likelihood_ratio_inclusion(problem, x, free, start, fit_mask, held, settings, history, progress,
+                                             at_solution.confounded)
         if seen:
             stopped = f"{stopped}; then learned {', '.join(f'{m}.{p}' for m, p in seen)} (likelihood-ratio test)"
         if seen or more.any():  # the bound where the fit ended
@@ -619,11 +350,18 @@ def fit_materials(scene: Any, data: Measurements, settings: FitSettings = FitSet
                                    for u, vs in at_solution.confounded.items()) if fixed}
         at_solution.ambiguous = ident.ambiguous
         ident = at_solution
-    best = min((r for r in history), key=lambda r: r["fit_rmse_db"] if np.isfinite(r["fit_rmse_db"]) else np.inf,
+    # the best evaluation among those that kept every unlearned property at its start (a
+    # likelihood-ratio trial that was not taken moved one)
+    consistent = [r for r in history
+                  if all(math.isclose(r[f"{m}.{p}"], v, rel_tol=1e-6) for (m, p), v in problem.frozen.items())]
+    best = min(consistent, key=lambda r: r["fit_rmse_db"] if np.isfinite(r["fit_rmse_db"]) else np.inf,
                default=None)
     x_best = x if best is None else np.array([to_log(u[1], best[f"{u[0]}.{u[1]}"]) for u in unknowns])
     after = problem.predict(x_best)
     learned = problem.values(x_best)
+    ident.ambiguous = {u: rivals for u, rivals in  # a rival in the learned value's own basin is no rival
+                       ((u, [v for v in vs if abs(to_log(u[1], v) - to_log(u[1], learned[u])) > settings.max_log_std])
+                        for u, vs in ident.ambiguous.items()) if rivals}
     return FitResult(
         start=start, learned=learned, identifiability=ident,
         rmse_db={"fit": {"before": rmse(before, measured, fit_mask), "after": rmse(after, measured, fit_mask)},

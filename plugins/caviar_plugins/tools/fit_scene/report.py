@@ -12,20 +12,22 @@ from caviar_plugins.report_figures import pyplot_into, save_figure
 
 
 def plot_fit(result: Any, data: Any, path: pathlib.Path) -> pathlib.Path:
-    """Left: the fit and held-out RMSE at every evaluation (coarse search, then descent).
+    """Left: the fit and held-out RMSE at every evaluation (searches, descents and restarts in
+    the order they ran; the descents' steps marked).
     Right: measured against predicted received power of the held-out samples, before and
     after."""
     plt = pyplot_into(path.parent)
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
     hist = result.history
     x = np.arange(len(hist))
-    a.plot(x, [r["fit_rmse_db"] for r in hist], label="fit samples")
-    a.plot(x, [r["held_out_rmse_db"] for r in hist], label="held-out samples")
-    n_search = sum(r["phase"] == "search" for r in hist)
-    if n_search:
-        a.axvline(n_search - 0.5, color="grey", lw=0.8, ls="--")
-        a.text(n_search - 0.5, a.get_ylim()[1], " descent", va="top", fontsize=8, color="grey")
-    a.set_xlabel("evaluation (coarse search, then gradient steps)")
+    fit_err = np.array([r["fit_rmse_db"] for r in hist], dtype=float)
+    a.plot(x, fit_err, lw=0.6, label="fit samples")
+    a.plot(x, [r["held_out_rmse_db"] for r in hist], lw=0.6, alpha=0.6, label="held-out samples")
+    descent = np.array([r["phase"] == "descent" for r in hist], dtype=bool)
+    if descent.any():
+        a.scatter(x[descent], fit_err[descent], s=8, color="black", zorder=3, label="descent steps (fit)")
+    a.set_yscale("log")
+    a.set_xlabel("evaluation (search sweeps, descents, restarts, in order)")
     a.set_ylabel("RMSE of received power (dB)")
     a.set_title("Material fit")
     a.legend()
