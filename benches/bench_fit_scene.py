@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     at_truth = {"fit": float(np.sqrt(np.mean(noise[seen][~held] ** 2))),
                 "held_out": float(np.sqrt(np.mean(noise[seen][held] ** 2)))}
     learned_eps = {k: r["error_vs_truth"] for k, r in recovered.items()
-                   if k.endswith("relative_permittivity") and r["learned"] and "confounded_with" not in r}
+                   if k.endswith("relative_permittivity") and r["learned_from_the_data"] and "confounded_with" not in r}
     verdict = {"held_out_rmse_after_db": result.rmse_db["held_out"]["after"] <= 1.5,
                "permittivities_seen_within_20pct": {k: abs(e) <= 0.2 for k, e in learned_eps.items()}}
     report = {
