@@ -9,14 +9,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from caviar_plugins.rt.received_power import Unknown
 
-if TYPE_CHECKING:
-    from caviar_plugins.twin.fit import FitSettings, Identifiability, _Problem
+Problem = Any
+"""A fit's problem (``caviar_plugins.twin.fit._Problem``: ``unknowns``, ``data``, ``model``,
+``pairs``, ``frozen``, ``values``, ``predict``, ``jacobian``); typed loosely, since the fit
+imports this module."""
+Settings = Any
+"""A fit's settings (``caviar_plugins.twin.fit.FitSettings``)."""
 
 LOWER = {"relative_permittivity": 1.0 + 1e-3, "conductivity": 1e-6, "scattering_coefficient": 1e-4}
 SEARCH_RANGE = {"relative_permittivity": (1.5, 80.0), "conductivity": (1e-3, 10.0),
@@ -94,7 +98,7 @@ def rival_minima(values: np.ndarray, sse: np.ndarray, threshold: float) -> list[
     return out
 
 
-def record(problem: _Problem, x: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
+def record(problem: Problem, x: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
             history: list[dict[str, Any]], progress: Callable[[dict[str, Any]], None] | None,
             pred: np.ndarray | None = None, **label: Any) -> float:
     """Appends a history row for ``x`` (predicting it unless ``pred`` is given); returns
@@ -111,8 +115,8 @@ def record(problem: _Problem, x: np.ndarray, fit_mask: np.ndarray, held: np.ndar
     return err
 
 
-def coarse_search(problem: _Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
-                  settings: FitSettings, history: list[dict[str, Any]],
+def coarse_search(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
+                  settings: Settings, history: list[dict[str, Any]],
                   progress: Callable[[dict[str, Any]], None] | None,
                   sweep: int = 0, restart: int | None = None) -> tuple[np.ndarray, dict[Unknown, list[float]]]:
     """Step 3 of the module, one sweep: per free unknown in turn, the best of
@@ -144,14 +148,14 @@ def _iteration(history: list[dict[str, Any]]) -> int:
     return sum(r["phase"] == "descent" for r in history)
 
 
-def _plateaued(history: list[dict[str, Any]], settings: FitSettings, since: int) -> bool:
+def _plateaued(history: list[dict[str, Any]], settings: Settings, since: int) -> bool:
     errs = [r["fit_rmse_db"] ** 2 for r in history[since:] if r["phase"] == "descent"]
     return len(errs) > settings.patience and errs[-1 - settings.patience] - errs[-1] < settings.plateau * errs[
         -1 - settings.patience]
 
 
-def levenberg_marquardt(problem: _Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray,
-                        held: np.ndarray, settings: FitSettings, history: list[dict[str, Any]],
+def levenberg_marquardt(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray,
+                        held: np.ndarray, settings: Settings, history: list[dict[str, Any]],
                         progress: Callable[[dict[str, Any]], None] | None) -> tuple[np.ndarray, str]:
     """Step 4 of the module (``method = "lm"``): Levenberg–Marquardt on the fit samples'
     residuals in dB, in the free unknowns' logs, with the Jacobian by central differences of
@@ -196,8 +200,8 @@ def levenberg_marquardt(problem: _Problem, x: np.ndarray, free: np.ndarray, fit_
     return x, f"{settings.iterations} iterations"
 
 
-def adam(problem: _Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
-         settings: FitSettings, history: list[dict[str, Any]],
+def adam(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
+         settings: Settings, history: list[dict[str, Any]],
          progress: Callable[[dict[str, Any]], None] | None) -> tuple[np.ndarray, str]:
     """Step 4 of the module (``method = "adam"``): Adam on the mean squared error in dB with
     the gradient by Dr.Jit's automatic differentiation through Sionna's field computation,
@@ -227,10 +231,10 @@ def adam(problem: _Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarra
     return best[1], f"{settings.iterations} iterations"
 
 
-def restart_rounds(problem: _Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
-                   settings: FitSettings, history: list[dict[str, Any]],
-                   progress: Callable[[dict[str, Any]], None] | None, ident: Identifiability) -> np.ndarray:
-    """``settings.restarts`` rounds from random values (see :attr:`FitSettings.restarts`):
+def restart_rounds(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
+                   settings: Settings, history: list[dict[str, Any]],
+                   progress: Callable[[dict[str, Any]], None] | None, ident: Any) -> np.ndarray:
+    """``settings.restarts`` rounds from random values (see :attr:`~caviar_plugins.twin.fit.FitSettings.restarts`):
     returns the best logs, and adds to ``ident.ambiguous`` the values of every other round's
     minimum that fits within the likelihood bound and lies outside the best's bound."""
     measured = problem.data.power_dbm
@@ -273,7 +277,7 @@ PAIR_POINTS = 40
 """Values per property of the joint grid over a confounded pair (:func:`pair_search`)."""
 
 
-def pair_search(problem: _Problem, x: np.ndarray, i: int, k: int, fit_mask: np.ndarray, held: np.ndarray,
+def pair_search(problem: Problem, x: np.ndarray, i: int, k: int, fit_mask: np.ndarray, held: np.ndarray,
                 history: list[dict[str, Any]], progress: Callable[[dict[str, Any]], None] | None,
                 keep: int = 3) -> list[np.ndarray]:
     """A joint grid of :data:`PAIR_POINTS` × :data:`PAIR_POINTS` values over unknowns ``i``
@@ -290,8 +294,8 @@ def pair_search(problem: _Problem, x: np.ndarray, i: int, k: int, fit_mask: np.n
     return [t for _, t in scored[:keep]]
 
 
-def likelihood_ratio_inclusion(problem: _Problem, x: np.ndarray, free: np.ndarray, start: dict[Unknown, float],
-                               fit_mask: np.ndarray, held: np.ndarray, settings: FitSettings,
+def likelihood_ratio_inclusion(problem: Problem, x: np.ndarray, free: np.ndarray, start: dict[Unknown, float],
+                               fit_mask: np.ndarray, held: np.ndarray, settings: Settings,
                                history: list[dict[str, Any]], progress: Callable[[dict[str, Any]], None] | None,
                                confounded: Mapping[Unknown, list[Unknown]] | None = None
                                ) -> tuple[np.ndarray, list[Unknown]]:
