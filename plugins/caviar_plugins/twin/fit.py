@@ -39,10 +39,9 @@ from caviar_plugins.rt.received_power import ReceivedPower, Unknown
 from caviar_plugins.rt.settings import TraceSettings
 from caviar_plugins.twin.measurements import Measurements
 from caviar_plugins.twin.search import (
-    adam,
     coarse_search,
+    descent,
     from_log,
-    levenberg_marquardt,
     likelihood_ratio_inclusion,
     record,
     restart_rounds,
@@ -225,8 +224,18 @@ class _Problem:
     def predict(self, x: np.ndarray) -> np.ndarray:
         return self.model.predict(self.pairs, self.data.tx_power_dbm, self.values(x))
 
-    def jacobian(self, x: np.ndarray, step: float = 0.05) -> np.ndarray:
-        """d(predicted dBm)/d(log) per sample and unknown, by central differences."""
+    def jacobian(self, x: np.ndarray, step: float = 0.05, every: bool = False) -> np.ndarray:
+        """d(predicted dBm)/d(log) per sample and unknown, by central differences; with
+        ``every``, the held unknowns' columns too (as if none were held)."""
+        frozen = self.frozen
+        if every:
+            self.frozen = {}
+        try:
+            return self._differences(x, step)
+        finally:
+            self.frozen = frozen
+
+    def _differences(self, x: np.ndarray, step: float) -> np.ndarray:
         cols = []
         for k in range(len(x)):
             up, down = x.copy(), x.copy()
@@ -315,8 +324,7 @@ def fit_materials(scene: Any, data: Measurements, settings: FitSettings = FitSet
             ident.ambiguous = rivals
         if not free.any():
             break
-        descend = levenberg_marquardt if settings.method == "lm" else adam
-        x, stopped = descend(problem, x, free, fit_mask, held, settings, history, progress)
+        x, stopped = descent(settings)(problem, x, free, fit_mask, held, settings, history, progress)
         err = rmse(problem.predict(x), measured, fit_mask)
         if math.isfinite(last) and last - err <= settings.plateau * last:  # this round found nothing better
             break
@@ -327,23 +335,18 @@ def fit_materials(scene: Any, data: Measurements, settings: FitSettings = FitSet
         x = restart_rounds(problem, x, free, fit_mask, held, settings, history, progress, ident)
         # the bound at the estimate, where it belongs: a property that the start hid (a
         # ground's conductivity barely matters at a low permittivity) may show at the solution
-        frozen, problem.frozen = problem.frozen, {}  # every unknown's column, the held ones' too
-        at_solution = identifiability(problem.jacobian(x), fit_mask, unknowns, settings)
-        problem.frozen = frozen
+        at_solution = identifiability(problem.jacobian(x, every=True), fit_mask, unknowns, settings)
         more = np.array([u in at_solution.identifiable for u in unknowns]) & ~free
         if more.any():
             free |= more
             problem.frozen = {u: start[u] for u, f in zip(unknowns, free, strict=True) if not f}
-            descend = levenberg_marquardt if settings.method == "lm" else adam
-            x, stopped = descend(problem, x, free, fit_mask, held, settings, history, progress)
+            x, stopped = descent(settings)(problem, x, free, fit_mask, held, settings, history, progress)
         x, seen = likelihood_ratio_inclusion(problem, x, free, start, fit_mask, held, settings, history, progress,
                                              at_solution.confounded)
         if seen:
             stopped = f"{stopped}; then learned {', '.join(f'{m}.{p}' for m, p in seen)} (likelihood-ratio test)"
         if seen or more.any():  # the bound where the fit ended
-            frozen, problem.frozen = problem.frozen, {}
-            at_solution = identifiability(problem.jacobian(x), fit_mask, unknowns, settings)
-            problem.frozen = frozen
+            at_solution = identifiability(problem.jacobian(x, every=True), fit_mask, unknowns, settings)
         at_solution.learned = [u for u, f in zip(unknowns, free, strict=True) if f]
         at_solution.confounded = {u: fixed for u, fixed in
                                   ((u, [v for v in vs if v not in at_solution.learned])

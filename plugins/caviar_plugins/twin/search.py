@@ -231,6 +231,11 @@ def adam(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray
     return best[1], f"{settings.iterations} iterations"
 
 
+def descent(settings: Settings) -> Callable[..., tuple[np.ndarray, str]]:
+    """The descent ``settings.method`` names: :func:`levenberg_marquardt` or :func:`adam`."""
+    return levenberg_marquardt if settings.method == "lm" else adam
+
+
 def restart_rounds(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
                    settings: Settings, history: list[dict[str, Any]],
                    progress: Callable[[dict[str, Any]], None] | None, ident: Any) -> np.ndarray:
@@ -239,7 +244,7 @@ def restart_rounds(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: 
     minimum that fits within the likelihood bound and lies outside the best's bound."""
     measured = problem.data.power_dbm
     rng = np.random.default_rng(settings.seed + 1)
-    descend = levenberg_marquardt if settings.method == "lm" else adam
+    descend = descent(settings)
     minima = [(rmse(problem.predict(x), measured, fit_mask), x)]
     for r in range(settings.restarts):
         trial = x.copy()
@@ -310,7 +315,7 @@ def likelihood_ratio_inclusion(problem: Problem, x: np.ndarray, free: np.ndarray
     confounded = confounded or {}
     measured = problem.data.power_dbm
     n_fit = int(fit_mask.sum())
-    descend = levenberg_marquardt if settings.method == "lm" else adam
+    descend = descent(settings)
     err = rmse(problem.predict(x), measured, fit_mask)
     seen: list[Unknown] = []
     for k in [int(k) for k in np.flatnonzero(~free)]:
