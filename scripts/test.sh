@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Runs every check: format, lint and types (rustfmt, clippy, ruff, mypy), the documentation site (mkdocs, warnings
 # are errors), then the tests of the Rust core
-# (cargo test) and of the Python side (pytest, including the view in headless chromium).
+# (cargo test) and of the Python side (pytest on every core, including the view in headless chromium).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -20,5 +20,15 @@ log "docs (mkdocs build --strict)"
 NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --site-dir "${TMPDIR:-/tmp}/caviar-site"
 log "cargo test"
 cargo test --workspace --locked
-log "pytest"
-.venv/bin/python -m pytest -q "$@"
+# One pytest worker per core (pytest-xdist), at most one per 4 GiB of memory (a worker imports torch and
+# Sionna and runs whole simulations); PYTEST_WORKERS=1 runs the suite in one process.
+cores=$(nproc)
+mem_gib=$(awk '/MemTotal/ {print int($2 / 1048576)}' /proc/meminfo)
+workers=${PYTEST_WORKERS:-$(( cores < mem_gib / 4 ? cores : mem_gib / 4 ))}
+[ "$workers" -ge 1 ] || workers=1
+log "pytest ($workers workers)"
+if [ "$workers" = 1 ]; then
+    .venv/bin/python -m pytest -q "$@"
+else
+    .venv/bin/python -m pytest -q -n "$workers" "$@"
+fi
