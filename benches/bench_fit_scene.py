@@ -65,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument("--search-sweeps", type=int, default=3)
     a.add_argument("--method", default="lm")
     a.add_argument("--restarts", type=int, default=8)
+    a.add_argument("--rival-starts", type=int, default=8)
+    a.add_argument("--inclusion-starts", type=int, default=3)
     a.add_argument("--probe", action="store_true")
     a.add_argument("--out", type=pathlib.Path, default=ROOT / "docs" / "results" / "fit-scene.json")
     args = a.parse_args(argv)
@@ -117,7 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = FitSettings(learn=("relative_permittivity", "conductivity"), materials=tuple(sorted(start)),
                            holdout=args.holdout, iterations=args.iterations, noise_db=args.noise_db,
                            search_points=args.search_points, search_sweeps=args.search_sweeps, method=args.method,
-                           restarts=args.restarts, seed=1)
+                           restarts=args.restarts, rival_starts=args.rival_starts,
+                           inclusion_starts=args.inclusion_starts, seed=1)
     t_fit = time.perf_counter()
     fit_scene = scene()
 
@@ -153,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
         "rmse_db": result.rmse_db, "rmse_db_at_truth": at_truth, "recovered": recovered, "stopped": result.stopped,
         "cost": result.cost,
         "settings": {"method": args.method, "search_sweeps": args.search_sweeps, "search_points": args.search_points,
-                     "restarts": args.restarts, "iterations": args.iterations},
+                     "restarts": args.restarts, "rival_starts": args.rival_starts,
+                     "inclusion_starts": args.inclusion_starts, "iterations": args.iterations},
         "samples": result.samples, "target": {"held_out_rmse_after_db": 1.5, "permittivity_within": 0.2},
         "meets_target": verdict,
         "history": result.history,

@@ -45,6 +45,7 @@ from caviar_plugins.twin.search import (
     likelihood_ratio_inclusion,
     record,
     restart_rounds,
+    rival_descents,
     rmse,
     to_log,
 )
@@ -114,6 +115,22 @@ class FitSettings:
     round wins; another round's minimum that fits as well within the noise (the likelihood
     bound of :class:`Identifiability`) makes the values it differs in ambiguous."""
 
+    inclusion_starts: int = 3
+    """The likelihood-ratio test for a property left at its start
+    (:func:`~caviar_plugins.twin.search.likelihood_ratio_inclusion`) starts from the fit's
+    minimum and from this many of the next-best distinct minima its rounds ended at: with a
+    ground's conductivity 5x too low, the walls and the ground's permittivity make up for it,
+    and the minimum that does so best is not always the one from which freeing the
+    conductivity finds the truth."""
+    rival_starts: int = 8
+    """Then at most this many descents from the rivals: a value of one property that another
+    basin of its search profile, or another round's minimum, says fits about as well
+    (:func:`~caviar_plugins.twin.search.rival_descents`). Each sets that property to the
+    rival, sweeps the others and descends all; the best end wins. Coordinate searches and
+    random rounds stop in a wrong pair of basins when two properties make up for each other
+    (a wall's permittivity in its neighbouring basin, a street's raised to match): the truth
+    is then among the rivals, and a descent from it finds the pair together."""
+
     def __post_init__(self):
         for p in self.learn:
             if p not in PROPERTIES:
@@ -124,14 +141,11 @@ class FitSettings:
             raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
         if not 0.0 <= self.holdout < 1.0:
             raise ValueError(f"holdout: expected a share in [0, 1), got {self.holdout!r}")
-        if isinstance(self.search_sweeps, bool) or not isinstance(self.search_sweeps, int) or self.search_sweeps < 0:
-            raise ValueError(f"search_sweeps: expected a whole number >= 0, got {self.search_sweeps!r}")
-        if isinstance(self.restarts, bool) or not isinstance(self.restarts, int) or self.restarts < 0:
-            raise ValueError(f"restarts: expected a whole number >= 0, got {self.restarts!r}")
-        for key in ("iterations", "patience", "search_points"):
+        for key, least in (("restarts", 0), ("rival_starts", 0), ("inclusion_starts", 0), ("search_sweeps", 0),
+                           ("iterations", 1), ("patience", 1), ("search_points", 1)):
             v = getattr(self, key)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{key}: expected a whole number >= 1, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, int) or v < least:
+                raise ValueError(f"{key}: expected a whole number >= {least}, got {v!r}")
         for key in ("learning_rate", "noise_db", "max_log_std", "plateau"):
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -332,7 +346,8 @@ def fit_materials(scene: Any, data: Measurements, settings: FitSettings = FitSet
     if not free.any():
         record(problem, x, fit_mask, held, history, progress, phase="descent", iteration=0)
     else:
-        x = restart_rounds(problem, x, free, fit_mask, held, settings, history, progress, ident)
+        x, ends = restart_rounds(problem, x, free, fit_mask, held, settings, history, progress, ident)
+        x = rival_descents(problem, x, free, fit_mask, held, settings, history, progress, ident.ambiguous)
         # the bound at the estimate, where it belongs: a property that the start hid (a
         # ground's conductivity barely matters at a low permittivity) may show at the solution
         at_solution = identifiability(problem.jacobian(x, every=True), fit_mask, unknowns, settings)
@@ -342,7 +357,7 @@ def fit_materials(scene: Any, data: Measurements, settings: FitSettings = FitSet
             problem.frozen = {u: start[u] for u, f in zip(unknowns, free, strict=True) if not f}
             x, stopped = descent(settings)(problem, x, free, fit_mask, held, settings, history, progress)
         x, seen = likelihood_ratio_inclusion(problem, x, free, start, fit_mask, held, settings, history, progress,
-                                             at_solution.confounded)
+                                             at_solution.confounded, ends[1:1 + settings.inclusion_starts])
         if seen:
             stopped = f"{stopped}; then learned {', '.join(f'{m}.{p}' for m, p in seen)} (likelihood-ratio test)"
         if seen or more.any():  # the bound where the fit ended

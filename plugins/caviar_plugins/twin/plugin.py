@@ -85,7 +85,8 @@ class SceneFitterParams:
     since the last search (the first refit always); the others descend from the last values."""
     restarts: int = 4
     """A searching refit then starts this many more rounds from random values
-    (:attr:`~caviar_plugins.twin.fit.FitSettings.restarts`)."""
+    (:attr:`~caviar_plugins.twin.fit.FitSettings.restarts`), and as many descents from the
+    rival values its search found (:attr:`~caviar_plugins.twin.fit.FitSettings.rival_starts`)."""
     raytracing: TraceSettings = dataclasses.field(default_factory=lambda: FIT_RAYS)
 
     def __post_init__(self):
@@ -100,7 +101,7 @@ class SceneFitterParams:
                                learning_rate=self.learning_rate,
                                noise_db=self.noise_db, max_log_std=self.max_log_std, patience=self.iterations,
                                search_points=self.search_points, search_sweeps=2,
-                               restarts=self.restarts)
+                               restarts=self.restarts, rival_starts=self.restarts)
 
 
 class SceneFitter(caviar.Plugin):
@@ -165,7 +166,7 @@ class SceneFitter(caviar.Plugin):
     def _refit(self, t: float):
         data = from_messages([_Sample(s) for s in self.samples])
         search = len(data) >= 2 * self.searched_with
-        fit = self.p.fit if search else dataclasses.replace(self.p.fit, search_sweeps=0, restarts=0)
+        fit = self.p.fit if search else dataclasses.replace(self.p.fit, search_sweeps=0, restarts=0, rival_starts=0)
         if search:
             self.searched_with = len(data)
         result = fit_materials(self.scene, data, fit, self.p.raytracing, run_seed=self.seed)

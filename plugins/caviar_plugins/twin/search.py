@@ -1,7 +1,8 @@
 """The search and the descents of a material fit (:mod:`caviar_plugins.twin.fit`): the
 coordinates a fit moves in (logarithms that keep each property physical), the coarse search
-over a property's range, Levenberg–Marquardt and Adam, restarts from random values, a joint
-grid over a confounded pair, and the likelihood-ratio test for a property left out. Each
+over a property's range, Levenberg–Marquardt and Adam, restarts from random values, descents
+from the rival values the search found, a joint grid over a confounded pair, and the
+likelihood-ratio test for a property left out. Each
 works on a fit's problem (the measurements placed in the scene, predictions at given logs)
 and appends its evaluations to the fit's history."""
 
@@ -238,10 +239,12 @@ def descent(settings: Settings) -> Callable[..., tuple[np.ndarray, str]]:
 
 def restart_rounds(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
                    settings: Settings, history: list[dict[str, Any]],
-                   progress: Callable[[dict[str, Any]], None] | None, ident: Any) -> np.ndarray:
+                   progress: Callable[[dict[str, Any]], None] | None, ident: Any
+                   ) -> tuple[np.ndarray, list[np.ndarray]]:
     """``settings.restarts`` rounds from random values (see :attr:`~caviar_plugins.twin.fit.FitSettings.restarts`):
-    returns the best logs, and adds to ``ident.ambiguous`` the values of every other round's
-    minimum that fits within the likelihood bound and lies outside the best's bound."""
+    returns the best logs and the rounds' distinct ends, best first; adds to
+    ``ident.ambiguous`` the values of every other round's minimum that fits within the
+    likelihood bound and lies outside the best's bound."""
     measured = problem.data.power_dbm
     rng = np.random.default_rng(settings.seed + 1)
     descend = descent(settings)
@@ -275,7 +278,81 @@ def restart_rounds(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: 
                 if all(abs(to_log(u[1], v) - other[k]) > settings.max_log_std for v in rivals):
                     rivals.append(value)
     problem.predict(best)
-    return best
+    return best, _distinct(minima, free, settings.max_log_std)
+
+
+def _distinct(minima: list[tuple[float, np.ndarray]], free: np.ndarray, tol: float) -> list[np.ndarray]:
+    """The minima's logs, best first, each differing from every better one by more than
+    ``tol`` in some free unknown."""
+    ends: list[np.ndarray] = []
+    for e, other in sorted(minima, key=lambda m: m[0] if np.isfinite(m[0]) else np.inf):
+        if np.isfinite(e) and all(np.max(np.abs(other - end)[free], initial=0.0) > tol for end in ends):
+            ends.append(other)
+    return ends
+
+
+def _alone(problem: Problem, x: np.ndarray, start: tuple[int, float], fit_mask: np.ndarray) -> float:
+    """The fit RMSE with unknown ``start[0]`` at log ``start[1]`` and the others at ``x``."""
+    trial = x.copy()
+    trial[start[0]] = start[1]
+    e = rmse(problem.predict(trial), problem.data.power_dbm, fit_mask)
+    return e if np.isfinite(e) else math.inf
+
+
+def rival_descents(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
+                   settings: Settings, history: list[dict[str, Any]],
+                   progress: Callable[[dict[str, Any]], None] | None, ambiguous: dict[Unknown, list[float]]
+                   ) -> np.ndarray:
+    """Descents from the rivals (see :attr:`~caviar_plugins.twin.fit.FitSettings.rival_starts`):
+    a rival value of one property (another basin of its profile, or another round's minimum,
+    that fit about as well with the others where they were) is where the others may have
+    been set to make up for it. From each, the best-fitting first, that property set to the
+    rival, a coarse sweep of the others, then a descent of all, then up to
+    ``search_sweeps - 1`` rounds of a sweep of all and a descent while they find better; the
+    end is kept if it fits better. A minimum so left that still fits within the likelihood bound becomes a
+    rival in turn (in ``ambiguous``), and new rivals the sweeps find are tried too, up to
+    ``settings.rival_starts`` descents in all."""
+    measured = problem.data.power_dbm
+    n_fit = int(fit_mask.sum())
+    descend = descent(settings)
+    err = rmse(problem.predict(x), measured, fit_mask)
+    tried: list[tuple[int, float]] = []
+    for _ in range(settings.rival_starts):
+        pending = [(k, to_log(u[1], v)) for k, u in enumerate(problem.unknowns) if free[k]
+                   for v in ambiguous.get(u, [])]
+        pending = [(k, lv) for k, lv in pending if abs(lv - x[k]) > settings.max_log_std
+                   and all(k != j or abs(lv - lt) > settings.max_log_std for j, lt in tried)]
+        if not pending:
+            break
+        scores = [_alone(problem, x, s, fit_mask) for s in pending]
+        k, lv = pending[int(np.argmin(scores))]
+        tried.append((k, lv))
+        trial = x.copy()
+        trial[k] = lv
+        others = free.copy()
+        others[k] = False
+        if settings.search_sweeps and others.any():
+            trial, found = coarse_search(problem, trial, others, fit_mask, held, settings, history, progress, sweep=-3)
+            for u, vs in found.items():
+                ambiguous.setdefault(u, []).extend(vs)
+        trial, _ = descend(problem, trial, free, fit_mask, held, settings, history, progress)
+        trial_err = rmse(problem.predict(trial), measured, fit_mask)
+        for _sweep in range(1, settings.search_sweeps):  # the others may now sit in a wrong basin in turn
+            again, found = coarse_search(problem, trial, free, fit_mask, held, settings, history, progress, sweep=-3)
+            again, _ = descend(problem, again, free, fit_mask, held, settings, history, progress)
+            again_err = rmse(problem.predict(again), measured, fit_mask)
+            if not again_err < trial_err * (1 - settings.plateau):
+                break
+            trial, trial_err = again, again_err
+        if np.isfinite(trial_err) and trial_err < err:
+            if n_fit * (err**2 - trial_err**2) <= 3.84 * settings.noise_db**2:  # the one left fits as well
+                for j in np.flatnonzero(free):
+                    if abs(x[j] - trial[j]) > settings.max_log_std:
+                        u = problem.unknowns[j]
+                        ambiguous.setdefault(u, []).append(from_log(u[1], float(x[j])))
+            x, err = trial, trial_err
+    problem.predict(x)
+    return x
 
 
 PAIR_POINTS = 40
@@ -302,8 +379,8 @@ def pair_search(problem: Problem, x: np.ndarray, i: int, k: int, fit_mask: np.nd
 def likelihood_ratio_inclusion(problem: Problem, x: np.ndarray, free: np.ndarray, start: dict[Unknown, float],
                                fit_mask: np.ndarray, held: np.ndarray, settings: Settings,
                                history: list[dict[str, Any]], progress: Callable[[dict[str, Any]], None] | None,
-                               confounded: Mapping[Unknown, list[Unknown]] | None = None
-                               ) -> tuple[np.ndarray, list[Unknown]]:
+                               confounded: Mapping[Unknown, list[Unknown]] | None = None,
+                               origins: list[np.ndarray] | None = None) -> tuple[np.ndarray, list[Unknown]]:
     """The global check the local bound cannot make: for each property left at its start, a
     search over it and a descent of it with the learned ones; if that lowers the fit samples'
     Σ err² by more than a likelihood-ratio test at 95 % allows (3.84·noise_db²), the data do
@@ -311,7 +388,9 @@ def likelihood_ratio_inclusion(problem: Problem, x: np.ndarray, free: np.ndarray
     not over the whole flight): it is learned from then on (``free`` is updated). Returns the
     logs and the properties so learned. A property a learned one is ``confounded`` with is
     searched jointly with it (:func:`pair_search`): alone, its grid holds the partner at the
-    value that made up for it."""
+    value that made up for it. The test starts from ``x`` and from each of ``origins`` (other
+    minima the rounds ended at): a property left at a wrong value makes the learned ones make up
+    for it, and the minimum that fits best with it wrong need not be the one nearest the truth."""
     confounded = confounded or {}
     measured = problem.data.power_dbm
     n_fit = int(fit_mask.sum())
@@ -324,12 +403,16 @@ def likelihood_ratio_inclusion(problem: Problem, x: np.ndarray, free: np.ndarray
         trial_free[k] = True
         problem.frozen = {v: start[v] for v, f in zip(problem.unknowns, trial_free, strict=True) if not f}
         partners = [j for j, v in enumerate(problem.unknowns) if u in confounded.get(v, [])]
-        if partners:  # a joint grid over the pair whose effects look alike, then descents from its best cells
-            starts = pair_search(problem, x, partners[0], k, fit_mask, held, history, progress)
-        else:
-            only = np.zeros_like(free)
-            only[k] = True
-            starts = [coarse_search(problem, x, only, fit_mask, held, settings, history, progress, sweep=-1)[0]]
+        starts = []
+        for origin in [x, *(origins or [])]:
+            origin = np.where(free, origin, x)  # what is still frozen stays at its start
+            if partners:  # a joint grid over the pair whose effects look alike, then descents from its best cells
+                starts += pair_search(problem, origin, partners[0], k, fit_mask, held, history, progress)
+            else:
+                only = np.zeros_like(free)
+                only[k] = True
+                starts.append(coarse_search(problem, origin, only, fit_mask, held, settings, history, progress,
+                                            sweep=-1)[0])
         trial, trial_err = x, math.inf
         for begin in starts:
             end, _ = descend(problem, begin, trial_free, fit_mask, held, settings, history, progress)

@@ -4,7 +4,8 @@ differentiable ray tracing (:func:`caviar_plugins.twin.fit.fit_materials`).
     fit-scene SCENE MEASUREMENTS --out DIR [--learn P[,P]] [--materials M[,M]]
               [--group NAME=GLOB[,GLOB]]... [--holdout 0.2] [--iterations 100]
               [--method lm] [--learning-rate 0.1] [--noise-db 1] [--max-log-std 0.2]
-              [--search-points 160] [--search-sweeps 3] [--restarts 8] [--samples 200000] [--max-depth 3]
+              [--search-points 160] [--search-sweeps 3] [--restarts 8] [--rival-starts 8] [--inclusion-starts 3]
+              [--samples 200000] [--max-depth 3]
               [--diffraction] [--diffuse] [--seed 0] [--threads 0] [--quiet]
 
 SCENE is a shipped scene's name or a Mitsuba XML file; MEASUREMENTS a CSV or Parquet file
@@ -56,6 +57,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--search-sweeps", type=int, default=3, help="rounds of a coarse search and a descent (0: no "
                    "search; default 3, fewer when a round finds nothing better)")
     p.add_argument("--restarts", type=int, default=8, help="rounds from random values after the search (default 8)")
+    p.add_argument("--rival-starts", type=int, default=8, help="then descents from the other basins that fit about "
+                   "as well, each with the other properties searched again (default 8)")
+    p.add_argument("--inclusion-starts", type=int, default=3, help="the test of a property left out starts from the "
+                   "fit's minimum and this many other minima the rounds ended at (default 3)")
     p.add_argument("--samples", type=int, default=200_000, help="rays per transmitter (default 2e5)")
     p.add_argument("--max-depth", type=int, default=3, help="interactions per path at most (default 3)")
     p.add_argument("--diffraction", action="store_true", help="trace diffraction too")
@@ -103,7 +108,9 @@ def _check(args):
                                 ("--iterations", args.iterations, 1, 10_000),
                                 ("--search-points", args.search_points, 1, 1000),
                                 ("--search-sweeps", args.search_sweeps, 0, 10),
-                                ("--restarts", args.restarts, 0, 1000), ("--threads", args.threads, 0, 4096),
+                                ("--restarts", args.restarts, 0, 1000), ("--rival-starts", args.rival_starts, 0, 1000),
+                                ("--inclusion-starts", args.inclusion_starts, 0, 1000),
+                                ("--threads", args.threads, 0, 4096),
                                 ("--seed", args.seed, 0, 2**31 - 1)):
             flags.integer(v, flag, lo, hi)
         flags.output_dir(args.out)
@@ -114,7 +121,8 @@ def _check(args):
                                groups=_groups(args.group), holdout=args.holdout, iterations=args.iterations,
                                method=args.method, learning_rate=args.learning_rate, noise_db=args.noise_db,
                                max_log_std=args.max_log_std, seed=args.seed, search_points=args.search_points,
-                               search_sweeps=args.search_sweeps, restarts=args.restarts)
+                               search_sweeps=args.search_sweeps, restarts=args.restarts,
+                               rival_starts=args.rival_starts, inclusion_starts=args.inclusion_starts)
     except ValueError as e:
         key, _, rest = str(e).partition(":")
         raise _Usage(f"--{key.replace('_', '-')}:{rest}") from None
