@@ -99,6 +99,13 @@ def rival_minima(values: np.ndarray, sse: np.ndarray, threshold: float) -> list[
     return out
 
 
+def add_rival(ambiguous: dict[Unknown, list[float]], u: Unknown, value: float, tol: float) -> None:
+    """Lists ``value`` among ``u``'s rivals unless one within ``tol`` in its log is there."""
+    rivals = ambiguous.setdefault(u, [])
+    if all(abs(to_log(u[1], v) - to_log(u[1], value)) > tol for v in rivals):
+        rivals.append(value)
+
+
 def record(problem: Problem, x: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
             history: list[dict[str, Any]], progress: Callable[[dict[str, Any]], None] | None,
             pred: np.ndarray | None = None, **label: Any) -> float:
@@ -273,10 +280,7 @@ def restart_rounds(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: 
         for k in np.flatnonzero(free):
             if abs(other[k] - best[k]) > settings.max_log_std:
                 u = problem.unknowns[k]
-                value = from_log(u[1], float(other[k]))
-                rivals = ident.ambiguous.setdefault(u, [])
-                if all(abs(to_log(u[1], v) - other[k]) > settings.max_log_std for v in rivals):
-                    rivals.append(value)
+                add_rival(ident.ambiguous, u, from_log(u[1], float(other[k])), settings.max_log_std)
     problem.predict(best)
     return best, _distinct(minima, free, settings.max_log_std)
 
@@ -334,7 +338,8 @@ def rival_descents(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: 
         if settings.search_sweeps and others.any():
             trial, found = coarse_search(problem, trial, others, fit_mask, held, settings, history, progress, sweep=-3)
             for u, vs in found.items():
-                ambiguous.setdefault(u, []).extend(vs)
+                for v in vs:
+                    add_rival(ambiguous, u, v, settings.max_log_std)
         trial, _ = descend(problem, trial, free, fit_mask, held, settings, history, progress)
         trial_err = rmse(problem.predict(trial), measured, fit_mask)
         for _sweep in range(1, settings.search_sweeps):  # the others may now sit in a wrong basin in turn
@@ -349,7 +354,7 @@ def rival_descents(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: 
                 for j in np.flatnonzero(free):
                     if abs(x[j] - trial[j]) > settings.max_log_std:
                         u = problem.unknowns[j]
-                        ambiguous.setdefault(u, []).append(from_log(u[1], float(x[j])))
+                        add_rival(ambiguous, u, from_log(u[1], float(x[j])), settings.max_log_std)
             x, err = trial, trial_err
     problem.predict(x)
     return x
