@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import pathlib
 import sys
 import time
@@ -160,12 +161,30 @@ def main(argv: list[str] | None = None) -> int:
                      "inclusion_starts": args.inclusion_starts, "iterations": args.iterations},
         "samples": result.samples, "target": {"held_out_rmse_after_db": 1.5, "permittivity_within": 0.2},
         "meets_target": verdict,
-        "history": result.history,
+        "history": history_columns(result.history),
     }
-    args.out.write_text(json.dumps(report, indent=1))
+    args.out.write_text(dump(report))
     plot_fit(result, data, args.out.with_suffix(".png"))
     print(json.dumps({k: report[k] for k in ("rmse_db", "recovered", "meets_target", "cost", "wall_s_fit")}, indent=1))
     return 0
+
+
+def history_columns(history: list[dict]) -> dict[str, list]:
+    """The fit's evaluations as columns (one list per key, None where a row has no such key),
+    numbers to 6 significant digits: a third of the size of a list of rows."""
+    keys = list(dict.fromkeys(k for row in history for k in row))
+
+    def short(v):
+        return float(f"{v:.6g}") if isinstance(v, float) and math.isfinite(v) else v
+
+    return {k: [short(row.get(k)) for row in history] for k in keys}
+
+
+def dump(report: dict) -> str:
+    """``report`` as indented JSON, its history's columns one line each."""
+    head = json.dumps({k: v for k, v in report.items() if k != "history"}, indent=1)
+    columns = ",\n".join(f"  {json.dumps(k)}: {json.dumps(v)}" for k, v in report["history"].items())
+    return f'{head[:-2]},\n "history": {{\n{columns}\n }}\n}}\n'
 
 
 if __name__ == "__main__":
