@@ -275,7 +275,7 @@ class _TwoSlabs:
         return self.power(x)
 
     def values(self, x):
-        return {u: from_log(u[1], float(v)) for u, v in zip(self.unknowns, x)}
+        return {u: from_log(u[1], float(v)) for u, v in zip(self.unknowns, x, strict=True)}
 
     def jacobian(self, x, step=0.01, every=False):
         cols = []
