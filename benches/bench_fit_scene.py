@@ -68,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument("--restarts", type=int, default=8)
     a.add_argument("--rival-starts", type=int, default=8)
     a.add_argument("--inclusion-starts", type=int, default=3)
+    a.add_argument("--max-log-std", type=float, default=0.2)
     a.add_argument("--probe", action="store_true")
     a.add_argument("--out", type=pathlib.Path, default=ROOT / "docs" / "results" / "fit-scene.json")
     args = a.parse_args(argv)
@@ -119,6 +120,7 @@ def main(argv: list[str] | None = None) -> int:
                         args.frequency, 20e6)
     settings = FitSettings(learn=("relative_permittivity", "conductivity"), materials=tuple(sorted(start)),
                            holdout=args.holdout, iterations=args.iterations, noise_db=args.noise_db,
+                           max_log_std=args.max_log_std,
                            search_points=args.search_points, search_sweeps=args.search_sweeps, method=args.method,
                            restarts=args.restarts, rival_starts=args.rival_starts,
                            inclusion_starts=args.inclusion_starts, seed=1)
@@ -158,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
         "cost": result.cost,
         "settings": {"method": args.method, "search_sweeps": args.search_sweeps, "search_points": args.search_points,
                      "restarts": args.restarts, "rival_starts": args.rival_starts,
-                     "inclusion_starts": args.inclusion_starts, "iterations": args.iterations},
+                     "inclusion_starts": args.inclusion_starts, "iterations": args.iterations,
+                     "max_log_std": args.max_log_std},
         "samples": result.samples, "target": {"held_out_rmse_after_db": 1.5, "permittivity_within": 0.2},
         "meets_target": verdict,
         "history": history_columns(result.history),
