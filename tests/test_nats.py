@@ -44,16 +44,25 @@ def nats_server(tmp_path):
     servers = []
 
     def start(host="127.0.0.1"):
-        port = free_port()
-        p = subprocess.Popen([str(NATS_SERVER), "-a", host, "-p", str(port)], stdout=subprocess.DEVNULL,
-                             stderr=subprocess.DEVNULL)
-        servers.append(p)
-        for _ in range(200):
-            try:
-                socket.create_connection((host, port), timeout=0.1).close()
-                return f"nats://{host}:{port}"
-            except OSError:
-                time.sleep(0.02)
+        # A free port can be taken between the probe and the server's bind (by another pytest
+        # worker's server): then ours exits, and a connection would reach theirs. Try again.
+        for _attempt in range(5):
+            port = free_port()
+            p = subprocess.Popen([str(NATS_SERVER), "-a", host, "-p", str(port)], stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.DEVNULL)
+            servers.append(p)
+            for _ in range(200):
+                if p.poll() is not None:
+                    break
+                try:
+                    socket.create_connection((host, port), timeout=0.1).close()
+                except OSError:
+                    time.sleep(0.02)
+                    continue
+                time.sleep(0.05)
+                if p.poll() is None:
+                    return f"nats://{host}:{port}"
+                break
         raise RuntimeError("nats-server did not start")
 
     yield start
