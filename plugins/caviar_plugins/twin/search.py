@@ -295,12 +295,26 @@ def _distinct(minima: list[tuple[float, np.ndarray]], free: np.ndarray, tol: flo
     return ends
 
 
-def _alone(problem: Problem, x: np.ndarray, start: tuple[int, float], fit_mask: np.ndarray) -> float:
-    """The fit RMSE with unknown ``start[0]`` at log ``start[1]`` and the others at ``x``."""
-    trial = x.copy()
-    trial[start[0]] = start[1]
-    e = rmse(problem.predict(trial), problem.data.power_dbm, fit_mask)
-    return e if np.isfinite(e) else math.inf
+def _best_fitting(problem: Problem, x: np.ndarray, starts: list[tuple[int, float]], fit_mask: np.ndarray,
+                  alone: dict[tuple[int, float], float]) -> tuple[int, float]:
+    """Of ``starts`` (unknown, log), the one whose fit RMSE is lowest with the others at ``x``;
+    ``alone`` keeps each one's RMSE (the caller clears it when ``x`` moves)."""
+    for k, lv in starts:
+        if (k, lv) not in alone:
+            trial = x.copy()
+            trial[k] = lv
+            e = rmse(problem.predict(trial), problem.data.power_dbm, fit_mask)
+            alone[(k, lv)] = e if np.isfinite(e) else math.inf
+    return min(starts, key=alone.__getitem__)
+
+
+def _untried(problem: Problem, x: np.ndarray, free: np.ndarray, ambiguous: dict[Unknown, list[float]],
+             tried: list[tuple[int, float]], tol: float) -> list[tuple[int, float]]:
+    """The rivals of free unknowns, as (unknown, log), outside ``x``'s basin and not within
+    ``tol`` of one already tried."""
+    starts = [(k, to_log(u[1], v)) for k, u in enumerate(problem.unknowns) if free[k] for v in ambiguous.get(u, [])]
+    return [(k, lv) for k, lv in starts if abs(lv - x[k]) > tol
+            and all(k != j or abs(lv - lt) > tol for j, lt in tried)]
 
 
 def rival_descents(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: np.ndarray, held: np.ndarray,
@@ -321,15 +335,12 @@ def rival_descents(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: 
     descend = descent(settings)
     err = rmse(problem.predict(x), measured, fit_mask)
     tried: list[tuple[int, float]] = []
+    alone: dict[tuple[int, float], float] = {}  # each rival's fit with the others at x, until x moves
     for _ in range(settings.rival_starts):
-        pending = [(k, to_log(u[1], v)) for k, u in enumerate(problem.unknowns) if free[k]
-                   for v in ambiguous.get(u, [])]
-        pending = [(k, lv) for k, lv in pending if abs(lv - x[k]) > settings.max_log_std
-                   and all(k != j or abs(lv - lt) > settings.max_log_std for j, lt in tried)]
+        pending = _untried(problem, x, free, ambiguous, tried, settings.max_log_std)
         if not pending:
             break
-        scores = [_alone(problem, x, s, fit_mask) for s in pending]
-        k, lv = pending[int(np.argmin(scores))]
+        k, lv = _best_fitting(problem, x, pending, fit_mask, alone)
         tried.append((k, lv))
         trial = x.copy()
         trial[k] = lv
@@ -343,7 +354,7 @@ def rival_descents(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: 
         trial, _ = descend(problem, trial, free, fit_mask, held, settings, history, progress)
         trial_err = rmse(problem.predict(trial), measured, fit_mask)
         for _sweep in range(1, settings.search_sweeps):  # the others may now sit in a wrong basin in turn
-            again, found = coarse_search(problem, trial, free, fit_mask, held, settings, history, progress, sweep=-3)
+            again, _ = coarse_search(problem, trial, free, fit_mask, held, settings, history, progress, sweep=-3)
             again, _ = descend(problem, again, free, fit_mask, held, settings, history, progress)
             again_err = rmse(problem.predict(again), measured, fit_mask)
             if not again_err < trial_err * (1 - settings.plateau):
@@ -356,6 +367,7 @@ def rival_descents(problem: Problem, x: np.ndarray, free: np.ndarray, fit_mask: 
                         u = problem.unknowns[j]
                         add_rival(ambiguous, u, from_log(u[1], float(x[j])), settings.max_log_std)
             x, err = trial, trial_err
+            alone.clear()
     problem.predict(x)
     return x
 
