@@ -186,22 +186,37 @@ def test_path_buffer_overflow_is_reported_from_cached_solves():
 def test_chains_lost_to_sionnas_hash_table_are_found(monkeypatch):
     """Sionna drops a specular chain whose slot in its counter table another chain took.
     A table shrunk to 10,000 slots makes that happen at a small sample count: Sionna's loop
-    then loses paths; the cache, which deduplicates exactly, finds those of the full
-    table."""
+    then loses paths (and, not allowed a larger table, the tracer says so); the cache, which
+    deduplicates exactly, finds those of the full table, and so does Sionna's loop once the
+    tracer grows the table for a solve that found too many candidates for it."""
     from sionna.rt.path_solvers.sb_candidate_generator import SBCandidateGenerator
+
+    from caviar_plugins.rt import sionna_adapter
 
     full = scene(False)
     cached = scene(True, max_num_paths_per_src=10_000)
     for shift in (0.0, 1.0):
         solve(cached, shift)
     ref = solve(full, 2.0)
+    assert full.tracer.chain_loss < sionna_adapter.CHAIN_LOSS and full.tracer.chain_slots == 0
     monkeypatch.setattr(SBCandidateGenerator, "MIN_SPEC_COUNT_SIZE", 10_000)
+    monkeypatch.setattr(sionna_adapter, "MAX_CHAIN_SLOTS", 10_000)  # not allowed to grow: Sionna's loop as it is
     small = scene(False, max_num_paths_per_src=10_000)
-    lossy, got = solve(small, 2.0), solve(cached, 2.0)
+    with pytest.warns(RuntimeWarning, match="lost to collisions in Sionna's table"):
+        lossy = solve(small, 2.0)
+    got = solve(cached, 2.0)
     assert cached.shoot_cache.connects == 2
     assert all(link.paths_dropped == 0 for link in (*got.values(), *lossy.values()))
     assert sum(link.n_paths for link in lossy.values()) < 0.97 * sum(link.n_paths for link in ref.values())
+    assert small.tracer.chain_loss > 0.03
     assert_same_links(got, ref)
+    monkeypatch.setattr(sionna_adapter, "MAX_CHAIN_SLOTS", 1 << 26)
+    grown = scene(False, max_num_paths_per_src=10_000)
+    found = solve(grown, 2.0)
+    assert grown.tracer.chain_slots > 10_000 and grown.tracer.chain_loss <= sionna_adapter.CHAIN_LOSS
+    for key, link in ref.items():  # a few tenths of a per cent lost at most, where over a tenth were
+        assert ref[key].n_paths >= found[key].n_paths >= 0.995 * ref[key].n_paths, key
+        assert abs(10 * np.log10(found[key].path_gain / link.path_gain)) < 0.05, key
 
 
 def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():

@@ -23,10 +23,17 @@ once per placement and only their fields are computed again for each material gu
 halves): the same powers as a whole solve with the same seed, at a fraction of its cost. With
 diffuse reflection on, Sionna samples a diffuse bounce with a probability the scattering
 coefficient sets, so every guess is traced afresh.
+
+A trace of many receivers at once finds many (specular chain, receiver) pairs, more than
+Sionna's table of the chains seen holds without collisions (it drops the pairs that collide,
+silently): the trace is made again with a larger table until less than 1 % are lost
+(:func:`~caviar_plugins.rt.sionna_adapter.chain_table_slots`), so that a receiver's power
+does not depend on the others traced with it.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from typing import Any
 
@@ -72,6 +79,11 @@ class ReceivedPower:
         self._traced: Any = None
         self.solves = 0
         """Whole traces made (the count a fit's cost follows)."""
+        self.chain_slots = 0
+        """Slots per source of Sionna's specular-chain tables (0: its own, 1e6), grown by a
+        trace that found too many chains for them (:meth:`_trace`)."""
+        self.chain_loss = 0.0
+        """The share of specular chains the last trace lost to collisions, to first order."""
         self.field_evaluations = 0
 
     def place(self, rx_positions: np.ndarray, tx_positions: np.ndarray) -> None:
@@ -106,8 +118,9 @@ class ReceivedPower:
             return self._pair_power_reused(solver, pairs)
         dr, mi = jit()
         self.solves += 1
-        paths = solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src, synthetic_array=True,
-                       **self.options)
+        with sionna_adapter.chain_table(self.chain_slots):
+            paths = solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src, synthetic_array=True,
+                           **self.options)
         a_re, a_im = paths.a
         power = dr.square(a_re) + dr.square(a_im)  # [rx, rx_ant, tx, tx_ant, paths]
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
@@ -118,12 +131,33 @@ class ReceivedPower:
         index = mi.UInt32(pairs[:, 0] * self.n_tx + pairs[:, 1])
         return dr.gather(mi.Float, per_pair.array, index)
 
+    def _trace(self) -> Any:
+        """The paths' geometry, traced again with larger specular-chain tables while the
+        first trace's lost more than :data:`~caviar_plugins.rt.sionna_adapter.CHAIN_LOSS` of
+        its chains to hash collisions (many receivers in one solve; see
+        :func:`~caviar_plugins.rt.sionna_adapter.chain_table_slots`)."""
+        while True:
+            with sionna_adapter.chain_table(self.chain_slots):
+                traced = sionna_adapter.trace_geometry(
+                    self._solver, self.scene, max_num_paths_per_src=self.max_num_paths_per_src, **self.options)
+            self.solves += 1
+            per_source = int(np.bincount(np.array(traced.source_indices, dtype=np.int64)).max(initial=0))
+            slots = sionna_adapter.chain_table_size(self.max_num_paths_per_src, self.chain_slots)
+            self.chain_loss = sionna_adapter.chain_loss(per_source, slots)
+            grown = sionna_adapter.chain_table_slots(per_source, self.n_tx)
+            if self.chain_loss <= sionna_adapter.CHAIN_LOSS or grown <= slots:
+                break
+            self.chain_slots = grown
+        if self.chain_loss > sionna_adapter.CHAIN_LOSS:
+            warnings.warn(f"about {100 * self.chain_loss:.0f} % of the specular chains were lost to collisions in "
+                          f"Sionna's table of chains seen ({slots} slots a source, the most allowed): trace fewer "
+                          "receivers at once", RuntimeWarning, stacklevel=4)
+        return traced
+
     def _pair_power_reused(self, solver: Any, pairs: np.ndarray) -> Any:
         dr, mi = jit()
         if self._traced is None:
-            self._traced = sionna_adapter.trace_geometry(
-                self._solver, self.scene, max_num_paths_per_src=self.max_num_paths_per_src, **self.options)
-            self.solves += 1
+            self._traced = self._trace()
         self.field_evaluations += 1
         traced = self._traced
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)

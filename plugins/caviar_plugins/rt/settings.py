@@ -59,7 +59,10 @@ class TraceSettings:
     max_num_paths_per_src: int = DEFAULT_MAX_PATHS_PER_SOURCE
     """Sionna's candidate-path buffer per source (its default). Candidates beyond it are
     dropped silently by Sionna (NVlabs/sionna#1172); the tracer detects it, warns and
-    reports the number dropped."""
+    reports the number dropped. It also sizes Sionna's table of the specular chains seen (at
+    least 1e6 slots), where a chain whose hash collides is dropped silently: the tracer grows
+    that table for a solve that found too many candidates for it
+    (:func:`~caviar_plugins.rt.sionna_adapter.chain_table_slots`)."""
 
     def __post_init__(self):
         for key in ("samples_per_src", "max_num_paths_per_src"):

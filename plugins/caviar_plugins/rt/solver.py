@@ -1,7 +1,10 @@
 """The path solver every ray-traced module uses: Sionna RT's ``PathSolver`` with the shoot
 cache (:mod:`~caviar_plugins.rt.shoot_cache`) standing in for its candidate generator, and a
 watch on its path buffer (NVlabs/sionna#1172: candidates beyond ``max_num_paths_per_src``
-are dropped silently; :class:`PathTracer` counts them and warns).
+are dropped silently; :class:`PathTracer` counts them and warns) and on its table of the
+specular chains seen (a chain whose hash collides is dropped silently: where a solve by
+Sionna's loop found more candidates than the table holds with under 1 % lost, it is solved
+again with a larger one, :func:`~caviar_plugins.rt.sionna_adapter.chain_table_slots`).
 """
 
 from __future__ import annotations
@@ -64,6 +67,12 @@ class PathTracer:
         self.dropped = 0
         """Candidates the last solve dropped for lack of path buffer."""
         self._counter: Any = None
+        self.chain_slots = 0
+        """Slots per source of Sionna's specular-chain tables (0: its own, 1e6); grown when a
+        solve finds more candidates than they hold without collisions (:meth:`solve`)."""
+        self.chain_loss = 0.0
+        """The share of specular chains the last solve lost to collisions, to first order."""
+        self._chain_warned = False
         problem = adapter.problem()
         if problem is not None:
             warnings.warn(f"{problem}: Sionna's own shoot-and-bounce runs"
@@ -104,14 +113,43 @@ class PathTracer:
         (``synthetic_array``: the arrays' channels from their centres' paths). Warns when
         the path buffer overflowed (:attr:`dropped` says by how much). Returns Sionna's
         ``Paths``."""
-        paths = self.last_paths = self.solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src,
-                                              synthetic_array=synthetic_array, **self.options)
+        while True:
+            with adapter.chain_table(self.chain_slots):
+                paths = self.last_paths = self.solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src,
+                                                      synthetic_array=synthetic_array, **self.options)
+            if not self._chain_table_grown():
+                break
         self.dropped = self.paths_dropped()
         if self.dropped:
             warnings.warn(f"Sionna's path buffer overflowed: {self.dropped} candidate paths dropped "
                           f"(raytracing.max_num_paths_per_src = {self.max_num_paths_per_src}); raise it",
                           RuntimeWarning, stacklevel=3)
         return paths
+
+    def _chain_table_grown(self) -> bool:
+        """After a solve by Sionna's own loop: whether it found more candidates a source than
+        its specular-chain tables hold without losing over
+        :data:`~caviar_plugins.rt.sionna_adapter.CHAIN_LOSS` of them to collisions, and the
+        tables were grown for a new solve (the shoot cache deduplicates exactly: never)."""
+        if self.shoot_cache is not None or self._counter is None:
+            return False
+        counts = np.array(self._counter, dtype=np.int64).reshape(-1)
+        found = int(min(counts.max(initial=0), self.max_num_paths_per_src))
+        slots = adapter.chain_table_size(self.max_num_paths_per_src, self.chain_slots)
+        self.chain_loss = adapter.chain_loss(found, slots)
+        if self.chain_loss <= adapter.CHAIN_LOSS:
+            return False
+        grown = adapter.chain_table_slots(found, len(counts))
+        if grown <= slots:
+            if not self._chain_warned:
+                self._chain_warned = True
+                warnings.warn(f"about {100 * self.chain_loss:.0f} % of the specular chains are lost to collisions "
+                              f"in Sionna's table of chains seen ({slots} slots a source, the most allowed): fewer "
+                              "rays or receivers a solve, or the shoot cache, which deduplicates exactly",
+                              RuntimeWarning, stacklevel=4)
+            return False
+        self.chain_slots = grown
+        return True
 
     def cache_status(self, solves: int) -> str | None:
         """One line on what share of ``solves`` the shoot cache served (None without it or
