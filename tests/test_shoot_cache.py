@@ -403,6 +403,9 @@ def test_targets_behind_a_reflecting_plane_go_untested_and_the_paths_stay(monkey
     radio.place(along)
     for _ in range(2):  # Sionna's loop, then the recording
         radio.solve(force=True)
+    # Sionna's loop lost over 1 % of the 30 receivers' chains to its table's collisions, so the
+    # tracer solved again: the cache served that solve (recording), and the next connects
+    assert radio.tracer.chain_slots > 0
     counts = {}
     for shift in (0.5,):
         links = {}
@@ -416,7 +419,7 @@ def test_targets_behind_a_reflecting_plane_go_untested_and_the_paths_stay(monkey
         assert_same_links(links[True], links[False])
         for key, link in links[True].items():
             assert link.n_paths == links[False][key].n_paths > 0, key
-    assert radio.shoot_cache.connects == 3  # the recording solve connects too
+    assert radio.shoot_cache.connects == 4  # the recording solve connects too
     saved = 1 - sum(counts[True]) / sum(counts[False])
     assert 0.2 < saved < 0.9, counts
 

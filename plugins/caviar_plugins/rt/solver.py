@@ -130,8 +130,10 @@ class PathTracer:
         """After a solve by Sionna's own loop: whether it found more candidates a source than
         its specular-chain tables hold without losing over
         :data:`~caviar_plugins.rt.sionna_adapter.CHAIN_LOSS` of them to collisions, and the
-        tables were grown for a new solve (the shoot cache deduplicates exactly: never)."""
-        if self.shoot_cache is not None or self._counter is None:
+        tables were grown for a new solve (a solve the shoot cache served is deduplicated
+        exactly; its first solve of a geometry is Sionna's loop)."""
+        served = self.shoot_cache is not None and self.shoot_cache.paths_counter_per_source is not None
+        if served or self._counter is None:
             return False
         counts = np.array(self._counter, dtype=np.int64).reshape(-1)
         found = int(min(counts.max(initial=0), self.max_num_paths_per_src))
