@@ -34,7 +34,8 @@ def test_the_twin_learns_in_the_loop_and_the_link_uses_it(tmp_path, street):
             + module("uav", "mobility", "waypoint-flight", {"waypoints": str(route), "frame": "scene", "speed": 9.0})
             + module("vehicle", "measurement", "measurement-emulator",
                      {"scene": street, "tx_position": [-40.0, 0.0, 12.0], "noise_db": 0.5, "raytracing": RAYS,
-                      "truth": {"concrete": {"relative_permittivity": TRUTH}}}, params_table=True)
+                      "truth": {"concrete": {"relative_permittivity": TRUTH}}, "profiles": True,
+                      "bandwidth_hz": 200e6}, params_table=True)
             + module("twin", "twin", "scene-fitter",
                      {"scene": street, "refit_s": 4.0, "min_samples": 4, "iterations": 3, "search_points": 40,
                       "restarts": 1, "materials": ["concrete"], "holdout": 0.25, "noise_db": 0.5, "raytracing": RAYS},
@@ -42,11 +43,20 @@ def test_the_twin_learns_in_the_loop_and_the_link_uses_it(tmp_path, street):
     log = run_config(tmp_path, text)
     measured = log.decoded("measurements.*")
     assert len(measured) == 12 and {m.topic for m in measured} == {"measurements.uav1"}
+    # each sample's power-delay profile: taps 5 ns apart (200 MHz), as many powers as delays
+    for m in measured:
+        delays, powers = np.array(m.data["pdp_delay_s"]), m.data["pdp_power_dbm"]
+        assert len(delays) == len(powers) >= 1
+        steps = np.diff(delays) / 5e-9
+        np.testing.assert_allclose(steps, np.round(steps), atol=1e-6)
     fits = log.decoded("twin.fit")
     errors = [m.data["prediction_error_db"] for m in fits if "prediction_error_db" in m.data]
     assert len(errors) == 12 and all(e is not None and e >= 0 for e in errors)
     refits = [m.data for m in fits if "refit" in m.data]
     assert [r["time"] for r in refits] == [3.0, 7.0, 11.0], "the first with 4 samples, then every 4 s"
+    # the delay spread, never fitted, is reported per refit over every sample's profile
+    assert [r["delay_spread_ns"]["samples"] for r in refits] == [r["samples"] for r in refits]
+    assert refits[-1]["delay_spread_ns"]["fit"]["after"] < refits[-1]["delay_spread_ns"]["fit"]["before"]
     learned = [m.data["materials"]["concrete"]["relative_permittivity"] for m in log.decoded("twin.materials")]
     assert len(learned) == 3
     # the truth is what was learned or, where a few samples cannot choose (a slab's reflection

@@ -168,6 +168,63 @@ class ReceivedPower:
             dr.scatter_reduce(dr.ReduceOp.Add, per_pair, power, pair_of_path)
         return dr.gather(mi.Float, per_pair, mi.UInt32(pairs[:, 0] * self.n_tx + pairs[:, 1]))
 
+    def power_delay_profiles(self, pairs: np.ndarray, resolution_s: float
+                             ) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        """Each (rx, tx) pair's power-delay profile at the scene's materials now, as a
+        sounder of resolution ``resolution_s`` (1/bandwidth) reports it: its paths' powers
+        (path gain, linear) summed in bins from its first path, ``(bin centres (s), gains)``
+        for the bins with power; None where no path joins the pair."""
+        tau, power, pair_of_path = self._paths_now()
+        order = np.argsort(pair_of_path, kind="stable")
+        starts = np.searchsorted(pair_of_path[order], np.arange(self.n_rx * self.n_tx + 1))
+        out: list[tuple[np.ndarray, np.ndarray] | None] = []
+        for rx, tx in np.asarray(pairs, dtype=np.int64).reshape(-1, 2):
+            k = order[starts[rx * self.n_tx + tx]:starts[rx * self.n_tx + tx + 1]]
+            k = k[power[k] > 0]
+            if not len(k):
+                out.append(None)
+                continue
+            first = tau[k].min()
+            bins = np.floor((tau[k] - first) / resolution_s + 1e-9).astype(np.int64)
+            gains = np.bincount(bins, weights=power[k])
+            has = np.flatnonzero(gains > 0)
+            out.append((first + (has + 0.5) * resolution_s, gains[has]))
+        return out
+
+    def delay_spreads(self, pairs: np.ndarray, resolution_s: float) -> np.ndarray:
+        """Each (rx, tx) pair's RMS delay spread (s) at the scene's materials now, from its
+        :meth:`power_delay_profiles` (:func:`~caviar_plugins.twin.measurements.rms_delay_spread`);
+        NaN where no path."""
+        from caviar_plugins.twin.measurements import rms_delay_spread
+
+        return np.array([np.nan if prof is None else rms_delay_spread(prof[0], prof[1], resolution_s)
+                         for prof in self.power_delay_profiles(pairs, resolution_s)])
+
+    def _paths_now(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every traced path's delay (s), power (linear path gain, 0: no field) and pair
+        (rx · n_tx + tx), at the materials now."""
+        if self.reuse_geometry:
+            if self._traced is None:
+                self._traced = self._trace()
+            traced = self._traced
+            if not traced.num_paths:
+                return np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64)
+            power = np.array(sionna_adapter.path_powers(self._solver, self.scene, traced), dtype=np.float64)
+            self.field_evaluations += 1
+            pair_of_path = (np.array(traced.target_indices, dtype=np.int64) * self.n_tx
+                            + np.array(traced.source_indices, dtype=np.int64))
+            return sionna_adapter.path_delays(traced), power, pair_of_path
+        # a whole solve: Sionna's Paths, delays [rx, tx, path] and coefficients [rx, ., tx, ., path]
+        with sionna_adapter.chain_table(self.chain_slots):
+            paths = self._solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src, synthetic_array=True,
+                                 **self.options)
+        self.solves += 1
+        a_re, a_im = (np.array(c, dtype=np.float64) for c in paths.a)
+        power = (a_re**2 + a_im**2).mean(axis=(1, 3)).reshape(-1)
+        pairs = max(self.n_rx * self.n_tx, 1)
+        return (np.array(paths.tau, dtype=np.float64).reshape(-1), power,
+                np.repeat(np.arange(pairs), power.size // pairs))
+
     def predict(self, pairs: np.ndarray, tx_power_dbm: np.ndarray | float,
                 values: Mapping[Unknown, float] | None = None) -> np.ndarray:
         """Received power (dBm) of each (rx, tx) pair; -inf where no path joins them.

@@ -352,6 +352,16 @@ def path_powers(solver: Any, scene: Any, traced: TracedGeometry) -> Any:
     return dr.select(buffer.valid, power / count, 0.0)
 
 
+def path_delays(traced: TracedGeometry) -> np.ndarray:
+    """Each traced path's delay (s), as the last :func:`path_powers` computed it (the field
+    calculator sets the buffer's ``tau``; a path's delay depends on its geometry only)."""
+    require()
+    tau = getattr(traced.buffer, "tau", None)
+    if tau is None:
+        raise SionnaInternalsError("no path delays: path_powers has not run on these paths")
+    return np.array(tau, dtype=np.float64).reshape(-1)
+
+
 # --- the generator's parts (the shoot cache) -------------------------------------------------
 
 def add_line_of_sight(generator: Any, mi_scene, src_positions, tgt_positions, paths, counter) -> None:

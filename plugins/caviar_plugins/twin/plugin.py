@@ -182,7 +182,8 @@ class SceneFitter(caviar.Plugin):
                           "confounded": {f"{m}.{p}": [f"{a}.{b}" for a, b in fixed]
                                          for (m, p), fixed in result.identifiability.confounded.items()},
                           "ambiguous": {f"{m}.{p}": [round(v, 4) for v in values]
-                                        for (m, p), values in result.identifiability.ambiguous.items()}}
+                                        for (m, p), values in result.identifiability.ambiguous.items()},
+                          **({"delay_spread_ns": result.delay_spread_ns} if result.delay_spread_ns else {})}
         self.predictor = None  # the fit placed its own receivers
 
     def state(self):
@@ -219,9 +220,14 @@ class MeasurementEmulatorParams:
     frequency_hz: float = 3.5e9
     bandwidth_hz: float = 20e6
     raytracing: TraceSettings = dataclasses.field(default_factory=lambda: FIT_RAYS)
+    profiles: bool = False
+    """Also report each sample's power-delay profile (``pdp_delay_s``, ``pdp_power_dbm``): the
+    paths binned at 1/``bandwidth_hz``, each tap with ``noise_db`` of noise of its own."""
 
     def __post_init__(self):
         _check_materials(self.truth, "truth")
+        if not isinstance(self.profiles, bool):
+            raise ValueError(f"profiles: expected true or false, got {self.profiles!r}")
         if len(self.tx_position) != 3:
             raise ValueError(f"tx_position: expected [x, y, z] (m), got {self.tx_position!r}")
         if not (isinstance(self.noise_db, (int, float)) and 0 <= self.noise_db < 30):
@@ -259,16 +265,23 @@ class MeasurementEmulator(caviar.Plugin):
         pairs = np.stack([np.arange(len(ues)), np.zeros(len(ues), dtype=int)], axis=1)
         power = self.model.predict(pairs, self.p.tx_power_dbm)
         noise = self.rng.normal(0.0, self.p.noise_db, len(ues))
-        for ue, pw, n in zip(ues, power, noise, strict=True):
+        profiles = (self.model.power_delay_profiles(pairs, 1.0 / self.p.bandwidth_hz) if self.p.profiles
+                    else [None] * len(ues))
+        for ue, pw, n, prof in zip(ues, power, noise, profiles, strict=True):
             if not np.isfinite(pw):
                 continue  # no path: below any receiver's sensitivity, nothing reported
             q = positions[ue]
-            yield f"{TOPIC}.{ue}", {
+            sample = {
                 "time_s": t, "rx_x": float(q[0]), "rx_y": float(q[1]), "rx_z": float(q[2]),
                 "tx_x": float(self.p.tx_position[0]), "tx_y": float(self.p.tx_position[1]),
                 "tx_z": float(self.p.tx_position[2]), "power_dbm": round(float(pw + n), 4),
                 "tx_power_dbm": self.p.tx_power_dbm, "frequency_hz": self.p.frequency_hz,
                 "bandwidth_hz": self.p.bandwidth_hz}
+            if prof is not None:
+                taps = (self.p.tx_power_dbm + 10.0 * np.log10(prof[1])
+                        + self.rng.normal(0.0, self.p.noise_db, len(prof[1])))
+                sample.update(pdp_delay_s=[float(v) for v in prof[0]], pdp_power_dbm=[round(float(v), 4) for v in taps])
+            yield f"{TOPIC}.{ue}", sample
 
     def state(self):
         return {"rng": self.rng.bit_generator.state}

@@ -35,7 +35,8 @@ def summarize(log) -> dict[str, Any] | None:
                                     "after_last_refit": rms([r for r in errors if r[0] > last])},
             "refits": [{"time": r["time"], "samples": r["samples"], "learned": r["learned"], "rmse_db": r["rmse_db"],
                         "not_identifiable": r["not_identifiable"], "confounded": r.get("confounded", {}),
-                        "ambiguous": r.get("ambiguous", {})}
+                        "ambiguous": r.get("ambiguous", {}),
+                        **({"delay_spread_ns": r["delay_spread_ns"]} if "delay_spread_ns" in r else {})}
                        for r in refits]}
 
 

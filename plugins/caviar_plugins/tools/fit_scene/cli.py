@@ -195,6 +195,10 @@ def _fit(args, settings, rays, data) -> int:
     rm = result.rmse_db
     say(f"{PROG}: held-out RMSE {rm['held_out']['before']:.2f} -> {rm['held_out']['after']:.2f} dB "
         f"(fit {rm['fit']['before']:.2f} -> {rm['fit']['after']:.2f}); {result.stopped}; wrote {args.out}")
+    ds = result.delay_spread_ns
+    if ds:
+        say(f"{PROG}: RMS delay spread of {ds['samples']} profiles (median {ds['measured_median']:.1f} ns), "
+            f"held-out RMS error {ds['held_out']['before']} -> {ds['held_out']['after']} ns (not fitted on)")
     unseen = [f"{m}.{p}" for (m, p) in result.start if (m, p) not in result.identifiability.identifiable]
     if unseen:
         say(f"{PROG}: not identifiable from these measurements (kept at their start): {', '.join(unseen)}")
