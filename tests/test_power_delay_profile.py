@@ -117,7 +117,7 @@ def test_the_predicted_spread_of_a_plate_is_the_image_methods(reuse):
         assert got[i] == pytest.approx(hand, rel=0.01), (i, got[i], hand)
 
 
-def test_a_fit_reports_the_delay_spread_it_never_descended_on():
+def test_a_fit_reports_the_delay_spread_it_never_descended_on(tmp_path):
     """The street canyon with concrete 3x its scene value, measured with 0.3 dB of noise on the
     power and a profile at 200 MHz (5 ns taps) per sample: fitting the power alone brings the
     predicted delay spread to the measured one, on the fitted and the held-out samples."""
@@ -157,3 +157,7 @@ def test_a_fit_reports_the_delay_spread_it_never_descended_on():
     assert ds["fit"]["after"] < 0.3 * ds["fit"]["before"], ds
     assert ds["held_out"]["after"] < 0.5 * ds["held_out"]["before"], ds
     assert "delay_spread_ns" in result.as_json()
+    assert np.isfinite(result.delay_spread_s["after"]).all()
+    from caviar_plugins.tools.fit_scene.report import plot_fit
+
+    assert plot_fit(result, data, tmp_path / "fit.png").stat().st_size > 10_000  # with the spread's panel

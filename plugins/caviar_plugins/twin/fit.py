@@ -213,6 +213,8 @@ class FitResult:
     """With power-delay profiles among the measurements: the RMS error of the predicted RMS
     delay spread (ns), ``{"fit"|"held_out": {"before": ns, "after": ns}, "measured_median":
     ns, "samples": with a profile}`` (never descended on: a check of the multipath)."""
+    delay_spread_s: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    """``{"measured"|"before"|"after": RMS delay spread (s) per sample}`` (NaN: no profile)."""
 
     def as_json(self) -> dict[str, Any]:
         return {"learned": {f"{m}.{p}": {"start": self.start[(m, p)], "learned": self.learned[(m, p)]}
@@ -387,7 +389,8 @@ def fit_materials(scene: Any, data: Measurements, settings: FitSettings = FitSet
     best = min(consistent, key=lambda r: r["fit_rmse_db"] if np.isfinite(r["fit_rmse_db"]) else np.inf,
                default=None)
     x_best = x if best is None else np.array([to_log(u[1], best[f"{u[0]}.{u[1]}"]) for u in unknowns])
-    spread = _delay_spread_errors(problem, x0, x_best, fit_mask, held) if data.pdp is not None else {}
+    spreads = ({"measured": data.delay_spread_s(), "before": problem.delay_spreads(x0),
+                "after": problem.delay_spreads(x_best)} if data.pdp is not None else {})
     after = problem.predict(x_best)
     learned = problem.values(x_best)
     ident.ambiguous = {u: rivals for u, rivals in  # a rival in the learned value's own basin is no rival
@@ -402,15 +405,14 @@ def fit_materials(scene: Any, data: Measurements, settings: FitSettings = FitSet
                  "without_path": int((~np.isfinite(after)).sum())},
         stopped=stopped, materials=scene_materials(scene), groups=groups,
         predicted_dbm={"before": before, "after": after}, holdout_mask=held,
-        cost={"traces": model.solves, "field_evaluations": model.field_evaluations}, delay_spread_ns=spread)
+        cost={"traces": model.solves, "field_evaluations": model.field_evaluations},
+        delay_spread_ns=_delay_spread_errors(spreads, fit_mask, held) if spreads else {}, delay_spread_s=spreads)
 
 
-def _delay_spread_errors(problem: _Problem, x0: np.ndarray, x1: np.ndarray, fit_mask: np.ndarray,
-                         held: np.ndarray) -> dict[str, Any]:
-    """The RMS error (ns) of the predicted delay spread at the start ``x0`` and the end ``x1``
-    over the samples with a profile (:attr:`FitResult.delay_spread_ns`)."""
-    measured = problem.data.delay_spread_s()
-    before, after = problem.delay_spreads(x0), problem.delay_spreads(x1)
+def _delay_spread_errors(spreads: dict[str, np.ndarray], fit_mask: np.ndarray, held: np.ndarray) -> dict[str, Any]:
+    """The RMS error (ns) of the predicted delay spread at the start and the end over the
+    samples with a profile (:attr:`FitResult.delay_spread_ns`)."""
+    measured, before, after = spreads["measured"], spreads["before"], spreads["after"]
 
     def err(pred: np.ndarray, mask: np.ndarray) -> float | None:
         m = mask & np.isfinite(measured) & np.isfinite(pred)

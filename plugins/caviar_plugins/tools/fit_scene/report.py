@@ -14,10 +14,13 @@ from caviar_plugins.report_figures import pyplot_into, save_figure
 def plot_fit(result: Any, data: Any, path: pathlib.Path) -> pathlib.Path:
     """Left: the fit and held-out RMSE at every evaluation (searches, descents and restarts in
     the order they ran; the descents' steps marked).
-    Right: measured against predicted received power of the held-out samples, before and
-    after."""
+    Middle: measured against predicted received power of the held-out samples, before and
+    after. Right, with power-delay profiles among the measurements: the same for their RMS
+    delay spread (never fitted)."""
     plt = pyplot_into(path.parent)
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
+    spreads = getattr(result, "delay_spread_s", {})
+    fig, axes = plt.subplots(1, 3 if spreads else 2, figsize=(16.5 if spreads else 11, 4.2))
+    a, b = axes[0], axes[1]
     hist = result.history
     x = np.arange(len(hist))
     fit_err = np.array([r["fit_rmse_db"] for r in hist], dtype=float)
@@ -45,4 +48,24 @@ def plot_fit(result: Any, data: Any, path: pathlib.Path) -> pathlib.Path:
     b.set_ylabel("predicted by the twin (dBm)")
     b.set_title("Held-out samples")
     b.legend()
+    if spreads:
+        _plot_spreads(axes[2], spreads, held, result.delay_spread_ns)
     return save_figure(fig, path)
+
+
+def _plot_spreads(c: Any, spreads: dict[str, np.ndarray], held: np.ndarray, errors: dict[str, Any]) -> None:
+    """Measured against predicted RMS delay spread (ns) of the held-out samples with a profile."""
+    measured = spreads["measured"][held] * 1e9
+    for key, marker in (("before", "x"), ("after", "o")):
+        pred = spreads[key][held] * 1e9
+        ok = np.isfinite(pred) & np.isfinite(measured)
+        c.scatter(measured[ok], pred[ok], s=12, marker=marker, alpha=0.7,
+                  label=f"{key} ({errors['held_out'][key]} ns RMS error)")
+    ok = np.isfinite(measured)
+    if ok.any():
+        lo, hi = float(np.min(measured[ok])), float(np.max(measured[ok]))
+        c.plot([lo, hi], [lo, hi], color="black", lw=0.8)
+    c.set_xlabel("measured RMS delay spread (ns)")
+    c.set_ylabel("predicted by the twin (ns)")
+    c.set_title("Held-out delay spread (not fitted)")
+    c.legend()
