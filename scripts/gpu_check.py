@@ -21,6 +21,8 @@ other packages are missing is reported as skipped, with the reason. Timing items
   (:func:`agreement`);
 - YOLO through onnxruntime and through torch on its device (:func:`yolo_times`), and the main
   job's own detector, the pixel forest, walked by scikit-learn and by torch (:func:`forest_times`);
+- a material fit (``fit-scene``'s, :func:`fit_times`): the street canyon's concrete learned back
+  on the backend, its time per guess and the learned value against the hidden truth;
 - the radio network at scale: the ``radio-network`` plugin with 21 cells (7 sites × 3
   sectors) and 100, then 1,000 UEs, 0.5 ms slots, 0.1 s steps, ray tracing every 1 s, beams
   and the uplink, full buffers (``benches/bench_network.py --plugin-only``): T_p/T_v of the
@@ -306,6 +308,55 @@ def forest_times(frames: int = 20) -> dict:
     return out
 
 
+def fit_times(n: int = 40, truth: float = 3 * 5.24) -> dict:
+    """A material fit on the machine's Dr.Jit backend (issue #56): Sionna's street canyon,
+    ``n`` receivers, concrete's permittivity ``truth`` (3x ITU's) hidden in measurements with
+    0.3 dB of noise, learned back (a search, Levenberg–Marquardt, one restart): the trace's
+    time, the fields' time per guess, and the learned value against the truth (within 5 % on
+    the CPU, tests/test_fit_scene.py)."""
+    import dataclasses
+
+    import numpy as np
+
+    from caviar_plugins.rt.materials import apply_materials
+    from caviar_plugins.rt.received_power import ReceivedPower
+    from caviar_plugins.rt.scene import sionna_rt
+    from caviar_plugins.twin.fit import FIT_RAYS, FitSettings, fit_materials
+    from caviar_plugins.twin.measurements import Measurements
+
+    rt = sionna_rt()
+    rays = dataclasses.replace(FIT_RAYS, los=False, max_depth=2, samples_per_src=200_000)
+    tx = np.array([-40.0, 0.0, 12.0])
+    rng = np.random.default_rng(5)
+    rx = np.c_[rng.uniform(-55, 55, n), rng.uniform(-8, 8, n), np.full(n, 1.5)]
+
+    def street():
+        scene = rt.load_scene(rt.scene.simple_street_canyon)
+        scene.frequency = 3.5e9
+        return scene
+
+    hidden = street()
+    model = ReceivedPower(hidden, rays, seed=0)
+    apply_materials(hidden, {"concrete": {"relative_permittivity": truth}})
+    model.place(rx, tx[None])
+    pairs = np.c_[np.arange(n), np.zeros(n, dtype=int)]
+    power = model.predict(pairs, 30.0) + rng.normal(0.0, 0.3, n)
+    ok = np.isfinite(power)
+    data = Measurements(np.arange(ok.sum(), dtype=float), rx[ok], np.tile(tx, (int(ok.sum()), 1)), power[ok],
+                        np.full(int(ok.sum()), 30.0), 3.5e9, 20e6)
+    settings = FitSettings(learn=("relative_permittivity",), materials=("concrete",), iterations=20, holdout=0.25,
+                           noise_db=0.3, search_sweeps=2, restarts=1)
+    t0 = time.perf_counter()
+    result = fit_materials(street(), data, settings, rays)
+    wall = time.perf_counter() - t0
+    learned = result.learned[("concrete", "relative_permittivity")]
+    return {"receivers": int(ok.sum()), "rays": rays.samples_per_src, "wall_s": round(wall, 2),
+            "guesses": result.cost["field_evaluations"], "traces": result.cost["traces"],
+            "ms_per_guess": round(1e3 * wall / max(result.cost["field_evaluations"], 1), 2),
+            "learned": round(learned, 3), "truth": truth, "error": round(learned / truth - 1, 4),
+            "held_out_rmse_db": result.rmse_db["held_out"]}
+
+
 REFERENCE = ROOT / "docs/results/sar-links-cpu.json"
 """The main job's links by place and its outcome from a CPU run (``--write-reference``)."""
 
@@ -501,6 +552,11 @@ def timings(result: dict, item_timeout_s: float, network_seconds: float, main_jo
     except Exception as e:  # noqa: BLE001 - reported, not fatal
         result["pixel_forest"] = {"error": f"{type(e).__name__}: {e}"}
     print(f"pixel forest: {result['pixel_forest']}", flush=True)
+    try:
+        result["fit_scene"] = fit_times()
+    except Exception as e:  # noqa: BLE001 - reported, not fatal
+        result["fit_scene"] = {"error": f"{type(e).__name__}: {e}"}
+    print(f"fit-scene: {result['fit_scene']}", flush=True)
     for n in (100, 1000):
         net = network(n, network_seconds, item_timeout_s)
         result[f"network_21x{n}"] = net
