@@ -9,6 +9,7 @@ one thread: 12 steps, three refits."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -68,6 +69,15 @@ def test_the_twin_learns_in_the_loop_and_the_link_uses_it(tmp_path, street):
     before = np.sqrt(np.mean(np.square(errors[:4])))
     after = np.sqrt(np.mean(np.square(errors[8:])))
     assert after < before, (before, after)
+    # the report's figure and numbers, the learned values drawn against the emulator's hidden truth
+    from caviar_plugins.twin.report import figures, hidden_truth
+
+    assert hidden_truth(log) == {"concrete.relative_permittivity": TRUTH}
+    written = figures(log, tmp_path / "report")
+    assert sorted(p.name for p in written) == ["twin.json", "twin.png"]
+    summary = json.loads((tmp_path / "report" / "twin.json").read_text())
+    assert [r["samples"] for r in summary["refits"]] == [r["samples"] for r in refits]
+    assert all("delay_spread_ns" in r for r in summary["refits"])
 
 
 def test_a_radio_scene_with_set_materials_traces_as_one_loaded_with_them(street):

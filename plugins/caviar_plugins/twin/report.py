@@ -40,6 +40,26 @@ def summarize(log) -> dict[str, Any] | None:
                        for r in refits]}
 
 
+def hidden_truth(log) -> dict[str, float]:
+    """``{"material.property": value}`` of the hidden truth of a run's ``measurement-emulator``
+    (its ``truth`` parameter, from the run's config), empty without one: what the learned values
+    are drawn against."""
+    import tomllib
+
+    try:
+        modules = tomllib.loads(log.config_text).get("modules", {})
+    except (OSError, ValueError, AttributeError):
+        return {}
+    out: dict[str, float] = {}
+    for table in modules.values():
+        if isinstance(table, dict) and table.get("plugin") == "measurement-emulator":
+            for material, props in (table.get("params", {}).get("truth") or {}).items():
+                for prop, value in (props.items() if isinstance(props, dict) else ()):
+                    if isinstance(value, (int, float)):
+                        out[f"{material}.{prop}"] = float(value)
+    return out
+
+
 def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
     """Draws the twin's figure of ``log`` (a :class:`caviar.RunLog`) into ``out``."""
     summary = summarize(log)
@@ -61,9 +81,12 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
            title="The twin's prediction of each new measurement (dashed: refits)")
     ax.legend()
     names = sorted({k for r in summary["refits"] for k in r["learned"]})
+    truth = hidden_truth(log)
     for name in names:
         pts = [(r["time"], r["learned"][name]) for r in summary["refits"] if name in r["learned"]]
-        bx.plot(*np.array(pts).T, "o-", label=name)
+        line, = bx.plot(*np.array(pts).T, "o-", label=name)
+        if name in truth:
+            bx.axhline(truth[name], color=line.get_color(), ls=":", lw=1.2, label=f"{name}: hidden truth")
     bx.set(xlabel="time (s)", ylabel="learned value", title="Learned materials per refit")
     if names:
         bx.legend(fontsize=8)

@@ -59,8 +59,9 @@ def _plot_spreads(c: Any, spreads: dict[str, np.ndarray], held: np.ndarray, erro
     for key, marker in (("before", "x"), ("after", "o")):
         pred = spreads[key][held] * 1e9
         ok = np.isfinite(pred) & np.isfinite(measured)
+        err = errors["held_out"][key]
         c.scatter(measured[ok], pred[ok], s=12, marker=marker, alpha=0.7,
-                  label=f"{key} ({errors['held_out'][key]} ns RMS error)")
+                  label=f"{key} ({'-' if err is None else f'{err:.1f}'} ns RMS error)")
     ok = np.isfinite(measured)
     if ok.any():
         lo, hi = float(np.min(measured[ok])), float(np.max(measured[ok]))
