@@ -418,6 +418,7 @@ def test_bad_files_are_named(tmp_path):
 
 def test_fit_scene_writes_the_scene_the_report_and_the_figure(rt, tmp_path):
     data = _measure(rt, {"marble": {"relative_permittivity": 3 * 7.074}}, _receivers(12))
+    data.pdp = [(np.array([0.0, 5e-8]), np.array([-70.0, -80.0 - i])) for i in range(12)]  # (the CLI's path for them)
     m = data.write_csv(tmp_path / "m.csv")
     r = _cli(str(rt.scene.simple_street_canyon), str(m), "--out", str(tmp_path / "fit"), "--materials", "marble",
              "--learn", "relative_permittivity", "--iterations", "3", "--search-points", "8", "--samples", "20000",
@@ -432,3 +433,4 @@ def test_fit_scene_writes_the_scene_the_report_and_the_figure(rt, tmp_path):
     assert report["names_in_scene_xml"] == {"marble": "fitted-marble"}
     assert float(scene.radio_materials["fitted-marble"].relative_permittivity[0]) == pytest.approx(learned, rel=1e-6)
     assert (tmp_path / "fit" / "fit.png").stat().st_size > 10_000
+    assert "RMS delay spread of 12 profiles" in r.stderr and report["delay_spread_ns"]["samples"] == 12
