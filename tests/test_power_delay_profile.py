@@ -43,6 +43,8 @@ def test_the_rms_delay_spread_is_the_hand_computation():
     # at a sounder's 50 ns (20 MHz), taps 10 ns apart fall in one bin: no spread
     assert rms_delay_spread(np.array([0.0, 10e-9]), np.array([1.0, 1.0]), 50e-9) == 0.0
     assert math.isnan(rms_delay_spread(np.array([0.0]), np.array([0.0]), 1e-9))
+    # delays written in ns by mistake span 2.4e9 bins of 50 ns: only the bins with taps are made
+    assert rms_delay_spread(np.array([0.0, 50.0, 120.0]), np.ones(3), 50e-9) > 40.0
 
 
 def test_profiles_round_trip_through_csv_parquet_and_a_topic(tmp_path):
@@ -67,6 +69,12 @@ def test_profiles_round_trip_through_csv_parquet_and_a_topic(tmp_path):
         def __init__(self, d):
             self.data = d
 
+    as_arrays = {k: np.asarray(v) if isinstance(v, list) else v for k, v in data.rows()[0].items()}
+    np.testing.assert_allclose(from_messages([M(as_arrays)]).delay_spread_s(), expected[:1], rtol=1e-12)
+    with pytest.raises(MeasurementError, match=r"r tap 0: field 'pdp_power_dbm': expected a number, got '-70,5'"):
+        from_rows([("r", _row(pdp_delay_s="0;1e-7", pdp_power_dbm="-70,5;-80"))], "test")  # a decimal comma
+    with pytest.raises(MeasurementError, match="pdp: 3 profiles for 4 samples"):
+        dataclasses.replace(data, pdp=data.pdp[:3])  # type: ignore[index]
     joined = from_messages([M({"samples": data.rows()[:2]}), M(data.rows()[3])])
     np.testing.assert_allclose(joined.delay_spread_s()[:2], expected[:2], rtol=1e-12)
     assert np.isnan(joined.delay_spread_s()[2])
@@ -76,8 +84,9 @@ def test_profiles_round_trip_through_csv_parquet_and_a_topic(tmp_path):
 @pytest.mark.parametrize("changes, named", [
     ({"pdp_delay_s": "0;1e-7"}, "field 'pdp_power_dbm' is missing"),
     ({"pdp_delay_s": "0;1e-7", "pdp_power_dbm": "-70"}, "field 'pdp_power_dbm': 1 taps, but 'pdp_delay_s' has 2"),
-    ({"pdp_delay_s": "-1e-9", "pdp_power_dbm": "-70"}, "field 'pdp_delay_s': expected delays >= 0"),
-    ({"pdp_delay_s": "0;soon", "pdp_power_dbm": "-70;-80"}, "field 'pdp_delay_s': expected a number, got 'soon'"),
+    ({"pdp_delay_s": "-1e-9", "pdp_power_dbm": "-70"}, "tap 0: field 'pdp_delay_s': expected delays >= 0"),
+    ({"pdp_delay_s": "0;soon", "pdp_power_dbm": "-70;-80"},
+     "tap 1: field 'pdp_delay_s': expected a number, got 'soon'"),
     ({"pdp_delay_s": "0", "pdp_power_dbm": "nan"}, "field 'pdp_power_dbm': expected a finite number"),
 ])
 def test_bad_taps_are_named_with_their_row_and_field(tmp_path, changes, named):

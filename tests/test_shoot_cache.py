@@ -217,6 +217,9 @@ def test_chains_lost_to_sionnas_hash_table_are_found(monkeypatch):
     for key, link in ref.items():  # a few tenths of a per cent lost at most, where over a tenth were
         assert ref[key].n_paths >= found[key].n_paths >= 0.995 * ref[key].n_paths, key
         assert abs(10 * np.log10(found[key].path_gain / link.path_gain)) < 0.05, key
+    resumed = scene(False, max_num_paths_per_src=10_000)  # (a checkpoint keeps the grown table)
+    resumed.restore(grown.snapshot())
+    assert resumed.tracer.chain_slots == grown.tracer.chain_slots
 
 
 def test_moving_vehicles_are_served_from_the_cache_and_keep_sionnas_paths():

@@ -280,12 +280,14 @@ class RadioScene:
     def snapshot(self) -> dict[str, Any]:
         """What a checkpoint keeps of the scene: every receiver in the scene's order at the
         UE position it was last placed at (stale ones too: they are traced with the others),
-        the last placement and solve (a step in which nothing moved reuses it), and whether
-        the shoot cache had seen the current geometry. Picklable; see :meth:`restore`."""
+        the last placement and solve (a step in which nothing moved reuses it), whether
+        the shoot cache had seen the current geometry, and the size the tracer grew Sionna's
+        chain table to. Picklable; see :meth:`restore`."""
         offset = np.asarray(self.cfg.antenna_offset, dtype=float)
         return {"receivers": [(k, self._where[k] - offset) for k in self.receivers],
                 "placed": self._placed, "solved": self._solved,
                 "geometry_seen": self.tracer.cache_seen, "materials": self.materials,
+                "chain_slots": self.tracer.chain_slots,
                 "counts": (self.solves, *((self.shoot_cache.connects, self.shoot_cache.shoots)
                                           if self.shoot_cache is not None else ()))}
 
@@ -295,6 +297,7 @@ class RadioScene:
         solve that lets it see it again, so the next solve is served as it would have been."""
         if snapshot.get("materials"):
             self.set_materials(snapshot["materials"])
+        self.tracer.chain_slots = int(snapshot.get("chain_slots", 0))  # (a grown table stays grown)
         if snapshot["receivers"]:
             self.place(dict(snapshot["receivers"]))
             if snapshot["geometry_seen"]:

@@ -26,9 +26,10 @@ coefficient sets, so every guess is traced afresh.
 
 A trace of many receivers at once finds many (specular chain, receiver) pairs, more than
 Sionna's table of the chains seen holds without collisions (it drops the pairs that collide,
-silently): the trace is made again with a larger table until less than 1 % are lost
-(:func:`~caviar_plugins.rt.sionna_adapter.chain_table_slots`), so that a receiver's power
-does not depend on the others traced with it.
+silently): with the geometry traced once, the trace is made again with a larger table until
+less than 1 % are lost (:func:`~caviar_plugins.rt.sionna_adapter.chain_table_slots`), so
+that a receiver's power does not depend on the others traced with it. Whole solves (diffuse
+reflection on) use the table such a trace grew, or Sionna's own, unwatched.
 """
 
 from __future__ import annotations
@@ -185,10 +186,9 @@ class ReceivedPower:
                 out.append(None)
                 continue
             first = tau[k].min()
-            bins = np.floor((tau[k] - first) / resolution_s + 1e-9).astype(np.int64)
-            gains = np.bincount(bins, weights=power[k])
-            has = np.flatnonzero(gains > 0)
-            out.append((first + (has + 0.5) * resolution_s, gains[has]))
+            bins, at = np.unique(np.floor((tau[k] - first) / resolution_s + 1e-9), return_inverse=True)
+            gains = np.bincount(at.reshape(-1), weights=power[k])  # (the bins with paths only)
+            out.append((first + (bins + 0.5) * resolution_s, gains))
         return out
 
     def delay_spreads(self, pairs: np.ndarray, resolution_s: float) -> np.ndarray:

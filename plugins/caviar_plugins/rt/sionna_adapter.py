@@ -235,7 +235,9 @@ def chain_table_size(max_num_paths_per_src: int, slots: int = 0) -> int:
 
 def chain_loss(pairs_per_source: int, slots: int) -> float:
     """The share of new specular chains dropped by collisions, to first order (the load of
-    the tables), with ``pairs_per_source`` candidates found in tables of ``slots``."""
+    the tables), with ``pairs_per_source`` candidates found in tables of ``slots``. The
+    candidates counted include line-of-sight and diffuse ones, which take no slot: an upper
+    bound where diffuse reflection finds many (a table grown larger than it need be)."""
     return float(pairs_per_source) / float(slots)
 
 
@@ -251,7 +253,8 @@ def chain_table_slots(pairs_per_source: int, sources: int = 1) -> int:
 def chain_table(slots: int) -> Iterator[None]:
     """Solves inside get specular-chain tables of ``slots`` per source (or
     ``max_num_paths_per_src`` where larger; 0: Sionna's own 1e6): Sionna reads the size from
-    a class constant, put back afterwards."""
+    a class constant, put back afterwards (so not for solves in two threads at once: none
+    here solves from more than one thread)."""
     if not slots:
         yield
         return

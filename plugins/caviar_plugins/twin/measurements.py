@@ -19,7 +19,7 @@ tx_z``
 ``frequency_hz``   the carrier (Hz); one carrier per file
 ``bandwidth_hz``   the measured bandwidth (Hz)
 ``pdp_delay_s``,    optional, together: the power-delay profile, as taps: each tap's delay (s,
-``pdp_power_dbm``  any origin: only differences count) and power (dBm); a CSV cell holds the
+``pdp_power_dbm``  >= 0 from any origin: only differences count) and power (dBm); a CSV cell holds the
                    taps separated by ``;``, a Parquet column a list or such a string, a topic
                    a list. A sample without them has no profile (empty cells)
 =================  ==========================================================================
@@ -79,6 +79,11 @@ class Measurements:
     pdp: list[tuple[np.ndarray, np.ndarray] | None] | None = None
     """Per sample, its power-delay profile's taps ``(delays_s, powers_dbm)``, or None (None:
     no sample has one)."""
+
+    def __post_init__(self):
+        if self.pdp is not None and len(self.pdp) != len(self):
+            raise MeasurementError(f"pdp: {len(self.pdp)} profiles for {len(self)} samples (one per sample, None "
+                                   "for a sample without one)")
 
     def __len__(self) -> int:
         return int(self.power_dbm.shape[0])
@@ -155,9 +160,9 @@ def rms_delay_spread(delays_s: np.ndarray, powers: np.ndarray, resolution_s: flo
     if not keep.any():
         return float("nan")
     delays_s, powers = delays_s[keep], powers[keep]
-    bins = np.floor((delays_s - delays_s.min()) / resolution_s + 1e-9).astype(np.int64)
-    p = np.bincount(bins, weights=powers)
-    t = (np.arange(len(p)) + 0.5) * resolution_s
+    bins, at = np.unique(np.floor((delays_s - delays_s.min()) / resolution_s + 1e-9), return_inverse=True)
+    p = np.bincount(at.reshape(-1), weights=powers)  # (the bins with taps only: no array of the span)
+    t = (bins + 0.5) * resolution_s
     mean = float(np.sum(p * t) / np.sum(p))
     return float(np.sqrt(max(float(np.sum(p * (t - mean) ** 2) / np.sum(p)), 0.0)))
 
@@ -179,7 +184,7 @@ def _number(value: Any, where: str, field: str) -> float:
 def _numbers(value: Any, where: str, field: str) -> np.ndarray:
     """A profile's column: a list of numbers, or a string of them separated by ``;``."""
     if isinstance(value, str):
-        items: list[Any] = [v for v in value.replace(",", ";").split(";") if v.strip()]
+        items: list[Any] = [v for v in value.split(";") if v.strip()]
     elif isinstance(value, (list, tuple, np.ndarray)):
         items = list(value)
     else:
@@ -187,15 +192,20 @@ def _numbers(value: Any, where: str, field: str) -> np.ndarray:
                                f"separated by ';'), got {value!r}")
     if not items:
         raise MeasurementError(f"{where}: field '{field}': expected at least one tap, got none")
-    out = np.array([_number(v, where, field) for v in items], dtype=np.float64)
+    out = np.array([_number(v, f"{where} tap {k}", field) for k, v in enumerate(items)], dtype=np.float64)
     if field == "pdp_delay_s" and (out < 0).any():
-        raise MeasurementError(f"{where}: field '{field}': expected delays >= 0 (s), got {float(out.min())!r}")
+        k = int(np.flatnonzero(out < 0)[0])
+        raise MeasurementError(f"{where} tap {k}: field '{field}': expected delays >= 0 (s), got {out[k]!r}")
     return out
+
+
+def _empty(value: Any) -> bool:
+    return value is None or (isinstance(value, str) and not value.strip())
 
 
 def _profile(row: Mapping[str, Any], where: str) -> tuple[np.ndarray, np.ndarray] | None:
     """A sample's power-delay profile (:data:`PDP_FIELDS`), None where its cells are empty."""
-    given = [f for f in PDP_FIELDS if row.get(f) not in ("", None)]
+    given = [f for f in PDP_FIELDS if not _empty(row.get(f))]
     if not given:
         return None
     if len(given) == 1:

@@ -197,8 +197,9 @@ def _fit(args, settings, rays, data) -> int:
         f"(fit {rm['fit']['before']:.2f} -> {rm['fit']['after']:.2f}); {result.stopped}; wrote {args.out}")
     ds = result.delay_spread_ns
     if ds:
+        which = "held_out" if ds["held_out"]["before"] is not None else "fit"
         say(f"{PROG}: RMS delay spread of {ds['samples']} profiles (median {ds['measured_median']:.1f} ns), "
-            f"held-out RMS error {ds['held_out']['before']} -> {ds['held_out']['after']} ns (not fitted on)")
+            f"{which.replace('_', '-')} RMS error {ds[which]['before']} -> {ds[which]['after']} ns (not fitted on)")
     unseen = [f"{m}.{p}" for (m, p) in result.start if (m, p) not in result.identifiability.identifiable]
     if unseen:
         say(f"{PROG}: not identifiable from these measurements (kept at their start): {', '.join(unseen)}")

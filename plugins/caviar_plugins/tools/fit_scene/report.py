@@ -49,17 +49,20 @@ def plot_fit(result: Any, data: Any, path: pathlib.Path) -> pathlib.Path:
     b.set_title("Held-out samples")
     b.legend()
     if spreads:
-        _plot_spreads(axes[2], spreads, held, result.delay_spread_ns)
+        _plot_spreads(axes[2], spreads, held, result.delay_spread_ns,
+                      "held_out" if result.holdout_mask is not None and result.holdout_mask.any() else "fit")
     return save_figure(fig, path)
 
 
-def _plot_spreads(c: Any, spreads: dict[str, np.ndarray], held: np.ndarray, errors: dict[str, Any]) -> None:
-    """Measured against predicted RMS delay spread (ns) of the held-out samples with a profile."""
+def _plot_spreads(c: Any, spreads: dict[str, np.ndarray], held: np.ndarray, errors: dict[str, Any],
+                  which: str) -> None:
+    """Measured against predicted RMS delay spread (ns) of the samples ``held`` with a profile
+    (``which``: the held-out ones, or all fitted ones where none was held out)."""
     measured = spreads["measured"][held] * 1e9
     for key, marker in (("before", "x"), ("after", "o")):
         pred = spreads[key][held] * 1e9
         ok = np.isfinite(pred) & np.isfinite(measured)
-        err = errors["held_out"][key]
+        err = errors[which][key]
         c.scatter(measured[ok], pred[ok], s=12, marker=marker, alpha=0.7,
                   label=f"{key} ({'-' if err is None else f'{err:.1f}'} ns RMS error)")
     ok = np.isfinite(measured)
@@ -68,5 +71,5 @@ def _plot_spreads(c: Any, spreads: dict[str, np.ndarray], held: np.ndarray, erro
         c.plot([lo, hi], [lo, hi], color="black", lw=0.8)
     c.set_xlabel("measured RMS delay spread (ns)")
     c.set_ylabel("predicted by the twin (ns)")
-    c.set_title("Held-out delay spread (not fitted)")
+    c.set_title(f"{'Held-out' if which == 'held_out' else 'Fitted'} samples' delay spread (not fitted on)")
     c.legend()
