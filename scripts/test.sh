@@ -30,5 +30,9 @@ log "pytest ($workers workers)"
 if [ "$workers" = 1 ]; then
     .venv/bin/python -m pytest -q "$@"
 else
-    .venv/bin/python -m pytest -q -n "$workers" "$@"
+    # Each worker's OpenMP (torch, numpy's BLAS) gets its share of the cores: with a pool of one
+    # thread a core in every worker, OpenMP's threads wait for cores the other workers hold (the
+    # 03-gymnasium notebook took 77 s beside one busy process instead of 13 s, and ran past its limit).
+    OMP_NUM_THREADS=${OMP_NUM_THREADS:-$(( cores / workers > 1 ? cores / workers : 1 ))} \
+        .venv/bin/python -m pytest -q -n "$workers" "$@"
 fi
