@@ -52,6 +52,30 @@ Unknown = tuple[str, str]
 RX_PREFIX, TX_PREFIX = "meas-rx-", "meas-tx-"
 
 
+def binned_taps(delays_s: np.ndarray, powers: np.ndarray, resolution_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Taps or paths at ``delays_s`` (s) with linear ``powers`` binned at ``resolution_s`` from
+    the earliest, as a sounder of that resolution (1/bandwidth) sees them: each bin's centre
+    (s, on the delays' origin) and summed power, for the bins with a tap only (no array of the
+    whole span: delays given in ns by mistake would make billions of bins)."""
+    first = delays_s.min()
+    bins, at = np.unique(np.floor((delays_s - first) / resolution_s + 1e-9), return_inverse=True)
+    return first + (bins + 0.5) * resolution_s, np.bincount(at.reshape(-1), weights=powers)
+
+
+def rms_delay_spread(delays_s: np.ndarray, powers: np.ndarray, resolution_s: float) -> float:
+    """The RMS delay spread (s) of taps or paths at ``delays_s`` with linear ``powers``, binned
+    first (:func:`binned_taps`): the same estimator for a sounder's taps and for ray-traced
+    paths, so that both are seen at the measurement's bandwidth. NaN without power."""
+    delays_s, powers = np.asarray(delays_s, dtype=np.float64), np.asarray(powers, dtype=np.float64)
+    keep = powers > 0
+    if not keep.any():
+        return float("nan")
+    t, p = binned_taps(delays_s[keep], powers[keep], resolution_s)
+    t = t - t[0]
+    mean = float(np.sum(p * t) / np.sum(p))
+    return float(np.sqrt(max(float(np.sum(p * (t - mean) ** 2) / np.sum(p)), 0.0)))
+
+
 class ReceivedPower:
     """The received power of measured pairs in ``scene`` (already loaded, at its carrier),
     traced as ``settings`` say with the solver's seed from ``seed``."""
@@ -118,11 +142,7 @@ class ReceivedPower:
         if self.reuse_geometry:
             return self._pair_power_reused(solver, pairs)
         dr, mi = jit()
-        self.solves += 1
-        with sionna_adapter.chain_table(self.chain_slots):
-            paths = solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src, synthetic_array=True,
-                           **self.options)
-        a_re, a_im = paths.a
+        a_re, a_im = self._whole_solve(solver).a
         power = dr.square(a_re) + dr.square(a_im)  # [rx, rx_ant, tx, tx_ant, paths]
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         if power.shape[-1] == 0:  # no path at all (Dr.Jit cannot sum an empty axis)
@@ -143,24 +163,33 @@ class ReceivedPower:
                     self._solver, self.scene, max_num_paths_per_src=self.max_num_paths_per_src, **self.options)
             self.solves += 1
             per_source = int(np.bincount(np.array(traced.source_indices, dtype=np.int64)).max(initial=0))
-            slots = sionna_adapter.chain_table_size(self.max_num_paths_per_src, self.chain_slots)
-            self.chain_loss = sionna_adapter.chain_loss(per_source, slots)
-            grown = sionna_adapter.chain_table_slots(per_source, self.n_tx)
-            if self.chain_loss <= sionna_adapter.CHAIN_LOSS or grown <= slots:
+            self.chain_loss, size, grown = sionna_adapter.chain_table_check(
+                per_source, self.max_num_paths_per_src, self.chain_slots, self.n_tx)
+            if not grown:
                 break
             self.chain_slots = grown
         if self.chain_loss > sionna_adapter.CHAIN_LOSS:
-            warnings.warn(f"about {100 * self.chain_loss:.0f} % of the specular chains were lost to collisions in "
-                          f"Sionna's table of chains seen ({slots} slots a source, the most allowed): trace fewer "
-                          "receivers at once", RuntimeWarning, stacklevel=4)
+            warnings.warn(sionna_adapter.chain_loss_warning(self.chain_loss, size, "trace fewer receivers at once"),
+                          RuntimeWarning, stacklevel=4)
         return traced
+
+    def _geometry(self) -> Any:
+        """The paths traced at this placement (traced on first use, :meth:`_trace`)."""
+        if self._traced is None:
+            self._traced = self._trace()
+        return self._traced
+
+    def _whole_solve(self, solver: Any) -> Any:
+        """Sionna's ``Paths`` of one whole solve by ``solver`` (materials as they are now)."""
+        self.solves += 1
+        with sionna_adapter.chain_table(self.chain_slots):
+            return solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src, synthetic_array=True,
+                          **self.options)
 
     def _pair_power_reused(self, solver: Any, pairs: np.ndarray) -> Any:
         dr, mi = jit()
-        if self._traced is None:
-            self._traced = self._trace()
+        traced = self._geometry()
         self.field_evaluations += 1
-        traced = self._traced
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         per_pair = dr.zeros(mi.Float, self.n_rx * self.n_tx)
         if traced.num_paths:
@@ -169,12 +198,15 @@ class ReceivedPower:
             dr.scatter_reduce(dr.ReduceOp.Add, per_pair, power, pair_of_path)
         return dr.gather(mi.Float, per_pair, mi.UInt32(pairs[:, 0] * self.n_tx + pairs[:, 1]))
 
-    def power_delay_profiles(self, pairs: np.ndarray, resolution_s: float
+    def power_delay_profiles(self, pairs: np.ndarray, resolution_s: float,
+                             values: Mapping[Unknown, float] | None = None
                              ) -> list[tuple[np.ndarray, np.ndarray] | None]:
-        """Each (rx, tx) pair's power-delay profile at the scene's materials now, as a
-        sounder of resolution ``resolution_s`` (1/bandwidth) reports it: its paths' powers
-        (path gain, linear) summed in bins from its first path, ``(bin centres (s), gains)``
-        for the bins with power; None where no path joins the pair."""
+        """Each (rx, tx) pair's power-delay profile at the scene's materials (``values`` set
+        first), as a sounder of resolution ``resolution_s`` (1/bandwidth) reports it: its
+        paths' powers (path gain, linear) binned (:func:`binned_taps`), ``(bin centres (s),
+        gains)``; None where no path joins the pair."""
+        if values:
+            self._set(values, grad=False)
         tau, power, pair_of_path = self._paths_now()
         order = np.argsort(pair_of_path, kind="stable")
         starts = np.searchsorted(pair_of_path[order], np.arange(self.n_rx * self.n_tx + 1))
@@ -182,31 +214,22 @@ class ReceivedPower:
         for rx, tx in np.asarray(pairs, dtype=np.int64).reshape(-1, 2):
             k = order[starts[rx * self.n_tx + tx]:starts[rx * self.n_tx + tx + 1]]
             k = k[power[k] > 0]
-            if not len(k):
-                out.append(None)
-                continue
-            first = tau[k].min()
-            bins, at = np.unique(np.floor((tau[k] - first) / resolution_s + 1e-9), return_inverse=True)
-            gains = np.bincount(at.reshape(-1), weights=power[k])  # (the bins with paths only)
-            out.append((first + (bins + 0.5) * resolution_s, gains))
+            out.append(binned_taps(tau[k], power[k], resolution_s) if len(k) else None)
         return out
 
-    def delay_spreads(self, pairs: np.ndarray, resolution_s: float) -> np.ndarray:
-        """Each (rx, tx) pair's RMS delay spread (s) at the scene's materials now, from its
-        :meth:`power_delay_profiles` (:func:`~caviar_plugins.twin.measurements.rms_delay_spread`);
-        NaN where no path."""
-        from caviar_plugins.twin.measurements import rms_delay_spread
-
+    def delay_spreads(self, pairs: np.ndarray, resolution_s: float,
+                      values: Mapping[Unknown, float] | None = None) -> np.ndarray:
+        """Each (rx, tx) pair's RMS delay spread (s) from its :meth:`power_delay_profiles`
+        (:func:`rms_delay_spread`); NaN where no path. ``values`` sets material properties
+        first."""
         return np.array([np.nan if prof is None else rms_delay_spread(prof[0], prof[1], resolution_s)
-                         for prof in self.power_delay_profiles(pairs, resolution_s)])
+                         for prof in self.power_delay_profiles(pairs, resolution_s, values)])
 
     def _paths_now(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every traced path's delay (s), power (linear path gain, 0: no field) and pair
         (rx · n_tx + tx), at the materials now."""
         if self.reuse_geometry:
-            if self._traced is None:
-                self._traced = self._trace()
-            traced = self._traced
+            traced = self._geometry()
             if not traced.num_paths:
                 return np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64)
             power = np.array(sionna_adapter.path_powers(self._solver, self.scene, traced), dtype=np.float64)
@@ -214,11 +237,7 @@ class ReceivedPower:
             pair_of_path = (np.array(traced.target_indices, dtype=np.int64) * self.n_tx
                             + np.array(traced.source_indices, dtype=np.int64))
             return sionna_adapter.path_delays(traced), power, pair_of_path
-        # a whole solve: Sionna's Paths, delays [rx, tx, path] and coefficients [rx, ., tx, ., path]
-        with sionna_adapter.chain_table(self.chain_slots):
-            paths = self._solver(self.scene, max_num_paths_per_src=self.max_num_paths_per_src, synthetic_array=True,
-                                 **self.options)
-        self.solves += 1
+        paths = self._whole_solve(self._solver)  # delays [rx, tx, path], coefficients [rx, ., tx, ., path]
         a_re, a_im = (np.array(c, dtype=np.float64) for c in paths.a)
         power = (a_re**2 + a_im**2).mean(axis=(1, 3)).reshape(-1)
         pairs = max(self.n_rx * self.n_tx, 1)

@@ -249,6 +249,24 @@ def chain_table_slots(pairs_per_source: int, sources: int = 1) -> int:
     return max(1, min(want, MAX_CHAIN_SLOTS, (1 << 27) // max(int(sources), 1)))
 
 
+def chain_table_check(found_per_source: int, max_num_paths_per_src: int, slots: int, sources: int
+                      ) -> tuple[float, int, int]:
+    """After a solve under :func:`chain_table` (``slots``) that found ``found_per_source``
+    candidates a source (the most of any of ``sources``): the share lost to collisions
+    (:func:`chain_loss`), the slots the tables had, and the slots to solve again with (0: none,
+    the loss being within :data:`CHAIN_LOSS` or the table at its cap: :func:`chain_loss_warning`)."""
+    size = chain_table_size(max_num_paths_per_src, slots)
+    loss = chain_loss(found_per_source, size)
+    grown = chain_table_slots(found_per_source, sources)
+    return loss, size, (grown if loss > CHAIN_LOSS and grown > size else 0)
+
+
+def chain_loss_warning(loss: float, size: int, advice: str) -> str:
+    """What a tracer warns when its table, at its cap, still loses ``loss`` of the chains."""
+    return (f"about {100 * loss:.0f} % of the specular chains are lost to collisions in Sionna's table of chains "
+            f"seen ({size} slots a source, the most allowed): {advice}")
+
+
 @contextlib.contextmanager
 def chain_table(slots: int) -> Iterator[None]:
     """Solves inside get specular-chain tables of ``slots`` per source (or

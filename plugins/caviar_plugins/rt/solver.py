@@ -137,21 +137,17 @@ class PathTracer:
             return False
         counts = np.array(self._counter, dtype=np.int64).reshape(-1)
         found = int(min(counts.max(initial=0), self.max_num_paths_per_src))
-        slots = adapter.chain_table_size(self.max_num_paths_per_src, self.chain_slots)
-        self.chain_loss = adapter.chain_loss(found, slots)
-        if self.chain_loss <= adapter.CHAIN_LOSS:
-            return False
-        grown = adapter.chain_table_slots(found, len(counts))
-        if grown <= slots:
-            if not self._chain_warned:
-                self._chain_warned = True
-                warnings.warn(f"about {100 * self.chain_loss:.0f} % of the specular chains are lost to collisions "
-                              f"in Sionna's table of chains seen ({slots} slots a source, the most allowed): fewer "
-                              "rays or receivers a solve, or the shoot cache, which deduplicates exactly",
-                              RuntimeWarning, stacklevel=4)
-            return False
-        self.chain_slots = grown
-        return True
+        self.chain_loss, size, grown = adapter.chain_table_check(found, self.max_num_paths_per_src, self.chain_slots,
+                                                                 len(counts))
+        if grown:
+            self.chain_slots = grown
+            return True
+        if self.chain_loss > adapter.CHAIN_LOSS and not self._chain_warned:
+            self._chain_warned = True
+            warnings.warn(adapter.chain_loss_warning(self.chain_loss, size, "fewer rays or receivers a solve, or the "
+                                                     "shoot cache, which deduplicates exactly"),
+                          RuntimeWarning, stacklevel=4)
+        return False
 
     def cache_status(self, solves: int) -> str | None:
         """One line on what share of ``solves`` the shoot cache served (None without it or

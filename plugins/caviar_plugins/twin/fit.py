@@ -249,8 +249,7 @@ class _Problem:
     def delay_spreads(self, x: np.ndarray) -> np.ndarray:
         """Each sample's predicted RMS delay spread (s) at ``x``, at the measurements'
         bandwidth's resolution."""
-        self.predict(x)  # sets the materials
-        return self.model.delay_spreads(self.pairs, 1.0 / self.data.bandwidth_hz)
+        return self.model.delay_spreads(self.pairs, 1.0 / self.data.bandwidth_hz, self.values(x))
 
     def jacobian(self, x: np.ndarray, step: float = 0.05, every: bool = False) -> np.ndarray:
         """d(predicted dBm)/d(log) per sample and unknown, by central differences; with

@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from caviar_plugins.rt.received_power import rms_delay_spread
 from caviar_plugins.schema import MEASUREMENTS
 
 FIELDS = ("time_s", "rx_x", "rx_y", "rx_z", "tx_x", "tx_y", "tx_z", "power_dbm", "tx_power_dbm",
@@ -56,6 +57,8 @@ TOPIC = MEASUREMENTS
 """Measurements travel on ``measurements.<vehicle>``: a payload is one sample (a mapping of
 :data:`FIELDS`) or ``{"samples": [sample, …]}``."""
 POSITIVE = ("frequency_hz", "bandwidth_hz")
+__all__ = ["FIELDS", "PDP_FIELDS", "TOPIC", "MeasurementError", "Measurements", "from_messages", "from_rows",
+           "read_measurements", "rms_delay_spread"]
 
 
 class MeasurementError(ValueError):
@@ -148,23 +151,6 @@ class Measurements:
             for row in self.rows():
                 writer.writerow({k: ";".join(map(repr, v)) if isinstance(v, list) else repr(v) for k, v in row.items()})
         return path
-
-
-def rms_delay_spread(delays_s: np.ndarray, powers: np.ndarray, resolution_s: float) -> float:
-    """The RMS delay spread (s) of taps or paths at ``delays_s`` with linear ``powers``, binned
-    first at ``resolution_s`` from the earliest (each bin's power summed, at its centre): the
-    same estimator for a sounder's taps and for ray-traced paths, so that both are seen at the
-    measurement's bandwidth. NaN without power."""
-    delays_s, powers = np.asarray(delays_s, dtype=np.float64), np.asarray(powers, dtype=np.float64)
-    keep = powers > 0
-    if not keep.any():
-        return float("nan")
-    delays_s, powers = delays_s[keep], powers[keep]
-    bins, at = np.unique(np.floor((delays_s - delays_s.min()) / resolution_s + 1e-9), return_inverse=True)
-    p = np.bincount(at.reshape(-1), weights=powers)  # (the bins with taps only: no array of the span)
-    t = (bins + 0.5) * resolution_s
-    mean = float(np.sum(p * t) / np.sum(p))
-    return float(np.sqrt(max(float(np.sum(p * (t - mean) ** 2) / np.sum(p)), 0.0)))
 
 
 def _number(value: Any, where: str, field: str) -> float:

@@ -18,7 +18,7 @@ def plot_fit(result: Any, data: Any, path: pathlib.Path) -> pathlib.Path:
     after. Right, with power-delay profiles among the measurements: the same for their RMS
     delay spread (never fitted)."""
     plt = pyplot_into(path.parent)
-    spreads = getattr(result, "delay_spread_s", {})
+    spreads = result.delay_spread_s
     fig, axes = plt.subplots(1, 3 if spreads else 2, figsize=(16.5 if spreads else 11, 4.2))
     a, b = axes[0], axes[1]
     hist = result.history
