@@ -47,7 +47,10 @@ kernel launch, or a copy):
 - ``host_proxy_ms = host_python_numpy_ms + torch_calls_per_step · dispatch_us_wall``: the step's
   host time with the torch calls' arithmetic taken off the host, as a GPU takes it;
   ``host_proxy_with_launches_ms`` adds what this CPU cannot measure, ``CUDA_LAUNCH_US`` a call
-  (cudaLaunchKernel) and ``DEVICE_READ_US`` a device read (a copy out and its latency), assumed;
+  that launches a kernel (cudaLaunchKernel; ``kernel_launches_per_step``: the calls that make or
+  write a tensor, not the views, metadata reads and no-op conversions, which launch nothing; until
+  2026-11-29 every call was counted) and ``DEVICE_READ_US`` a device read (a copy out and its
+  latency), assumed;
 - the same in this thread's CPU time (``*_cpu_*``, ``time.thread_time``): on a machine other
   work keeps busy, the wall figures include the waits for a core, the CPU ones do not.
 
@@ -56,12 +59,28 @@ The raw CPU figures stay beside it (``host_ms``, ``host_torch_ms``); the target 
 inbox (1,000 position messages) before the step's clock starts: the core's work, not the
 plugin's (before 2026-11-28 afternoon it was inside ``step_ms``, about 4-5 ms at 1,000 UEs).
 
+The plugin's UE reports are ``ue_reports = "table"`` (one ``network.ues`` table a step, the
+paper's ``communications.throughput`` a UE: the setting for a thousand UEs), the judged figure;
+``runs_per_ue_reports`` the same with a ``network.ue`` message a UE, the default. ``encode_ms``:
+what the host then spends encoding the step's messages (JSON, or Arrow for the table), the core's
+work, outside the step and the proxy.
+
+The step runs as the host runs it: the objects of set-up and the first step frozen out of the
+cyclic garbage collector (``caviar._host.Hosted.settle``); and with glibc's heap held
+(``HELD_HEAP``: ``MALLOC_MMAP_THRESHOLD_`` and ``MALLOC_TRIM_THRESHOLD_`` at 4 GiB in the run's
+process, unless set): on a GPU the step's large tensors (the paths' coefficients, the per-slot
+SINRs, tens of MB at 1,000 UEs) are device memory that torch's caching allocator keeps, while on
+this CPU glibc gives each back to the OS when it is freed and faults it in again, 4-5 ms in some
+steps, counted as Python by the proxy though no GPU run has it. ``run_glibc_default_heap``: the
+1,000-UE table run with glibc's defaults, for comparison.
+
 And the ray-tracing refresh: one solve of 21 sites × 1,000 UEs (``SiteTracer.trace``), timed
 on this CPU warm, with what it would cost on an H200 from the solve figures measured there.
 
 ``--baseline DIR``: also runs the plugin of another checkout's ``DIR/plugins`` (say HEAD's,
-``git archive HEAD plugins | tar -x -C DIR``), each size's runs of the two interleaved, in
-processes of their own, for the before/after ratios. Writes ``docs/results/host-overhead.json``.
+``git archive HEAD plugins | tar -x -C DIR``; its per-UE reports, without the freeze), each
+size's runs of the two interleaved, in processes of their own, for the before/after ratios.
+Writes ``docs/results/host-overhead.json``.
 
 On a machine other work keeps busy, run it with ``OMP_NUM_THREADS=1``: torch's second thread,
 waiting for a busy core, stalls steps by up to 10× at random, old and new code alike.
@@ -106,7 +125,8 @@ H200_SOLVE = {"one_uav_1e6_samples_ms": {"warm": 39, "kernels": 17, "host": 18},
 METHOD = ("host_proxy_ms: Python and numpy time of a step (its wall less the ray tracer, Sionna SYS's compiled "
           "groups and every torch call made from Python, timed by a TorchFunctionMode, less the mode's own "
           "calibrated cost) plus the torch calls times torch's measured dispatch cost a call on small tensors; "
-          "host_proxy_with_launches_ms adds an assumed CUDA_LAUNCH_US a call and DEVICE_READ_US a device read; "
+          "host_proxy_with_launches_ms adds an assumed CUDA_LAUNCH_US a call that launches a kernel (not a view, a "
+          "metadata read or a device read) and DEVICE_READ_US a device read; "
           "host_ms: the raw CPU wall less the ray tracer and the compiled groups (the torch arithmetic included)")
 RUNS = ("run", "run_linear")
 """A link level's calls (numpy dB SINRs, or linear ones as a tensor): the link levels' phases."""
@@ -172,11 +192,14 @@ class _Timer:
             def __init__(self):
                 super().__init__()
                 self.calls, self.seconds, self.cpu_seconds, self.reads, self.copies_in = 0, 0.0, 0.0, 0, 0
+                self.launches = 0
 
             def __torch_function__(self, func, types, args=(), kwargs=None):
                 a, c = time.perf_counter(), time.thread_time()
+                out = None
                 try:
-                    return func(*args, **(kwargs or {}))
+                    out = func(*args, **(kwargs or {}))
+                    return out
                 finally:
                     self.cpu_seconds += time.thread_time() - c
                     self.seconds += time.perf_counter() - a
@@ -186,8 +209,28 @@ class _Timer:
                         self.reads += 1
                     elif name in MAKERS and args and not isinstance(args[0], torch.Tensor):
                         self.copies_in += 1
+                    if _launches_kernel(torch, name, args, out):
+                        self.launches += 1
 
         return Timer()
+
+
+def _launches_kernel(torch, name: str, args: tuple, out: Any) -> bool:
+    """Whether a torch call would launch a kernel on a GPU: one that makes or writes a tensor
+    (``__setitem__`` writes one), not a read of metadata (``__len__``, ``shape``, ``numpy`` of
+    a host tensor), not a view or a no-op conversion (its result shares its input's storage:
+    ``transpose``, ``reshape`` of a contiguous tensor, ``detach``, ``to`` the same dtype), and not
+    a device read (``cpu``, ``item``: counted as reads)."""
+    if name in READS:
+        return False
+    if name == "__setitem__":
+        return True
+    first = out[0] if isinstance(out, (tuple, list)) and out and isinstance(out[0], torch.Tensor) else out
+    if not isinstance(first, torch.Tensor):
+        return False
+    source = next((x for x in args if isinstance(x, torch.Tensor)), None)
+    return not (source is not None and first.numel() and source.numel()
+                and first.untyped_storage().data_ptr() == source.untyped_storage().data_ptr())
 
 
 def _small_calls() -> list:
@@ -289,8 +332,9 @@ def _proxy_figures(wall: float, cpu: float, outside: dict, timer: Any, cal: dict
     python_numpy_cpu = cpu - outside["cpu"] - timer.cpu_seconds - n * cal["mode_overhead_us_cpu"] * 1e-6
     proxy = python_numpy + n * cal["dispatch_us_wall"] * 1e-6
     proxy_cpu = python_numpy_cpu + n * cal["dispatch_us_cpu"] * 1e-6
-    allowance = 1e-6 * (n * CUDA_LAUNCH_US + timer.reads * DEVICE_READ_US)
-    return {"torch_calls_per_step": n, "torch_calls_ms": round(1e3 * timer.seconds, 2),
+    allowance = 1e-6 * (timer.launches * CUDA_LAUNCH_US + timer.reads * DEVICE_READ_US)
+    return {"torch_calls_per_step": n, "kernel_launches_per_step": timer.launches,
+            "torch_calls_ms": round(1e3 * timer.seconds, 2),
             "device_reads_per_step": timer.reads, "host_copies_in_per_step": timer.copies_in,
             "host_python_numpy_ms": round(1e3 * python_numpy, 2),
             "host_python_numpy_cpu_ms": round(1e3 * python_numpy_cpu, 2),
@@ -302,8 +346,10 @@ def _proxy_figures(wall: float, cpu: float, outside: dict, timer: Any, cal: dict
             "host_proxy_cpu_with_launches_ms": round(1e3 * (proxy_cpu + allowance), 2)}
 
 
-def one(n_ue: int, steps: int, samples: int) -> dict:
-    """The plugin at 21 cells × ``n_ue`` UEs, ``steps`` steps after the first: per-step times."""
+def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: bool = True) -> dict:
+    """The plugin at 21 cells × ``n_ue`` UEs, ``steps`` steps after the first (its UE reports
+    ``ue_reports``; ``settle``: the host's freeze after the first step, which a baseline before
+    2026-11-29 did not have): per-step times."""
     import tempfile
 
     import torch
@@ -321,6 +367,8 @@ def one(n_ue: int, steps: int, samples: int) -> dict:
               "scene": str(SCENE), "raytracing": {"max_depth": 2, "samples_per_src": samples},
               "evolution": {"refresh_s": 1.0},
               "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
+    if ue_reports != "per-ue":  # (a baseline's plugins may not know the setting)
+        params["ue_reports"] = ue_reports
     hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, params))
 
     def inbox(k: int) -> Inbox:
@@ -330,6 +378,8 @@ def one(n_ue: int, steps: int, samples: int) -> dict:
 
     with tempfile.TemporaryDirectory() as run_dir:
         hosted.setup(seed=1, ts=TS, steps=None, every=1, offset=0, run_dir=run_dir, config_dir=str(ROOT))
+        if not settle:
+            gc.unfreeze()  # (the host's freeze after set-up undone: as before 2026-11-29)
         assert hosted.ctx is not None
         net = hosted.plugin
         for link in (net.link, net.ul_link):
@@ -341,6 +391,8 @@ def one(n_ue: int, steps: int, samples: int) -> dict:
             return len(list(net.step(k * TS, inbox(k) if box is None else box) or ()))
 
         step(0)  # (traces and compiles)
+        if settle:  # (as the host does after a plugin's first step: its objects out of the collector's way)
+            hosted.settle()
         _timed(net.channel.tracer, "trace", timing, "rt")
         for link, key in ((net.link, "sys"), (net.ul_link, "sys")):
             _timed(link, "_group", timing, key)
@@ -365,12 +417,14 @@ def one(n_ue: int, steps: int, samples: int) -> dict:
         top, in_links, compiled, torch_ms = _launches(net, lambda: step(steps + 1, box))
         boxes = {k: inbox(k) for k in range(steps + 2, steps + 5)}
         proxy = _proxy(net, [lambda k=k: step(k, boxes[k]) for k in boxes])
+        encode_ms = _encoding(net, hosted, steps + 5, inbox(steps + 5))
         groups = 2 * (net.slots // net.p.harq_processes)
     step_ms = 1e3 * wall
     rt_ms, sys_ms = 1e3 * timing.get("rt", 0.0), 1e3 * timing.get("sys", 0.0)
     phases = {k: round(1e3 * timing[k], 2) for k in ("measure", "downlink_sinr", "dl_link_run", "uplink_sinr",
                                                        "ul_link_run") if k in timing}
-    return {"cells": len(net.cells), "ues": n_ue, "steps": steps, "of_the_median_step": True,
+    return {"cells": len(net.cells), "ues": n_ue, "ue_reports": ue_reports, "steps": steps, "of_the_median_step": True,
+            "encode_ms": encode_ms,
             "messages_per_step": messages / steps,
             "step_ms": round(step_ms, 2), "rt_ms": round(rt_ms, 2), "sys_kernels_ms": round(sys_ms, 2),
             "host_ms": round(step_ms - rt_ms - sys_ms, 2),
@@ -380,6 +434,23 @@ def one(n_ue: int, steps: int, samples: int) -> dict:
             "top_level_torch_ops_per_group": round(in_links / groups, 2),
             "compiled_regions_per_group": round(compiled / groups, 2), "torch": torch.__version__,
             "torch_threads": torch.get_num_threads()}
+
+
+def _encoding(net, hosted, k: int, box) -> float:
+    """The host's ms to encode one step's messages for the recording and the other modules
+    (``caviar.plugin.encode``: JSON, in the core's host, not the plugin's step): the best of three."""
+    from bench_network import TS
+    from caviar.plugin import encode
+
+    hosted.ctx.step = k
+    out = list(net.step(k * TS, box) or ())
+    best = float("inf")
+    for _ in range(3):
+        a = time.perf_counter()
+        for topic, value in out:
+            encode(topic, value, None)
+        best = min(best, time.perf_counter() - a)
+    return round(1e3 * best, 2)
 
 
 def refresh(n_ue: int, samples: int) -> dict:
@@ -417,8 +488,15 @@ def refresh(n_ue: int, samples: int) -> dict:
                               "receivers against their one is not in those figures")}
 
 
-def _subprocess(args: list[str], plugins: str | None) -> dict:
+HELD_HEAP = {"MALLOC_MMAP_THRESHOLD_": str(2**32), "MALLOC_TRIM_THRESHOLD_": str(2**32)}
+"""glibc's heap held (no large block given back to the OS and faulted in again): see the module's
+docstring."""
+
+
+def _subprocess(args: list[str], plugins: str | None, held_heap: bool = True) -> dict:
     env = dict(os.environ)
+    if held_heap:
+        env.update({k: v for k, v in HELD_HEAP.items() if k not in env})
     if plugins is not None:
         env["PYTHONPATH"] = plugins + os.pathsep + env.get("PYTHONPATH", "")
     out = subprocess.run([sys.executable, __file__, *args], env=env, check=True, capture_output=True, text=True)
@@ -435,23 +513,32 @@ def main() -> None:
     ap.add_argument("--no-refresh", action="store_true", help="leave out the ray-tracing refresh's timing")
     ap.add_argument("--one", type=int, metavar="N_UE", help="(internal) one run, its JSON on stdout")
     ap.add_argument("--refresh-only", type=int, metavar="N_UE", help="(internal) the RT refresh, JSON on stdout")
+    ap.add_argument("--ue-reports", default="table", choices=["table", "per-ue"], help="(internal) with --one")
+    ap.add_argument("--no-settle", action="store_true", help="(internal) with --one: no freeze after the first step")
     args = ap.parse_args()
     if args.one:
-        print(json.dumps(one(args.one, args.steps, args.samples)))
+        print(json.dumps(one(args.one, args.steps, args.samples, args.ue_reports, not args.no_settle)))
         return
     if args.refresh_only:
         print(json.dumps(refresh(args.refresh_only, args.samples)))
         return
     from bench_common import machine
 
-    runs, before = {}, {}
+    runs, per_ue, before = {}, {}, {}
     for n in args.ues:
         common = ["--one", str(n), "--steps", str(args.steps), "--samples", str(args.samples)]
         if args.baseline:
-            before[n] = _subprocess(common, str(pathlib.Path(args.baseline) / "plugins"))
+            before[n] = _subprocess([*common, "--ue-reports", "per-ue", "--no-settle"],
+                                    str(pathlib.Path(args.baseline) / "plugins"))
             print("before", json.dumps(before[n]), flush=True)
-        runs[n] = _subprocess(common, None)
+        runs[n] = _subprocess([*common, "--ue-reports", "table"], None)
         print("after", json.dumps(runs[n]), flush=True)
+        per_ue[n] = _subprocess([*common, "--ue-reports", "per-ue"], None)
+        print("after, per-ue", json.dumps(per_ue[n]), flush=True)
+    big_n = max(args.ues)
+    heap_default = _subprocess(["--one", str(big_n), "--steps", str(args.steps), "--samples", str(args.samples),
+                                "--ue-reports", "table"], None, held_heap=False)
+    print("after, glibc's default heap", json.dumps(heap_default), flush=True)
     rt = None if args.no_refresh else _subprocess(["--refresh-only", str(max(args.ues)), "--samples",
                                                    str(args.samples)], None)
     print("refresh", json.dumps(rt), flush=True)
@@ -467,22 +554,32 @@ def main() -> None:
         "meets_targets": {"host_ms_per_step_1000_ues": judged <= TARGETS["host_ms_per_step_1000_ues"],
                           "torch_launches_per_group": big["top_level_torch_ops_per_group"]
                           + big["compiled_regions_per_group"] <= TARGETS["torch_launches_per_group"]},
+        "host_proxy_with_launches_ms_per_step_per_ue_reports": {
+            str(n): r["host_proxy_with_launches_ms"] for n, r in per_ue.items()},
+        "encode_ms_per_step": {"table": {str(n): r["encode_ms"] for n, r in runs.items()},
+                               "per-ue": {str(n): r["encode_ms"] for n, r in per_ue.items()}},
+        "host_proxy_with_launches_ms_glibc_default_heap": {str(big_n): heap_default["host_proxy_with_launches_ms"]},
+        "held_heap": HELD_HEAP,
         "method": METHOD,
         "runs": {str(n): r for n, r in runs.items()},
+        "run_glibc_default_heap": heap_default,
+        "runs_per_ue_reports": {str(n): r for n, r in per_ue.items()},
         "rt_refresh": rt,
         "machine": machine(),
     }
     if before:
         result["before"] = {str(n): r for n, r in before.items()}
-        result["ratio_before_after"] = {
-            str(n): {k: round(before[n][k] / max(runs[n][k], 1e-9), 2)
-                     for k in ("host_ms", "host_proxy_ms", "host_proxy_with_launches_ms", "host_proxy_cpu_ms",
-                               "host_python_numpy_ms", "host_python_numpy_cpu_ms", "torch_calls_ms")
-                     if k in before[n]} for n in runs}
+        keys = ("host_ms", "host_proxy_ms", "host_proxy_with_launches_ms", "host_proxy_cpu_ms",
+                "host_python_numpy_ms", "host_python_numpy_cpu_ms", "torch_calls_ms", "step_ms")
+        for name, after in (("ratio_before_after", runs), ("ratio_before_after_per_ue_reports", per_ue)):
+            result[name] = {str(n): {k: round(before[n][k] / max(after[n][k], 1e-9), 2) for k in keys
+                                     if k in before[n]} for n in after}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps({k: result[k] for k in ("host_proxy_with_launches_ms_per_step", "host_ms_per_step_raw_cpu",
-                                              "torch_launches_per_group", "meets_targets")}))
+    print(json.dumps({k: result[k] for k in ("host_proxy_with_launches_ms_per_step",
+                                              "host_proxy_with_launches_ms_per_step_per_ue_reports",
+                                              "host_ms_per_step_raw_cpu", "torch_launches_per_group",
+                                              "meets_targets")}))
 
 
 if __name__ == "__main__":

@@ -39,6 +39,19 @@ class Noise(caviar.Plugin):
         yield "noise.array", x.astype(np.complex64) * 1j
 
 
+class Tables(caviar.Plugin):
+    """A table a step (a polars DataFrame: Arrow on the wire): a row a draw, with a null."""
+
+    stateless = True
+
+    def step(self, t, inbox):
+        import polars as pl
+
+        x = self.ctx.rng.normal(size=3)
+        yield "tables.draws", pl.DataFrame({"k": [0, 1, 2], "x": x, "name": ["a", None, "c"],
+                                            "pair": np.stack([x, 2 * x], axis=1)})
+
+
 class Tally(caviar.Plugin):
     """A running sum of the counts it receives and a random draw each step: state, an
     inbox and a random stream, all three needed to resume it exactly."""

@@ -43,18 +43,19 @@ def _sites() -> list[dict]:
     return out
 
 
-def _calls(n_ue: int, tmp_path) -> collections.Counter:
+def _calls(n_ue: int, tmp_path, ue_reports: str = "per-ue") -> collections.Counter:
     """The Python calls of the third step of a network of 21 cells and ``n_ue`` UEs (moving),
-    by (file, function)."""
+    by (file, function), its reports ``ue_reports``."""
     params = {"sites": _sites(), "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "tx_power_dbm": 43.0, "array": [4, 4],
               "subcarrier_spacing_hz": 30e3, "harq_processes": 8, "subbands": 8, "channel": "free-space",
               "interference": "scheduled", "beams": {"horizontal": 4}, "uplink": {}, "device": "cpu",
-              "traffic": {"downlink": "ftp3", "uplink": "full-buffer", "ftp": {"arrival_rate_hz": 1e-3}}}
+              "traffic": {"downlink": "ftp3", "uplink": "full-buffer", "ftp": {"arrival_rate_hz": 1e-3}},
+              "ue_reports": ue_reports}
     hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, params))
     rng = np.random.default_rng(3)
     pos = np.column_stack([rng.uniform(-380, 380, n_ue), rng.uniform(-380, 380, n_ue), np.full(n_ue, 1.5)])
     vel = np.column_stack([rng.uniform(-10, 10, (n_ue, 2)), np.zeros(n_ue)])
-    run_dir = tmp_path / f"run{n_ue}"
+    run_dir = tmp_path / f"run{n_ue}-{ue_reports}"
     run_dir.mkdir()
     hosted.setup(seed=1, ts=TS, steps=None, every=1, offset=0, run_dir=str(run_dir), config_dir=str(tmp_path))
     assert hosted.ctx is not None
@@ -82,13 +83,17 @@ def _calls(n_ue: int, tmp_path) -> collections.Counter:
         finally:
             sys.setprofile(None)
             gc.enable()
-        assert sum(1 for topic, _ in out if topic == "network.ue") == n_ue
+        reported = [v for topic, v in out if topic in ("network.ue", "network.ues")]
+        assert (len(reported) if ue_reports == "per-ue" else reported[0].height) == n_ue
     return counts
 
 
-def test_a_step_makes_the_same_python_calls_for_1000_ues_as_for_100(tmp_path):
-    few, many = _calls(100, tmp_path), _calls(1000, tmp_path)
+@pytest.mark.parametrize("ue_reports, allowed", [("per-ue", 20), ("table", 8)])
+def test_a_step_makes_the_same_python_calls_for_1000_ues_as_for_100(tmp_path, ue_reports, allowed):
+    """Per UE: with per-UE reports, a message in and two out; with the table, a message in and
+    the paper's throughput out (``allowed``: calls a UE at most, for those)."""
+    few, many = _calls(100, tmp_path, ue_reports), _calls(1000, tmp_path, ue_reports)
     grown = {f: (few[f], n) for f, n in many.items() if f not in PER_MESSAGE and n > 2 * few[f] + 10}
     assert not grown, f"per-UE Python calls in the network's step (calls at 100 and 1,000 UEs): {grown}"
     per_message = sum(many[f] - few[f] for f in PER_MESSAGE)
-    assert per_message <= 20 * 900, f"{per_message} more calls to read and write 900 more UEs' messages"
+    assert per_message <= allowed * 900, f"{per_message} more calls to read and write 900 more UEs' messages"

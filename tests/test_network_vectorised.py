@@ -14,7 +14,7 @@ import pytest
 
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.report import finite
-from caviar_plugins.network.ues import UeTable, rounded, ue_reports, uplink_fields
+from caviar_plugins.network.ues import UeTable, rounded, ue_reports, uplink_arrays, uplink_columns, uplink_fields
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, cuda_graphs_on
 from network_configs import assert_decides_as
 
@@ -155,8 +155,8 @@ def test_reports_built_in_bulk_round_as_one_by_one():
         assert ("x" in rep) == covered and ("position_m" in rep) == (types[i] == "dropped")
     assert out[3][1]["sinr_db"] is None and list(out[1][1])[:8] == [
         "UE_type", "UE_Id", "serving_cell", "sinr_db", "sir_db", "coupling_loss_db", "rsrp_dbm", "throughput_mbps"]
-    ul = uplink_fields(np.array([23.0004, 1.5]), np.array([np.nan, 2.2226]), np.array([1.0, 2.0]),
-                       {k: v[:2] for k, v in link.items()})
+    ul = uplink_fields(uplink_columns(uplink_arrays(np.array([23.0004, 1.5]), np.array([np.nan, 2.2226]),
+                                                    np.array([1.0, 2.0]), {k: v[:2] for k, v in link.items()})))
     assert ul[0]["ul_tx_power_dbm"] == 23.0 and ul[0]["ul_sinr_db"] is None and ul[1]["ul_sinr_db"] == 2.223
     assert ul[0]["ul_tbler"] == 0.1235 and ul[1]["ul_mcs"] == -1
 

@@ -69,6 +69,26 @@ def test_binary_payloads_keep_dtype_and_shape_and_never_touch_json(tmp_path):
     assert row["text"] is None and json.loads(row["meta"]) == {"dtype": "<c8", "shape": [4]}
 
 
+@pytest.mark.parametrize("transport", ["in-process", "nats"])
+def test_tables_travel_as_arrow_and_come_back_as_dataframes(tmp_path, transport, monkeypatch):
+    import polars as pl
+
+    from configs import caviar_env, nats_transport
+
+    monkeypatch.setenv("PYTHONPATH", caviar_env()["PYTHONPATH"])  # (the workers import the test plugins)
+    text = (BASE + (nats_transport() if transport == "nats" else "") + module("tables", "first", "sample_plugins:Tables")
+            + module("echo", "second", "sample_plugins:Echo", subscribe=["tables.>"]))
+    log = run_config(tmp_path, text)
+    tables, echoed = log.decoded("tables.draws"), log.decoded("echo.tables.draws")
+    assert len(tables) == len(echoed) == 4
+    for a, e in zip(tables, echoed, strict=True):
+        assert a.kind == "binary" and isinstance(a.data, pl.DataFrame) and a.data.equals(e.data)
+        assert a.data["name"].to_list() == ["a", None, "c"] and a.data.schema["pair"] == pl.Array(pl.Float64, 2)
+        np.testing.assert_array_equal(a.data["pair"].to_numpy()[:, 1], 2 * a.data["x"].to_numpy())
+    row = log.messages.filter(log.messages["topic"] == "tables.draws").row(0, named=True)
+    assert row["text"] is None and json.loads(row["meta"]) == {"content_type": "application/vnd.apache.arrow.stream"}
+
+
 def test_artifacts_travel_as_paths_relative_to_the_run_directory(tmp_path):
     log = run_config(tmp_path, BASE + module("writer", "first", "sample_plugins:WritesFile")
                      + module("reader", "second", "sample_plugins:Reader"))

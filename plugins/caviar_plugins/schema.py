@@ -83,6 +83,12 @@ the network's layout dropped, and, with the Sionna SYS link model, ``"mcs", "tbl
 the uplink (``uplink``), ``"ul_tx_power_dbm", "ul_sinr_db", "ul_throughput_mbps", "ul_mcs", "ul_tbler"...``;
 with a load (``traffic``), ``"dl_queue_bytes"`` and ``"ul_queue_bytes"``: the bytes waiting (none for a
 full buffer). With a load the throughputs count the queues' bytes delivered, not padding."""
+NETWORK_UES = "network.ues"
+"""Per step, with ``ue_reports = "table"``: every UE's ``network.ue`` fields as one table (a
+``polars.DataFrame``, recorded in Arrow's format), a column a field and a row a UE:
+``UE_Id``, ``UE_type``, ``serving_cell``, ..., ``rsrp_dbm`` (a struct, a field a cell by its
+name); null where a UE's ``network.ue`` would hold None or leave the field out
+(:func:`caviar_plugins.network.ues.table_rows` turns the table back into those reports)."""
 NETWORK_EVENTS = "network.events"
 """``{"event": "attach" | "handover" | "rlf", "UE_Id", "time", "to_cell", "rsrp_to_dbm"}``
 (and ``"from_cell", "rsrp_from_dbm"`` for a handover or a radio-link failure)."""

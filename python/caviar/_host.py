@@ -7,6 +7,7 @@ the same code whatever the transport.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import importlib
 import json
 import os
@@ -261,6 +262,7 @@ class Hosted:
         self.params = params
         self.ctx: Context | None = None
         self.run_dir: pathlib.Path | None = None
+        self.settled = False  # (what its set-up and first step made is frozen for the collector)
 
     def setup(self, seed: int, ts: float, steps: int | None, every: int, offset: int,
               run_dir: str | os.PathLike[str], config_dir: str | os.PathLike[str], shards: int = 1) -> None:
@@ -273,6 +275,7 @@ class Hosted:
                            every=every, offset=offset, run_dir=self.run_dir,
                            config_dir=pathlib.Path(config_dir), shards=shards)
         self.plugin.setup(self.ctx)
+        gc.freeze()  # (see settle)
 
     def step(self, step: int, t: float, raw: list[RawMessage], shard: int = 0) -> list[OutgoingTuple]:
         """Runs the plugin's step; returns what it published as ``(topic, kind, body, meta)``."""
@@ -302,10 +305,24 @@ class Hosted:
             if not isinstance(topic, str):
                 raise TypeError(f"topic must be a str, got {topic!r}")
             out.append((topic, *encode(topic, value, run_dir)))
+        if not self.settled:
+            self.settle()
         return out
 
+    def settle(self) -> None:
+        """After set-up and again after the first step (where plugins trace, compile and load
+        lazily): the objects the process holds then (Sionna's scene, torch's compiled code, the
+        plugins' tables) are frozen out of Python's cyclic garbage collector (``gc.freeze``), so
+        that the collections a step's allocations trigger no longer walk them, up to several ms
+        a step with torch and Sionna loaded; :meth:`teardown` gives them back to it."""
+        self.settled = True
+        gc.freeze()
+
     def teardown(self) -> None:
-        self.plugin.teardown()
+        try:
+            self.plugin.teardown()
+        finally:
+            gc.unfreeze()  # (what was frozen is collected again, at exit too)
 
     def state(self) -> tuple[str, Any]:
         """For a checkpoint: ``("stateless", None)``, ``("saved", bytes)`` (the plugin's

@@ -21,6 +21,9 @@ A plugin is a class with three methods, in the spirit of Gymnasium's ``step()``:
 
 * ``dict``, ``list``, ``str``, numbers, ``bool``, ``None``: JSON;
 * ``numpy.ndarray``: binary, with its dtype and shape (never through JSON);
+* ``polars.DataFrame``: a table, binary in Apache Arrow's IPC stream format (a column a field:
+  for many rows of numbers a step, a fraction of JSON's cost to make, encode and read), read
+  back as a ``polars.DataFrame``;
 * ``bytes``: binary;
 * :class:`Artifact` or :class:`pathlib.Path` (a file in the run directory): its path.
 
@@ -68,7 +71,8 @@ class Message:
     """A message: topic, payload and, once routed, who published it and when.
 
     ``data`` is decoded on first access: JSON to Python objects, arrays to read-only
-    ``numpy.ndarray`` views, artifacts to :class:`pathlib.Path` in the run directory.
+    ``numpy.ndarray`` views, tables to ``polars.DataFrame``, artifacts to
+    :class:`pathlib.Path` in the run directory.
     """
 
     __slots__ = ("topic", "source", "step", "time", "_data", "_raw", "_kind")
@@ -335,6 +339,14 @@ class Plugin:
 # ---------------------------------------------------------------------------
 # Payload encoding (Python object <-> wire tuple)
 
+ARROW_STREAM = "application/vnd.apache.arrow.stream"
+"""The content type of a table payload (a ``polars.DataFrame``): Arrow's IPC stream format."""
+
+
+def _is_table(value: Any) -> bool:
+    return type(value).__name__ == "DataFrame" and type(value).__module__.startswith("polars")
+
+
 def _check_json(topic: str, value: Any) -> str:
     try:
         return json.dumps(value, separators=(",", ":"), allow_nan=False)
@@ -360,6 +372,12 @@ def encode(topic: str, value: Any, run_dir: pathlib.Path | None) -> tuple[Payloa
         return "artifact", path.as_posix(), None
     if isinstance(value, (bytes, bytearray, memoryview)):
         return "binary", bytes(value), '{"content_type":"application/octet-stream"}'
+    if _is_table(value):
+        import io
+
+        out = io.BytesIO()
+        value.write_ipc_stream(out)
+        return "binary", out.getvalue(), json.dumps({"content_type": ARROW_STREAM}, separators=(",", ":"))
     if type(value).__module__ == "numpy" and hasattr(value, "dtype"):
         import numpy as np
 
@@ -379,6 +397,12 @@ def decode(kind: str, body: Any, meta: str | None, run_dir: pathlib.Path | None)
     if kind == "artifact":
         return (run_dir / body) if run_dir is not None else pathlib.Path(body)
     info = json.loads(meta) if meta else {}
+    if info.get("content_type") == ARROW_STREAM:
+        import io
+
+        import polars as pl
+
+        return pl.read_ipc_stream(io.BytesIO(body))
     if "dtype" in info:
         import numpy as np
 

@@ -40,7 +40,19 @@ from caviar_plugins.network.radio_map import best_server_map, layer_message, sav
 from caviar_plugins.network.settings import NetworkParams, make_channel, plan
 from caviar_plugins.network.tr38901 import CHANNELS as STOCHASTIC
 from caviar_plugins.network.traffic import Queues, in_columns, transfer_record
-from caviar_plugins.network.ues import UeTable, link_fields, run_link, ue_extras, ue_reports, uplink_fields
+from caviar_plugins.network.ues import (
+    UeTable,
+    beam_columns,
+    link_fields,
+    run_link,
+    throughput_messages,
+    ue_extras,
+    ue_reports,
+    ue_table,
+    uplink_arrays,
+    uplink_columns,
+    uplink_fields,
+)
 from caviar_plugins.network.uplink import mean_sinr_db, uplink
 from caviar_plugins.radio.link_level import LinkLevel
 from caviar_plugins.schema import (
@@ -50,6 +62,7 @@ from caviar_plugins.schema import (
     NETWORK_RADIO_MAP,
     NETWORK_TRANSFERS,
     NETWORK_UE,
+    NETWORK_UES,
     POSITIONS,
     THROUGHPUT,
     VIEW_RADIO_MAP,
@@ -61,7 +74,7 @@ from caviar_plugins.torch_device import resolve
 class RadioNetwork(caviar.Plugin):
     subscribe = [POSITIONS, ARRIVED]
     optional = (ARRIVED,)  # (UEs that leave: SUMO's arrivals, when traffic runs)
-    publishes = (THROUGHPUT, NETWORK_UE, NETWORK_EVENTS, NETWORK_CELLS, NETWORK_RADIO_MAP, VIEW_RADIO_MAP)
+    publishes = (THROUGHPUT, NETWORK_EVENTS, NETWORK_CELLS, NETWORK_RADIO_MAP, VIEW_RADIO_MAP)
     Params = NetworkParams
 
     @classmethod
@@ -73,16 +86,19 @@ class RadioNetwork(caviar.Plugin):
 
     @classmethod
     def outputs(cls, params):
-        """``network.transfers`` with a load, and where delivered messages go on."""
+        """The UEs' reports (``network.ue``, or ``network.ues`` with ``ue_reports = "table"``),
+        ``network.transfers`` with a load, and where delivered messages go on."""
+        reports = NETWORK_UES if params.ue_reports == "table" else NETWORK_UE
         if params.traffic is None:
-            return ()
-        return (NETWORK_TRANSFERS, *(f"{c.deliver_to}.*" for c in params.traffic.carry if c.deliver_to))
+            return (reports,)
+        return (reports, NETWORK_TRANSFERS, *(f"{c.deliver_to}.*" for c in params.traffic.carry if c.deliver_to))
 
     def setup(self, ctx):
         self.ctx, p = ctx, ctx.params
         self.p = p
         made = plan(p)
         self.cells, self.codebooks, self.names = made.cells, made.codebooks, [c.name for c in made.cells]
+        self.tx_power_dbm = np.array([c.tx_power_dbm for c in self.cells])
         self.beam_reports = None if made.codebooks is None else [  # (each cell's beams' network.ue fields)
             [beam_report(c, cb, b) for b in range(cb.size)] for c, cb in zip(self.cells, made.codebooks, strict=True)]
         self.device = resolve(p.device)  # (once: the channel's, beams' and uplink's torch work runs there)
@@ -247,15 +263,25 @@ class RadioNetwork(caviar.Plugin):
         covered = serving >= 0
         self.ues.last_sinr[cols] = np.where(covered, sinr, np.nan)
         sv = np.maximum(serving, 0)
-        loss = np.array([c.tx_power_dbm for c in self.cells])[sv] - wideband[np.arange(len(ids)), sv]
+        loss = self.tx_power_dbm[sv] - wideband[np.arange(len(ids)), sv]
         listed = None
         if self.p.report_cells:
             listed = np.sort(np.argsort(-rsrp, axis=1, kind="stable")[:, :self.p.report_cells], axis=1)
         link = link_fields(res, cols) if self.p.link_model == "sys" else None
-        extras = ue_extras(ids, types, serving, ul, self.beam_reports, None if self.beams is None else self.beams[1],
-                           self.queues, ("downlink", "uplink") if self.ul_link else ("downlink",))
-        yield from ue_reports(self.names, ids, types, serving, sinr, sir, loss, rsrp, listed, mbps[cols], link, extras,
-                              self.ues.position[cols])
+        best_beams = None if self.beams is None else self.beams[1]
+        directions = ("downlink", "uplink") if self.ul_link else ("downlink",)
+        if self.p.ue_reports == "table":  # (the paper's per-UE throughput, then one table of the rest)
+            yield from throughput_messages(ids, types, mbps[cols])
+            beams = None if self.beam_reports is None or best_beams is None else \
+                beam_columns(self.beam_reports, serving, best_beams)
+            queued = [] if self.queues is None else self.queues.reports(ids, types, directions)
+            yield NETWORK_UES, ue_table(self.names, ids, types, serving, sinr, sir, loss, rsrp, listed, mbps[cols],
+                                        link, ul, beams, queued, self.ues.position[cols])
+        else:
+            ul_fields = None if ul is None else uplink_fields(uplink_columns(ul))
+            extras = ue_extras(ids, types, serving, ul_fields, self.beam_reports, best_beams, self.queues, directions)
+            yield from ue_reports(self.names, ids, types, serving, sinr, sir, loss, rsrp, listed, mbps[cols], link,
+                                  extras, self.ues.position[cols])
         used = res.cells_active.mean(axis=0)
         counts = np.bincount(serving[covered], minlength=len(self.cells)).tolist()
         yield NETWORK_CELLS, {"cells": [
@@ -284,7 +310,7 @@ class RadioNetwork(caviar.Plugin):
     def _uplink(self, t: float, ids: list[str], types: list[str], rx: np.ndarray, serving: np.ndarray,
                 cols: np.ndarray):
         """The step's PUSCH: powers, per-slot SINR, the uplink link level, the transfers it
-        completed (yielded); returns every UE's ``ul_*`` fields, a list."""
+        completed (yielded); returns every UE's ``ul_*`` fields (:func:`uplink_arrays`)."""
         assert self.p.uplink is not None and self.ul_link is not None
         backlog, talking = self._backlog(t, ids, types, "uplink")
         beam_gains, best = self.beams if self.beams is not None else (None, None)
@@ -293,4 +319,4 @@ class RadioNetwork(caviar.Plugin):
         res = run_link(self.ul_link, per_slot, serving, cols, self.slots, in_columns(backlog, cols))
         yield from self._delivered(t, ids, "uplink", res.delivered_bits[:, cols])
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
-        return uplink_fields(tx, mean_sinr_db(per_slot), mbps[cols], link_fields(res, cols))
+        return uplink_arrays(tx, mean_sinr_db(per_slot), mbps[cols], link_fields(res, cols))

@@ -17,7 +17,19 @@ import numpy as np
 import tomllib
 
 from caviar_plugins.report_figures import pyplot_into, save_figure, save_numbers
-from caviar_plugins.schema import NETWORK_EVENTS, NETWORK_TRANSFERS, NETWORK_UE, POSITIONS
+from caviar_plugins.schema import NETWORK_EVENTS, NETWORK_TRANSFERS, NETWORK_UE, NETWORK_UES, POSITIONS
+
+
+def ue_rows(log) -> list[tuple[int, dict[str, Any]]]:
+    """The run's UE reports, (step, ``network.ue`` report) in order, whether it published them a
+    message a UE or as ``network.ues`` tables (``ue_reports = "table"``, read back as the same
+    reports)."""
+    from caviar_plugins.network.ues import table_rows
+
+    rows = [(m.step, m.data) for m in log.decoded(NETWORK_UE)]
+    for m in log.decoded(NETWORK_UES):
+        rows += [(m.step, r) for r in table_rows(m.data)]
+    return rows
 
 
 def _cdf(ax, values: dict[str, np.ndarray], xlabel: str) -> None:
@@ -52,15 +64,15 @@ def _beams(ax, log, track: dict[str, dict[int, tuple[float, float]]], samples: i
     """With SSB beams (``network.ue``'s ``beam_azimuth_deg``): from each UE's serving site, its
     serving beam's direction out to the UE's distance, at ``samples`` instants of its track."""
     site = {s["name"]: s["position"][:2] for s in _sites(log)}
-    rows = [m for m in log.decoded(NETWORK_UE) if m.data.get("beam_azimuth_deg") is not None]
+    rows = [(step, r) for step, r in ue_rows(log) if r.get("beam_azimuth_deg") is not None]
     drawn = False
-    for k, ue in enumerate(sorted({m.data["UE_Id"] for m in rows})):
-        mine = [m for m in rows if m.data["UE_Id"] == ue and m.step in track.get(ue, {})]
-        for m in mine[::max(1, len(mine) // samples)]:
-            x0, y0 = site[m.data["serving_cell"].split("/")[0]]
-            x, y = track[ue][m.step]
+    for k, ue in enumerate(sorted({r["UE_Id"] for _, r in rows})):
+        mine = [(step, r) for step, r in rows if r["UE_Id"] == ue and step in track.get(ue, {})]
+        for step, r in mine[::max(1, len(mine) // samples)]:
+            x0, y0 = site[r["serving_cell"].split("/")[0]]
+            x, y = track[ue][step]
             reach = math.hypot(x - x0, y - y0)
-            az = math.radians(m.data["beam_azimuth_deg"])
+            az = math.radians(r["beam_azimuth_deg"])
             ax.plot([x0, x0 + reach * math.cos(az)], [y0, y0 + reach * math.sin(az)], color=f"C{k % 10}",
                     lw=0.8, alpha=0.6, label=None if drawn else "serving SSB beam")
             drawn = True
@@ -79,7 +91,7 @@ def percentiles(values, digits: int = 3) -> dict[str, float]:
 def summarize(log) -> dict[str, Any] | None:
     """Per UE type: samples, SINR and throughput percentiles; handover and failure counts.
     None for a run without the radio network."""
-    ues = [m.data for m in log.decoded(NETWORK_UE)]
+    ues = [r for _, r in ue_rows(log)]
     if not ues:
         return None
     events = [m.data for m in log.decoded(NETWORK_EVENTS)]
@@ -131,7 +143,7 @@ def figures(log, out: pathlib.Path) -> list[pathlib.Path]:
     if summary is None:
         return []
     plt = pyplot_into(out)
-    ues = [m.data for m in log.decoded(NETWORK_UE)]
+    ues = [r for _, r in ue_rows(log)]
     kinds = sorted({u["UE_type"] for u in ues})
     uplink = any("ul_sinr_db" in u for u in ues)
     fig, axes = plt.subplots(2 if uplink else 1, 2, figsize=(11, 8 if uplink else 4), squeeze=False)

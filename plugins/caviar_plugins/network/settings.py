@@ -32,6 +32,10 @@ INTERFERENCE = ("full-buffer", "scheduled")
 CHANNELS = ("free-space", "ray-traced", *STOCHASTIC)
 
 
+UE_REPORTS = ("per-ue", "table")
+"""``ue_reports``' choices: a ``network.ue`` message a UE, or one ``network.ues`` table a step."""
+
+
 @dataclasses.dataclass
 class NetworkParams:
     """``radio-network``'s parameters (``[modules.NAME.params]``)."""
@@ -91,6 +95,13 @@ class NetworkParams:
     report_cells: int = 0
     """``network.ue`` lists the RSRP of this many strongest cells (0: every cell), as a
     measurement report lists the serving cell and its best neighbours."""
+    ue_reports: str = "per-ue"
+    """How the UEs' reports are published each step: ``"per-ue"``, a ``network.ue`` message a UE
+    (as ``communications.throughput``), or ``"table"``, one ``network.ues`` message a step holding
+    the same fields as columns, a row a UE (at a thousand UEs the per-UE messages cost more host
+    time than the rest of the step: see :func:`~caviar_plugins.network.ues.ue_table`).
+    ``communications.throughput`` stays a message a UE either way (the paper's schema, what
+    other modules read)."""
     scene: str = "empty"
     """The ray tracer's scene (the ray-traced channel, the radio map, the layout's drops
     outdoors): a shipped one, a Mitsuba XML file (``scene build``'s), or ``empty``."""
@@ -135,6 +146,8 @@ class NetworkParams:
     def __post_init__(self):
         if self.channel not in CHANNELS:
             raise ValueError(f"channel: expected one of {list(CHANNELS)}, got {self.channel!r}")
+        if self.ue_reports not in UE_REPORTS:
+            raise ValueError(f"ue_reports: expected one of {list(UE_REPORTS)}, got {self.ue_reports!r}")
         if isinstance(self.report_cells, bool) or self.report_cells < 0:
             raise ValueError(f"report_cells: expected a number of cells >= 0, got {self.report_cells!r}")
         if self.beams is not None and self.channel not in ("free-space", "ray-traced"):

@@ -25,6 +25,7 @@ class UeTable:
 
     def __init__(self) -> None:
         self.ues: dict[str, dict[str, Any]] = {}  # UE_Id -> {type, column}
+        self._column: dict[str, int] = {}  # UE_Id -> column (the same, for lookups in bulk)
         self.free: list[int] = []
         self.arrays = {name: np.zeros((8, *shape)) for name, shape in ARRAYS.items()}
         self._view: tuple[list[str], np.ndarray, list[str]] | None = None
@@ -53,6 +54,7 @@ class UeTable:
             a[col] = 0.0
         self.arrays["last_sinr"][col] = np.nan
         self.ues[ue] = {"type": ue_type, "column": col}
+        self._column[ue] = col
         self._view = None
         return col
 
@@ -63,17 +65,20 @@ class UeTable:
         if not payloads:
             return
         last = {d["UE_Id"]: d for d in payloads}  # (first appearance's order, last message)
-        for u, d in last.items():
-            if u not in self.ues:
-                col = self.add(u, d["UE_type"])  # (first: it may grow the arrays)
-                self.arrays["lift"][col] = lift_m
-        cols = [self.ues[u]["column"] for u in last]
-        xyz = operator.itemgetter("x", "y", "z")
-        self.arrays["position"][cols] = [xyz(d["position"]) for d in last.values()]
+        if not last.keys() <= self.ues.keys():  # (a set test: the UEs are known but in a step that adds one)
+            for u, d in last.items():
+                if u not in self.ues:
+                    col = self.add(u, d["UE_type"])  # (first: it may grow the arrays)
+                    self.arrays["lift"][col] = lift_m
+        cols = list(map(self._column.__getitem__, last))
+        xyz = map(operator.itemgetter("x", "y", "z"), map(operator.itemgetter("position"), last.values()))
+        self.arrays["position"][cols] = np.fromiter(itertools.chain.from_iterable(xyz), dtype=float,
+                                                    count=3 * len(last)).reshape(-1, 3)
 
     def pop(self, ue: str) -> int:
         """Removes ``ue``; its column is free again."""
         col = self.ues.pop(ue)["column"]
+        del self._column[ue]
         self.free.append(col)
         self.free.sort()
         self._view = None
@@ -97,15 +102,22 @@ class UeTable:
 
     def restore(self, state: dict[str, Any]) -> None:
         self.ues, self.free = state["ues"], state["free"]
+        self._column = {u: v["column"] for u, v in self.ues.items()}
         self.arrays = {k: a.copy() for k, a in state["arrays"].items()}
         self._view = None
 
 
 def rounded(values: np.ndarray, digits: int) -> list:
     """``[round(float(v), digits) for v in values]`` (a nested list for a 2-D array), in bulk:
-    Python's ``round`` is the nearest float to the decimal rounding of the exact value (ties to
-    even), which ``rint(v·10^d)/10^d`` gives too wherever ``v·10^d`` is not within rounding error
-    of a tie; the few that are are rounded by Python. Non-finite values stay as they are."""
+    :func:`rounded_array`'s numbers as Python floats."""
+    return rounded_array(values, digits).tolist()
+
+
+def rounded_array(values: np.ndarray, digits: int) -> np.ndarray:
+    """``round(float(v), digits)`` of every ``v``, in bulk, as a float64 array: Python's ``round``
+    is the nearest float to the decimal rounding of the exact value (ties to even), which
+    ``rint(v·10^d)/10^d`` gives too wherever ``v·10^d`` is not within rounding error of a tie;
+    the few that are are rounded by Python. Non-finite values stay as they are."""
     v = np.asarray(values, dtype=float)
     scale = 10.0 ** digits
     with np.errstate(invalid="ignore", over="ignore"):
@@ -116,7 +128,7 @@ def rounded(values: np.ndarray, digits: int) -> list:
     out = np.where(np.isfinite(v), out, v)
     for i in map(tuple, np.argwhere(near_tie & np.isfinite(v))):
         out[i] = round(float(v[i]), digits)
-    return out.tolist()
+    return out
 
 
 def _finite(values: np.ndarray, digits: int) -> list[float | None]:
@@ -132,21 +144,52 @@ def link_fields(res: Any, cols: np.ndarray) -> dict[str, np.ndarray]:
             "harq_nack": res.nacks[cols], "prbs": res.prbs[cols]}
 
 
-def _summaries(link: dict[str, np.ndarray], prefix: str = "") -> list[dict[str, Any]]:
-    """Every UE's link summary (``mcs``, ``tbler``, ``harq_ack``, ``harq_nack``, ``prbs``)."""
-    columns = [link[k].tolist() for k in ("mcs", "harq_ack", "harq_nack", "prbs")]
-    columns[1:1] = [rounded(link["tbler"], 4), np.isnan(link["tbler"]).tolist()]
-    k_mcs, k_tbler, k_ack, k_nack, k_prbs = (prefix + k for k in ("mcs", "tbler", "harq_ack", "harq_nack", "prbs"))
-    return [{k_mcs: m, k_tbler: None if nan else b, k_ack: a, k_nack: n, k_prbs: p}
-            for m, b, nan, a, n, p in zip(*columns, strict=True)]
+def _link_columns(link: dict[str, np.ndarray], prefix: str = "") -> dict[str, list]:
+    """Every UE's link summary (``mcs``, ``tbler``, ``harq_ack``, ``harq_nack``, ``prbs``) as
+    columns (``tbler`` None for a UE not scheduled)."""
+    return {k: _listed(v) for k, v in _link_arrays(link, prefix).items()}
 
 
-def uplink_fields(tx: np.ndarray, sinr: np.ndarray, mbps: np.ndarray, link: dict[str, np.ndarray]) -> list[dict]:
-    """Every UE's ``ul_*`` fields of ``network.ue``: PUSCH power, mean SINR, throughput [ue] and
-    the uplink link level's :func:`link_fields`."""
-    fields = zip(rounded(tx, 3), _finite(sinr, 3), rounded(mbps, 6),
-                 _summaries(link, "ul_"), strict=True)
-    return [{"ul_tx_power_dbm": p, "ul_sinr_db": s, "ul_throughput_mbps": m, **rest} for p, s, m, rest in fields]
+def _listed(values: np.ndarray) -> list:
+    """An array as a list, None where a float is not finite."""
+    out = values.tolist()
+    if values.dtype.kind == "f":
+        for i in np.flatnonzero(~np.isfinite(values)).tolist():
+            out[i] = None
+    return out
+
+
+def _summaries(link: dict[str, np.ndarray]) -> list[dict[str, Any]]:
+    """Every UE's downlink summary (:func:`_link_columns`), a dict each (literal keys: no
+    ``dict(zip(...))`` a UE)."""
+    return [{"mcs": m, "tbler": b, "harq_ack": a, "harq_nack": n, "prbs": p}
+            for m, b, a, n, p in zip(*_link_columns(link).values(), strict=True)]
+
+
+def uplink_columns(arrays: dict[str, np.ndarray]) -> dict[str, list]:
+    """Every UE's ``ul_*`` fields of ``network.ue`` as lists (None where not finite), from
+    :func:`uplink_arrays`."""
+    return {k: _listed(v) for k, v in arrays.items()}
+
+
+def uplink_fields(columns: dict[str, list]) -> list[dict]:
+    """Every UE's ``ul_*`` fields of ``network.ue`` from :func:`uplink_columns`, a dict each
+    (literal keys: no ``dict(zip(...))`` a UE)."""
+    return [{"ul_tx_power_dbm": p, "ul_sinr_db": s, "ul_throughput_mbps": t, "ul_mcs": m, "ul_tbler": b,
+             "ul_harq_ack": a, "ul_harq_nack": n, "ul_prbs": r}
+            for p, s, t, m, b, a, n, r in zip(*columns.values(), strict=True)]
+
+
+def throughput_reports(ids: list[str], types: list[str], mbps: np.ndarray | list[float]) -> list[dict[str, Any]]:
+    """Every UE's ``communications.throughput`` (the paper's schema), Mbit/s rounded to 6 digits
+    (``mbps`` a list: rounded already)."""
+    mbps_l = mbps if isinstance(mbps, list) else rounded(mbps, 6)
+    return [{"UE_type": t, "UE_Id": u, "throughput": m} for t, u, m in zip(types, ids, mbps_l, strict=True)]
+
+
+def throughput_messages(ids: list[str], types: list[str], mbps: np.ndarray) -> list[tuple[str, dict[str, Any]]]:
+    """:func:`throughput_reports` as the step's messages, (topic, payload) each."""
+    return [(THROUGHPUT, x) for x in throughput_reports(ids, types, mbps)]
 
 
 def ue_reports(names: list[str], ids: list[str], types: list[str], serving: np.ndarray, sinr: np.ndarray,
@@ -164,7 +207,7 @@ def ue_reports(names: list[str], ids: list[str], types: list[str], serving: np.n
     sinr_l, sir_l, loss_l = _finite(sinr, 3), _finite(sir, 3), rounded(loss, 3)
     mbps_l = rounded(mbps, 6)
     rsrp_l = rounded(rsrp, 2)
-    thr = [{"UE_type": t, "UE_Id": u, "throughput": m} for t, u, m in zip(types, ids, mbps_l, strict=True)]
+    thr = throughput_reports(ids, types, mbps_l)
     if listed is None:
         listed_rsrp = [dict(zip(names, r, strict=True)) for r in rsrp_l]
     else:
@@ -191,6 +234,116 @@ def ue_reports(names: list[str], ids: list[str], types: list[str], serving: np.n
     for a, b in zip(thr, reports, strict=True):
         yield THROUGHPUT, a
         yield NETWORK_UE, b
+
+
+def ue_table(names: list[str], ids: list[str], types: list[str], serving: np.ndarray, sinr: np.ndarray,
+             sir: np.ndarray, loss: np.ndarray, rsrp: np.ndarray, listed: np.ndarray | None, mbps: np.ndarray,
+             link: dict[str, np.ndarray] | None, ul: dict[str, np.ndarray] | None,
+             beams: dict[str, np.ndarray] | None, queued: list[tuple[str, list]], position: np.ndarray) -> Any:
+    """``network.ues``: the step's ``network.ue`` reports as one table (a ``polars.DataFrame``,
+    which travels and is recorded in Arrow's format), a column a field and a row a UE
+    (``ue_reports = "table"``): the same numbers as :func:`ue_reports`' messages, made by array
+    operations, with no Python object a number. Null where a UE's report has None or leaves the
+    field out (the uplink's and the serving beam's fields of a UE without a cell, a full
+    buffer's queue, the position of a UE the layout did not drop). ``rsrp_dbm`` is a struct a
+    row, a field a cell (by its name; with ``report_cells``, null but in the cells listed).
+    ``link``: :func:`link_fields`;
+    ``ul``: :func:`uplink_arrays`; ``beams``: :func:`beam_columns`; ``queued``: the queues'
+    (name, column) pairs. :func:`table_rows` gives the reports back."""
+    import polars as pl
+
+    blank = serving < 0  # (no cell)
+    cell = pl.Series("serving_cell", np.where(blank, 0, serving), dtype=pl.UInt32)
+    columns: dict[str, Any] = {
+        "UE_Id": ids, "UE_type": types,
+        "serving_cell": pl.Series(names, dtype=pl.String).gather(cell).scatter(np.flatnonzero(blank), None),
+        "sinr_db": _nulls(sinr, 3, blank), "sir_db": _nulls(sir, 3, blank),
+        "coupling_loss_db": _nulls(loss, 3, blank), "throughput_mbps": rounded_array(mbps, 6)}
+    values = rounded_array(rsrp, 2)
+    if listed is not None:  # (the cells not listed: null)
+        values = np.full_like(values, np.nan)
+        rows = np.arange(len(values))[:, None]
+        values[rows, listed] = rounded_array(rsrp[rows, listed], 2)
+    columns["rsrp_dbm"] = pl.DataFrame(dict(zip(names, values.T, strict=True)), nan_to_null=True).to_struct("rsrp_dbm")
+    if "dropped" in types:
+        dropped = np.array([t == "dropped" for t in types])
+        columns["position_m"] = pl.Series(rounded_array(position, 2)).scatter(np.flatnonzero(~dropped), None)
+    if link is not None:
+        columns.update(_link_arrays(link))
+    for more in (ul, beams):
+        for k, v in (more or {}).items():
+            columns[k] = _nulls(v, None, blank)
+    columns.update({k: pl.Series(k, v, dtype=pl.Int64) for k, v in queued})
+    return pl.DataFrame(columns, nan_to_null=True)
+
+
+def _nulls(values: np.ndarray, digits: int | None, blank: np.ndarray) -> Any:
+    """A column of ``values`` (rounded to ``digits``; None: as they are) with nulls where not
+    finite or ``blank``: a float array with NaN there (the table's ``nan_to_null``), or an integer
+    Series with nulls."""
+    import polars as pl
+
+    v = np.asarray(values)
+    if v.dtype.kind in "iub":
+        return pl.Series(v.astype(np.int64)).scatter(np.flatnonzero(blank), None) if blank.any() else v
+    out = rounded_array(v, digits) if digits is not None else v.astype(float)
+    return np.where(blank | ~np.isfinite(out), np.nan, out)
+
+
+def _link_arrays(link: dict[str, np.ndarray], prefix: str = "") -> dict[str, np.ndarray]:
+    """:func:`_link_columns` as arrays: ``tbler`` rounded (NaN: not scheduled), the counts as they are."""
+    return {prefix + "mcs": np.asarray(link["mcs"], dtype=np.int64), prefix + "tbler": rounded_array(link["tbler"], 4),
+            **{prefix + k: np.asarray(link[k], dtype=np.int64) for k in ("harq_ack", "harq_nack", "prbs")}}
+
+
+def uplink_arrays(tx: np.ndarray, sinr: np.ndarray, mbps: np.ndarray, link: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Every UE's ``ul_*`` fields of ``network.ue`` as arrays: PUSCH power, mean SINR,
+    throughput [ue] and the uplink link level's :func:`link_fields`, rounded as reported (NaN: none)."""
+    return {"ul_tx_power_dbm": rounded_array(tx, 3), "ul_sinr_db": rounded_array(sinr, 3),
+            "ul_throughput_mbps": rounded_array(mbps, 6), **_link_arrays(link, "ul_")}
+
+
+def table_rows(table: Any) -> list[dict[str, Any]]:
+    """A ``network.ues`` table as the ``network.ue`` reports it holds, a dict a UE, as
+    :func:`ue_reports` makes them (``rsrp_dbm`` a dict by cell; the fields a report leaves
+    out, out)."""
+    data = table.to_dict(as_series=False)
+    data["rsrp_dbm"] = [{c: v for c, v in r.items() if v is not None} for r in data["rsrp_dbm"]]
+    n = len(data["UE_Id"])
+    covered = [s is not None for s in data["serving_cell"]]
+    rows = []
+    for i in range(n):
+        row: dict[str, Any] = {}
+        for key, column in data.items():
+            v = column[i]
+            if key in QUEUE_FIELDS or key == "position_m":
+                if v is None:
+                    continue  # (a full buffer's queue, a UE not dropped: left out)
+            elif not covered[i] and (key.startswith(("ul_", "beam_")) or key == "ssb_beam"):
+                continue  # (no cell: no uplink, no serving beam)
+            row[key] = v
+        rows.append(row)
+    return rows
+
+
+QUEUE_FIELDS = ("dl_queue_bytes", "ul_queue_bytes")
+"""``network.ue``'s queue fields (a full buffer's: none)."""
+
+
+def beam_columns(beam_reports: list[list[dict]], serving: np.ndarray, best_beams: np.ndarray) -> dict[str, np.ndarray]:
+    """Every UE's serving beam's ``network.ue`` fields (``beam_reports[cell][beam]``, ``best_beams``
+    [ue, cell]) as arrays (a UE without a cell: its cell 0's, for :func:`ue_table` to blank)."""
+    sv = np.maximum(serving, 0)
+    best = best_beams[np.arange(len(sv)), sv]
+    keys = list(beam_reports[0][0]) if beam_reports and beam_reports[0] else []
+    size = max(len(cell) for cell in beam_reports)  # (the cells' codebooks may differ in size)
+    out = {}
+    for k in keys:
+        by_cell = np.zeros((len(beam_reports), size), dtype=type(beam_reports[0][0][k]))
+        for c, cell in enumerate(beam_reports):
+            by_cell[c, :len(cell)] = [b[k] for b in cell]
+        out[k] = by_cell[sv, best]
+    return out
 
 
 def link_columns(per_slot: np.ndarray, serving: np.ndarray, cols: np.ndarray, slots: int):

@@ -16,6 +16,7 @@ outer-loop link adaptation.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -74,8 +75,10 @@ def tx_power_dbm(s: UplinkSettings, pathloss_db: Any, num_prb: int, device: Any 
     return dbm if keep else to_numpy(dbm)
 
 
-SLOTS_AT_ONCE = 50
-"""Slots of the uplink's interference gathered at once ([slot, cell, cell, freq, beam] each time)."""
+GATHER_BYTES = 64 * 2**20
+"""At most this much of the UEs' gains gathered at once for the uplink's interference
+([slot, cell, cell, freq, beam] float64 each time): as many slots as fit, all of a step's at
+21 cells (fewer operations a step), fewer with more cells."""
 
 
 def slot_sinr_db(desired: Any, gains: Any, receive: np.ndarray, serving: np.ndarray,
@@ -109,8 +112,9 @@ def slot_sinr_db(desired: Any, gains: Any, receive: np.ndarray, serving: np.ndar
     s, rx = to_torch(np.maximum(serving, 0), dev), to_torch(np.asarray(receive), dev)
     signal = p[:, None] * to_torch(desired, dev, torch.float64)  # [ue, freq]
     parts, heard_ues = [], to_torch(np.asarray(scheduled), dev, torch.int64)  # [slot, cell]: the UE each cell hears
-    for a in range(0, n_slot, SLOTS_AT_ONCE):
-        v = heard_ues[a:a + SLOTS_AT_ONCE]
+    at_once = max(1, GATHER_BYTES // (8 * n_cell * math.prod(g.shape[1:])))  # (g[who] of that many slots: its bytes)
+    for a in range(0, n_slot, at_once):
+        v = heard_ues[a:a + at_once]
         who = torch.clamp(v, min=0)
         weight = (v >= 0) * p[who]  # [slot, cell]
         per_beam = torch.einsum("sc,kc,sckfb->skbf", weight, heard_t, g[who])  # [slot, cell k, beam, freq]

@@ -451,8 +451,9 @@ class LinkLevel:
             zeros = np.zeros(n_ue, dtype=int)
             return SlotResults(np.zeros(n_ue), zeros, zeros, zeros, zeros, np.full(n_ue, -1), np.full(n_ue, np.nan),
                                np.full(n_ue, np.nan), to_numpy(active), np.zeros((n_slots, n_ue)))
-        slots = (torch.arange(n_slots, device=dev) if sum(len(g[1]) for g in groups) == n_slots  # (every group ran)
-                 else torch.cat([torch.arange(g[0], g[0] + len(g[1]), device=dev) for g in groups]))
+        d = self.s.harq_processes  # (every group is d slots)
+        slots = (torch.arange(n_slots, device=dev) if len(groups) * d == n_slots  # (every group ran)
+                 else torch.cat([torch.arange(g[0], g[0] + d, device=dev) for g in groups]))
         prbs, harq, tbler, mcs, sinr_eff, cells, bits = (torch.cat([g[i] for g in groups]) for i in range(1, 8))
         active[slots] = cells
         if not queue.finite:  # (a full buffer delivers all it decodes)
@@ -465,15 +466,20 @@ class LinkLevel:
         eff_db = 10 * torch.log10(torch.clamp(sinr_eff.to(torch.float64).gather(0, last)[0], min=1e-30))
         sinr_eff_last = torch.where(anyone, eff_db, float("nan"))
         tbler_sum = torch.where(sched, tbler.to(torch.float64), 0.0).sum(dim=0)
-        sched_n, prbs_n, acks_n, nacks_n, tbler_n, mcs_n, eff_n, active_n, delivered = (
-            to_numpy(t) for t in (sched.sum(dim=0), prbs.to(torch.int64).sum(dim=0), (harq == 1).sum(dim=0),
-                                  (harq == 0).sum(dim=0), tbler_sum, mcs_last, sinr_eff_last, active,
-                                  queue.delivered))
-        sched_n, delivered = sched_n[:n_ue], delivered[:, :n_ue]
+        # (the call's one way out: every tally, as float64 (the counts exact in it), in one read)
+        per_ue = torch.stack([sched.sum(dim=0), prbs.sum(dim=0), (harq == 1).sum(dim=0), (harq == 0).sum(dim=0),
+                              tbler_sum, mcs_last, sinr_eff_last]).to(torch.float64)
+        out = to_numpy(torch.cat([per_ue.flatten(), active.flatten(), queue.delivered.flatten()]))
+        cap = per_ue.shape[1]
+        counts = out[:4 * cap].reshape(4, cap)[:, :n_ue].astype(np.int64)
+        tbler_n, mcs_n, eff_n = out[4 * cap:7 * cap].reshape(3, cap)[:, :n_ue]
+        active_n = out[7 * cap:7 * cap + active.numel()].reshape(active.shape) != 0
+        delivered = out[7 * cap + active.numel():].reshape(n_slots, cap)[:, :n_ue]
+        sched_n, prbs_n, acks_n, nacks_n = counts
         with np.errstate(invalid="ignore", divide="ignore"):
-            tbler_mean = np.where(sched_n > 0, tbler_n[:n_ue] / sched_n, np.nan)
-        return SlotResults(delivered.sum(axis=0), sched_n, prbs_n[:n_ue], acks_n[:n_ue], nacks_n[:n_ue],
-                           mcs_n[:n_ue], tbler_mean, eff_n[:n_ue], active_n, delivered)
+            tbler_mean = np.where(sched_n > 0, tbler_n / sched_n, np.nan)
+        return SlotResults(delivered.sum(axis=0), sched_n, prbs_n, acks_n, nacks_n, mcs_n.astype(np.int64),
+                           tbler_mean, eff_n, active_n, delivered)
 
     def _group_compiled(self, *args):
         """The compiled group, drawing from the link level's own stream: its random numbers come

@@ -6,8 +6,8 @@ plugin's own cells, measurements and SINR, as every blueprint runs.
 
 Each engine step is one drop: the network drops 10 UEs in each of the 57 sectors of the
 19-site wrapped-around hexagonal layout, every UE attaches to its strongest cell (no
-handover margin) and reports, on ``network.ue``, its coupling loss, its geometry SINR
-(with noise) and its wideband SIR (without). The command writes
+handover margin) and reports, in the step's ``network.ues`` table, its coupling loss, its
+geometry SINR (with noise) and its wideband SIR (without). The command writes
 ``<out>/<scenario>-<carrier>GHz.json`` (the three CDFs at the percentiles 0..100, the drops
 and the settings; coupling loss as a positive loss) and a ``.png`` that draws each CDF
 over the band of the 3GPP companies' curves (``--reference``,

@@ -79,7 +79,7 @@ stages = ["communications"]
 
 [output]
 name = "calibration-{s['scenario'].lower()}"
-analysis = ["communications.throughput", "network.ue", "network.events", "network.cells",
+analysis = ["communications.throughput", "network.ues", "network.events", "network.cells",
             "network.radio_map", "view.radio_map"]
 
 [modules.net]
@@ -96,6 +96,7 @@ noise_figure_db = {s['noise_figure_db']}
 array = [1, 1]
 link_model = "shannon"
 report_cells = 1
+ue_reports = "table"
 layout = {{ {layout} }}
 column = {{ {column} }}
 tr38901 = {{ o2i_high_loss_share = {s['o2i_high_loss_share']}, spec_version = "{s['spec_version']}" }}

@@ -30,9 +30,9 @@ from caviar_plugins.tools.calibration.plots import draw, draw_side_by_side, draw
 
 def metrics_of(log) -> dict[str, np.ndarray]:
     """The three metrics of every dropped UE the run reported."""
-    from caviar_plugins.schema import NETWORK_UE
+    from caviar_plugins.network.report import ue_rows
 
-    rows = [m.data for m in log.decoded(NETWORK_UE) if m.data.get("UE_type") == "dropped"]
+    rows = [r for _, r in ue_rows(log) if r.get("UE_type") == "dropped"]
     return {"coupling_loss_db": np.array([r["coupling_loss_db"] for r in rows], dtype=float),
             "geometry_sinr_db": np.array([r["sinr_db"] for r in rows], dtype=float),
             "wideband_sir_db": np.array([r["sir_db"] for r in rows], dtype=float)}
@@ -231,8 +231,7 @@ def side_by_side(scene: str, drops: int, out: pathlib.Path, center: tuple[float,
 
 def dropped_ues(log) -> list[dict[str, Any]]:
     """Every dropped UE the run reported: its position, serving cell and coupling loss."""
-    from caviar_plugins.schema import NETWORK_UE
+    from caviar_plugins.network.report import ue_rows
 
-    return [{"position_m": m.data["position_m"], "serving_cell": m.data["serving_cell"],
-             "coupling_loss_db": m.data["coupling_loss_db"]}
-            for m in log.decoded(NETWORK_UE) if m.data.get("UE_type") == "dropped"]
+    return [{k: r[k] for k in ("position_m", "serving_cell", "coupling_loss_db")}
+            for _, r in ue_rows(log) if r.get("UE_type") == "dropped"]
