@@ -76,7 +76,8 @@ def test_tables_travel_as_arrow_and_come_back_as_dataframes(tmp_path, transport,
     from configs import caviar_env, nats_transport
 
     monkeypatch.setenv("PYTHONPATH", caviar_env()["PYTHONPATH"])  # (the workers import the test plugins)
-    text = (BASE + (nats_transport() if transport == "nats" else "") + module("tables", "first", "sample_plugins:Tables")
+    text = (BASE + (nats_transport() if transport == "nats" else "")
+            + module("tables", "first", "sample_plugins:Tables")
             + module("echo", "second", "sample_plugins:Echo", subscribe=["tables.>"]))
     log = run_config(tmp_path, text)
     tables, echoed = log.decoded("tables.draws"), log.decoded("echo.tables.draws")
