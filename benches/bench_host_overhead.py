@@ -66,13 +66,7 @@ what the host then spends encoding the step's messages (JSON, or Arrow for the t
 work, outside the step and the proxy.
 
 The step runs as the host runs it: the objects of set-up and the first step frozen out of the
-cyclic garbage collector (``caviar._host.Hosted.settle``); and with glibc's heap held
-(``HELD_HEAP``: ``MALLOC_MMAP_THRESHOLD_`` and ``MALLOC_TRIM_THRESHOLD_`` at 4 GiB in the run's
-process, unless set): on a GPU the step's large tensors (the paths' coefficients, the per-slot
-SINRs, tens of MB at 1,000 UEs) are device memory that torch's caching allocator keeps, while on
-this CPU glibc gives each back to the OS when it is freed and faults it in again, 4-5 ms in some
-steps, counted as Python by the proxy though no GPU run has it. ``run_glibc_default_heap``: the
-1,000-UE table run with glibc's defaults, for comparison.
+cyclic garbage collector (``caviar._host.Hosted.settle``).
 
 And the ray-tracing refresh: one solve of 21 sites × 1,000 UEs (``SiteTracer.trace``), timed
 on this CPU warm, with what it would cost on an H200 from the solve figures measured there.
@@ -488,15 +482,8 @@ def refresh(n_ue: int, samples: int) -> dict:
                               "receivers against their one is not in those figures")}
 
 
-HELD_HEAP = {"MALLOC_MMAP_THRESHOLD_": str(2**32), "MALLOC_TRIM_THRESHOLD_": str(2**32)}
-"""glibc's heap held (no large block given back to the OS and faulted in again): see the module's
-docstring."""
-
-
-def _subprocess(args: list[str], plugins: str | None, held_heap: bool = True) -> dict:
+def _subprocess(args: list[str], plugins: str | None) -> dict:
     env = dict(os.environ)
-    if held_heap:
-        env.update({k: v for k, v in HELD_HEAP.items() if k not in env})
     if plugins is not None:
         env["PYTHONPATH"] = plugins + os.pathsep + env.get("PYTHONPATH", "")
     out = subprocess.run([sys.executable, __file__, *args], env=env, check=True, capture_output=True, text=True)
@@ -535,10 +522,6 @@ def main() -> None:
         print("after", json.dumps(runs[n]), flush=True)
         per_ue[n] = _subprocess([*common, "--ue-reports", "per-ue"], None)
         print("after, per-ue", json.dumps(per_ue[n]), flush=True)
-    big_n = max(args.ues)
-    heap_default = _subprocess(["--one", str(big_n), "--steps", str(args.steps), "--samples", str(args.samples),
-                                "--ue-reports", "table"], None, held_heap=False)
-    print("after, glibc's default heap", json.dumps(heap_default), flush=True)
     rt = None if args.no_refresh else _subprocess(["--refresh-only", str(max(args.ues)), "--samples",
                                                    str(args.samples)], None)
     print("refresh", json.dumps(rt), flush=True)
@@ -558,11 +541,8 @@ def main() -> None:
             str(n): r["host_proxy_with_launches_ms"] for n, r in per_ue.items()},
         "encode_ms_per_step": {"table": {str(n): r["encode_ms"] for n, r in runs.items()},
                                "per-ue": {str(n): r["encode_ms"] for n, r in per_ue.items()}},
-        "host_proxy_with_launches_ms_glibc_default_heap": {str(big_n): heap_default["host_proxy_with_launches_ms"]},
-        "held_heap": HELD_HEAP,
         "method": METHOD,
         "runs": {str(n): r for n, r in runs.items()},
-        "run_glibc_default_heap": heap_default,
         "runs_per_ue_reports": {str(n): r for n, r in per_ue.items()},
         "rt_refresh": rt,
         "machine": machine(),

@@ -155,8 +155,9 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
 
 
 def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], pos0, vel,
-               traffic: dict | None, compiled: bool = True) -> dict:
-    """The ``radio-network`` plugin stepped on the UEs' positions (its messages collected):
+               traffic: dict | None, compiled: bool = True, ue_reports: str = "per-ue") -> dict:
+    """The ``radio-network`` plugin stepped on the UEs' positions (its messages collected; its UE
+    reports ``ue_reports``):
     T_p/T_v of its steps after the first (the first traces and compiles), and, with a load,
     its completed files' delays."""
     import tempfile
@@ -171,7 +172,7 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
               "channel": "ray-traced", "interference": "scheduled", "antenna_height_m": 0.0,
               "scene": str(SCENE), "raytracing": {"max_depth": 2, "samples_per_src": samples},
               "evolution": {"refresh_s": refresh},
-              "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
+              "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}, "ue_reports": ue_reports}
     if traffic is not None:
         params["traffic"] = traffic
     hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, params))
@@ -199,6 +200,10 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
         wall = time.perf_counter() - t0
     files = [d for topic, d in out if topic == "network.transfers" and isinstance(d, dict) and not d.get("lost")]
     ues = [d for topic, d in out if topic == "network.ue" and isinstance(d, dict)]
+    if any(topic == "network.ues" for topic, _ in out):
+        from caviar_plugins.network.ues import table_rows  # (here: a baseline's plugins may not have it)
+
+        ues += [r for topic, d in out if topic == "network.ues" for r in table_rows(d)]
     result = {"virtual_s": seconds, "wall_s": round(wall, 3), "tp_tv": round(wall / seconds, 3),
               "first_step_s": round(first, 1), "ue_reports": len(ues),
               "dl_throughput_mbps_mean": round(float(np.mean([u["throughput_mbps"] for u in ues])), 3)}
@@ -223,11 +228,15 @@ def main() -> None:
     ap.add_argument("--plugin-only", type=int, metavar="N_UE",
                     help="only the plugin, full buffers, with N_UE UEs; prints its result as JSON (the GPU check)")
     ap.add_argument("--eager", action="store_true", help="with --plugin-only: without torch.compile")
+    ap.add_argument("--ue-reports", default="per-ue", choices=["per-ue", "table"],
+                    help="with --plugin-only: the network's UE reports (a message a UE, or a table a step)")
     args = ap.parse_args()
     if args.plugin_only:
         kinds, pos0, vel = ues(np.random.default_rng(7), args.plugin_only)
-        result = plugin_run(args.seconds, args.refresh, args.samples, kinds, pos0, vel, None, compiled=not args.eager)
-        print(json.dumps({"cells": 21, "ues": args.plugin_only, "compiled": not args.eager, **result,
+        result = plugin_run(args.seconds, args.refresh, args.samples, kinds, pos0, vel, None, compiled=not args.eager,
+                            ue_reports=args.ue_reports)
+        print(json.dumps({"cells": 21, "ues": args.plugin_only, "compiled": not args.eager,
+                          "ue_reports_as": args.ue_reports, **result,
                           "machine": machine()}))
         return
     cells = parse_sites(sites(), {"tx_power_dbm": 43.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6,

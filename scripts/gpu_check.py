@@ -25,8 +25,10 @@ other packages are missing is reported as skipped, with the reason. Timing items
   on the backend, its time per guess and the learned value against the hidden truth;
 - the radio network at scale: the ``radio-network`` plugin with 21 cells (7 sites × 3
   sectors) and 100, then 1,000 UEs, 0.5 ms slots, 0.1 s steps, ray tracing every 1 s, beams
-  and the uplink, full buffers (``benches/bench_network.py --plugin-only``): T_p/T_v of the
-  steps after the first (the first traces and compiles; its time is reported too).
+  and the uplink, full buffers, the UEs' reports as one table a step (``ue_reports = "table"``,
+  the setting for a thousand UEs; until 2026-11-29 a message a UE) (``benches/bench_network.py
+  --plugin-only``): T_p/T_v of the steps after the first (the first traces and compiles; its
+  time is reported too).
 
 The main job and the network items run in their own processes under a time limit
 (``--item-timeout``), so that one that hangs or crawls is reported as such and the check still
@@ -372,7 +374,7 @@ def network(n_ue: int, seconds: float, timeout_s: float) -> dict:
     its link levels through ``torch.compile`` as the blueprints have them; where that run
     fails (no Triton for the GPU, say), again without, with the compiled run's error kept."""
     cmd = [sys.executable, str(ROOT / "benches/bench_network.py"), "--plugin-only", str(n_ue),
-           "--seconds", str(seconds)]
+           "--seconds", str(seconds), "--ue-reports", "table"]
     stdout, compile_error = command(cmd, timeout_s)
     if compile_error is None:
         return {**json.loads(stdout.strip().splitlines()[-1]), "compile_error": None}

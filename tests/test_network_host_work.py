@@ -85,6 +85,7 @@ def _calls(n_ue: int, tmp_path, ue_reports: str = "per-ue") -> collections.Count
             gc.enable()
         reported = [v for topic, v in out if topic in ("network.ue", "network.ues")]
         assert (len(reported) if ue_reports == "per-ue" else reported[0].height) == n_ue
+    hosted.teardown()  # (what set-up froze for the collector, given back)
     return counts
 
 
