@@ -113,6 +113,9 @@ READS = {"item", "tolist", "cpu", "__bool__", "__int__", "__float__", "__index__
 """Calls that read a device value on the host (``bench_device_syncs.py``'s; ``numpy`` follows ``cpu``)."""
 MAKERS = {"as_tensor", "tensor", "from_numpy"}
 """Calls that make a tensor of host data (on a GPU, a copy in)."""
+WRITES = {"__setitem__", *(f"__i{op}__" for op in ("add", "sub", "mul", "truediv", "floordiv", "mod", "pow", "and",
+                                                  "or", "xor", "lshift", "rshift", "matmul"))}
+"""Calls that write into a tensor (their result is it): a kernel each."""
 H200_SOLVE = {"one_uav_1e6_samples_ms": {"warm": 39, "kernels": 17, "host": 18},
               "ten_uavs_1e6_samples_ms": {"warm": 117, "kernels": 43, "host": 65}}
 """One Sionna RT solve on an H200 (issue #53's figures): 1 UAV and 10 UAVs, 1e6 samples."""
@@ -211,14 +214,14 @@ class _Timer:
 
 def _launches_kernel(torch, name: str, args: tuple, out: Any) -> bool:
     """Whether a torch call would launch a kernel on a GPU: one that makes or writes a tensor
-    (``__setitem__`` writes one), not a read of metadata (``__len__``, ``shape``, ``numpy`` of
-    a host tensor), not a view or a no-op conversion (its result shares its input's storage:
-    ``transpose``, ``reshape`` of a contiguous tensor, ``detach``, ``to`` the same dtype), and not
-    a device read (``cpu``, ``item``: counted as reads)."""
+    (``__setitem__``, ``mul_`` and the other in-place calls write one), not a read of metadata
+    (``__len__``, ``shape``, ``numpy`` of a host tensor), not a view or a no-op conversion (its
+    result shares its input's storage: ``transpose``, ``reshape`` of a contiguous tensor,
+    ``detach``, ``to`` the same dtype), and not a device read (``cpu``, ``item``: counted as reads)."""
     if name in READS:
         return False
-    if name == "__setitem__":
-        return True
+    if name in WRITES or (name.endswith("_") and not name.endswith("__")):
+        return True  # (a write: in place, its result shares its input's storage)
     first = out[0] if isinstance(out, (tuple, list)) and out and isinstance(out[0], torch.Tensor) else out
     if not isinstance(first, torch.Tensor):
         return False

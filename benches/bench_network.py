@@ -172,7 +172,9 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
               "channel": "ray-traced", "interference": "scheduled", "antenna_height_m": 0.0,
               "scene": str(SCENE), "raytracing": {"max_depth": 2, "samples_per_src": samples},
               "evolution": {"refresh_s": refresh},
-              "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}, "ue_reports": ue_reports}
+              "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
+    if ue_reports != "per-ue":  # (a baseline's plugins may not know the setting)
+        params["ue_reports"] = ue_reports
     if traffic is not None:
         params["traffic"] = traffic
     hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, params))

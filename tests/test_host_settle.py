@@ -45,3 +45,25 @@ def test_setup_and_the_first_step_are_frozen_until_teardown(tmp_path):
     assert gc.get_freeze_count() == frozen  # (later steps: nothing more frozen)
     hosted.teardown()
     assert gc.get_freeze_count() == 0  # (all given back to the collector)
+
+
+class _Quiet(caviar.Plugin):
+    """Publishes nothing (its step returns None)."""
+
+    stateless = True
+
+    @dataclasses.dataclass
+    class Params:
+        pass
+
+    def step(self, t, inbox):
+        return None
+
+
+def test_a_plugin_that_publishes_nothing_settles_after_its_first_step_too(tmp_path):
+    gc.unfreeze()
+    hosted = Hosted("quiet", _Quiet(), _Quiet.Params())
+    hosted.setup(seed=1, ts=0.1, steps=None, every=1, offset=0, run_dir=str(tmp_path), config_dir=str(tmp_path))
+    assert hosted.step(0, 0.0, []) == [] and hosted.settled
+    hosted.teardown()
+    assert gc.get_freeze_count() == 0

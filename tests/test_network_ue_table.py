@@ -6,6 +6,8 @@ UEs; ``caviar-core report`` reads either; a wrong value is named."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from caviar_plugins.network.report import summarize, ue_rows
@@ -33,8 +35,10 @@ def _two_sites(ue_reports: str) -> str:
 
 
 def _dropped(ue_reports: str) -> str:
-    """A one-ring 38.901 UMa layout's drop (21 cells, 2 UEs a sector), Shannon, 2 steps."""
+    """A one-ring 38.901 UMa layout's drop (21 cells, 2 UEs a sector) and a moving UE of another
+    module among them, Shannon, 2 steps."""
     return (episode(0.01, STAGES, steps=2, seed=5) + output(analysis=_analysis(ue_reports))
+            + line_movers(mover("walker", (30.0, 20.0, 1.5), (60.0, 20.0, 1.5), 1.5))
             + radio_network(channel="38.901-uma", link_model="shannon", ue_reports=ue_reports,
                             layout={"rings": 1, "ues_per_sector": 2}))
 
@@ -60,6 +64,9 @@ def test_the_table_holds_what_the_per_ue_reports_hold(tmp_path, config):
     expected, thr_expected = _by_step(per_ue)
     got, thr_got = _by_step(table)
     assert got == expected  # every field of every UE's report, every step
+    # (and as text: the same fields in the same order)
+    assert [json.dumps(r) for rows in got.values() for r in rows] == \
+        [json.dumps(r) for rows in expected.values() for r in rows]
     assert thr_got == thr_expected
     assert all(t.height == len(thr_got[step]) for t, step in zip(tables, sorted(thr_got), strict=True))  # (a row a UE)
 

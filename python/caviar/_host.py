@@ -275,7 +275,8 @@ class Hosted:
                            every=every, offset=offset, run_dir=self.run_dir,
                            config_dir=pathlib.Path(config_dir), shards=shards)
         self.plugin.setup(self.ctx)
-        gc.freeze()  # (see settle)
+        self.settled = False
+        gc.freeze()  # (what set-up made: see settle)
 
     def step(self, step: int, t: float, raw: list[RawMessage], shard: int = 0) -> list[OutgoingTuple]:
         """Runs the plugin's step; returns what it published as ``(topic, kind, body, meta)``."""
@@ -285,7 +286,14 @@ class Hosted:
         ctx.shard = shard
         run_dir = self.run_dir
         inbox = Inbox([Message._from_wire(r, run_dir) for r in raw])
-        result: Any = self.plugin.step(t, inbox)
+        try:
+            return self._published(self.plugin.step(t, inbox), run_dir)
+        finally:
+            if not self.settled:
+                self.settle()
+
+    def _published(self, result: Any, run_dir: pathlib.Path | None) -> list[OutgoingTuple]:
+        """What a step returned or yielded, as ``(topic, kind, body, meta)``."""
         out: list[OutgoingTuple] = []
         if result is None:
             return out
@@ -305,16 +313,16 @@ class Hosted:
             if not isinstance(topic, str):
                 raise TypeError(f"topic must be a str, got {topic!r}")
             out.append((topic, *encode(topic, value, run_dir)))
-        if not self.settled:
-            self.settle()
         return out
 
     def settle(self) -> None:
-        """After set-up and again after the first step (where plugins trace, compile and load
-        lazily): the objects the process holds then (Sionna's scene, torch's compiled code, the
-        plugins' tables) are frozen out of Python's cyclic garbage collector (``gc.freeze``), so
-        that the collections a step's allocations trigger no longer walk them, up to several ms
-        a step with torch and Sionna loaded; :meth:`teardown` gives them back to it."""
+        """After the first step (where plugins trace, compile and load lazily; :meth:`setup` does
+        the same after set-up): the objects the process holds then (Sionna's scene, torch's
+        compiled code, the plugins' tables) are frozen out of Python's cyclic garbage collector
+        (``gc.freeze``), so that the collections a step's allocations trigger no longer walk
+        them, up to several ms a step with torch and Sionna loaded; :meth:`teardown` gives them
+        back to it. The freeze is the process's: a cycle that becomes garbage meanwhile, this
+        run's or another's, waits for a teardown to be collected."""
         self.settled = True
         gc.freeze()
 

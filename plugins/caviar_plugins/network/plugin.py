@@ -8,7 +8,8 @@ tables; or Shannon). Publishes per step:
 
 - ``communications.throughput`` (the paper's schema, Mbit/s of decoded bits) per UE;
 - ``network.ue`` per UE: serving cell, RSRP of every cell, SINR, SIR, coupling loss, MCS,
-  TBLER, HARQ (and, for a UE the layout dropped, its position);
+  TBLER, HARQ (and, for a UE the layout dropped, its position); with ``ue_reports = "table"``,
+  ``network.ues`` instead, the same fields as one table a step (a ``polars.DataFrame``);
 - ``network.events``: attach, handover and radio-link-failure events;
 - ``network.cells``: per cell, its UEs and the share of PRB-slots it used.
 

@@ -254,20 +254,22 @@ def ue_table(names: list[str], ids: list[str], types: list[str], serving: np.nda
 
     blank = serving < 0  # (no cell)
     cell = pl.Series("serving_cell", np.where(blank, 0, serving), dtype=pl.UInt32)
+    # (the columns in the order of a network.ue report's fields)
     columns: dict[str, Any] = {
-        "UE_Id": ids, "UE_type": types,
+        "UE_type": types, "UE_Id": ids,
         "serving_cell": pl.Series(names, dtype=pl.String).gather(cell).scatter(np.flatnonzero(blank), None),
         "sinr_db": _nulls(sinr, 3, blank), "sir_db": _nulls(sir, 3, blank),
-        "coupling_loss_db": _nulls(loss, 3, blank), "throughput_mbps": rounded_array(mbps, 6)}
+        "coupling_loss_db": _nulls(loss, 3, blank)}
     values = rounded_array(rsrp, 2)
     if listed is not None:  # (the cells not listed: null)
         values = np.full_like(values, np.nan)
         rows = np.arange(len(values))[:, None]
         values[rows, listed] = rounded_array(rsrp[rows, listed], 2)
     columns["rsrp_dbm"] = pl.DataFrame(dict(zip(names, values.T, strict=True)), nan_to_null=True).to_struct("rsrp_dbm")
-    if "dropped" in types:
-        dropped = np.array([t == "dropped" for t in types])
-        columns["position_m"] = pl.Series(rounded_array(position, 2)).scatter(np.flatnonzero(~dropped), None)
+    columns["throughput_mbps"] = rounded_array(mbps, 6)
+    if "dropped" in types:  # (a list: polars sets no null in an array column)
+        where = [p if t == "dropped" else None for p, t in zip(rounded(position, 2), types, strict=True)]
+        columns["position_m"] = pl.Series(where, dtype=pl.Array(pl.Float64, 3))
     if link is not None:
         columns.update(_link_arrays(link))
     for more in (ul, beams):
@@ -284,7 +286,7 @@ def _nulls(values: np.ndarray, digits: int | None, blank: np.ndarray) -> Any:
     import polars as pl
 
     v = np.asarray(values)
-    if v.dtype.kind in "iub":
+    if v.dtype.kind in "iu":
         return pl.Series(v.astype(np.int64)).scatter(np.flatnonzero(blank), None) if blank.any() else v
     out = rounded_array(v, digits) if digits is not None else v.astype(float)
     return np.where(blank | ~np.isfinite(out), np.nan, out)
