@@ -229,3 +229,15 @@ def test_the_cuda_graph_mode_on_the_cpu_decides_as_eager():
     second = graphed.run(np.concatenate([sinr, sinr]), serving)
     np.testing.assert_array_equal(first.decoded_bits, kept)
     assert (second.acks + second.nacks).sum() == 2 * d  # one UE of the cell's a slot, both groups
+
+
+def test_a_position_that_is_not_three_numbers_is_named():
+    table = UeTable()
+    table.place([{"UE_Id": "car1", "UE_type": "car", "position": {"x": 1.0, "y": 2.0, "z": 0.0}}], 1.5)
+    with pytest.raises(ValueError, match=r"UE 'car2' is at \{'x': 3.0, 'y': None, 'z': 0.0\}: expected finite numbers"):
+        table.place([{"UE_Id": "car1", "UE_type": "car", "position": {"x": 1.0, "y": 2.0, "z": 0.0}},
+                     {"UE_Id": "car2", "UE_type": "car", "position": {"x": 3.0, "y": None, "z": 0.0}}], 1.5)
+    np.testing.assert_array_equal(table.position[table.column("car1")], [1.0, 2.0, 0.0])
+    with pytest.raises(ValueError, match=r"UE 'car3' is at .*'z': 'up'.*: expected finite numbers"):
+        table.place([{"UE_Id": "car1", "UE_type": "car", "position": {"x": 1.0, "y": 2.0, "z": 0.0}},
+                     {"UE_Id": "car3", "UE_type": "car", "position": {"x": 3.0, "y": 1.0, "z": "up"}}], 1.5)

@@ -72,8 +72,16 @@ class UeTable:
                     self.arrays["lift"][col] = lift_m
         cols = list(map(self._column.__getitem__, last))
         xyz = map(operator.itemgetter("x", "y", "z"), map(operator.itemgetter("position"), last.values()))
-        self.arrays["position"][cols] = np.fromiter(itertools.chain.from_iterable(xyz), dtype=float,
-                                                    count=3 * len(last)).reshape(-1, 3)
+        try:
+            at = np.fromiter(itertools.chain.from_iterable(xyz), dtype=float, count=3 * len(last)).reshape(-1, 3)
+            bad = np.flatnonzero(~np.isfinite(at).all(axis=1)).tolist()
+        except (TypeError, ValueError):  # (a coordinate that is not a number at all)
+            bad = [i for i, d in enumerate(last.values()) if not _finite_xyz(d["position"])]
+        if bad:  # (None, NaN, a string: which UE's, before it reaches the channel)
+            u = list(last)[bad[0]]
+            raise ValueError(f"3D.mobility.positions: UE {u!r} is at {last[u]['position']}: expected finite "
+                             "numbers x, y and z (metres)")
+        self.arrays["position"][cols] = at
 
     def pop(self, ue: str) -> int:
         """Removes ``ue``; its column is free again."""
@@ -105,6 +113,14 @@ class UeTable:
         self._column = {u: v["column"] for u, v in self.ues.items()}
         self.arrays = {k: a.copy() for k, a in state["arrays"].items()}
         self._view = None
+
+
+def _finite_xyz(position: dict[str, Any]) -> bool:
+    """Whether a position payload's x, y and z are finite numbers."""
+    try:
+        return bool(np.isfinite(np.array([position[k] for k in "xyz"], dtype=float)).all())
+    except (TypeError, ValueError):
+        return False
 
 
 def rounded(values: np.ndarray, digits: int) -> list:
