@@ -98,8 +98,9 @@ class NetworkParams:
     ue_reports: str = "per-ue"
     """How the UEs' reports are published each step: ``"per-ue"``, a ``network.ue`` message a UE
     (as ``communications.throughput``), or ``"table"``, one ``network.ues`` message a step holding
-    the same fields as columns, a row a UE (at a thousand UEs the per-UE messages cost more host
-    time than the rest of the step: see :func:`~caviar_plugins.network.ues.ue_table`).
+    the same fields as columns, a row a UE (:func:`~caviar_plugins.network.ues.ue_table`; at 1,000 UEs
+    on a 2-core CPU the step's host work fell from 18-22 to 13-16 ms and the host's encoding of its
+    messages from 17 to 3.5 ms; at 100 UEs the table costs as much as the messages).
     ``communications.throughput`` stays a message a UE either way (the paper's schema, what
     other modules read)."""
     scene: str = "empty"
