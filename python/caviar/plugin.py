@@ -341,6 +341,7 @@ class Plugin:
 
 ARROW_STREAM = "application/vnd.apache.arrow.stream"
 """The content type of a table payload (a ``polars.DataFrame``): Arrow's IPC stream format."""
+_TABLE_META = json.dumps({"content_type": ARROW_STREAM}, separators=(",", ":"))
 
 
 def _is_table(value: Any) -> bool:
@@ -377,7 +378,7 @@ def encode(topic: str, value: Any, run_dir: pathlib.Path | None) -> tuple[Payloa
 
         out = io.BytesIO()
         value.write_ipc_stream(out)
-        return "binary", out.getvalue(), json.dumps({"content_type": ARROW_STREAM}, separators=(",", ":"))
+        return "binary", out.getvalue(), _TABLE_META
     if type(value).__module__ == "numpy" and hasattr(value, "dtype"):
         import numpy as np
 

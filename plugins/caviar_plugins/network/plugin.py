@@ -44,6 +44,7 @@ from caviar_plugins.network.traffic import Queues, in_columns, transfer_record
 from caviar_plugins.network.ues import (
     UeTable,
     beam_columns,
+    beam_table,
     link_fields,
     run_link,
     throughput_messages,
@@ -102,6 +103,7 @@ class RadioNetwork(caviar.Plugin):
         self.tx_power_dbm = np.array([c.tx_power_dbm for c in self.cells])
         self.beam_reports = None if made.codebooks is None else [  # (each cell's beams' network.ue fields)
             [beam_report(c, cb, b) for b in range(cb.size)] for c, cb in zip(self.cells, made.codebooks, strict=True)]
+        self.beam_table = None if self.beam_reports is None else beam_table(self.beam_reports)  # (the table's)
         self.device = resolve(p.device)  # (once: the channel's, beams' and uplink's torch work runs there)
         link = made.link  # (each link level resolves the same setting once, when it is made)
         self.slot_s = link.slot_s
@@ -273,8 +275,8 @@ class RadioNetwork(caviar.Plugin):
         directions = ("downlink", "uplink") if self.ul_link else ("downlink",)
         if self.p.ue_reports == "table":  # (the paper's per-UE throughput, then one table of the rest)
             yield from throughput_messages(ids, types, mbps[cols])
-            beams = None if self.beam_reports is None or best_beams is None else \
-                beam_columns(self.beam_reports, serving, best_beams)
+            beams = None if self.beam_table is None or best_beams is None else \
+                beam_columns(self.beam_table, serving, best_beams)
             queued = [] if self.queues is None else self.queues.reports(ids, types, directions)
             yield NETWORK_UES, ue_table(self.names, ids, types, serving, sinr, sir, loss, rsrp, listed, mbps[cols],
                                         link, ul, beams, queued, self.ues.position[cols])

@@ -149,8 +149,7 @@ def rounded_array(values: np.ndarray, digits: int) -> np.ndarray:
 
 def _finite(values: np.ndarray, digits: int) -> list[float | None]:
     """Rounded as :func:`~caviar_plugins.network.report.finite` rounds, in bulk (None: not finite)."""
-    finite = np.isfinite(np.asarray(values, dtype=float)).tolist()  # (rounding keeps a value finite or not)
-    return [r if f else None for r, f in zip(rounded(values, digits), finite, strict=True)]
+    return _listed(rounded_array(values, digits))
 
 
 def link_fields(res: Any, cols: np.ndarray) -> dict[str, np.ndarray]:
@@ -348,20 +347,25 @@ QUEUE_FIELDS = ("dl_queue_bytes", "ul_queue_bytes")
 """``network.ue``'s queue fields (a full buffer's: none)."""
 
 
-def beam_columns(beam_reports: list[list[dict]], serving: np.ndarray, best_beams: np.ndarray) -> dict[str, np.ndarray]:
-    """Every UE's serving beam's ``network.ue`` fields (``beam_reports[cell][beam]``, ``best_beams``
-    [ue, cell]) as arrays (a UE without a cell: its cell 0's, for :func:`ue_table` to blank)."""
+def beam_table(beam_reports: list[list[dict]]) -> dict[str, np.ndarray]:
+    """The beams' ``network.ue`` fields (``beam_reports[cell][beam]``) as arrays [cell, beam], made
+    once (the cells' codebooks may differ in size: the shorter padded, never picked)."""
+    keys = list(beam_reports[0][0]) if beam_reports and beam_reports[0] else []
+    size = max(len(cell) for cell in beam_reports)
+    table = {}
+    for k in keys:
+        table[k] = np.zeros((len(beam_reports), size), dtype=type(beam_reports[0][0][k]))
+        for c, cell in enumerate(beam_reports):
+            table[k][c, :len(cell)] = [b[k] for b in cell]
+    return table
+
+
+def beam_columns(table: dict[str, np.ndarray], serving: np.ndarray, best_beams: np.ndarray) -> dict[str, np.ndarray]:
+    """Every UE's serving beam's ``network.ue`` fields from :func:`beam_table` and ``best_beams``
+    [ue, cell], as arrays (a UE without a cell: its cell 0's, for :func:`ue_table` to blank)."""
     sv = np.maximum(serving, 0)
     best = best_beams[np.arange(len(sv)), sv]
-    keys = list(beam_reports[0][0]) if beam_reports and beam_reports[0] else []
-    size = max(len(cell) for cell in beam_reports)  # (the cells' codebooks may differ in size)
-    out = {}
-    for k in keys:
-        by_cell = np.zeros((len(beam_reports), size), dtype=type(beam_reports[0][0][k]))
-        for c, cell in enumerate(beam_reports):
-            by_cell[c, :len(cell)] = [b[k] for b in cell]
-        out[k] = by_cell[sv, best]
-    return out
+    return {k: by_cell[sv, best] for k, by_cell in table.items()}
 
 
 def link_columns(per_slot: np.ndarray, serving: np.ndarray, cols: np.ndarray, slots: int):
