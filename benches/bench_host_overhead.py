@@ -50,7 +50,11 @@ kernel launch, or a copy):
   that launches a kernel (cudaLaunchKernel; ``kernel_launches_per_step``: the calls that make or
   write a tensor, not the views, metadata reads and no-op conversions, which launch nothing; until
   2026-11-29 every call was counted) and ``DEVICE_READ_US`` a device read (a copy out and its
-  latency), assumed;
+  latency), assumed, and since 2026-11-29 (afternoon) the compiled groups' own host work:
+  ``compiled_entries_ms_per_step``, dynamo's guards, the region's inputs and side effects and the
+  runtime wrapper's prologue (torch.profiler's, in the profiled step), and a launch a compiled call
+  (``compiled_calls_per_step``); before, the whole compiled call counted as kernels
+  (``host_proxy_with_launches_before_entries_ms``: the figure as it was defined then);
 - the same in this thread's CPU time (``*_cpu_*``, ``time.thread_time``): on a machine other
   work keeps busy, the wall figures include the waits for a core, the CPU ones do not.
 
@@ -123,8 +127,14 @@ METHOD = ("host_proxy_ms: Python and numpy time of a step (its wall less the ray
           "groups and every torch call made from Python, timed by a TorchFunctionMode, less the mode's own "
           "calibrated cost) plus the torch calls times torch's measured dispatch cost a call on small tensors; "
           "host_proxy_with_launches_ms adds an assumed CUDA_LAUNCH_US a call that launches a kernel (not a view, a "
-          "metadata read or a device read) and DEVICE_READ_US a device read; "
+          "metadata read or a device read) and DEVICE_READ_US a device read, and the compiled groups' entries "
+          "(dynamo's guards, the regions' own time, the runtime wrapper's prologue: torch.profiler's) and a "
+          "launch a compiled call; "
           "host_ms: the raw CPU wall less the ray tracer and the compiled groups (the torch arithmetic included)")
+ENTRY_EVENTS = ("TorchDynamo Cache Lookup", "AOTDispatcher Runtime Wrapper Prologue")
+"""torch.profiler's events of a compiled call's entry: dynamo's guards (choosing the compiled entry)
+and the runtime wrapper's prologue; with each region's own time (its inputs gathered, its side
+effects applied), the host's work a compiled group of slots costs beyond its kernels."""
 RUNS = ("run", "run_linear")
 """A link level's calls (numpy dB SINRs, or linear ones as a tensor): the link levels' phases."""
 
@@ -144,11 +154,12 @@ def _timed(obj, name: str, into: dict, key: str) -> None:
     setattr(obj, name, wrapper)
 
 
-def _launches(net, step) -> tuple[int, int, int, float]:
+def _launches(net, step) -> tuple[int, int, int, float, float]:
     """The torch operations of one ``step()`` that no other torch operation called, those of them
-    inside the link levels' runs, the compiled regions entered (torch.profiler), and the ms the
+    inside the link levels' runs, the compiled regions entered (torch.profiler), the ms the
     step's top-level torch operations outside the link levels took (the channel's arithmetic,
-    device kernels on a GPU)."""
+    device kernels on a GPU), and the ms of the compiled regions' entries (:data:`ENTRY_EVENTS` and
+    each region's own time: host work on any machine)."""
     from torch.profiler import ProfilerActivity, profile, record_function
 
     def annotated(inner):
@@ -172,9 +183,11 @@ def _launches(net, step) -> tuple[int, int, int, float]:
                 return True
             e = e.cpu_parent
         return False
-    compiled = sum(1 for e in prof.events() if e.name.startswith("Torch-Compiled Region"))
+    regions = [e for e in prof.events() if e.name.startswith("Torch-Compiled Region")]
     outside = sum(e.cpu_time_total for e in top if not in_link(e)) / 1e3
-    return len(top), sum(1 for e in top if in_link(e)), compiled, outside
+    entry = sum(e.cpu_time_total for e in prof.events() if e.name in ENTRY_EVENTS)
+    entry += sum(e.self_cpu_time_total for e in regions)
+    return len(top), sum(1 for e in top if in_link(e)), len(regions), outside, entry / 1e3
 
 
 class _Timer:
@@ -411,9 +424,14 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
         per_step.sort(key=lambda x: x[0] - x[1].get("rt", 0.0) - x[1].get("sys", 0.0))
         wall, timing = per_step[len(per_step) // 2]
         box = inbox(steps + 1)
-        top, in_links, compiled, torch_ms = _launches(net, lambda: step(steps + 1, box))
+        top, in_links, compiled, torch_ms, entry_ms = _launches(net, lambda: step(steps + 1, box))
         boxes = {k: inbox(k) for k in range(steps + 2, steps + 5)}
         proxy = _proxy(net, [lambda k=k: step(k, boxes[k]) for k in boxes])
+        # (the compiled groups' entries, host work, and a launch each at least: until 2026-11-29 the
+        # proxy counted the whole compiled call as kernels)
+        proxy["host_proxy_with_launches_before_entries_ms"] = proxy["host_proxy_with_launches_ms"]
+        proxy["host_proxy_with_launches_ms"] = round(proxy["host_proxy_with_launches_ms"] + entry_ms
+                                                     + 1e-3 * compiled * CUDA_LAUNCH_US, 2)
         encode_ms = _encoding(net, hosted, steps + 5, inbox(steps + 5))
         groups = 2 * (net.slots // net.p.harq_processes)
     step_ms = 1e3 * wall
@@ -426,7 +444,8 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
             "step_ms": round(step_ms, 2), "rt_ms": round(rt_ms, 2), "sys_kernels_ms": round(sys_ms, 2),
             "host_ms": round(step_ms - rt_ms - sys_ms, 2),
             "host_torch_ms": round(torch_ms, 2), "host_python_numpy_ms": round(step_ms - rt_ms - sys_ms - torch_ms, 2),
-            "phases_ms": phases, **proxy,
+            "phases_ms": phases, **proxy, "compiled_calls_per_step": compiled,
+            "compiled_entries_ms_per_step": round(entry_ms, 2),
             "groups_per_step": groups, "top_level_torch_ops_per_step": top,
             "top_level_torch_ops_per_group": round(in_links / groups, 2),
             "compiled_regions_per_group": round(compiled / groups, 2), "torch": torch.__version__,

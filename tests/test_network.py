@@ -205,6 +205,46 @@ def test_the_compiled_link_level_decides_as_eager_and_reaches_the_bler_target():
     assert bler == pytest.approx(0.1, abs=0.02), bler
 
 
+def test_a_settled_compiled_link_level_checks_fewer_guards_and_decides_the_same(monkeypatch):
+    """After ``CHECKED_CALLS`` calls of its compiled group at a capacity, a link level lets dynamo
+    check only the guards that tell its entries apart: every result of the calls after it is the
+    same, bit for bit, as a twin's that checks every guard; where torch refuses to compile in that
+    stance, the group runs again under every guard (the same results), and the count starts again,
+    as it does when the link level grows."""
+    from caviar_plugins.radio import link_level
+
+    rng = np.random.default_rng(8)
+    d, sub = 8, 4
+    settings = LinkSettings(num_prb=51, harq_processes=d, subbands=sub, compile=True)
+    serving = np.zeros(3, dtype=int)
+    calls = [14.0 + rng.normal(0.0, 3.0, size=(3 * d, 3, sub)) for _ in range(5)]  # 3 groups a call
+    results = {}
+    for name, checked in (("every guard", 10**9), ("settled", link_level.CHECKED_CALLS)):
+        monkeypatch.setattr(link_level, "CHECKED_CALLS", checked)
+        ll = LinkLevel(settings, n_cell=1, seed=11)
+        results[name] = [ll.run(sinr, serving) for sinr in calls[:4]]
+        assert ll._settled() == (name == "settled"), name  # (12 calls made, 8 checked in full)
+        inner, calls_made = ll._group, []
+
+        def refused_once(*args, inner=inner, calls_made=calls_made):  # (the second group of the last call)
+            calls_made.append(args)
+            if len(calls_made) == 2:
+                raise RuntimeError("Recompilation triggered with skip_guard_eval_unsafe stance (a test's)")
+            return inner(*args)
+        if name == "settled":
+            ll._group = refused_once
+        results[name].append(ll.run(calls[4], serving))
+        if name == "settled":
+            assert len(calls_made) == 4 and not ll._settled()  # (3 groups, one twice; counting again)
+    for full, fewer in zip(*results.values(), strict=True):
+        for field in dataclasses.fields(full):
+            np.testing.assert_array_equal(getattr(fewer, field.name), getattr(full, field.name), err_msg=field.name)
+    ll._checked = link_level.CHECKED_CALLS
+    assert ll._settled()
+    ll.ensure(ll.capacity + 1)  # (new blocks: every guard again)
+    assert not ll._settled()
+
+
 def test_harq_processes_give_the_same_throughput_faster_in_calls():
     """D slots per call, each its own HARQ process: the long-run throughput of a cell stays
     within 3 % of the slot-by-slot loop's on the same channels."""
