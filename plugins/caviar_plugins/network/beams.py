@@ -251,6 +251,49 @@ def slot_sinrs_db(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_b
     import torch
 
     dev = resolve(device)
+    signal, interference, unserved = _slot_terms(cells, gains, serving, best_beam, beams, silent_idle, dev)
+    out: list[Any] = []
+    for noise_mw in noises_mw:
+        noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
+        ratio = signal[None] / (noise[None, :, None] + interference)
+        if linear:
+            out.append(torch.where(unserved, float("nan"), ratio))
+            continue
+        db = 10 * torch.log10(ratio)  # (no signal: -inf; SIR alone: NaN)
+        out.append(to_numpy(torch.where(unserved, float("nan"), db)))  # (a mask, not an indexing: no wait on a GPU)
+    return out
+
+
+def slot_sinr_and_wideband(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,
+                           beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool, weights: np.ndarray,
+                           device: Any = HOST, linear: bool = False) -> tuple[Any, np.ndarray, np.ndarray]:
+    """:func:`slot_sinr_db` [slot, ue, freq], and the SINR and the SIR [ue] (dB, numpy: NaN for a
+    UE without a cell) of the frequencies' mean channel (weighted by ``weights`` [freq]) averaged
+    over the slots, from one interference sum: the signal and the interference are linear in the
+    gains, so the mean channel's are the means of the frequencies' (equal to summing again over
+    the mean channel's gains, to float64's rounding)."""
+    import torch
+
+    dev = resolve(device)
+    signal, interference, unserved = _slot_terms(cells, gains, serving, best_beam, beams, silent_idle, dev)
+    noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
+    ratio = signal[None] / (noise[None, :, None] + interference)
+    per_slot = torch.where(unserved, float("nan"), ratio if linear else 10 * torch.log10(ratio))
+    w = to_torch(np.asarray(weights, dtype=float), dev, torch.float64)
+    mean_signal = (signal * w).sum(dim=-1) / w.sum()  # [ue]
+    mean_interference = (interference * w).sum(dim=-1) / w.sum()  # [slot, ue]
+    ratios = torch.stack([(mean_signal / (noise + mean_interference)).mean(dim=0),
+                          (mean_signal / mean_interference).mean(dim=0)])
+    wide = to_numpy(torch.where(unserved[0, :, 0], float("nan"), 10 * torch.log10(ratios)))  # (the host's one read)
+    return per_slot if linear else to_numpy(per_slot), wide[0], wide[1]
+
+
+def _slot_terms(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,
+                beams: np.ndarray, silent_idle: bool, dev: Any) -> tuple[Any, Any, Any]:
+    """The terms of :func:`slot_sinr_db`'s ratio as float64 tensors on ``dev``: the signal
+    [ue, freq], the interference [slot, ue, freq], and which UEs have no cell [1, ue, 1]."""
+    import torch
+
     n_ue, n_cell, n_f, n_beam = gains.shape
     n_slot = len(beams)
     power = 10 ** (np.array([c.tx_power_dbm for c in cells]) / 10)
@@ -273,17 +316,7 @@ def slot_sinrs_db(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_b
         interference = interference + (idle @ mean).reshape(n_slot, n_ue, n_f)
     ue, s_t, best_t = (to_torch(x, dev) for x in (np.arange(n_ue), s, np.asarray(best_beam)))
     signal = to_torch(power[s][:, None], dev, torch.float64) * g[ue, s_t, :, best_t]  # [ue, freq]
-    unserved = to_torch(serving < 0, dev)[None, :, None]
-    out: list[Any] = []
-    for noise_mw in noises_mw:
-        noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
-        ratio = signal[None] / (noise[None, :, None] + interference)
-        if linear:
-            out.append(torch.where(unserved, float("nan"), ratio))
-            continue
-        db = 10 * torch.log10(ratio)  # (no signal: -inf; SIR alone: NaN)
-        out.append(to_numpy(torch.where(unserved, float("nan"), db)))  # (a mask, not an indexing: no wait on a GPU)
-    return out
+    return signal, interference, to_torch(serving < 0, dev)[None, :, None]
 
 
 def scene_direction(cell: Cell, u: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from caviar_plugins.network.beams import slot_beams, slot_sinr_db, slot_sinrs_db
+from caviar_plugins.network.beams import slot_beams, slot_sinr_and_wideband
 from caviar_plugins.network.cells import Cell, noise_dbm, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.torch_device import HOST, resolve, to_numpy, to_torch
 
@@ -87,14 +87,8 @@ def _beamformed(cells: Sequence[Cell], beams: tuple[Any, np.ndarray], serving: n
     chosen = slot_beams(pointed, best, len(cells), slots)
     bandwidth = np.array([c.bandwidth_hz for c in cells])[np.maximum(serving, 0)]
     noise = 10 ** (noise_dbm(bandwidth, noise_figure_db) / 10)
-    per_slot = slot_sinr_db(cells, gains, serving, best, chosen, noise, scheduled, dev, linear)
-    g = to_torch(gains, dev, torch.float64)
-    weights = subband_prbs if g.shape[2] > 1 and subband_prbs is not None else np.ones(g.shape[2])
-    w = to_torch(np.asarray(weights, dtype=float), dev, torch.float64)
-    flat = ((g * w[:, None]).sum(dim=2) / w.sum())[:, :, None, :]  # (the subbands' weighted mean)
-    # (the SINR and the SIR of the slots' wideband channel: one interference sum for both, their
-    # ratios averaged over the slots where they are, read to the host once)
-    ratios = slot_sinrs_db(cells, flat, serving, best, chosen, (noise, np.zeros(len(serving))), scheduled, dev,
-                           linear=True)
-    sinr, sir = to_numpy(10 * torch.log10(torch.stack([r[:, :, 0].mean(dim=0) for r in ratios])))
-    return per_slot, sinr, sir
+    n_f = gains.shape[2]
+    weights = subband_prbs if n_f > 1 and subband_prbs is not None else np.ones(n_f)
+    # (per slot and subband; and the SINR and the SIR of the subbands' weighted mean channel, their
+    # ratios averaged over the slots: one interference sum for all, read to the host once)
+    return slot_sinr_and_wideband(cells, gains, serving, best, chosen, noise, scheduled, weights, dev, linear)
