@@ -491,21 +491,27 @@ class LinkLevel:
         """The call's results from its groups of slots (tallied on the device, then the
         call's one way out)."""
         torch, dev = self._torch, self.device
-        active = torch.zeros((n_slots, self.n_cell), dtype=torch.bool, device=dev)
         if not groups:
             zeros = np.zeros(n_ue, dtype=int)
             return SlotResults(np.zeros(n_ue), zeros, zeros, zeros, zeros, np.full(n_ue, -1), np.full(n_ue, np.nan),
-                               np.full(n_ue, np.nan), to_numpy(active), np.zeros((n_slots, n_ue)))
+                               np.full(n_ue, np.nan), np.zeros((n_slots, self.n_cell), dtype=bool),
+                               np.zeros((n_slots, n_ue)))
         d = self.s.harq_processes  # (every group is d slots)
-        slots = (torch.arange(n_slots, device=dev) if len(groups) * d == n_slots  # (every group ran)
-                 else torch.cat([torch.arange(g[0], g[0] + d, device=dev) for g in groups]))
-        prbs, harq, tbler, mcs, sinr_eff, cells, bits = (torch.cat([g[i] for g in groups]) for i in range(1, 8))
-        active[slots] = cells
-        if not queue.finite:  # (a full buffer delivers all it decodes)
-            queue.delivered[slots] = bits.to(torch.float64)
+        prbs, harq, tbler, mcs, sinr_eff, cells, bits = map(torch.cat, list(zip(*groups, strict=True))[1:])
+        delivered = queue.delivered
+        if len(groups) * d == n_slots:  # (every group ran: the slots in order)
+            active = cells
+            if not queue.finite:  # (a full buffer delivers all it decodes)
+                delivered = bits.to(torch.float64)
+        else:
+            slots = torch.cat([torch.arange(g[0], g[0] + d, device=dev) for g in groups])
+            active = torch.zeros((n_slots, self.n_cell), dtype=torch.bool, device=dev)
+            active[slots] = cells
+            if not queue.finite:
+                delivered[slots] = bits.to(torch.float64)
         sched = prbs > 0  # [slots run, cap]
         # the last scheduled slot's MCS and effective SINR
-        last = (len(slots) - 1 - torch.argmax(torch.flip(sched, (0,)).to(torch.uint8), dim=0))[None]  # [1, cap]
+        last = (len(sched) - 1 - torch.argmax(torch.flip(sched, (0,)).to(torch.uint8), dim=0))[None]  # [1, cap]
         anyone = sched.any(dim=0)
         mcs_last = torch.where(anyone, mcs.to(torch.int64).gather(0, last)[0], -1)
         eff_db = 10 * torch.log10(torch.clamp(sinr_eff.to(torch.float64).gather(0, last)[0], min=1e-30))
@@ -514,7 +520,7 @@ class LinkLevel:
         # (the call's one way out: every tally, as float64 (the counts exact in it), in one read)
         per_ue = torch.stack([sched.sum(dim=0), prbs.sum(dim=0), (harq == 1).sum(dim=0), (harq == 0).sum(dim=0),
                               tbler_sum, mcs_last, sinr_eff_last]).to(torch.float64)
-        out = to_numpy(torch.cat([per_ue.flatten(), active.flatten(), queue.delivered.flatten()]))
+        out = to_numpy(torch.cat([per_ue.flatten(), active.flatten(), delivered.flatten()]))
         cap = per_ue.shape[1]
         counts = out[:4 * cap].reshape(4, cap)[:, :n_ue].astype(np.int64)
         tbler_n, mcs_n, eff_n = out[4 * cap:7 * cap].reshape(3, cap)[:, :n_ue]
