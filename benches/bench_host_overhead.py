@@ -154,12 +154,12 @@ def _timed(obj, name: str, into: dict, key: str) -> None:
     setattr(obj, name, wrapper)
 
 
-def _launches(net, step) -> tuple[int, int, int, float, float]:
+def _launches(net, step) -> tuple[int, int, int, float, float, float]:
     """The torch operations of one ``step()`` that no other torch operation called, those of them
     inside the link levels' runs, the compiled regions entered (torch.profiler), the ms the
     step's top-level torch operations outside the link levels took (the channel's arithmetic,
-    device kernels on a GPU), and the ms of the compiled regions' entries (:data:`ENTRY_EVENTS` and
-    each region's own time: host work on any machine)."""
+    device kernels on a GPU), the ms of the compiled regions' entries (:data:`ENTRY_EVENTS` and
+    each region's own time: host work on any machine), and of them dynamo's guards."""
     from torch.profiler import ProfilerActivity, profile, record_function
 
     def annotated(inner):
@@ -185,9 +185,10 @@ def _launches(net, step) -> tuple[int, int, int, float, float]:
         return False
     regions = [e for e in prof.events() if e.name.startswith("Torch-Compiled Region")]
     outside = sum(e.cpu_time_total for e in top if not in_link(e)) / 1e3
+    guards = sum(e.cpu_time_total for e in prof.events() if e.name == ENTRY_EVENTS[0])
     entry = sum(e.cpu_time_total for e in prof.events() if e.name in ENTRY_EVENTS)
     entry += sum(e.self_cpu_time_total for e in regions)
-    return len(top), sum(1 for e in top if in_link(e)), len(regions), outside, entry / 1e3
+    return len(top), sum(1 for e in top if in_link(e)), len(regions), outside, entry / 1e3, guards / 1e3
 
 
 class _Timer:
@@ -424,7 +425,7 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
         per_step.sort(key=lambda x: x[0] - x[1].get("rt", 0.0) - x[1].get("sys", 0.0))
         wall, timing = per_step[len(per_step) // 2]
         box = inbox(steps + 1)
-        top, in_links, compiled, torch_ms, entry_ms = _launches(net, lambda: step(steps + 1, box))
+        top, in_links, compiled, torch_ms, entry_ms, guards_ms = _launches(net, lambda: step(steps + 1, box))
         boxes = {k: inbox(k) for k in range(steps + 2, steps + 5)}
         proxy = _proxy(net, [lambda k=k: step(k, boxes[k]) for k in boxes])
         # (the compiled groups' entries, host work, and a launch each at least: until 2026-11-29 the
@@ -445,7 +446,7 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
             "host_ms": round(step_ms - rt_ms - sys_ms, 2),
             "host_torch_ms": round(torch_ms, 2), "host_python_numpy_ms": round(step_ms - rt_ms - sys_ms - torch_ms, 2),
             "phases_ms": phases, **proxy, "compiled_calls_per_step": compiled,
-            "compiled_entries_ms_per_step": round(entry_ms, 2),
+            "compiled_entries_ms_per_step": round(entry_ms, 2), "of_which_guards_ms": round(guards_ms, 2),
             "groups_per_step": groups, "top_level_torch_ops_per_step": top,
             "top_level_torch_ops_per_group": round(in_links / groups, 2),
             "compiled_regions_per_group": round(compiled / groups, 2), "torch": torch.__version__,

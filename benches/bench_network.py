@@ -42,7 +42,8 @@ from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer, TracedChannels
 from caviar_plugins.network.ues import link_columns
 from caviar_plugins.network.uplink import UplinkSettings, uplink
-from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
+from caviar_plugins.radio.link_level import LinkLevel
+from caviar_plugins.radio.link_settings import LinkSettings
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "results" / "network.json"

@@ -25,7 +25,8 @@ from caviar_plugins.network.cells import (
 )
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.report import jain_index
-from caviar_plugins.radio.link_level import DATA_SYMBOLS_PER_SLOT, LinkLevel, LinkSettings
+from caviar_plugins.radio.link_level import LinkLevel
+from caviar_plugins.radio.link_settings import DATA_SYMBOLS_PER_SLOT, LinkSettings
 from configs import episode, module, sionna_link
 from conftest import write_config
 from network_configs import (

@@ -145,7 +145,8 @@ def test_a_link_level_draws_from_its_own_stream_and_sets_no_global_seed():
     import torch
     from sionna.phy import config
 
-    from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
+    from caviar_plugins.radio.link_level import LinkLevel
+    from caviar_plugins.radio.link_settings import LinkSettings
 
     config.seed = 99
     before = (config.seed, torch.default_generator.get_state().clone(), config.torch_rng("cpu").get_state().clone())

@@ -11,7 +11,8 @@ import pytest
 
 import caviar
 from caviar_plugins.network.traffic import Backlog, Carried, FtpSettings, Queues, TrafficSettings, Transfer
-from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
+from caviar_plugins.radio.link_level import LinkLevel
+from caviar_plugins.radio.link_settings import LinkSettings
 from configs import episode, module, output, waypoint_uav
 from network_configs import (
     BAND,

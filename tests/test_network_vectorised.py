@@ -15,7 +15,8 @@ import pytest
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.report import finite
 from caviar_plugins.network.ues import UeTable, rounded, ue_reports, uplink_arrays, uplink_columns, uplink_fields
-from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, cuda_graphs_on
+from caviar_plugins.radio.link_level import LinkLevel
+from caviar_plugins.radio.link_settings import LinkSettings, cuda_graphs_on
 from network_configs import assert_decides_as
 
 

@@ -10,7 +10,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from caviar_plugins.network.traffic import Backlog  # noqa: E402
-from caviar_plugins.radio.link_level import LinkLevel, LinkSettings  # noqa: E402
+from caviar_plugins.radio.link_level import LinkLevel  # noqa: E402
+from caviar_plugins.radio.link_settings import LinkSettings  # noqa: E402
 from caviar_plugins.torch_device import DeviceGuard, check_setting, resolve, to_numpy, to_torch  # noqa: E402
 
 

@@ -25,7 +25,7 @@ from caviar_plugins.network.tr38901 import StochasticSettings, Tr38901Channel
 from caviar_plugins.network.traced_channel import RayTracedChannel
 from caviar_plugins.network.traffic import TrafficSettings
 from caviar_plugins.network.uplink import UplinkSettings
-from caviar_plugins.radio.link_level import LinkSettings, check_nr_carrier
+from caviar_plugins.radio.link_settings import LinkSettings, check_nr_carrier
 from caviar_plugins.rt.settings import TraceSettings
 
 INTERFERENCE = ("full-buffer", "scheduled")
@@ -55,14 +55,14 @@ class NetworkParams:
     mcs_table: int = 1
     harq_processes: int = 1
     """Slots computed together, one per HARQ process (see
-    :class:`~caviar_plugins.radio.link_level.LinkSettings`): 8 is about 5x faster."""
+    :class:`~caviar_plugins.radio.link_settings.LinkSettings`): 8 is about 5x faster."""
     compile: bool = False
     """``torch.compile`` the link level (Sionna SYS): about 4x faster a step, after
     about 20 s of compilation at the first step (see
-    :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
+    :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
     cuda_graphs: bool | None = None
     """With ``compile``, replay each compiled group of slots as a CUDA graph (None: on a
-    CUDA device only; see :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
+    CUDA device only; see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
     device: str = "auto"
     """The torch device of the link level (Sionna SYS): ``auto`` (Sionna's choice, a GPU
     where there is one), ``cpu``, ``cuda`` or ``cuda:N``."""
@@ -232,7 +232,7 @@ def make_channel(kind: str, params: Any, cells: Sequence[Cell], *, link: Any, de
                  base_dir: pathlib.Path | None = None) -> Channel:
     """The channel model ``kind`` of a network's ``params``
     (:class:`~caviar_plugins.network.settings.NetworkParams`) over ``cells``: ``link`` is its
-    :class:`~caviar_plugins.radio.link_level.LinkSettings` (the subbands a frequency-selective
+    :class:`~caviar_plugins.radio.link_settings.LinkSettings` (the subbands a frequency-selective
     channel is evaluated at), ``device`` the resolved torch device, ``seed`` the run's."""
     if kind == "free-space":
         return FreeSpaceChannel(cells)

@@ -27,7 +27,7 @@ class RayTracedChannel:
     def __init__(self, params: Any, cells: Sequence[Cell], *, link: Any, device: Any, seed: int,
                  base_dir: pathlib.Path | None = None):
         """``params``: the network's (its ``scene``, ``raytracing``, ``evolution``, ``layout``);
-        ``link``: its :class:`~caviar_plugins.radio.link_level.LinkSettings` (the subbands the
+        ``link``: its :class:`~caviar_plugins.radio.link_settings.LinkSettings` (the subbands the
         channel is evaluated at); ``device``: the resolved torch device."""
         self.cells, self.evolution, self.device = list(cells), params.evolution, device
         self.tracer = SiteTracer(params.scene, params.raytracing, self.cells, seed=seed, base_dir=base_dir,

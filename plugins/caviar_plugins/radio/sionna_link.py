@@ -27,8 +27,9 @@ import numpy as np
 import caviar
 from caviar_plugins import protocol as paper
 from caviar_plugins.radio.link_budget import LinkBudget
-from caviar_plugins.radio.link_level import LinkLevel, LinkSettings, check_nr_carrier
+from caviar_plugins.radio.link_level import LinkLevel
 from caviar_plugins.radio.link_report import LINK_TOPICS, link_messages
+from caviar_plugins.radio.link_settings import LinkSettings, check_nr_carrier
 from caviar_plugins.radio.prediction import Forecaster, prediction_payload
 from caviar_plugins.radio.scene import LookaheadTracer, RadioConfig, RadioScene, check_lookahead_steps, radio_config
 from caviar_plugins.rt.scene import scene_path
@@ -96,7 +97,7 @@ class SionnaLinkParams(LinkBudgetParams, RadioConfig):
     subcarrier_spacing_hz: float = 120e3
     """``sys``: NR numerology (120 kHz: 0.125 ms slots); ``bandwidth_hz // (12·SCS)`` PRBs."""
     harq_processes: int = 8
-    """``sys``: slots per Sionna SYS call (see :class:`~caviar_plugins.radio.link_level.LinkSettings`)."""
+    """``sys``: slots per Sionna SYS call (see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
     bler_target: float = 0.1
     device: str = "auto"
     """``sys``: the torch device of the link level (``auto``: Sionna's choice, a GPU where
