@@ -246,6 +246,27 @@ def test_a_settled_compiled_link_level_checks_fewer_guards_and_decides_the_same(
     assert not ll._settled()
 
 
+def test_a_second_compiled_link_level_compiles_nothing_and_decides_as_the_first():
+    """Link levels of the same settings share their compiled group of slots (until 2026-11-29
+    each made its own PHY abstraction class, and compiled again): a second one, with its own
+    blocks, compiles nothing (torch's ``fail_on_recompile`` stance) and, from the same seed,
+    decides as the first did, bit for bit."""
+    import torch
+
+    rng = np.random.default_rng(9)
+    settings = LinkSettings(num_prb=51, harq_processes=8, subbands=4, compile=True)
+    serving = np.zeros(3, dtype=int)
+    calls = [14.0 + rng.normal(0.0, 3.0, size=(16, 3, 4)) for _ in range(2)]
+    first = LinkLevel(settings, n_cell=1, seed=11)
+    before = [first.run(sinr, serving) for sinr in calls]  # (compiles: before and after the blocks are built)
+    second = LinkLevel(settings, n_cell=1, seed=11)
+    with torch.compiler.set_stance("fail_on_recompile"):
+        after = [second.run(sinr, serving) for sinr in calls]
+    for a, b in zip(before, after, strict=True):
+        for field in dataclasses.fields(a):
+            np.testing.assert_array_equal(getattr(b, field.name), getattr(a, field.name), err_msg=field.name)
+
+
 def test_harq_processes_give_the_same_throughput_faster_in_calls():
     """D slots per call, each its own HARQ process: the long-run throughput of a cell stays
     within 3 % of the slot-by-slot loop's on the same channels."""
