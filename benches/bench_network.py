@@ -42,8 +42,7 @@ from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer, TracedChannels
 from caviar_plugins.network.ues import link_columns
 from caviar_plugins.network.uplink import UplinkSettings, uplink
-from caviar_plugins.radio.link_level import LinkLevel
-from caviar_plugins.radio.link_settings import LinkSettings
+from caviar_plugins.radio.link_level import LinkLevel, LinkSettings  # (link_level's, as a --baseline checkout has it)
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "results" / "network.json"
