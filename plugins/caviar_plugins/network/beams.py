@@ -240,28 +240,11 @@ def slot_sinr_db(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_be
     ``device`` (a setting or a ``torch.device``; at scale, tens of millions of products).
     ``linear``: the ratio itself, a float64 tensor left on the device (what a link level
     takes, :meth:`~caviar_plugins.radio.link_level.LinkLevel.run_linear`), not its dB in numpy."""
-    return slot_sinrs_db(cells, gains, serving, best_beam, beams, (noise_mw,), silent_idle, device, linear)[0]
-
-
-def slot_sinrs_db(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,
-                  beams: np.ndarray, noises_mw: Sequence[np.ndarray], silent_idle: bool, device: Any = HOST,
-                  linear: bool = False) -> list[Any]:
-    """:func:`slot_sinr_db` for each of ``noises_mw`` (the SINR and the SIR, say), the
-    interference summed once for all of them."""
     import torch
 
     dev = resolve(device)
-    signal, interference, unserved = _slot_terms(cells, gains, serving, best_beam, beams, silent_idle, dev)
-    out: list[Any] = []
-    for noise_mw in noises_mw:
-        noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
-        ratio = signal[None] / (noise[None, :, None] + interference)
-        if linear:
-            out.append(torch.where(unserved, float("nan"), ratio))
-            continue
-        db = 10 * torch.log10(ratio)  # (no signal: -inf; SIR alone: NaN)
-        out.append(to_numpy(torch.where(unserved, float("nan"), db)))  # (a mask, not an indexing: no wait on a GPU)
-    return out
+    terms = _slot_terms(cells, gains, serving, best_beam, beams, silent_idle, dev)
+    return _per_slot(terms, to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64), linear)
 
 
 def slot_sinr_and_wideband(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,
@@ -275,17 +258,28 @@ def slot_sinr_and_wideband(cells: Sequence[Cell], gains: Any, serving: np.ndarra
     import torch
 
     dev = resolve(device)
-    signal, interference, unserved = _slot_terms(cells, gains, serving, best_beam, beams, silent_idle, dev)
+    signal, interference, unserved = terms = _slot_terms(cells, gains, serving, best_beam, beams, silent_idle, dev)
     noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
-    ratio = signal[None] / (noise[None, :, None] + interference)
-    per_slot = torch.where(unserved, float("nan"), ratio if linear else 10 * torch.log10(ratio))
     w = to_torch(np.asarray(weights, dtype=float), dev, torch.float64)
     mean_signal = (signal * w).sum(dim=-1) / w.sum()  # [ue]
     mean_interference = (interference * w).sum(dim=-1) / w.sum()  # [slot, ue]
     ratios = torch.stack([(mean_signal / (noise + mean_interference)).mean(dim=0),
                           (mean_signal / mean_interference).mean(dim=0)])
     wide = to_numpy(torch.where(unserved[0, :, 0], float("nan"), 10 * torch.log10(ratios)))  # (the host's one read)
-    return per_slot if linear else to_numpy(per_slot), wide[0], wide[1]
+    return _per_slot(terms, noise, linear), wide[0], wide[1]
+
+
+def _per_slot(terms: tuple[Any, Any, Any], noise: Any, linear: bool) -> Any:
+    """[slot, ue, freq]: the SINR of :func:`_slot_terms`' ``terms`` with ``noise`` [ue] (a tensor
+    on their device; 0: the SIR), NaN for a UE without a cell: the ratio itself, a tensor, with
+    ``linear``, else its dB in numpy (no signal: -inf; the SIR alone: NaN)."""
+    import torch
+
+    signal, interference, unserved = terms
+    ratio = signal[None] / (noise[None, :, None] + interference)
+    # (a mask, not an indexing: no wait on a GPU)
+    out = torch.where(unserved, float("nan"), ratio if linear else 10 * torch.log10(ratio))
+    return out if linear else to_numpy(out)
 
 
 def _slot_terms(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,

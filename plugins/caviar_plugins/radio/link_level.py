@@ -343,17 +343,17 @@ class LinkLevel:
     def _guards(self) -> Any:
         """A context (for the call's groups only): how dynamo checks the compiled group's calls:
         every guard of its entries (over 400: the Sionna blocks' attributes, the settings, the
-        tensors' shapes) for the first
-        :data:`CHECKED_CALLS` calls at a UE capacity, which compile what they need (two entries:
-        before and after Sionna builds its blocks); then only the guards that tell the entries
-        apart (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``). A full check cost
-        137 µs a call on a 2-core AMD EPYC, the differences 76 µs (50 calls a step at 21 cells ×
-        1,000 UEs: 3 ms of host time a step, on a GPU too), with the same results bit for bit
-        (tests/test_network.py). What could change a guard's outcome between this link level's
-        calls at one capacity, its blocks and tensors made anew, resets the count (:meth:`_grow`,
-        :meth:`restore`); and where torch would have to compile (it refuses to in this stance),
-        the group runs again under every guard, and the count starts again. The stance is the
-        process's while the call's groups run (the host calls one plugin at a time)."""
+        tensors' shapes) for the first :data:`CHECKED_CALLS` calls at a UE capacity, which compile
+        what they need (two entries: before and after Sionna builds its blocks); then only the
+        guards that tell the entries apart (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``).
+        At 21 cells × 1,000 UEs (50 calls a step) on a 2-core Intel Xeon the guards took 13.5 ms of
+        host time a step checked in full and 6.4 ms so (``benches/bench_host_overhead.py``: host
+        work on a GPU too), with the same results bit for bit (tests/test_network.py). What could
+        change a guard's outcome between this link level's calls at one capacity, its blocks and
+        tensors made anew, resets the count (:meth:`_grow`, :meth:`restore`); and where torch
+        would have to compile (it refuses to in this stance), the group runs again under every
+        guard, and the count starts again. The stance is the process's while the call's groups
+        run (the host calls one plugin at a time)."""
         if not self._settled():
             return contextlib.nullcontext()
         # (set_stance sets the stance when called, and puts the last one back when its block ends)

@@ -31,6 +31,7 @@ own loop (no shoot cache, no path-buffer overflow report): slower, never wrong.
 from __future__ import annotations
 
 import contextlib
+import functools
 import inspect
 import math
 from collections.abc import Callable, Iterator
@@ -536,24 +537,27 @@ def default_generator(device: Any) -> Any:
     return torch.default_generator
 
 
-_OWN_STREAM: list[Any] = []  # (the one PHYAbstraction subclass: made at first use, Sionna imported late)
-
-
 def phy_abstraction(device: Any, generator: Any) -> Any:
     """Sionna SYS's ``PHYAbstraction`` on ``device`` drawing its HARQ outcomes from ``generator``
     (its ``torch_rng``, which is Sionna's shared generator for the device otherwise). One class
-    for every link level: a class made per call (as until 2026-11-29) failed dynamo's type guard
-    of every other link level's compiled entries, so each new link level compiled its group of
-    slots again (about 20 s, and after 32 of them torch's limit of entries ran the rest eager)."""
-    if not _OWN_STREAM:
-        import sionna.sys
-
-        class OwnStream(sionna.sys.PHYAbstraction):
-            @property
-            def torch_rng(self):
-                return self._own_generator  # (read eager only: compiled code draws from the device's default)
-
-        _OWN_STREAM.append(OwnStream)
-    block = _OWN_STREAM[0](device=str(device))
+    for every link level (:func:`_own_stream_class`): a class made per call (as until 2026-11-29)
+    failed dynamo's type guard of every other link level's compiled entries, so each new link
+    level compiled its group of slots again (about 20 s, and after 32 of them torch's limit of
+    entries ran the rest eager)."""
+    block = _own_stream_class()(device=str(device))
     block._own_generator = generator
     return block
+
+
+@functools.cache
+def _own_stream_class() -> Any:
+    """The ``PHYAbstraction`` whose ``torch_rng`` is the block's own generator (made once, at
+    first use: Sionna is imported late)."""
+    import sionna.sys
+
+    class OwnStream(sionna.sys.PHYAbstraction):
+        @property
+        def torch_rng(self):
+            return self._own_generator  # (read eager only: compiled code draws from the device's default)
+
+    return OwnStream
