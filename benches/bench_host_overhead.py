@@ -5,8 +5,9 @@ of slots.
 
 The plugin runs as ``benches/bench_network.py --plugin-only`` runs it: the osm-city scene
 ray traced (every site in one solve), SSB beams, the uplink, ``interference = "scheduled"``,
-full buffers, 8 HARQ processes of 0.5 ms slots per call on 8 subbands, ``torch.compile``d link
-levels, 0.1 s steps (200 slots: 25 groups a link a step). Of the median step by host time (the
+full buffers, 8 HARQ processes of 0.5 ms slots per call on 8 subbands, a ``torch.compile``d link
+level, 0.1 s steps (200 slots: 25 groups a link a step; since 2026-11-29 (evening) one compiled
+call a group for both links, two before). Of the median step by host time (the
 first, which traces and compiles, left out; on a 2-core machine shared with other work a step is
 now and then many times slower, its OpenMP threads waiting for busy cores):
 
@@ -16,8 +17,9 @@ now and then many times slower, its OpenMP threads waiting for busy cores):
   network's own work (measurements, mobility, beams, the uplink's SINR, the link levels'
   inputs and tallies, the reports);
 - the wall ms of the step's phases: ``_measure`` (the channel, beams, RSRP, mobility),
-  ``_downlink_sinr``, the uplink's powers and SINR (``uplink``), the two link levels' ``run``
-  (their compiled groups included); the rest is the reports and the queues;
+  ``_downlink_sinr``, the uplink's powers and SINR (``uplink``), the link level's call
+  (``dl_ul_link_run``: both links; a baseline's two link levels' ``dl_link_run`` and
+  ``ul_link_run``; their compiled groups included); the rest is the reports and the queues;
 - ``host_torch_ms``: of ``host_ms``, the top-level torch operations outside the link levels'
   runs (the channel's arithmetic: paths moved, beam gains, per-slot SINRs; kernels on a GPU, as
   the profiled step read them), and ``host_python_numpy_ms`` the rest (Python and numpy);
@@ -135,7 +137,7 @@ ENTRY_EVENTS = ("TorchDynamo Cache Lookup", "AOTDispatcher Runtime Wrapper Prolo
 """torch.profiler's events of a compiled call's entry: dynamo's guards (choosing the compiled entry)
 and the runtime wrapper's prologue; with each region's own time (its inputs gathered, its side
 effects applied), the host's work a compiled group of slots costs beyond its kernels."""
-RUNS = ("run", "run_linear")
+RUNS = ("run", "run_linear", "run_links")
 """A link level's calls (numpy dB SINRs, or linear ones as a tensor): the link levels' phases."""
 
 
@@ -162,13 +164,15 @@ def _launches(net, step) -> tuple[int, int, int, float, float, float]:
     each region's own time: host work on any machine), and of them dynamo's guards."""
     from torch.profiler import ProfilerActivity, profile, record_function
 
+    from bench_network import link_levels
+
     def annotated(inner):
         def call(*args, **kwargs):
             with record_function("link_run"):
                 return inner(*args, **kwargs)
         return call
 
-    for link in (net.link, net.ul_link):
+    for link in link_levels(net):
         for name in RUNS:
             if hasattr(link, name):  # (a baseline's link level may have no run_linear)
                 setattr(link, name, annotated(getattr(link, name)))
@@ -287,6 +291,8 @@ def _proxy(net, steps: list) -> dict:
     events' garbage, the bench's, not the plugin's."""
     from torch.overrides import _pop_mode_temporarily
 
+    from bench_network import link_levels
+
     outside = {"s": 0.0, "cpu": 0.0}
 
     def untimed(inner):
@@ -311,7 +317,7 @@ def _proxy(net, steps: list) -> dict:
             collected["runs"] += 1
 
     saved = [(net.channel.tracer, "trace", net.channel.tracer.trace)]
-    saved += [(link, "_group", link._group) for link in (net.link, net.ul_link)]
+    saved += [(link, "_group", link._group) for link in link_levels(net)]
     for obj, name, inner in saved:
         setattr(obj, name, untimed(inner))
     cal = _calibrate()
@@ -365,7 +371,7 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
 
     import torch
 
-    from bench_network import SCENE, TS, compile_outside, sites, ues
+    from bench_network import SCENE, TS, compile_outside, link_levels, sites, ues
     from caviar._host import Hosted, check_params
     from caviar.plugin import Inbox, Message
     from caviar_plugins.network.plugin import RadioNetwork
@@ -393,8 +399,8 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
             gc.unfreeze()  # (the host's freeze after set-up undone: as before 2026-11-29)
         assert hosted.ctx is not None
         net = hosted.plugin
-        for link in (net.link, net.ul_link):
-            compile_outside(link.s, len(net.cells), n_ue)
+        for link in link_levels(net):
+            compile_outside(getattr(link, "links", link.s), len(net.cells), n_ue)
         timing: dict = {}
 
         def step(k: int, box: Inbox | None = None) -> int:
@@ -405,12 +411,13 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
         if settle:  # (as the host does after a plugin's first step: its objects out of the collector's way)
             hosted.settle()
         _timed(net.channel.tracer, "trace", timing, "rt")
-        for link, key in ((net.link, "sys"), (net.ul_link, "sys")):
-            _timed(link, "_group", timing, key)
+        for link in link_levels(net):
+            _timed(link, "_group", timing, "sys")
         _timed(net, "_measure", timing, "measure")
         _timed(sys.modules[RadioNetwork.__module__], "downlink_sinr", timing, "downlink_sinr")
         _timed(sys.modules[RadioNetwork.__module__], "uplink", timing, "uplink_sinr")  # (powers and SINR)
-        for link, key in ((net.link, "dl_link_run"), (net.ul_link, "ul_link_run")):
+        keys = ("dl_link_run", "ul_link_run") if len(link_levels(net)) > 1 else ("dl_ul_link_run",)
+        for link, key in zip(link_levels(net), keys, strict=True):
             for name in RUNS:
                 if hasattr(link, name):
                     _timed(link, name, timing, key)
@@ -438,7 +445,7 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
     step_ms = 1e3 * wall
     rt_ms, sys_ms = 1e3 * timing.get("rt", 0.0), 1e3 * timing.get("sys", 0.0)
     phases = {k: round(1e3 * timing[k], 2) for k in ("measure", "downlink_sinr", "dl_link_run", "uplink_sinr",
-                                                       "ul_link_run") if k in timing}
+                                                       "ul_link_run", "dl_ul_link_run") if k in timing}
     return {"cells": len(net.cells), "ues": n_ue, "ue_reports": ue_reports, "steps": steps, "of_the_median_step": True,
             "encode_ms": encode_ms,
             "messages_per_step": messages / steps,

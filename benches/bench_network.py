@@ -74,14 +74,26 @@ def ues(rng: np.random.Generator, n: int = 100):
     return kinds, pos, vel
 
 
-def compile_outside(settings: LinkSettings, n_cell: int, n_ue: int) -> float:
-    """Compiles a link level of these settings outside the timed loop (once per process), on
-    a link level of its own; returns the seconds it took."""
+def compile_outside(settings: LinkSettings | tuple[LinkSettings, ...], n_cell: int, n_ue: int) -> float:
+    """Compiles a link level of these settings (one link's, or several links' run together)
+    outside the timed loop (once per process), on a link level of its own; returns the seconds
+    it took."""
     a = time.perf_counter()
     warm = LinkLevel(settings, n_cell, seed=9)
+    links = getattr(warm, "links", (settings,))  # (a baseline's link level runs one link)
+    zeros, serving = np.zeros((links[0].harq_processes, n_ue, links[0].subbands)), np.zeros(n_ue, dtype=int)
     for _ in range(2):
-        warm.run(np.zeros((settings.harq_processes, n_ue, settings.subbands)), np.zeros(n_ue, dtype=int))
+        if len(links) > 1:
+            warm.run_links([zeros] * len(links), serving, len(zeros))
+        else:
+            warm.run(zeros, serving)
     return time.perf_counter() - a
+
+
+def link_levels(net) -> list:
+    """The radio-network plugin's link levels: one for both directions (since 2026-11-29), or a
+    baseline's downlink's and uplink's."""
+    return [link for link in (net.link, getattr(net, "ul_link", None)) if link is not None]
 
 
 def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, vel, initial: TracedChannels,
@@ -183,8 +195,8 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
         assert hosted.ctx is not None
         net = hosted.plugin
         if compiled:
-            for link in (net.link, net.ul_link):
-                compile_outside(link.s, len(net.cells), len(pos0))
+            for link in link_levels(net):
+                compile_outside(getattr(link, "links", link.s), len(net.cells), len(pos0))
         out: list[tuple[str, object]] = []
         steps = round(seconds / TS)
         first = 0.0

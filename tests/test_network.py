@@ -494,7 +494,7 @@ def test_proportional_fair_per_subband_serves_each_ue_where_its_channel_is_stron
     schedule = ll._schedule
     ll._schedule = lambda *a: granted.append(schedule(*a)) or granted[-1]  # record the decisions
     res = ll.run(block, np.zeros(2, dtype=int))
-    g = torch.cat(granted).numpy()[:, 0, :, :2]  # [slot, subband, ue]
+    g = torch.cat([x[0] for x in granted]).numpy()[:, 0, :, :2]  # [slot, subband, ue] (of the one link)
     assert g[:, :4, 0].mean() > 0.8 and g[:, 4:, 1].mean() > 0.8, g.mean(axis=0)
     # Each UE on the whole band in turn (round robin) on the same channels: the EESM of a
     # band half in a fade is far below the strong half's SINR.

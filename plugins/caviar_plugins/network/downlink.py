@@ -54,7 +54,7 @@ def downlink_sinr(cells: Sequence[Cell], rx: np.ndarray, wideband: np.ndarray, s
                   subband_prbs: np.ndarray | None = None, device: Any = "auto", linear: bool = False):
     """Per slot and subband [slot or 1, ue, subband], and wideband [ue], SINR and SIR (dB).
     ``linear``: with beams, the per-slot SINR as a ratio, a float64 tensor left on the torch
-    ``device`` where it is computed (:func:`~caviar_plugins.network.ues.run_link` gives it to the
+    ``device`` where it is computed (:func:`~caviar_plugins.network.ues.run_links` gives it to the
     link level there); without, the per-slot SINR is numpy's dB all the same (one row, small).
     ``rx``: received power [ue, cell, subband] and ``wideband`` [ue, cell] (dBm);
     ``serving`` [ue] (-1: none). With ``scheduled`` (``interference = "scheduled"``) only

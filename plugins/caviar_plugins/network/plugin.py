@@ -27,6 +27,7 @@ power sum instead).
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -46,7 +47,7 @@ from caviar_plugins.network.ues import (
     beam_columns,
     beam_table,
     link_fields,
-    run_link,
+    run_links,
     throughput_messages,
     ue_extras,
     ue_reports,
@@ -114,10 +115,11 @@ class RadioNetwork(caviar.Plugin):
                                      f"not whole groups of harq_processes = {p.harq_processes}",
                                      "params.harq_processes")
         self.mm = MobilityManager(p.handover, self.names)
-        self.link = LinkLevel(link, len(self.cells), seed=ctx.seed)
-        self.ul_link = None if p.uplink is None else LinkLevel(
-            dataclasses.replace(link, direction="uplink", mcs_table=p.uplink.mcs_table), len(self.cells),
-            seed=ctx.seed + 1)
+        # One link level for the downlink and the uplink (PUSCH, its MCS table): LinkLevel.run_links
+        self.directions = ("downlink",) if p.uplink is None else ("downlink", "uplink")
+        self.link = LinkLevel(link if p.uplink is None else
+                              [link, dataclasses.replace(link, direction="uplink", mcs_table=p.uplink.mcs_table)],
+                              len(self.cells), seed=ctx.seed)
         self.queues = None if p.traffic is None or p.traffic.full_buffer else Queues(p.traffic, ctx.seed)
         self.ues = UeTable()  # UE_Id -> column and type; per column, position, last SINR...
         self.channel = make_channel(p.channel, p, self.cells, link=link, device=self.device, seed=ctx.seed,
@@ -142,9 +144,7 @@ class RadioNetwork(caviar.Plugin):
         self.mm.forget_row(col)
         if self.queues is not None:
             self.queues.forget(u)
-        for link in (self.link, self.ul_link):
-            if link is not None:
-                link.released(col)
+        self.link.released(col)
         self.ues.last_sinr[col] = np.nan
         self.channel.forget(u)
 
@@ -175,7 +175,7 @@ class RadioNetwork(caviar.Plugin):
         # channel's (the last trace, or the 38.901 draws) and the queues are the state.
         return {"map_files": [f.relative_to(self.ctx.run_dir).as_posix() for f in self.map_files],
                 "layer": self.layer, "ues": self.ues.state(), "handover": self.mm.state(),
-                "link": self.link.state(), "ul_link": None if self.ul_link is None else self.ul_link.state(),
+                "link": self.link.state(),
                 "channel": self.channel.state(), "drops": self.drops,
                 "queues": None if self.queues is None else self.queues.state()}
 
@@ -185,8 +185,6 @@ class RadioNetwork(caviar.Plugin):
         self.ues.restore(state["ues"])
         self.mm.restore(state["handover"])
         self.link.restore(state["link"])
-        if self.ul_link is not None:
-            self.ul_link.restore(state["ul_link"])
         if self.queues is not None:
             self.queues.restore(state["queues"])
         self.channel.restore(state["channel"])
@@ -233,9 +231,7 @@ class RadioNetwork(caviar.Plugin):
         events = self.mm.update_rows(t, cols, ids, rsrp, self.ues.last_sinr[cols])
         serving = self.mm.serving_cell[cols]
         for k in np.flatnonzero((old >= 0) & (serving >= 0) & (serving != old)).tolist():  # (handed over)
-            for link in (self.link, self.ul_link):
-                if link is not None:
-                    link.moved(int(cols[k]), int(serving[k]))
+            self.link.moved(int(cols[k]), int(serving[k]))
         return rx, wideband, rsrp, serving, events
 
     def step(self, t, inbox):
@@ -256,13 +252,18 @@ class RadioNetwork(caviar.Plugin):
             self.cells, rx, wideband, serving, talking, noise_figure_db=self.p.noise_figure_db,
             scheduled=self.p.interference == "scheduled", beams=self.beams, slots=self.slots,
             subband_prbs=self.subband_prbs, device=self.device, linear=True)
-        res = run_link(self.link, per_slot, serving, cols, self.slots, in_columns(backlog, cols))
+        per_slots, backlogs, ul_in = [per_slot], [in_columns(backlog, cols)], None
+        if self.p.uplink is not None:
+            ul_in = self._uplink_in(t, ids, types, rx, serving)  # (its backlog, powers and per-slot SINR)
+            per_slots.append(ul_in[2])
+            backlogs.append(in_columns(ul_in[0], cols))
+        res, *ul_res = run_links(self.link, per_slots, serving, cols, self.slots, backlogs)  # (both directions at once)
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         yield from ((NETWORK_EVENTS, e) for e in events)
         yield from self._delivered(t, ids, "downlink", res.delivered_bits[:, cols])
         ul = None
-        if self.ul_link is not None:
-            ul = yield from self._uplink(t, ids, types, rx, serving, cols)
+        if ul_in is not None:
+            ul = yield from self._uplink_out(t, ids, ul_res[0], ul_in[1], ul_in[2], cols)
         covered = serving >= 0
         self.ues.last_sinr[cols] = np.where(covered, sinr, np.nan)
         sv = np.maximum(serving, 0)
@@ -272,17 +273,16 @@ class RadioNetwork(caviar.Plugin):
             listed = np.sort(np.argsort(-rsrp, axis=1, kind="stable")[:, :self.p.report_cells], axis=1)
         link = link_fields(res, cols) if self.p.link_model == "sys" else None
         best_beams = None if self.beams is None else self.beams[1]
-        directions = ("downlink", "uplink") if self.ul_link else ("downlink",)
         if self.p.ue_reports == "table":  # (the paper's per-UE throughput, then one table of the rest)
             yield from throughput_messages(ids, types, mbps[cols])
             beams = None if self.beam_table is None or best_beams is None else \
                 beam_columns(self.beam_table, serving, best_beams)
-            queued = [] if self.queues is None else self.queues.reports(ids, types, directions)
+            queued = [] if self.queues is None else self.queues.reports(ids, types, self.directions)
             yield NETWORK_UES, ue_table(self.names, ids, types, serving, sinr, sir, loss, rsrp, listed, mbps[cols],
                                         link, ul, beams, queued, self.ues.position[cols])
         else:
-            ul_fields = None if ul is None else uplink_fields(uplink_columns(ul))
-            extras = ue_extras(ids, types, serving, ul_fields, self.beam_reports, best_beams, self.queues, directions)
+            ul_f = None if ul is None else uplink_fields(uplink_columns(ul))
+            extras = ue_extras(ids, types, serving, ul_f, self.beam_reports, best_beams, self.queues, self.directions)
             yield from ue_reports(self.names, ids, types, serving, sinr, sir, loss, rsrp, listed, mbps[cols], link,
                                   extras, self.ues.position[cols])
         used = res.cells_active.mean(axis=0)
@@ -310,16 +310,17 @@ class RadioNetwork(caviar.Plugin):
             if done is not None and x.deliver_to is not None:
                 yield f"{x.deliver_to}.{x.ue}", x.payload
 
-    def _uplink(self, t: float, ids: list[str], types: list[str], rx: np.ndarray, serving: np.ndarray,
-                cols: np.ndarray):
-        """The step's PUSCH: powers, per-slot SINR, the uplink link level, the transfers it
-        completed (yielded); returns every UE's ``ul_*`` fields (:func:`uplink_arrays`)."""
-        assert self.p.uplink is not None and self.ul_link is not None
+    def _uplink_in(self, t: float, ids: list[str], types: list[str], rx: np.ndarray, serving: np.ndarray):
+        """The step's PUSCH before the link level: its backlog, the UEs' powers and the per-slot SINR."""
+        assert self.p.uplink is not None
         backlog, talking = self._backlog(t, ids, types, "uplink")
         beam_gains, best = self.beams if self.beams is not None else (None, None)
         tx, per_slot = uplink(self.cells, self.p.uplink, serving, rx, beam_gains, best, self.p.num_prb,
                               self.p.subcarrier_spacing_hz, self.slots, self.device, talking, linear=True)
-        res = run_link(self.ul_link, per_slot, serving, cols, self.slots, in_columns(backlog, cols))
+        return backlog, tx, per_slot
+
+    def _uplink_out(self, t: float, ids: list[str], res, tx: Any, per_slot: Any, cols: np.ndarray):
+        """The step's PUSCH after the link level (``res``): its completed transfers; every UE's ``ul_*`` fields."""
         yield from self._delivered(t, ids, "uplink", res.delivered_bits[:, cols])
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         return uplink_arrays(tx, mean_sinr_db(per_slot), mbps[cols], link_fields(res, cols))

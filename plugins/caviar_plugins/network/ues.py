@@ -378,24 +378,29 @@ def link_columns(per_slot: np.ndarray, serving: np.ndarray, cols: np.ndarray, sl
     return np.broadcast_to(sinr_cols, (slots, *sinr_cols.shape[1:])), serving_cols
 
 
-def run_link(link: Any, per_slot: Any, serving: np.ndarray, cols: np.ndarray, slots: int, backlog: Any = None) -> Any:
-    """A link level's call on the step's UE rows, in its UE columns (stable across steps):
-    ``per_slot`` [slot or 1, ue, subband] numpy dB (:func:`link_columns`, then
-    :meth:`~caviar_plugins.radio.link_level.LinkLevel.run`) or a torch tensor of linear SINRs
-    (placed in the columns where it is, then
-    :meth:`~caviar_plugins.radio.link_level.LinkLevel.run_linear`: no way through numpy)."""
-    if isinstance(per_slot, np.ndarray):
-        return link.run(*link_columns(per_slot, serving, cols, slots), backlog=backlog)
+def run_links(link: Any, per_slots: list, serving: np.ndarray, cols: np.ndarray, slots: int,
+              backlogs: list | None = None) -> list:
+    """A link level's call on the step's UE rows, in its UE columns (stable across steps), for
+    each of its links (downlink, then uplink): ``per_slots``, each [slot or 1, ue, subband], numpy
+    dB (placed by :func:`link_columns`) or a torch tensor of linear SINRs (placed in the columns
+    where it is: no way through numpy); then
+    :meth:`~caviar_plugins.radio.link_level.LinkLevel.run_links`. Each link's results."""
     width = int(cols.max()) + 1
     serving_cols = np.full(width, -1)
     serving_cols[cols] = serving
-    if width != len(cols) or not np.array_equal(cols, np.arange(width)):  # (columns left free, or out of order)
-        from caviar_plugins.torch_device import to_torch
+    moved = width != len(cols) or not np.array_equal(cols, np.arange(width))  # (columns left free, or out of order)
+    placed = []
+    for per_slot in per_slots:
+        if isinstance(per_slot, np.ndarray):
+            per_slot = link_columns(per_slot, serving, cols, slots)[0]
+        elif moved:
+            from caviar_plugins.torch_device import to_torch
 
-        placed = per_slot.new_full((per_slot.shape[0], width, per_slot.shape[2]), float("nan"))
-        placed[:, to_torch(cols, per_slot.device)] = per_slot
-        per_slot = placed
-    return link.run_linear(per_slot, serving_cols, slots, backlog=backlog)
+            spread = per_slot.new_full((per_slot.shape[0], width, per_slot.shape[2]), float("nan"))
+            spread[:, to_torch(cols, per_slot.device)] = per_slot
+            per_slot = spread
+        placed.append(per_slot)
+    return link.run_links(placed, serving_cols, slots, backlogs)
 
 
 def ue_extras(ids: list[str], types: list[str], serving: np.ndarray, ul: list[dict] | None,

@@ -27,6 +27,13 @@ each cell's time equally among its UEs at ``Σ_subbands B_k·log2(1 + SINR_k)`` 
 UEs come and go and hand over: each UE has a column in the blocks' state, kept
 across steps; a UE that changes cell starts with a fresh proportional-fair history
 there.
+
+One link level may run several links of the same cells and UEs at once (the network's downlink
+and uplink, :meth:`LinkLevel.run_links`): every block then has a leading link axis, each link keeps
+its own loops, histories and MCS tables (PDSCH or PUSCH), and a group of slots is one call for
+all of them (on a GPU, one compiled program; on any machine, half the host's work of two link
+levels). A link with nothing queued in a group sits it out: its loops and histories stay as
+they were.
 """
 
 from __future__ import annotations
@@ -34,12 +41,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import sys
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
 from caviar_plugins.radio.link_queue import CallQueue as _Queue
 from caviar_plugins.radio.link_settings import DATA_SYMBOLS_PER_SLOT, LinkSettings, cuda_graphs_on
+from caviar_plugins.radio.slot_results import SlotResults, tallied
 from caviar_plugins.rt import sionna_adapter as adapter
 from caviar_plugins.torch_device import resolve, to_numpy, to_torch
 
@@ -51,39 +59,29 @@ entries) at a UE capacity, after which the link level's further calls there chec
 that tell the entries apart (:meth:`LinkLevel._guards`)."""
 
 
-@dataclasses.dataclass
-class SlotResults:
-    """What a UE got over the slots of one call."""
-
-    decoded_bits: np.ndarray  # [n_ue] summed over the slots
-    scheduled_slots: np.ndarray  # [n_ue] slots with at least one PRB
-    prbs: np.ndarray  # [n_ue] PRB-slots allocated
-    acks: np.ndarray  # [n_ue]
-    nacks: np.ndarray  # [n_ue]
-    mcs: np.ndarray  # [n_ue] the last MCS used (-1: never scheduled)
-    tbler: np.ndarray  # [n_ue] mean TBLER over scheduled slots (NaN: none)
-    sinr_eff_db: np.ndarray  # [n_ue] the last effective SINR (NaN: none)
-    cells_active: np.ndarray  # [n_slots, n_cell] cells that scheduled someone
-    delivered_bits: np.ndarray  # [n_slots, n_ue] bits decoded per slot (of the UE's queue)
-
-    def bler(self, ue: int) -> float:
-        return self.nacks[ue] / max(self.acks[ue] + self.nacks[ue], 1)
-
-    def throughput_bps(self, n_slots: int, slot_s: float) -> np.ndarray:
-        return self.decoded_bits / (n_slots * slot_s)
-
-    def summary(self, u: int) -> dict[str, Any]:
-        return {"mcs": int(self.mcs[u]),
-                "tbler": None if np.isnan(self.tbler[u]) else round(float(self.tbler[u]), 4),
-                "harq_ack": int(self.acks[u]), "harq_nack": int(self.nacks[u]),
-                "prbs": int(self.prbs[u])}
+def joint_links(settings: LinkSettings | Sequence[LinkSettings]) -> tuple[LinkSettings, ...]:
+    """The links one :class:`LinkLevel` runs: ``settings``, or each of a sequence of them,
+    which must agree on everything but their direction and MCS table."""
+    links = (settings,) if isinstance(settings, LinkSettings) else tuple(settings)
+    if not links:
+        raise ValueError("a link level needs the settings of at least one link")
+    first = links[0]
+    for k, other in enumerate(links[1:], 1):
+        if dataclasses.replace(other, direction=first.direction, mcs_table=first.mcs_table) != first:
+            raise ValueError(f"links run together share every setting but their direction and MCS table: "
+                             f"link {k} ({other}) differs from link 0 ({first})")
+    return links
 
 
 class LinkLevel:
-    """Scheduling, link adaptation and PHY abstraction for ``n_cell`` cells."""
+    """Scheduling, link adaptation and PHY abstraction for ``n_cell`` cells, on one link or on
+    several at once (``settings`` a sequence: :meth:`run_links`)."""
 
-    def __init__(self, settings: LinkSettings, n_cell: int, seed: int = 0, capacity: int = 8):
-        self.s = settings
+    def __init__(self, settings: LinkSettings | Sequence[LinkSettings], n_cell: int, seed: int = 0,
+                 capacity: int = 8):
+        self.links = joint_links(settings)
+        self.s = self.links[0]
+        settings = self.s
         self.n_cell = n_cell
         self.capacity = 0
         self.seed = seed
@@ -110,6 +108,7 @@ class LinkLevel:
             # each PRB's subband, [num_prb] (the EESM's input by one gather, of a fixed shape)
             self._prb_subband = to_torch(np.repeat(np.arange(settings.subbands), settings.subband_prbs),
                                          self.device, self._torch.int64)
+            self._all_links = self._torch.ones(len(self.links), dtype=self._torch.bool, device=self.device)
         self._group = self._group_eager
         self._compiled: Any = None
         self._checked = 0  # (compiled calls at this capacity under every guard: _guards)
@@ -134,41 +133,54 @@ class LinkLevel:
 
     def _grow(self, capacity: int) -> None:
         """Room for ``capacity`` UEs, keeping the state of the first ``self.capacity``.
-        State, per HARQ process d: OLLA offset and last SINR [D, cap], PF history
-        [D, cell, cap], last HARQ outcome [D, cap] and achieved rate [D, cell, cap]."""
+        State, per link l and HARQ process d: OLLA offset and last SINR [L, D, cap], PF history
+        [L, D, cell, cap], last HARQ outcome [L, D, cap] and achieved rate [L, D, cell, cap]."""
         old = self.capacity
         self.capacity = capacity
         self._checked = 0  # (new blocks, new shapes: checked in full again)
         if self._sys is None:
             return
         torch = self._torch
-        d, c = self.s.harq_processes, self.n_cell
+        n, d, c = len(self.links), self.s.harq_processes, self.n_cell
         olla = self._sys.OuterLoopLinkAdaptation(self.phy, num_ut=capacity, bler_target=self.s.bler_target,
-                                                 batch_size=[d], device=str(self.device))
+                                                 batch_size=[n, d], device=str(self.device))
         # The PF metric is the same on every PRB of a subband, so Sionna's scheduler decides
         # on one resource per subband, standing for its PRBs.
-        pf = self._sys.PFSchedulerSUMIMO(capacity, self.s.subbands, 1, batch_size=[d, c], device=str(self.device))
-        harq = torch.full((d, capacity), -1, dtype=torch.int32, device=self.device)
-        rate_last = torch.zeros(d, c, capacity, device=self.device)
+        pf = self._sys.PFSchedulerSUMIMO(capacity, self.s.subbands, 1, batch_size=[n, d, c], device=str(self.device))
+        harq = torch.full((n, d, capacity), -1, dtype=torch.int32, device=self.device)
+        rate_last = torch.zeros(n, d, c, capacity, device=self.device)
         if old:
             adapter.grow_link_adaptation(olla, self.olla, old)
             adapter.grow_scheduler(pf, self.pf, old)
-            harq[:, :old], rate_last[:, :, :old] = self.harq, self.rate_last
+            harq[..., :old], rate_last[..., :old] = self.harq, self.rate_last
         self.olla, self.pf, self.harq, self.rate_last = olla, pf, harq, rate_last
+        # Each link's MCS table and category (PDSCH or PUSCH): a number where the links share it,
+        # else a tensor [L, D, cap] (Sionna's blocks take one per UE).
+        self._mcs_table, self._mcs_category = (self._per_link([s.mcs_table for s in self.links], capacity),
+                                               self._per_link([s.mcs_category for s in self.links], capacity))
+
+    def _per_link(self, values: list[int], capacity: int) -> Any:
+        if len(set(values)) == 1:
+            return values[0]
+        torch, shape = self._torch, (len(values), self.s.harq_processes, capacity)
+        return torch.tensor(values, dtype=torch.int32, device=self.device)[:, None, None].expand(shape).contiguous()
 
     def state(self) -> dict[str, Any]:
         """What changes from slot to slot, for a checkpoint: the capacity, every tensor
         the OLLA loops and the PF scheduler keep, the HARQ outcomes, the achieved rates and
         the position of Sionna's random stream (the PHY abstraction's ACK draws)."""
         if self._sys is None:
-            return {"capacity": self.capacity}
-        return {"capacity": self.capacity,
+            return {"capacity": self.capacity, "links": len(self.links)}
+        return {"capacity": self.capacity, "links": len(self.links),
                 "olla": adapter.block_state(self.olla), "pf": adapter.block_state(self.pf),
                 "harq": self.harq.clone(), "rate_last": self.rate_last.clone(),
                 "rng": self._generator.get_state(), "compiled_rng": self._compiled_rng.clone()}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Puts back :meth:`state` into a link level built with the same settings."""
+        if state.get("links") != len(self.links):
+            raise ValueError(f"a link level's state of {state.get('links', 'unknown')} link(s), put back into one of "
+                             f"{len(self.links)} (a checkpoint of other settings, or of a version before 2026-11-29)")
         if state["capacity"] > self.capacity:
             self._grow(state["capacity"])
         if self._sys is None:
@@ -194,15 +206,15 @@ class LinkLevel:
         """UE column ``u`` now belongs to ``new_cell``: a fresh PF history there."""
         if self._sys is not None:
             adapter.reset_scheduler_history(self.pf, u, new_cell)
-            self.rate_last[:, :, u] = 0.0
+            self.rate_last[..., u] = 0.0
 
     def released(self, u: int) -> None:
         """Column ``u`` is free again (its UE left): its state goes back to new."""
         if self._sys is not None:
             adapter.reset_scheduler_history(self.pf, u)
-            self.rate_last[:, :, u] = 0.0
+            self.rate_last[..., u] = 0.0
             adapter.reset_link_adaptation(self.olla, u)
-            self.harq[:, u] = -1
+            self.harq[..., u] = -1
 
     def run(self, sinr_db: np.ndarray, serving: np.ndarray, backlog: Any = None) -> SlotResults:
         """Runs ``sinr_db.shape[0]`` slots. ``sinr_db``: SINR of each UE on its serving
@@ -212,52 +224,95 @@ class LinkLevel:
         arriving per slot); None: full buffer. With a backlog a UE is scheduled only in slots
         (groups of ``harq_processes`` slots) that begin with bits queued, and what it decodes
         beyond its queue is padding: ``delivered_bits`` counts only the queue's bits."""
-        sinr_db = np.asarray(sinr_db, dtype=float)
-        if sinr_db.ndim == 2:
-            sinr_db = np.broadcast_to(sinr_db[..., None], (*sinr_db.shape, self.s.subbands))
-        if sinr_db.ndim != 3 or sinr_db.shape[2] != self.s.subbands:
-            raise ValueError(f"sinr_db: expected [n_slots, n_ue] or [n_slots, n_ue, {self.s.subbands}], "
-                             f"got shape {sinr_db.shape}")
-        n_slots, n_ue, _ = sinr_db.shape
-        self.ensure(n_ue)
-        queue = _Queue(n_slots, n_ue, backlog)
-        if self._sys is None:
-            return self._shannon(sinr_db, serving, queue)
-        return self._sys_slots(self._linear_in(sinr_db, serving), serving, queue)
+        sinr_db = self._checked_db(sinr_db)
+        return self._one_link().run_links([sinr_db], serving, sinr_db.shape[0], [backlog])[0]
 
     def run_linear(self, sinr: Any, serving: np.ndarray, slots: int, backlog: Any = None) -> SlotResults:
         """:meth:`run` on linear SINRs as a torch tensor, [n_slots or 1 (every slot's), n_ue,
         subbands] (NaN: a UE without a cell): they become the link level's float32 SINRs where
         they are, without a way through numpy (at 1,000 UEs a step's are millions), the same
         float32 numbers as :meth:`run` makes of their dB. ``slots``: the slots to run."""
-        n_ue, n_sub = sinr.shape[1], sinr.shape[2]
-        if sinr.ndim != 3 or n_sub != self.s.subbands or sinr.shape[0] not in (1, slots):
-            raise ValueError(f"sinr: expected [{slots} or 1, n_ue, {self.s.subbands}], got shape {tuple(sinr.shape)}")
-        self.ensure(n_ue)
-        queue = _Queue(slots, n_ue, backlog)
-        if self._sys is None:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                db = 10 * np.log10(to_numpy(sinr))
-            return self._shannon(np.broadcast_to(db, (slots, n_ue, n_sub)), serving, queue)
-        torch, dev = self._torch, self.device
-        x = sinr.to(dev)
-        lin = torch.zeros((x.shape[0], n_sub, self.capacity), dtype=torch.float32, device=dev)
-        lin[:, :, :n_ue] = torch.where(to_torch(np.asarray(serving) >= 0, dev)[None, :, None], x, 0.0).transpose(1, 2)
-        if x.shape[0] != slots:  # (every slot the same SINRs: repeated on the device)
-            lin = lin.expand(slots, n_sub, self.capacity).contiguous()
-        return self._sys_slots(lin, serving, queue)
+        return self._one_link().run_links([sinr], serving, slots, [backlog])[0]
 
-    def _linear_in(self, sinr_db: np.ndarray, serving: np.ndarray) -> Any:
-        """The link level's float32 linear SINRs [n_slots, subbands, capacity] on its device,
-        from dB [n_slots, n_ue, subbands] (NaN: none; 0 for a UE without a cell)."""
-        torch = self._torch
-        n_slots, n_ue, n_sub = sinr_db.shape
+    def run_links(self, sinrs: Sequence[Any], serving: np.ndarray, slots: int,
+                  backlogs: Sequence[Any] | None = None) -> list[SlotResults]:
+        """Runs ``slots`` slots of every link at once (the links' order: the settings'),
+        each link's results in that order. Each link's SINRs as :meth:`run` takes them (numpy,
+        dB, [slots, n_ue] or [slots, n_ue, subbands]) or as :meth:`run_linear` does (a torch
+        tensor of ratios); ``serving`` [n_ue]: every link's; ``backlogs``: each link's (None: full
+        buffers). A link with nobody queued in a group of slots sits it out (no transmission, no
+        loop updates), whatever the others do."""
+        if len(sinrs) != len(self.links):
+            raise ValueError(f"sinrs: expected the SINRs of {len(self.links)} link(s) "
+                             f"({', '.join(s.direction for s in self.links)}), got {len(sinrs)}")
+        backlogs = [None] * len(sinrs) if backlogs is None else list(backlogs)
+        if len(backlogs) != len(sinrs):
+            raise ValueError(f"backlogs: expected {len(sinrs)} (one a link, None: full buffer), got {len(backlogs)}")
+        ins = [self._checked_in(x, slots) for x in sinrs]
+        n_ue = ins[0].shape[1]
+        if any(x.shape[1] != n_ue for x in ins):
+            raise ValueError(f"sinrs: expected every link's SINRs for the same UEs, got {[x.shape[1] for x in ins]}")
+        self.ensure(n_ue)
+        queues = [_Queue(slots, n_ue, b) for b in backlogs]
+        if self._sys is None:
+            return [self._shannon(self._db(x, slots), serving, q) for x, q in zip(ins, queues, strict=True)]
+        return self._sys_slots([self._linear_in(x, serving, slots) for x in ins], serving, queues)
+
+    def _one_link(self) -> LinkLevel:
+        if len(self.links) != 1:
+            raise ValueError(f"this link level runs {len(self.links)} links together: call run_links")
+        return self
+
+    def _checked_db(self, sinr_db: Any) -> np.ndarray:
+        sinr_db = np.asarray(sinr_db, dtype=float)
+        if sinr_db.ndim == 2:
+            sinr_db = np.broadcast_to(sinr_db[..., None], (*sinr_db.shape, self.s.subbands))
+        if sinr_db.ndim != 3 or sinr_db.shape[2] != self.s.subbands:
+            raise ValueError(f"sinr_db: expected [n_slots, n_ue] or [n_slots, n_ue, {self.s.subbands}], "
+                             f"got shape {sinr_db.shape}")
+        return sinr_db
+
+    def _checked_in(self, x: Any, slots: int) -> Any:
+        """One link's SINRs, checked: numpy dB [slots, n_ue, subbands], or a torch tensor of
+        ratios [slots or 1, n_ue, subbands]."""
+        if isinstance(x, np.ndarray) or not hasattr(x, "device"):
+            x = self._checked_db(x)
+            if x.shape[0] != slots:
+                raise ValueError(f"sinr_db: expected {slots} slots, got shape {x.shape}")
+            return x
+        if x.ndim != 3 or x.shape[2] != self.s.subbands or x.shape[0] not in (1, slots):
+            raise ValueError(f"sinr: expected [{slots} or 1, n_ue, {self.s.subbands}], got shape {tuple(x.shape)}")
+        return x
+
+    @staticmethod
+    def _db(x: Any, slots: int) -> np.ndarray:
+        """One link's checked SINRs in dB, [slots, n_ue, subbands] (the Shannon model's)."""
+        if isinstance(x, np.ndarray):
+            return x
+        with np.errstate(divide="ignore", invalid="ignore"):
+            db = 10 * np.log10(to_numpy(x))
+        return np.broadcast_to(db, (slots, *db.shape[1:]))
+
+    def _linear_in(self, x: Any, serving: np.ndarray, slots: int) -> Any:
+        """The link level's float32 linear SINRs [slots, subbands, capacity] on its device, from
+        one link's checked SINRs: dB in numpy (NaN: none; 0 for a UE without a cell), or ratios
+        as a torch tensor (moved where the link level is, never through numpy)."""
+        torch, dev = self._torch, self.device
+        served = np.asarray(serving) >= 0
+        if not isinstance(x, np.ndarray):
+            n_ue, n_sub = x.shape[1], x.shape[2]
+            lin = torch.zeros((x.shape[0], n_sub, self.capacity), dtype=torch.float32, device=dev)
+            lin[:, :, :n_ue] = torch.where(to_torch(served, dev)[None, :, None], x.to(dev), 0.0).transpose(1, 2)
+            if x.shape[0] != slots:  # (every slot the same SINRs: repeated on the device)
+                lin = lin.expand(slots, n_sub, self.capacity).contiguous()
+            return lin
+        n_slots, n_ue, n_sub = x.shape
         # Every slot the same SINRs (a broadcast, as a flat channel's): converted once, repeated on the device.
-        same = n_slots > 1 and sinr_db.strides[0] == 0
+        same = n_slots > 1 and x.strides[0] == 0
         lin = np.zeros((1 if same else n_slots, n_sub, self.capacity))
-        block = np.nan_to_num(sinr_db[:1] if same else sinr_db, nan=-300.0).transpose(0, 2, 1)  # [slot, S, n_ue]
-        lin[:, :, :n_ue] = np.where((np.asarray(serving) >= 0)[None, None, :], 10 ** (block / 10), 0.0)
-        lin_all = to_torch(lin, self.device, torch.float32)  # (the call's one way in)
+        block = np.nan_to_num(x[:1] if same else x, nan=-300.0).transpose(0, 2, 1)  # [slot, S, n_ue]
+        lin[:, :, :n_ue] = np.where(served[None, None, :], 10 ** (block / 10), 0.0)
+        lin_all = to_torch(lin, dev, torch.float32)  # (the call's one way in)
         return lin_all.expand(n_slots, n_sub, self.capacity).contiguous() if same else lin_all
 
     def _shannon(self, sinr_db: np.ndarray, serving: np.ndarray, queue: _Queue) -> SlotResults:
@@ -292,44 +347,53 @@ class LinkLevel:
         counts = np.bincount(serving[eligible], minlength=self.n_cell)
         return counts, np.where(eligible, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
 
-    def _sys_slots(self, lin_all: Any, serving: np.ndarray, queue: _Queue) -> SlotResults:
-        """The slots through Sionna SYS, on linear SINRs ``lin_all`` [n_slots, subbands,
+    def _sys_slots(self, lins: list, serving: np.ndarray, queues: list[_Queue]) -> list[SlotResults]:
+        """The slots through Sionna SYS, on each link's linear SINRs ``lins`` [n_slots, subbands,
         capacity] (float32, on the device: :meth:`_linear_in`). Everything stays on the link
         level's device from the first slot to the last: the call's SINRs enter torch once, the
         scheduler, the loops, the queues and the tallies work there, and the results leave once,
-        at the end (on a GPU, no copy and no wait per slot; with queues, one flag per group of
-        slots says whether anyone has bits)."""
+        at the end (on a GPU, no copy and no wait per slot; with queues, one read per group of
+        slots says which links have bits)."""
         torch = self._torch
-        n_slots, n_ue = queue.delivered.shape
+        n_links = len(lins)
+        n_slots, n_ue = queues[0].delivered.shape
         d, cap, n_cell, dev = self.s.harq_processes, self.capacity, self.n_cell, self.device
         if n_slots % d:
             raise ValueError(f"{n_slots} slots are not whole groups of harq_processes = {d}")
         serving = np.asarray(serving)
-        member = np.zeros((n_cell, cap), dtype=bool)
+        member = np.zeros((n_links, n_cell, cap), dtype=bool)
         on = np.flatnonzero(serving >= 0)
-        member[serving[on], on] = True
-        member_all = to_torch(member, dev)
-        queue.on_device(dev, torch, cap)
+        member[:, serving[on], on] = True
+        member_all = to_torch(member, dev)  # [L, C, cap]: whom each link's cell may schedule
+        finite = any(q.finite for q in queues)
+        for q in queues:
+            q.on_device(dev, torch, cap)
         groups: list[tuple] = []  # each group's slots, as tensors: tallied once, after the loop
-        member_t = member_all
-        # Each group's slots and first slot as views made at once (tensors: no recompiling, no copy,
+        member_t, went = member_all, self._all_links  # (full buffers: every link in every group)
+        # Each group's slots [L, D, S, cap] and first slot, made at once (tensors: no recompiling,
         # and no torch operation per group outside the compiled one).
-        firsts, blocks = torch.arange(0, n_slots, d, device=dev).unbind(), lin_all.split(d)
+        # [G, L, D, S, cap], the same strides whatever G (dynamo guards them); one link's: no copy
+        shape = (n_slots // d, 1, d, *lins[0].shape[1:])
+        lin_all = lins[0].view(shape) if n_links == 1 else torch.stack([x.view(shape) for x in lins], dim=1)[:, :, 0]
+        firsts, blocks = torch.arange(0, n_slots, d, device=dev).unbind(), lin_all.unbind()
         start = 0
         while start < n_slots:
             try:
                 with self._guards(), self._own_stream():
                     for k in range(start, n_slots, d):
                         start = k  # (where a call that fails to find its entry starts again)
-                        if queue.finite:  # (only UEs with bits queued at the group's first slot)
-                            member_t = member_all & queue.eligible(k)[None, :]
-                            if not bool(member_t.any()):
+                        ran = None
+                        if finite:  # (only UEs with bits queued at the group's first slot)
+                            member_t = member_all & torch.stack([q.eligible(k) for q in queues])[:, None, :]
+                            went = member_t.any(dim=2).any(dim=1)
+                            ran = went.tolist()  # (the group's one read)
+                            if not any(ran):
                                 continue  # nothing to send: no call (no transmission, no loop updates)
-                        prbs, harq, tbler, mcs, sinr_eff, cells, bits, self.rate_last = self._group(
-                            blocks[k // d], member_t, firsts[k // d], self.harq, self.rate_last)
-                        self.harq = harq
-                        if queue.finite:
-                            queue.take_group(k, bits.to(torch.float64))
+                        prbs, harq, tbler, mcs, sinr_eff, cells, bits, self.harq, self.rate_last = self._group(
+                            blocks[k // d], member_t, firsts[k // d], self.harq, self.rate_last, went)
+                        for q, link_bits, link_ran in zip(queues, bits, ran or (), strict=False):
+                            if q.finite and link_ran:
+                                q.take_group(k, link_bits.to(torch.float64))
                         groups.append((k, prbs, harq, tbler, mcs, sinr_eff, cells, bits))
                 start = n_slots
             except RuntimeError as e:  # (torch's refusal to compile while checking fewer guards)
@@ -338,7 +402,7 @@ class LinkLevel:
                 self._checked = 0  # (that group again, and the next calls, under every guard)
         if self._checked < CHECKED_CALLS:
             self._checked += len(groups)
-        return self._tallied(groups, queue, n_slots, n_ue)
+        return tallied(self._torch, groups, queues, n_slots, n_ue, self.n_cell)
 
     def _guards(self) -> Any:
         """A context (for the call's groups only): how dynamo checks the compiled group's calls:
@@ -363,51 +427,6 @@ class LinkLevel:
         """Whether the compiled group's calls check only the guards that tell its entries apart
         (:meth:`_guards`)."""
         return self._compiled is not None and self._checked >= CHECKED_CALLS
-
-    def _tallied(self, groups: list[tuple], queue: _Queue, n_slots: int, n_ue: int) -> SlotResults:
-        """The call's results from its groups of slots (tallied on the device, then the
-        call's one way out)."""
-        torch, dev = self._torch, self.device
-        if not groups:
-            zeros = np.zeros(n_ue, dtype=int)
-            return SlotResults(np.zeros(n_ue), zeros, zeros, zeros, zeros, np.full(n_ue, -1), np.full(n_ue, np.nan),
-                               np.full(n_ue, np.nan), np.zeros((n_slots, self.n_cell), dtype=bool),
-                               np.zeros((n_slots, n_ue)))
-        d = self.s.harq_processes  # (every group is d slots)
-        prbs, harq, tbler, mcs, sinr_eff, cells, bits = map(torch.cat, list(zip(*groups, strict=True))[1:])
-        delivered = queue.delivered
-        if len(groups) * d == n_slots:  # (every group ran: the slots in order)
-            active = cells
-            if not queue.finite:  # (a full buffer delivers all it decodes)
-                delivered = bits.to(torch.float64)
-        else:
-            slots = torch.cat([torch.arange(g[0], g[0] + d, device=dev) for g in groups])
-            active = torch.zeros((n_slots, self.n_cell), dtype=torch.bool, device=dev)
-            active[slots] = cells
-            if not queue.finite:
-                delivered[slots] = bits.to(torch.float64)
-        sched = prbs > 0  # [slots run, cap]
-        # the last scheduled slot's MCS and effective SINR
-        last = (len(sched) - 1 - torch.argmax(torch.flip(sched, (0,)).to(torch.uint8), dim=0))[None]  # [1, cap]
-        anyone = sched.any(dim=0)
-        mcs_last = torch.where(anyone, mcs.to(torch.int64).gather(0, last)[0], -1)
-        eff_db = 10 * torch.log10(torch.clamp(sinr_eff.to(torch.float64).gather(0, last)[0], min=1e-30))
-        sinr_eff_last = torch.where(anyone, eff_db, float("nan"))
-        tbler_sum = torch.where(sched, tbler.to(torch.float64), 0.0).sum(dim=0)
-        # (the call's one way out: every tally, as float64 (the counts exact in it), in one read)
-        per_ue = torch.stack([sched.sum(dim=0), prbs.sum(dim=0), (harq == 1).sum(dim=0), (harq == 0).sum(dim=0),
-                              tbler_sum, mcs_last, sinr_eff_last]).to(torch.float64)
-        out = to_numpy(torch.cat([per_ue.flatten(), active.flatten(), delivered.flatten()]))
-        cap = per_ue.shape[1]
-        counts = out[:4 * cap].reshape(4, cap)[:, :n_ue].astype(np.int64)
-        tbler_n, mcs_n, eff_n = out[4 * cap:7 * cap].reshape(3, cap)[:, :n_ue]
-        active_n = out[7 * cap:7 * cap + active.numel()].reshape(active.shape) != 0
-        delivered = out[7 * cap + active.numel():].reshape(n_slots, cap)[:, :n_ue]
-        sched_n, prbs_n, acks_n, nacks_n = counts
-        with np.errstate(invalid="ignore", divide="ignore"):
-            tbler_mean = np.where(sched_n > 0, tbler_n / sched_n, np.nan)
-        return SlotResults(delivered.sum(axis=0), sched_n, prbs_n, acks_n, nacks_n, mcs_n.astype(np.int64),
-                           tbler_mean, eff_n, active_n, delivered)
 
     @contextlib.contextmanager
     def _own_stream(self) -> Iterator[None]:
@@ -434,74 +453,80 @@ class LinkLevel:
         self._torch.compiler.cudagraph_mark_step_begin()
         return tuple(o.clone() for o in self._compiled(*args))
 
-    def _group_eager(self, lin_t, member_t, first_slot, harq_last, rate_last):
-        """One group of D slots, all on the device: scheduling, CSI, link adaptation and PHY
-        abstraction. ``lin_t`` [D, S, cap]: linear SINRs; ``member_t`` [C, cap]: whom each
-        cell may schedule; ``first_slot``: the group's first slot (a 0-d tensor);
-        ``harq_last`` [D, cap] and ``rate_last`` [D, C, cap]: the state the group starts
-        from. Returns (PRBs, HARQ, TBLER, MCS, effective SINR, each [D, cap]; the cells that
-        transmitted [D, C]; decoded bits [D, cap]; the new ``rate_last``)."""
+    def _group_eager(self, lin_t, member_t, first_slot, harq_last, rate_last, went):
+        """One group of D slots of every link, all on the device: scheduling, CSI, link
+        adaptation and PHY abstraction. ``lin_t`` [L, D, S, cap]: linear SINRs; ``member_t``
+        [L, C, cap]: whom each link's cell may schedule; ``first_slot``: the group's first slot
+        (a 0-d tensor); ``harq_last`` [L, D, cap] and ``rate_last`` [L, D, C, cap]: the state the
+        group starts from; ``went`` [L]: the links that take part (the others keep their state).
+        Returns (PRBs, HARQ, TBLER, MCS, effective SINR, each [L, D, cap]; the cells that
+        transmitted [L, D, C]; decoded bits [L, D, cap]; the new ``harq_last`` and ``rate_last``)."""
         torch = self._torch
+        kept = adapter.loop_state(self.olla, self.pf)  # (for the links that sit the group out)
         # Achievable rate per PRB of each UE in its own cell (bit/s/Hz); 0 elsewhere.
-        rate = torch.log2(1 + lin_t)[:, None, :, :] * member_t[None, :, None, :]  # [D, C, S, cap]
-        granted = self._schedule(rate, member_t, first_slot, rate_last)  # [D, C, S, cap] bool
-        alloc = granted.any(dim=1)  # [D, S, cap]: a UE is in one cell
-        prbs = (alloc * self._prb_weights[None, :, None]).sum(dim=1).to(torch.int32)  # [D, cap]
+        rate = torch.log2(1 + lin_t)[:, :, None] * member_t[:, None, :, None, :]  # [L, D, C, S, cap]
+        granted = self._schedule(rate, member_t, first_slot, rate_last)  # [L, D, C, S, cap] bool
+        alloc = granted.any(dim=2)  # [L, D, S, cap]: a UE is in one cell
+        prbs = (alloc * self._prb_weights[:, None]).sum(dim=2).to(torch.int32)  # [L, D, cap]
         n_re = prbs * (12 * DATA_SYMBOLS_PER_SLOT)
         if self.s.subbands == 1:
-            csi, sinr_in = lin_t[:, 0], lin_t[:, 0]
+            csi, sinr_in = lin_t[:, :, 0], lin_t[:, :, 0]
         else:
             csi, sinr_in = self._subband_sinr(lin_t, alloc)
         mcs, bits, harq, sinr_eff, tbler = self._adapt_and_decode(n_re, harq_last, csi, sinr_in)
         # The rate each cell achieved for each UE, for the PF history.
-        rate_last = bits.to(torch.float32)[:, None, :] / self.s.slot_s * member_t
-        return prbs, harq, tbler, mcs, sinr_eff, granted.any(dim=3).any(dim=2), bits, rate_last
+        rate_new = bits.to(torch.float32)[:, :, None, :] / self.s.slot_s * member_t[:, None]
+        adapter.keep_loop_state(self.olla, self.pf, kept, went)
+        harq_next = torch.where(went[:, None, None], harq, harq_last)
+        rate_next = torch.where(went[:, None, None, None], rate_new, rate_last)
+        cells = granted.any(dim=4).any(dim=3)  # [L, D, C]
+        return prbs, harq, tbler, mcs, sinr_eff, cells, bits, harq_next, rate_next
 
     def _adapt_and_decode(self, n_re, harq_last, csi, sinr_in):
         """Link adaptation and PHY abstraction: (MCS, decoded bits, HARQ, effective SINR,
-        TBLER), each [D, cap]. ``sinr_in``: the wideband SINR [D, cap], or the allocated
-        PRBs' [D, 1, P, cap, 1] for the EESM."""
+        TBLER), each [L, D, cap]. ``sinr_in``: the wideband SINR [L, D, cap], or the allocated
+        PRBs' [L, D, 1, P, cap, 1] for the EESM."""
         # CSI feedback: the slot's SINR as the UE reports it (ideal), corrected by the
         # loop's offset, which follows the HARQ outcome of the process's last transmission.
-        mcs = self.olla(n_re, harq_last, csi, mcs_table_index=self.s.mcs_table, mcs_category=self.s.mcs_category)
-        if sinr_in.dim() > 2:  # EESM over the allocated PRBs, with the MCS's own beta
-            sinr_in = self.eesm(sinr_in, mcs_index=mcs, mcs_table_index=self.s.mcs_table,
-                                mcs_category=self.s.mcs_category, per_stream=False)
+        table, category = self._mcs_table, self._mcs_category  # (each link's: numbers, or [L, D, cap])
+        mcs = self.olla(n_re, harq_last, csi, mcs_table_index=table, mcs_category=category)
+        if sinr_in.dim() > 3:  # EESM over the allocated PRBs, with the MCS's own beta
+            sinr_in = self.eesm(sinr_in, mcs_index=mcs, mcs_table_index=table, mcs_category=category,
+                                per_stream=False)
         bits, harq, sinr_eff, tbler, _ = self.phy(
-            mcs, sinr_eff=sinr_in, num_allocated_re=n_re, mcs_table_index=self.s.mcs_table,
-            mcs_category=self.s.mcs_category)
+            mcs, sinr_eff=sinr_in, num_allocated_re=n_re, mcs_table_index=table, mcs_category=category)
         return mcs, bits, harq, sinr_eff, tbler
 
     def _subband_sinr(self, lin_t, alloc):
         """The CSI a UE reports, its allocated subbands' SINR averaged in dB weighted by
-        their PRBs (all subbands when it has none), [D, cap]; and the SINR of every PRB it
-        was allocated (0 elsewhere), the EESM's input [D, 1, P, cap, 1]."""
+        their PRBs (all subbands when it has none), [L, D, cap]; and the SINR of every PRB it
+        was allocated (0 elsewhere), the EESM's input [L, D, 1, P, cap, 1]."""
         torch = self._torch
-        w = self._prb_weights[None, :, None] * torch.where(alloc.any(dim=1, keepdim=True), alloc, True)
+        w = self._prb_weights[:, None] * torch.where(alloc.any(dim=2, keepdim=True), alloc, True)
         db = 10 * torch.log10(torch.clamp(lin_t, min=1e-30))
-        csi = 10 ** ((w * db).sum(dim=1) / w.sum(dim=1) / 10)
-        per_prb = (lin_t * alloc)[:, self._prb_subband]  # [D, P, cap]
-        return csi, per_prb[:, None, :, :, None]
+        csi = 10 ** ((w * db).sum(dim=2) / w.sum(dim=2) / 10)
+        per_prb = (lin_t * alloc)[:, :, self._prb_subband]  # [L, D, P, cap]
+        return csi, per_prb[:, :, None, :, :, None]
 
     def _schedule(self, rate, member, first_slot, rate_last):
-        """[D, C, S, cap]: which UE gets each subband of each cell in each slot of the group.
-        ``member`` [C, cap]: the UEs each cell may schedule (a tensor on the device);
+        """[L, D, C, S, cap]: which UE gets each subband of each link's cell in each slot of the
+        group. ``member`` [L, C, cap]: the UEs each cell may schedule (a tensor on the device);
         ``first_slot``: the group's first slot (a 0-d tensor); ``rate_last``: the rate each
-        cell achieved for each UE at the process's last slot, [D, C, cap]."""
+        cell achieved for each UE at the process's last slot, [L, D, C, cap]."""
         torch = self._torch
         d, n_sub = self.s.harq_processes, self.s.subbands
+        cells = member[:, None, :, None, :]  # [L, 1, C, 1, cap]
         if self.s.scheduler == "proportional-fair":
-            granted = self.pf(rate_last, rate[:, :, None, :, :])[:, :, 0, :, :, 0]  # [D, C, S, cap]
+            granted = self.pf(rate_last, rate[:, :, :, None])[:, :, :, 0, :, :, 0]  # [L, D, C, S, cap]
             # A cell without UEs: the argmax picked column 0, which is not its UE.
-            return granted & member[None, :, None, :]
-        cells = member[None, :, None, :]  # [1, C, 1, cap]
+            return granted & cells
         if self.s.scheduler == "max-rate":  # per subband, the member with the best rate (the first of equals)
-            best = torch.argmax(torch.where(cells, rate, -1.0), dim=3)  # [D, C, S]
-            pick = torch.arange(member.shape[1], device=self.device) == best[..., None]
+            best = torch.argmax(torch.where(cells, rate, -1.0), dim=4)  # [L, D, C, S]
+            pick = torch.arange(member.shape[2], device=self.device) == best[..., None]
             return pick & cells  # (a cell without members grants nothing)
         # round-robin: one UE per slot, the cell's members in turn
-        rank = torch.cumsum(member.to(torch.int64), dim=1) - 1  # [C, cap]: place among the cell's members
-        count = torch.clamp(member.sum(dim=1), min=1)  # [C]
-        turn = (first_slot + torch.arange(d, device=self.device))[:, None] % count[None, :]  # [D, C]
-        pick = member[None] & (rank[None] == turn[..., None])  # [D, C, cap]
-        return pick[:, :, None, :].expand(d, member.shape[0], n_sub, member.shape[1])
+        rank = torch.cumsum(member.to(torch.int64), dim=2) - 1  # [L, C, cap]: place among the cell's members
+        count = torch.clamp(member.sum(dim=2), min=1)  # [L, C]
+        turn = (first_slot + torch.arange(d, device=self.device))[None, :, None] % count[:, None, :]  # [L, D, C]
+        pick = member[:, None] & (rank[:, None] == turn[..., None])  # [L, D, C, cap]
+        return pick[:, :, :, None, :].expand(*pick.shape[:3], n_sub, pick.shape[3])

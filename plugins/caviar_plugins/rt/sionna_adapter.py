@@ -438,27 +438,45 @@ def ray_utilities() -> tuple[Any, Any, Any, Any, Any]:
 def grow_link_adaptation(new: Any, old: Any, count: int) -> None:
     """Copies the state of the first ``count`` UEs of an ``OuterLoopLinkAdaptation``
     (``old``) into a larger one (``new``): its offsets and last effective SINRs."""
-    new._offset[:, :count] = old._offset
-    new._sinr_eff_db_last[:, :count] = old._sinr_eff_db_last
+    new._offset[..., :count] = old._offset
+    new._sinr_eff_db_last[..., :count] = old._sinr_eff_db_last
 
 
 def grow_scheduler(new: Any, old: Any, count: int) -> None:
     """Copies the achieved-rate history of the first ``count`` UEs of a
     ``PFSchedulerSUMIMO`` (``old``) into a larger one (``new``)."""
-    new._rate_achieved_past[:, :, :count] = old._rate_achieved_past
+    new._rate_achieved_past[..., :count] = old._rate_achieved_past
 
 
 def reset_scheduler_history(pf: Any, ue: int, cell: int | None = None) -> None:
     """A fresh proportional-fair history for UE column ``ue`` (in ``cell``; None: every cell)."""
     if cell is None:
-        pf._rate_achieved_past[:, :, ue] = 1.0
+        pf._rate_achieved_past[..., ue] = 1.0
     else:
-        pf._rate_achieved_past[:, cell, ue] = 1.0
+        pf._rate_achieved_past[..., cell, ue] = 1.0
 
 
 def reset_link_adaptation(olla: Any, ue: int) -> None:
     """UE column ``ue`` of an ``OuterLoopLinkAdaptation`` starts again with no offset."""
-    olla._offset[:, ue] = 0.0
+    olla._offset[..., ue] = 0.0
+
+
+def loop_state(olla: Any, pf: Any) -> tuple:
+    """Copies of what the link loops keep between slots (an ``OuterLoopLinkAdaptation``'s
+    offsets and last effective SINRs, a ``PFSchedulerSUMIMO``'s achieved-rate history), for
+    :func:`keep_loop_state` (compiled, no copy is made: the values before the group's calls)."""
+    return olla._offset.clone(), olla._sinr_eff_db_last.clone(), pf._rate_achieved_past.clone()
+
+
+def keep_loop_state(olla: Any, pf: Any, kept: tuple, went: Any) -> None:
+    """Puts :func:`loop_state`'s ``kept`` back for the links that sat a group of slots out
+    (``went`` [L] False, the blocks' first batch axis): their loops as if it had not run."""
+    import torch
+
+    offset, sinr_last, past = kept
+    olla._offset = torch.where(went[:, None, None], olla._offset, offset)
+    olla._sinr_eff_db_last = torch.where(went[:, None, None], olla._sinr_eff_db_last, sinr_last)
+    pf._rate_achieved_past.copy_(torch.where(went[:, None, None, None], pf._rate_achieved_past, past))
 
 
 def block_state(block: Any) -> dict[str, Any]:

@@ -1,0 +1,93 @@
+"""One link level for the downlink and the uplink (``LinkLevel.run_links``): each group of slots
+is one call for both links, and each link decides as a link level of its own would, its loops
+and histories its own; a link with nothing queued in a group sits it out."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from caviar_plugins.network.traffic import Backlog
+from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
+
+D, SLOTS, N_UE, N_CELL = 4, 24, 12, 2
+
+
+def _calls(rng: np.random.Generator, subbands: int, serving: np.ndarray) -> list[tuple]:
+    """Two calls' SINRs of both links, far from the BLER waterfall (-20 or 40 dB, a UE's every
+    slot and subband alike): every HARQ outcome is certain, so that two random streams cannot
+    tell the links apart; and the uplink's backlogs: a little queued at the start for one UE at
+    40 dB (served in the first group), nothing in the next two (they sit out), more for everyone at slot 12."""
+    calls = []
+    for _ in range(2):
+        dl, ul = (np.broadcast_to(rng.choice([-20.0, 40.0], (1, N_UE, 1)), (SLOTS, N_UE, subbands)) for _ in range(2))
+        arrivals = np.zeros((SLOTS, N_UE))
+        arrivals[12] = 2e5
+        first = np.zeros(N_UE)
+        first[np.flatnonzero((ul[0, :, 0] > 0) & (serving >= 0))[0]] = 500.0
+        calls.append((dl, ul, Backlog(first, arrivals)))
+    return calls
+
+
+def _same(got, want, compiled: bool, msg: str) -> None:
+    """Equal, bit for bit; compiled, the floats to float32's precision (its EESM's sums fused)."""
+    got, want = np.asarray(got), np.asarray(want)
+    if compiled and np.issubdtype(want.dtype, np.floating):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-3, err_msg=msg)
+    else:
+        np.testing.assert_array_equal(got, want, err_msg=msg)
+
+
+@pytest.mark.parametrize(("subbands", "scheduler", "compiled"), [
+    (1, "proportional-fair", False), (4, "proportional-fair", False), (4, "round-robin", False),
+    (4, "max-rate", False), (4, "proportional-fair", True)])
+def test_downlink_and_uplink_together_decide_as_two_link_levels(subbands, scheduler, compiled):
+    rng = np.random.default_rng(12)
+    dl_settings = LinkSettings(num_prb=24, harq_processes=D, subbands=subbands, scheduler=scheduler, device="cpu",
+                               bler_target=0.005)  # (the MCS whose BLER is 0 at 40 dB)
+    ul_settings = dataclasses.replace(dl_settings, direction="uplink", mcs_table=2)
+    serving = rng.integers(-1, N_CELL, N_UE)
+    together = LinkLevel([dataclasses.replace(dl_settings, compile=compiled),
+                          dataclasses.replace(ul_settings, compile=compiled)], N_CELL, seed=3)
+    dl, ul = LinkLevel(dl_settings, N_CELL, seed=3), LinkLevel(ul_settings, N_CELL, seed=4)
+    scheduled = 0
+    for dl_sinr, ul_sinr, backlog in _calls(rng, subbands, serving):
+        both = together.run_links([dl_sinr, ul_sinr], serving, SLOTS, [None, backlog])
+        alone = [dl.run(dl_sinr, serving), ul.run(ul_sinr, serving, backlog=backlog)]
+        for got, want, name in zip(both, alone, ("downlink", "uplink"), strict=True):
+            served = want.scheduled_slots > 0
+            # (the premise: every outcome certain, TBLER 0 or 1)
+            assert np.isin(want.tbler[served], (0.0, 1.0)).all(), (name, want.tbler)
+            for field in dataclasses.fields(want):
+                _same(getattr(got, field.name), getattr(want, field.name), compiled, f"{name}: {field.name}")
+            scheduled += int(served.sum())
+        # Each link's loops and histories are its own link level's (the uplink's, sat out or not).
+        kept = together.state()
+        for i, one in enumerate((dl, ul)):
+            alone_state = one.state()
+            for block in ("olla", "pf"):
+                for name, value in alone_state[block].items():
+                    width = value.shape[-1]  # (a compiled link level has room for more UEs)
+                    _same(kept[block][name][i][..., :width], value[0], compiled, f"link {i}: {block} {name}")
+            for name in ("harq", "rate_last"):
+                width = alone_state[name].shape[-1]
+                _same(kept[name][i][..., :width], alone_state[name][0], compiled, f"link {i}: {name}")
+        # The uplink sat out its second and third groups: nothing scheduled there.
+        active = both[1].cells_active.any(axis=1)
+        assert active[:D].any() and not active[D:3 * D].any() and active[3 * D:].all()
+    assert scheduled > 0
+
+
+def test_links_that_differ_beyond_direction_and_table_are_refused():
+    dl = LinkSettings(num_prb=24, harq_processes=D)
+    with pytest.raises(ValueError, match="share every setting but their direction and MCS table"):
+        LinkLevel([dl, dataclasses.replace(dl, direction="uplink", harq_processes=2)], N_CELL)
+    together = LinkLevel([dl, dataclasses.replace(dl, direction="uplink")], N_CELL)
+    with pytest.raises(ValueError, match="runs 2 links together: call run_links"):
+        together.run(np.zeros((D, 3)), np.zeros(3, dtype=int))
+    with pytest.raises(ValueError, match=r"the SINRs of 2 link\(s\) \(downlink, uplink\), got 1"):
+        together.run_links([np.zeros((D, 3))], np.zeros(3, dtype=int), D)
+    with pytest.raises(ValueError, match="a link level's state of 1 link"):
+        together.restore(LinkLevel(dl, N_CELL).state())
