@@ -7,7 +7,8 @@ The plugin runs as ``benches/bench_network.py --plugin-only`` runs it: the osm-c
 ray traced (every site in one solve), SSB beams, the uplink, ``interference = "scheduled"``,
 full buffers, 8 HARQ processes of 0.5 ms slots per call on 8 subbands, a ``torch.compile``d link
 level, 0.1 s steps (200 slots: 25 groups a link a step; since 2026-11-29 (evening) one compiled
-call a group for both links, two before). Of the median step by host time (the
+call a group for both links, two before, and ``--groups-per-call`` (5) groups a call in the runs
+after, ``groups_per_call``; ``runs_one_group_a_call``: the same with one). Of the median step by host time (the
 first, which traces and compiles, left out; on a 2-core machine shared with other work a step is
 now and then many times slower, its OpenMP threads waiting for busy cores):
 
@@ -95,7 +96,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import gc
 import json
 import os
@@ -122,9 +122,6 @@ MAKERS = {"as_tensor", "tensor", "from_numpy"}
 WRITES = {"__setitem__", *(f"__i{op}__" for op in ("add", "sub", "mul", "truediv", "floordiv", "mod", "pow", "and",
                                                   "or", "xor", "lshift", "rshift", "matmul"))}
 """Calls that write into a tensor (their result is it): a kernel each."""
-H200_SOLVE = {"one_uav_1e6_samples_ms": {"warm": 39, "kernels": 17, "host": 18},
-              "ten_uavs_1e6_samples_ms": {"warm": 117, "kernels": 43, "host": 65}}
-"""One Sionna RT solve on an H200 (issue #53's figures): 1 UAV and 10 UAVs, 1e6 samples."""
 METHOD = ("host_proxy_ms: Python and numpy time of a step (its wall less the ray tracer, Sionna SYS's compiled "
           "groups and every torch call made from Python, timed by a TorchFunctionMode, less the mode's own "
           "calibrated cost) plus the torch calls times torch's measured dispatch cost a call on small tensors; "
@@ -363,7 +360,26 @@ def _proxy_figures(wall: float, cpu: float, outside: dict, timer: Any, cal: dict
             "host_proxy_cpu_with_launches_ms": round(1e3 * (proxy_cpu + allowance), 2)}
 
 
-def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: bool = True) -> dict:
+def _params(samples: int, ue_reports: str, groups_per_call: int) -> dict:
+    """The ``radio-network`` plugin's parameters (a baseline's plugins may not know the newer ones:
+    set only where they differ from the default)."""
+    from bench_network import SCENE, sites
+
+    params = {"sites": sites(), "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "tx_power_dbm": 43.0, "array": [4, 4],
+              "subcarrier_spacing_hz": 30e3, "harq_processes": 8, "subbands": 8, "compile": True,
+              "channel": "ray-traced", "interference": "scheduled", "antenna_height_m": 0.0,
+              "scene": str(SCENE), "raytracing": {"max_depth": 2, "samples_per_src": samples},
+              "evolution": {"refresh_s": 1.0},
+              "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
+    if ue_reports != "per-ue":
+        params["ue_reports"] = ue_reports
+    if groups_per_call > 1:
+        params["groups_per_call"] = groups_per_call
+    return params
+
+
+def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: bool = True,
+        groups_per_call: int = 1) -> dict:
     """The plugin at 21 cells × ``n_ue`` UEs, ``steps`` steps after the first (its UE reports
     ``ue_reports``; ``settle``: the host's freeze after the first step, which a baseline before
     2026-11-29 did not have): per-step times."""
@@ -371,22 +387,14 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
 
     import torch
 
-    from bench_network import SCENE, TS, compile_outside, link_levels, sites, ues
+    from bench_network import TS, compile_outside, link_levels, ues
     from caviar._host import Hosted, check_params
     from caviar.plugin import Inbox, Message
     from caviar_plugins.network.plugin import RadioNetwork
     from caviar_plugins.schema import position_payload
 
     kinds, pos0, vel = ues(np.random.default_rng(7), n_ue)
-    params = {"sites": sites(), "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "tx_power_dbm": 43.0, "array": [4, 4],
-              "subcarrier_spacing_hz": 30e3, "harq_processes": 8, "subbands": 8, "compile": True,
-              "channel": "ray-traced", "interference": "scheduled", "antenna_height_m": 0.0,
-              "scene": str(SCENE), "raytracing": {"max_depth": 2, "samples_per_src": samples},
-              "evolution": {"refresh_s": 1.0},
-              "beams": {"horizontal": 4, "vertical": 1}, "uplink": {}}
-    if ue_reports != "per-ue":  # (a baseline's plugins may not know the setting)
-        params["ue_reports"] = ue_reports
-    hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, params))
+    hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, _params(samples, ue_reports, groups_per_call)))
 
     def inbox(k: int) -> Inbox:
         pos = pos0 + vel * k * TS
@@ -477,41 +485,6 @@ def _encoding(net, hosted, k: int, box) -> float:
     return round(1e3 * best, 2)
 
 
-def refresh(n_ue: int, samples: int) -> dict:
-    """One ray-tracing refresh of 21 sites × ``n_ue`` UEs (all sites in one solve), warm."""
-    from bench_network import SCENE, sites, ues
-    from caviar_plugins.network.cells import parse_sites
-    from caviar_plugins.network.raytraced import NETWORK_RAYS, SiteTracer
-
-    cells = parse_sites(sites(), {"tx_power_dbm": 43.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6, "array": [4, 4]})
-    _, pos0, vel = ues(np.random.default_rng(7), n_ue)
-    tracer = SiteTracer(str(SCENE), dataclasses.replace(NETWORK_RAYS, max_depth=2, samples_per_src=samples), cells,
-                        seed=1)
-    a = time.perf_counter()
-    tracer.trace(pos0)
-    first = time.perf_counter() - a
-    times = []
-    for k in (1, 2):
-        a = time.perf_counter()
-        tracer.trace(pos0 + vel * k)
-        times.append(time.perf_counter() - a)
-    sites_n = len({c.site for c in cells})
-    warm = min(times)
-    # An H200 solve, from its 1 -> 10 UAV figures read as 1 -> 10 sources of 1e6 samples each: a first
-    # source's kernels and host, and each further source's (an upper bound for fewer samples a source).
-    one_, ten = H200_SOLVE["one_uav_1e6_samples_ms"], H200_SOLVE["ten_uavs_1e6_samples_ms"]
-    kernels = one_["kernels"] + (ten["kernels"] - one_["kernels"]) / 9 * (sites_n - 1)
-    host = one_["host"] + (ten["host"] - one_["host"]) / 9 * (sites_n - 1)
-    return {"sites": sites_n, "cells": len(cells), "ues": n_ue, "samples_per_src": samples, "solves": 1,
-            "first_s": round(first, 2), "warm_s": round(warm, 3),
-            "h200_estimate_ms": {"kernels": round(kernels, 1), "host": round(host, 1),
-                                 "total": round(kernels + host, 1)},
-            "h200_estimate": (f"an extrapolation, not a measurement: the H200 solve figures {H200_SOLVE} read as 1 and "
-                              f"10 sources of 1e6 samples, scaled linearly to {sites_n} sources (the sites) of "
-                              f"{samples:g} samples, an upper bound on the rays; how the solve grows with {n_ue:,} "
-                              "receivers against their one is not in those figures")}
-
-
 def _subprocess(args: list[str], plugins: str | None) -> dict:
     env = dict(os.environ)
     if plugins is not None:
@@ -526,32 +499,43 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=20000, help="rays per site")
     ap.add_argument("--ues", type=int, nargs="+", default=[100, 1000])
     ap.add_argument("--baseline", help="another checkout's root (its plugins/ run interleaved with these)")
+    ap.add_argument("--baseline-reports", default="per-ue", choices=["per-ue", "table"],
+                    help="the baseline's UE reports: per-ue (without the host's freeze: a checkout before "
+                         "2026-11-29 has neither) or table (with it, as the run after)")
     ap.add_argument("--out", type=pathlib.Path, default=OUT, help="where the JSON goes")
     ap.add_argument("--no-refresh", action="store_true", help="leave out the ray-tracing refresh's timing")
     ap.add_argument("--one", type=int, metavar="N_UE", help="(internal) one run, its JSON on stdout")
     ap.add_argument("--refresh-only", type=int, metavar="N_UE", help="(internal) the RT refresh, JSON on stdout")
     ap.add_argument("--ue-reports", default="table", choices=["table", "per-ue"], help="(internal) with --one")
     ap.add_argument("--no-settle", action="store_true", help="(internal) with --one: no freeze after the first step")
+    ap.add_argument("--groups-per-call", type=int, default=5, help="the link level's groups of slots a compiled call")
     args = ap.parse_args()
     if args.one:
-        print(json.dumps(one(args.one, args.steps, args.samples, args.ue_reports, not args.no_settle)))
+        print(json.dumps(one(args.one, args.steps, args.samples, args.ue_reports, not args.no_settle,
+                             args.groups_per_call)))
         return
     if args.refresh_only:
+        from bench_rt_refresh import refresh
+
         print(json.dumps(refresh(args.refresh_only, args.samples)))
         return
     from bench_common import machine
 
-    runs, per_ue, before = {}, {}, {}
+    runs, per_ue, one_a_call, before = {}, {}, {}, {}
     for n in args.ues:
         common = ["--one", str(n), "--steps", str(args.steps), "--samples", str(args.samples)]
         if args.baseline:
-            before[n] = _subprocess([*common, "--ue-reports", "per-ue", "--no-settle"],
+            as_before = ["--ue-reports", "per-ue", "--no-settle"] if args.baseline_reports == "per-ue" else \
+                ["--ue-reports", "table"]
+            before[n] = _subprocess([*common, *as_before, "--groups-per-call", "1"],
                                     str(pathlib.Path(args.baseline) / "plugins"))
             print("before", json.dumps(before[n]), flush=True)
-        runs[n] = _subprocess([*common, "--ue-reports", "table"], None)
-        print("after", json.dumps(runs[n]), flush=True)
-        per_ue[n] = _subprocess([*common, "--ue-reports", "per-ue"], None)
-        print("after, per-ue", json.dumps(per_ue[n]), flush=True)
+        grouped = [*common, "--groups-per-call", str(args.groups_per_call)]
+        for name, into, extra in (("after", runs, [*grouped, "--ue-reports", "table"]),
+                                  ("after, one group a call", one_a_call, [*common, "--groups-per-call", "1"]),
+                                  ("after, per-ue", per_ue, [*grouped, "--ue-reports", "per-ue"])):
+            into[n] = _subprocess(extra, None)
+            print(name, json.dumps(into[n]), flush=True)
     rt = None if args.no_refresh else _subprocess(["--refresh-only", str(max(args.ues)), "--samples",
                                                    str(args.samples)], None)
     print("refresh", json.dumps(rt), flush=True)
@@ -569,6 +553,10 @@ def main() -> None:
                           + big["compiled_regions_per_group"] <= TARGETS["torch_launches_per_group"]},
         "host_proxy_with_launches_ms_per_step_per_ue_reports": {
             str(n): r["host_proxy_with_launches_ms"] for n, r in per_ue.items()},
+        "groups_per_call": args.groups_per_call,
+        "host_proxy_with_launches_ms_per_step_one_group_a_call": {
+            str(n): r["host_proxy_with_launches_ms"] for n, r in one_a_call.items()},
+        "runs_one_group_a_call": {str(n): r for n, r in one_a_call.items()},
         "encode_ms_per_step": {"table": {str(n): r["encode_ms"] for n, r in runs.items()},
                                "per-ue": {str(n): r["encode_ms"] for n, r in per_ue.items()}},
         "method": METHOD,
@@ -587,6 +575,7 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps({k: result[k] for k in ("host_proxy_with_launches_ms_per_step",
+                                              "host_proxy_with_launches_ms_per_step_one_group_a_call",
                                               "host_proxy_with_launches_ms_per_step_per_ue_reports",
                                               "host_ms_per_step_raw_cpu", "torch_launches_per_group",
                                               "meets_targets")}))

@@ -91,3 +91,32 @@ def test_links_that_differ_beyond_direction_and_table_are_refused():
         together.run_links([np.zeros((D, 3))], np.zeros(3, dtype=int), D)
     with pytest.raises(ValueError, match="a link level's state of 1 link"):
         together.restore(LinkLevel(dl, N_CELL).state())
+
+
+def test_several_groups_a_compiled_call_decide_as_one_a_call():
+    """``groups_per_call``: with full buffers, chunks of groups of slots run as one compiled call
+    (those left over one a call), and every result and loop state is one-a-call's, bit for bit
+    (the random stream included); with queues, one a call."""
+    rng = np.random.default_rng(14)
+    dl = LinkSettings(num_prb=24, harq_processes=D, subbands=4, compile=True, device="cpu")
+    links = [dl, dataclasses.replace(dl, direction="uplink")]
+    serving = rng.integers(-1, N_CELL, N_UE)
+    one, many = (LinkLevel([dataclasses.replace(s, groups_per_call=g) for s in links], N_CELL, seed=3) for g in (1, 2))
+    chunks: list = []
+    inner = many._groups
+    many._groups = lambda *a: chunks.append(len(a[0])) or inner(*a)
+    for groups in (4, 5):  # (5: two chunks of 2, then one group alone)
+        sinrs = [14.0 + rng.normal(0.0, 6.0, (groups * D, N_UE, 4)) for _ in links]
+        for got, want in zip(many.run_links(sinrs, serving, groups * D), one.run_links(sinrs, serving, groups * D),
+                             strict=True):
+            for field in dataclasses.fields(want):
+                np.testing.assert_array_equal(getattr(got, field.name), getattr(want, field.name), err_msg=field.name)
+    assert chunks == [2, 2, 2, 2]
+    for block in ("olla", "pf"):
+        for name, value in one.state()[block].items():
+            np.testing.assert_array_equal(many.state()[block][name], value, err_msg=f"{block} {name}")
+    backlog = Backlog(np.full(N_UE, 1e4), np.zeros((6 * D, N_UE)))
+    many.run_links([np.full((6 * D, N_UE, 4), 14.0)] * 2, serving, 6 * D, [backlog, None])
+    assert chunks == [2, 2, 2, 2]  # (queues: one group a call)
+    with pytest.raises(ValueError, match="groups_per_call: runs groups of slots as one compiled call"):
+        LinkSettings(num_prb=24, groups_per_call=2)

@@ -59,6 +59,23 @@ entries) at a UE capacity, after which the link level's further calls there chec
 that tell the entries apart (:meth:`LinkLevel._guards`)."""
 
 
+@dataclasses.dataclass
+class _CallPlan:
+    """A call's groups of slots, as :meth:`LinkLevel._groups_at` runs them."""
+
+    d: int  # slots a group
+    queues: list[_Queue]
+    finite: bool  # (a link's queue is not a full buffer)
+    member: Any  # [L, C, cap]: whom each link's cell may schedule
+    went: Any  # [L] True: every link (full buffers)
+    blocks: tuple  # each group's SINRs, [L, D, S, cap]
+    firsts: tuple  # each group's first slot (0-d tensors)
+    many: int  # groups a call in chunks (groups_per_call; 1: none)
+    in_many: int  # groups run in chunks (the first ones)
+    chunks: tuple  # each chunk's SINRs, [many, L, D, S, cap]
+    chunk_firsts: tuple  # each chunk's groups' first slots, [many]
+
+
 def joint_links(settings: LinkSettings | Sequence[LinkSettings]) -> tuple[LinkSettings, ...]:
     """The links one :class:`LinkLevel` runs: ``settings``, or each of a sequence of them,
     which must agree on everything but their direction and MCS table."""
@@ -111,6 +128,7 @@ class LinkLevel:
             self._all_links = self._torch.ones(len(self.links), dtype=self._torch.bool, device=self.device)
         self._group = self._group_eager
         self._compiled: Any = None
+        self._many: Any = None  # (several groups a call: settings.groups_per_call, full buffers)
         self._checked = 0  # (compiled calls at this capacity under every guard: _guards)
         self.cuda_graphs = False
         if settings.compile and settings.link_model == "sys":
@@ -121,6 +139,9 @@ class LinkLevel:
             self._compiled = self._torch.compile(self._group_eager, dynamic=False,
                                                  mode="reduce-overhead" if self.cuda_graphs else None)
             self._group = self._group_graphed if self.cuda_graphs else self._compiled
+            if settings.groups_per_call > 1:
+                self._many = self._torch.compile(self._groups_eager, dynamic=False,
+                                                 mode="reduce-overhead" if self.cuda_graphs else None)
             if self.cuda_graphs:  # (a captured graph replays the device generator it captured: seeded here)
                 adapter.default_generator(self.device).set_state(self._compiled_rng)
             # Each UE capacity and each direction compiles its own entries (two each: before and
@@ -369,32 +390,25 @@ class LinkLevel:
         for q in queues:
             q.on_device(dev, torch, cap)
         groups: list[tuple] = []  # each group's slots, as tensors: tallied once, after the loop
-        member_t, went = member_all, self._all_links  # (full buffers: every link in every group)
         # Each group's slots [L, D, S, cap] and first slot, made at once (tensors: no recompiling,
         # and no torch operation per group outside the compiled one).
         # [G, L, D, S, cap], the same strides whatever G (dynamo guards them); one link's: no copy
         shape = (n_slots // d, 1, d, *lins[0].shape[1:])
         lin_all = lins[0].view(shape) if n_links == 1 else torch.stack([x.view(shape) for x in lins], dim=1)[:, :, 0]
-        firsts, blocks = torch.arange(0, n_slots, d, device=dev).unbind(), lin_all.unbind()
+        # With full buffers, groups_per_call groups a compiled call (the ones left over: one a call).
+        many = self.s.groups_per_call if self._many is not None and not finite else 1
+        in_many = n_slots // d // many * many if many > 1 else 0
+        plan = _CallPlan(d, queues, finite, member_all, self._all_links, lin_all.unbind(),
+                         torch.arange(0, n_slots, d, device=dev).unbind(), many, in_many,
+                         lin_all[:in_many].view(-1, many, *lin_all.shape[1:]).unbind() if in_many else (),
+                         torch.arange(0, in_many * d, d, device=dev).view(-1, many).unbind() if in_many else ())
         start = 0
         while start < n_slots:
             try:
                 with self._guards(), self._own_stream():
                     for k in range(start, n_slots, d):
                         start = k  # (where a call that fails to find its entry starts again)
-                        ran = None
-                        if finite:  # (only UEs with bits queued at the group's first slot)
-                            member_t = member_all & torch.stack([q.eligible(k) for q in queues])[:, None, :]
-                            went = member_t.any(dim=2).any(dim=1)
-                            ran = went.tolist()  # (the group's one read)
-                            if not any(ran):
-                                continue  # nothing to send: no call (no transmission, no loop updates)
-                        prbs, harq, tbler, mcs, sinr_eff, cells, bits, self.harq, self.rate_last = self._group(
-                            blocks[k // d], member_t, firsts[k // d], self.harq, self.rate_last, went)
-                        for q, link_bits, link_ran in zip(queues, bits, ran or (), strict=False):
-                            if q.finite and link_ran:
-                                q.take_group(k, link_bits.to(torch.float64))
-                        groups.append((k, prbs, harq, tbler, mcs, sinr_eff, cells, bits))
+                        groups += self._groups_at(k, plan)
                 start = n_slots
             except RuntimeError as e:  # (torch's refusal to compile while checking fewer guards)
                 if not self._settled() or "skip_guard_eval_unsafe" not in str(e):
@@ -403,6 +417,32 @@ class LinkLevel:
         if self._checked < CHECKED_CALLS:
             self._checked += len(groups)
         return tallied(self._torch, groups, queues, n_slots, n_ue, self.n_cell)
+
+    def _groups_at(self, k: int, plan: _CallPlan) -> list[tuple]:
+        """The groups of slots a call at slot ``k`` runs, each ``(first slot, PRBs, HARQ, TBLER,
+        MCS, effective SINR, cells active, decoded bits)``: a chunk of ``plan.many`` at its first
+        group (none at its others), else the group at ``k`` (none where no link has bits)."""
+        torch, g = self._torch, k // plan.d
+        if g < plan.in_many:
+            if g % plan.many:
+                return []  # (run with its chunk)
+            c = g // plan.many
+            *fields, self.harq, self.rate_last = self._groups(plan.chunks[c], plan.member, plan.chunk_firsts[c],
+                                                              self.harq, self.rate_last, plan.went)
+            return [(k + j * plan.d, *(f[j] for f in fields)) for j in range(plan.many)]
+        member_t, went, ran = plan.member, plan.went, None
+        if plan.finite:  # (only UEs with bits queued at the group's first slot)
+            member_t = plan.member & torch.stack([q.eligible(k) for q in plan.queues])[:, None, :]
+            went = member_t.any(dim=2).any(dim=1)
+            ran = went.tolist()  # (the group's one read)
+            if not any(ran):
+                return []  # nothing to send: no call (no transmission, no loop updates)
+        prbs, harq, tbler, mcs, sinr_eff, cells, bits, self.harq, self.rate_last = self._group(
+            plan.blocks[g], member_t, plan.firsts[g], self.harq, self.rate_last, went)
+        for q, link_bits, link_ran in zip(plan.queues, bits, ran or (), strict=False):
+            if q.finite and link_ran:
+                q.take_group(k, link_bits.to(torch.float64))
+        return [(k, prbs, harq, tbler, mcs, sinr_eff, cells, bits)]
 
     def _guards(self) -> Any:
         """A context (for the call's groups only): how dynamo checks the compiled group's calls:
@@ -447,11 +487,25 @@ class LinkLevel:
             self._compiled_rng = generator.get_state()
             generator.set_state(caller)
 
-    def _group_graphed(self, *args):
+    def _group_graphed(self, *args, compiled: Any = None):
         """The compiled group replayed as a CUDA graph: a new step of the graph's memory,
         and its outputs copied out (the next replay writes over the graph's own)."""
         self._torch.compiler.cudagraph_mark_step_begin()
-        return tuple(o.clone() for o in self._compiled(*args))
+        return tuple(o.clone() for o in (compiled or self._compiled)(*args))
+
+    def _groups(self, *args):
+        """:meth:`_groups_eager`, compiled (as a CUDA graph where the group is one)."""
+        return self._group_graphed(*args, compiled=self._many) if self.cuda_graphs else self._many(*args)
+
+    def _groups_eager(self, lin_g, member_t, firsts_g, harq_last, rate_last, went):
+        """G groups of slots in a row (``lin_g`` [G, L, D, S, cap], ``firsts_g`` [G]; the rest as
+        :meth:`_group_eager` takes them): each group's outputs stacked, [G, ...], then the state
+        the last one left."""
+        outs = []
+        for g in range(lin_g.shape[0]):
+            *out, harq_last, rate_last = self._group_eager(lin_g[g], member_t, firsts_g[g], harq_last, rate_last, went)
+            outs.append(out)
+        return (*(self._torch.stack(x) for x in zip(*outs, strict=True)), harq_last, rate_last)
 
     def _group_eager(self, lin_t, member_t, first_slot, harq_last, rate_last, went):
         """One group of D slots of every link, all on the device: scheduling, CSI, link
