@@ -135,6 +135,15 @@ ENTRY_EVENTS = ("TorchDynamo Cache Lookup", "AOTDispatcher Runtime Wrapper Prolo
 and the runtime wrapper's prologue; with each region's own time (its inputs gathered, its side
 effects applied), the host's work a compiled group of slots costs beyond its kernels."""
 RUNS = ("run", "run_linear", "run_links")
+COMPILED = ("_group", "_groups")
+"""A link level's calls of its compiled programs: one group of slots, several (``groups_per_call``)."""
+
+
+def _compiled_calls(net) -> list[tuple[Any, str]]:
+    """(link level, :data:`COMPILED` name) of the plugin's link levels (a baseline's has no ``_groups``)."""
+    from bench_network import link_levels
+
+    return [(link, name) for link in link_levels(net) for name in COMPILED if hasattr(link, name)]
 """A link level's calls (numpy dB SINRs, or linear ones as a tensor): the link levels' phases."""
 
 
@@ -288,8 +297,6 @@ def _proxy(net, steps: list) -> dict:
     events' garbage, the bench's, not the plugin's."""
     from torch.overrides import _pop_mode_temporarily
 
-    from bench_network import link_levels
-
     outside = {"s": 0.0, "cpu": 0.0}
 
     def untimed(inner):
@@ -314,7 +321,7 @@ def _proxy(net, steps: list) -> dict:
             collected["runs"] += 1
 
     saved = [(net.channel.tracer, "trace", net.channel.tracer.trace)]
-    saved += [(link, "_group", link._group) for link in link_levels(net)]
+    saved += [(link, name, getattr(link, name)) for link, name in _compiled_calls(net)]
     for obj, name, inner in saved:
         setattr(obj, name, untimed(inner))
     cal = _calibrate()
@@ -419,8 +426,8 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
         if settle:  # (as the host does after a plugin's first step: its objects out of the collector's way)
             hosted.settle()
         _timed(net.channel.tracer, "trace", timing, "rt")
-        for link in link_levels(net):
-            _timed(link, "_group", timing, "sys")
+        for link, name in _compiled_calls(net):
+            _timed(link, name, timing, "sys")
         _timed(net, "_measure", timing, "measure")
         _timed(sys.modules[RadioNetwork.__module__], "downlink_sinr", timing, "downlink_sinr")
         _timed(sys.modules[RadioNetwork.__module__], "uplink", timing, "uplink_sinr")  # (powers and SINR)
