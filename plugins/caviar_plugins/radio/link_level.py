@@ -450,9 +450,11 @@ class LinkLevel:
         tensors' shapes) for the first :data:`CHECKED_CALLS` calls at a UE capacity, which compile
         what they need (two entries: before and after Sionna builds its blocks); then only the
         guards that tell the entries apart (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``).
-        At 21 cells × 1,000 UEs (50 calls a step) on a 2-core Intel Xeon the guards took 13.5 ms of
-        host time a step checked in full and 6.4 ms so (``benches/bench_host_overhead.py``: host
-        work on a GPU too), with the same results bit for bit (tests/test_network.py). What could
+        At 21 cells × 1,000 UEs (then 50 calls a step: a link level a direction) on a 2-core Intel
+        Xeon the guards took 13.5 ms of host time a step checked in full and 6.4 ms so
+        (``benches/bench_host_overhead.py``: host work on a GPU too), with the same results bit for
+        bit (tests/test_network.py); fewer calls (both links in one, ``groups_per_call``) cut them
+        further. What could
         change a guard's outcome between this link level's calls at one capacity, its blocks and
         tensors made anew, resets the count (:meth:`_grow`, :meth:`restore`); and where torch
         would have to compile (it refuses to in this stance), the group runs again under every
