@@ -419,9 +419,10 @@ class LinkLevel:
         return tallied(self._torch, groups, queues, n_slots, n_ue, self.n_cell)
 
     def _groups_at(self, k: int, plan: _CallPlan) -> list[tuple]:
-        """The groups of slots a call at slot ``k`` runs, each ``(first slot, PRBs, HARQ, TBLER,
-        MCS, effective SINR, cells active, decoded bits)``: a chunk of ``plan.many`` at its first
-        group (none at its others), else the group at ``k`` (none where no link has bits)."""
+        """The slots a call at slot ``k`` runs, ``(first slot, PRBs, HARQ, TBLER, MCS, effective
+        SINR, cells active, decoded bits)``, each [L, slots, ...]: a chunk of ``plan.many`` groups
+        at its first group (none at its others), else the group at ``k`` (none where no link has
+        bits)."""
         torch, g = self._torch, k // plan.d
         if g < plan.in_many:
             if g % plan.many:
@@ -429,7 +430,7 @@ class LinkLevel:
             c = g // plan.many
             *fields, self.harq, self.rate_last = self._groups(plan.chunks[c], plan.member, plan.chunk_firsts[c],
                                                               self.harq, self.rate_last, plan.went)
-            return [(k + j * plan.d, *(f[j] for f in fields)) for j in range(plan.many)]
+            return [(k, *fields)]  # (each field [L, many · D, ...]: the chunk's slots in order)
         member_t, went, ran = plan.member, plan.went, None
         if plan.finite:  # (only UEs with bits queued at the group's first slot)
             member_t = plan.member & torch.stack([q.eligible(k) for q in plan.queues])[:, None, :]
@@ -501,13 +502,13 @@ class LinkLevel:
 
     def _groups_eager(self, lin_g, member_t, firsts_g, harq_last, rate_last, went):
         """G groups of slots in a row (``lin_g`` [G, L, D, S, cap], ``firsts_g`` [G]; the rest as
-        :meth:`_group_eager` takes them): each group's outputs stacked, [G, ...], then the state
-        the last one left."""
+        :meth:`_group_eager` takes them): their outputs as one group of G·D slots would give them,
+        [L, G·D, ...], then the state the last one left."""
         outs = []
         for g in range(lin_g.shape[0]):
             *out, harq_last, rate_last = self._group_eager(lin_g[g], member_t, firsts_g[g], harq_last, rate_last, went)
             outs.append(out)
-        return (*(self._torch.stack(x) for x in zip(*outs, strict=True)), harq_last, rate_last)
+        return (*(self._torch.cat(x, dim=1) for x in zip(*outs, strict=True)), harq_last, rate_last)
 
     def _group_eager(self, lin_t, member_t, first_slot, harq_last, rate_last, went):
         """One group of D slots of every link, all on the device: scheduling, CSI, link
