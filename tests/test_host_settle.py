@@ -42,7 +42,7 @@ def test_setup_and_the_first_step_are_frozen_until_teardown(tmp_path):
     assert hosted.settled and gc.get_freeze_count() > after_setup  # (the first step's objects too)
     frozen = gc.get_freeze_count()
     hosted.step(1, 0.1, [])
-    assert gc.get_freeze_count() == frozen  # (later steps: nothing more frozen)
+    assert gc.get_freeze_count() <= frozen  # (later steps: nothing more frozen; a frozen object freed leaves)
     hosted.teardown()
     assert gc.get_freeze_count() == 0  # (all given back to the collector)
 
