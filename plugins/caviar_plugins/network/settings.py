@@ -65,8 +65,8 @@ class NetworkParams:
     host's fixed cost a call (about 0.3 ms) of a 0.1 s step's 25 calls to 5, for a longer compile
     (see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
     cuda_graphs: bool | None = None
-    """With ``compile``, replay each compiled group of slots as a CUDA graph (None: on a
-    CUDA device only; see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
+    """With ``compile``, replay each compiled group of slots as a CUDA graph (None: off, on a
+    GPU too for now; see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
     device: str = "auto"
     """The torch device of the link level (Sionna SYS): ``auto`` (Sionna's choice, a GPU
     where there is one), ``cpu``, ``cuda`` or ``cuda:N``."""

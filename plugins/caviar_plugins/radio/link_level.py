@@ -455,12 +455,11 @@ class LinkLevel:
         Xeon the guards took 13.5 ms of host time a step checked in full and 6.4 ms so
         (``benches/bench_host_overhead.py``: host work on a GPU too), with the same results bit for
         bit (tests/test_network.py); fewer calls (both links in one, ``groups_per_call``) cut them
-        further. What could
-        change a guard's outcome between this link level's calls at one capacity, its blocks and
-        tensors made anew, resets the count (:meth:`_grow`, :meth:`restore`); and where torch
-        would have to compile (it refuses to in this stance), the group runs again under every
-        guard, and the count starts again. The stance is the process's while the call's groups
-        run (the host calls one plugin at a time)."""
+        further. What could change a guard's outcome between this link level's calls at one
+        capacity, its blocks and tensors made anew, resets the count (:meth:`_grow`,
+        :meth:`restore`); and where torch would have to compile (it refuses to in this stance),
+        the group runs again under every guard, and the count starts again. The stance is the
+        process's while the call's groups run (the host calls one plugin at a time)."""
         if not self._settled():
             return contextlib.nullcontext()
         # (set_stance sets the stance when called, and puts the last one back when its block ends)
