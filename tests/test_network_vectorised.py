@@ -14,7 +14,15 @@ import pytest
 
 from caviar_plugins.network.handover import HandoverSettings, MobilityManager
 from caviar_plugins.network.report import finite
-from caviar_plugins.network.ues import UeTable, rounded, ue_reports, uplink_arrays, uplink_columns, uplink_fields
+from caviar_plugins.network.ues import (
+    UeTable,
+    rounded,
+    rounded_array,
+    ue_reports,
+    uplink_arrays,
+    uplink_columns,
+    uplink_fields,
+)
 from caviar_plugins.radio.link_level import LinkLevel
 from caviar_plugins.radio.link_settings import LinkSettings, cuda_graphs_on
 from network_configs import assert_decides_as
@@ -242,3 +250,19 @@ def test_a_position_that_is_not_three_numbers_is_named():
     with pytest.raises(ValueError, match=r"UE 'car3' is at .*'z': 'up'.*: expected finite numbers"):
         table.place([{"UE_Id": "car1", "UE_type": "car", "position": {"x": 1.0, "y": 2.0, "z": 0.0}},
                      {"UE_Id": "car3", "UE_type": "car", "position": {"x": 3.0, "y": 1.0, "z": "up"}}], 1.5)
+
+
+def test_rounded_array_is_pythons_round_on_ties_large_and_non_finite_values():
+    """:func:`rounded_array` against ``round(float(x), d)`` element by element: exact decimal
+    ties (k + 0.5 at the last digit, which Python rounds to even on the binary value), values
+    near them, large ones (where ``x·10^d`` itself errs), signed zeros and non-finite values."""
+    rng = np.random.default_rng(11)
+    for digits in (2, 3, 4, 6):
+        ties = (np.arange(-3000, 3000) + 0.5) / 10**digits
+        values = np.concatenate([ties, np.nextafter(ties, np.inf), np.nextafter(ties, -np.inf),
+                                 rng.normal(-90, 30, 5000), rng.uniform(-1e12, 1e12, 500),
+                                 [0.0, -0.0, -1e-9, 2.675, 1.005, 0.125, 1e300, np.inf, -np.inf, np.nan]])
+        got = rounded_array(values, digits)
+        want = np.array([round(float(x), digits) if math.isfinite(x) else x for x in values])
+        np.testing.assert_array_equal(got, want, err_msg=f"{digits} digits")
+        assert (np.signbit(got) == np.signbit(want)).all()  # (-0.0 stays -0.0, as Python's)

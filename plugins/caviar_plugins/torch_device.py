@@ -12,7 +12,6 @@ all on the chosen device and any numpy crossing outside these two functions.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import inspect
 import threading
@@ -85,16 +84,6 @@ def cuda_devices() -> int:
     return torch.cuda.device_count() if torch.cuda.is_available() else 0
 
 
-@contextlib.contextmanager
-def _crossing_here() -> Iterator[None]:
-    depth = getattr(_crossing, "depth", 0)
-    _crossing.depth = depth + 1
-    try:
-        yield
-    finally:
-        _crossing.depth = depth
-
-
 def crossing() -> bool:
     """Whether the current thread is inside :func:`to_torch` or :func:`to_numpy`."""
     return getattr(_crossing, "depth", 0) > 0
@@ -104,16 +93,24 @@ def to_torch(values: Any, device: Any, dtype: Any = None) -> Any:
     """A tensor of ``values`` (numpy, Python numbers, or a tensor, moved) on ``device``."""
     import torch
 
-    with _crossing_here():
+    depth = getattr(_crossing, "depth", 0)  # (no context manager's generator: a step makes dozens)
+    _crossing.depth = depth + 1
+    try:
         if isinstance(values, torch.Tensor):
             return values.to(device=device, dtype=dtype)
         return torch.as_tensor(np.asarray(values), dtype=dtype, device=device)
+    finally:
+        _crossing.depth = depth
 
 
 def to_numpy(tensor: Any) -> np.ndarray:
     """A tensor's values as numpy (copied to the host from a GPU)."""
-    with _crossing_here():
+    depth = getattr(_crossing, "depth", 0)
+    _crossing.depth = depth + 1
+    try:
         return tensor.detach().cpu().numpy()
+    finally:
+        _crossing.depth = depth
 
 
 class DeviceGuard:

@@ -260,7 +260,7 @@ class RadioNetwork(caviar.Plugin):
         res, *ul_res = run_links(self.link, per_slots, serving, cols, self.slots, backlogs)  # (both directions at once)
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         yield from ((NETWORK_EVENTS, e) for e in events)
-        yield from self._delivered(t, ids, "downlink", res.delivered_bits[:, cols])
+        yield from self._delivered(t, ids, "downlink", res, cols)
         ul = None
         if ul_in is not None:
             ul = yield from self._uplink_out(t, ids, ul_res[0], ul_in[1], ul_in[2], cols)
@@ -299,13 +299,13 @@ class RadioNetwork(caviar.Plugin):
         return self.queues.step_backlog(t, ids, types, direction, self.slots, self.slot_s,
                                         self.p.interference == "scheduled")
 
-    def _delivered(self, t: float, ids: list[str], direction: str, delivered_bits: np.ndarray):
-        """Takes the step's delivered bits ([slot, ue]) off the queues: every transfer completed
-        (and what its UEs left unfinished) on ``network.transfers``, and each carried message
-        delivered on its ``deliver_to`` topic."""
+    def _delivered(self, t: float, ids: list[str], direction: str, res, cols: np.ndarray):
+        """Takes the step's delivered bits (``res``' [slot, ue] of the UE columns ``cols``; a full
+        buffer's are not read) off the queues: every transfer completed (and what its UEs left
+        unfinished) on ``network.transfers``, and each carried message on its ``deliver_to`` topic."""
         if self.queues is None:
             return
-        for x, done in self.queues.finished(t, ids, direction, delivered_bits, self.slot_s):
+        for x, done in self.queues.finished(t, ids, direction, res.delivered_bits[:, cols], self.slot_s):
             yield NETWORK_TRANSFERS, transfer_record(x, done)
             if done is not None and x.deliver_to is not None:
                 yield f"{x.deliver_to}.{x.ue}", x.payload
@@ -321,6 +321,6 @@ class RadioNetwork(caviar.Plugin):
 
     def _uplink_out(self, t: float, ids: list[str], res, tx: Any, per_slot: Any, cols: np.ndarray):
         """The step's PUSCH after the link level (``res``): its completed transfers; every UE's ``ul_*`` fields."""
-        yield from self._delivered(t, ids, "uplink", res.delivered_bits[:, cols])
+        yield from self._delivered(t, ids, "uplink", res, cols)
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         return uplink_arrays(tx, mean_sinr_db(per_slot), mbps[cols], link_fields(res, cols))

@@ -8,6 +8,7 @@ from those arrays in one pass (:func:`ue_reports`), their numbers converted in b
 from __future__ import annotations
 
 import itertools
+import math
 import operator
 from typing import Any, Callable, Iterator
 
@@ -29,6 +30,7 @@ class UeTable:
         self.free: list[int] = []
         self.arrays = {name: np.zeros((8, *shape)) for name, shape in ARRAYS.items()}
         self._view: tuple[list[str], np.ndarray, list[str]] | None = None
+        self._placed: tuple[list[str] | None, np.ndarray | None] = (None, None)  # (a step's UE_Ids, columns)
 
     def __contains__(self, ue: str) -> bool:
         return ue in self.ues
@@ -55,7 +57,7 @@ class UeTable:
         self.arrays["last_sinr"][col] = np.nan
         self.ues[ue] = {"type": ue_type, "column": col}
         self._column[ue] = col
-        self._view = None
+        self._view, self._placed = None, (None, None)
         return col
 
     def place(self, payloads: list[dict[str, Any]], lift_m: float) -> None:
@@ -64,22 +66,28 @@ class UeTable:
         appears, its antenna ``lift_m`` above its position). A UE with two messages: the last."""
         if not payloads:
             return
-        last = {d["UE_Id"]: d for d in payloads}  # (first appearance's order, last message)
-        if not last.keys() <= self.ues.keys():  # (a set test: the UEs are known but in a step that adds one)
-            for u, d in last.items():
-                if u not in self.ues:
-                    col = self.add(u, d["UE_type"])  # (first: it may grow the arrays)
-                    self.arrays["lift"][col] = lift_m
-        cols = list(map(self._column.__getitem__, last))
-        xyz = map(operator.itemgetter("x", "y", "z"), map(operator.itemgetter("position"), last.values()))
+        ids = list(map(operator.itemgetter("UE_Id"), payloads))
+        if ids == self._placed[0]:  # (the last step's UEs in its order, each once: their columns as they were)
+            cols, values = self._placed[1], payloads
+        else:
+            last = dict(zip(ids, payloads, strict=True))  # (first appearance's order, last message)
+            if not last.keys() <= self.ues.keys():  # (a set test: the UEs are known but in a step that adds one)
+                for u, d in last.items():
+                    if u not in self.ues:
+                        col = self.add(u, d["UE_type"])  # (first: it may grow the arrays)
+                        self.arrays["lift"][col] = lift_m
+            cols = np.fromiter(map(self._column.__getitem__, last), dtype=np.int64, count=len(last))
+            values = list(last.values())
+            self._placed = (ids if len(last) == len(ids) else None, cols)
+        xyz = map(operator.itemgetter("x", "y", "z"), map(operator.itemgetter("position"), values))
         try:
-            at = np.fromiter(itertools.chain.from_iterable(xyz), dtype=float, count=3 * len(last)).reshape(-1, 3)
+            at = np.fromiter(itertools.chain.from_iterable(xyz), dtype=float, count=3 * len(values)).reshape(-1, 3)
             bad = np.flatnonzero(~np.isfinite(at).all(axis=1)).tolist()
         except (TypeError, ValueError):  # (a coordinate that is not a number at all)
-            bad = [i for i, d in enumerate(last.values()) if not _finite_xyz(d["position"])]
+            bad = [i for i, d in enumerate(values) if not _finite_xyz(d["position"])]
         if bad:  # (None, NaN, a string: which UE's, before it reaches the channel)
-            u = list(last)[bad[0]]
-            raise ValueError(f"3D.mobility.positions: UE {u!r} is at {last[u]['position']}: expected finite "
+            d = values[bad[0]]
+            raise ValueError(f"3D.mobility.positions: UE {d['UE_Id']!r} is at {d['position']}: expected finite "
                              "numbers x, y and z (metres)")
         self.arrays["position"][cols] = at
 
@@ -89,7 +97,7 @@ class UeTable:
         del self._column[ue]
         self.free.append(col)
         self.free.sort()
-        self._view = None
+        self._view, self._placed = None, (None, None)
         return col
 
     def column(self, ue: str) -> int:
@@ -112,7 +120,7 @@ class UeTable:
         self.ues, self.free = state["ues"], state["free"]
         self._column = {u: v["column"] for u, v in self.ues.items()}
         self.arrays = {k: a.copy() for k, a in state["arrays"].items()}
-        self._view = None
+        self._view, self._placed = None, (None, None)
 
 
 def _finite_xyz(position: dict[str, Any]) -> bool:
@@ -133,17 +141,21 @@ def rounded_array(values: np.ndarray, digits: int) -> np.ndarray:
     """``round(float(v), digits)`` of every ``v``, in bulk, as a float64 array: Python's ``round``
     is the nearest float to the decimal rounding of the exact value (ties to even), which
     ``rint(v·10^d)/10^d`` gives too wherever ``v·10^d`` is not within rounding error of a tie;
-    the few that are are rounded by Python. Non-finite values stay as they are."""
+    those that may be (a fraction within 2e-6 of one half, or beyond 1e10, where ``v·10^d``'s own
+    error may reach 1.1e-6) are rounded by Python.
+    Non-finite values stay as they are (``rint`` and the division keep them)."""
     v = np.asarray(values, dtype=float)
-    scale = 10.0 ** digits
     with np.errstate(invalid="ignore", over="ignore"):
-        scaled = v * scale
-        out = np.rint(scaled) / scale
-        near_tie = np.abs(np.abs(scaled - np.trunc(scaled)) - 0.5) < 1e-6 + 1e-15 * np.abs(scaled)
-        near_tie |= np.abs(scaled) >= 2.0 ** 52  # (beyond float's integers: Python's)
-    out = np.where(np.isfinite(v), out, v)
-    for i in map(tuple, np.argwhere(near_tie & np.isfinite(v))):
-        out[i] = round(float(v[i]), digits)
+        scaled = v * 10.0 ** digits
+        whole = np.rint(scaled)
+        out = whole / 10.0 ** digits
+        whole -= scaled  # (exact: the distance to the nearest integer, at most one half)
+        near_tie = np.abs(whole, out=whole) > 0.5 - 2e-6
+        near_tie |= np.abs(scaled, out=scaled) >= 1e10  # (inf too: left as it is below)
+    for i in map(tuple, np.argwhere(near_tie)):
+        x = float(v[i])
+        if math.isfinite(x):
+            out[i] = round(x, digits)
     return out
 
 
@@ -203,8 +215,9 @@ def throughput_reports(ids: list[str], types: list[str], mbps: np.ndarray | list
 
 
 def throughput_messages(ids: list[str], types: list[str], mbps: np.ndarray) -> list[tuple[str, dict[str, Any]]]:
-    """:func:`throughput_reports` as the step's messages, (topic, payload) each."""
-    return [(THROUGHPUT, x) for x in throughput_reports(ids, types, mbps)]
+    """:func:`throughput_reports` as the step's messages, (topic, payload) each (made in one pass)."""
+    return [(THROUGHPUT, {"UE_type": t, "UE_Id": u, "throughput": m})
+            for t, u, m in zip(types, ids, rounded(mbps, 6), strict=True)]
 
 
 def ue_reports(names: list[str], ids: list[str], types: list[str], serving: np.ndarray, sinr: np.ndarray,

@@ -33,7 +33,8 @@ class CallQueue:
         self.left = to_torch(np.pad(self.left, pad), device, torch.float64)
         if self.arrivals is not None:
             self.arrivals = to_torch(np.pad(self.arrivals, ((0, 0), *pad)), device, torch.float64)
-        self.delivered = torch.zeros((n_slots, cap), dtype=torch.float64, device=device)
+        if self.finite:  # (a full buffer delivers what it decodes: no copy kept)
+            self.delivered = torch.zeros((n_slots, cap), dtype=torch.float64, device=device)
         self._minimum = torch.minimum
 
     def _arrive(self, slot: int) -> None:

@@ -25,7 +25,15 @@ class SlotResults:
     tbler: np.ndarray  # [n_ue] mean TBLER over scheduled slots (NaN: none)
     sinr_eff_db: np.ndarray  # [n_ue] the last effective SINR (NaN: none)
     cells_active: np.ndarray  # [n_slots, n_cell] cells that scheduled someone
-    delivered_bits: np.ndarray  # [n_slots, n_ue] bits decoded per slot (of the UE's queue)
+    delivered: Any  # [n_slots, n_ue] bits decoded per slot (of the UE's queue), or what reads them (once)
+
+    @property
+    def delivered_bits(self) -> np.ndarray:
+        """[n_slots, n_ue]: the bits each slot delivered of each UE's queue (read from the device
+        when first asked for: a full buffer's network step never asks, so never copies them out)."""
+        if callable(self.delivered):
+            self.delivered = self.delivered()
+        return self.delivered
 
     def bler(self, ue: int) -> float:
         return self.nacks[ue] / max(self.acks[ue] + self.nacks[ue], 1)
@@ -38,6 +46,10 @@ class SlotResults:
                 "tbler": None if np.isnan(self.tbler[u]) else round(float(self.tbler[u]), 4),
                 "harq_ack": int(self.acks[u]), "harq_nack": int(self.nacks[u]),
                 "prbs": int(self.prbs[u])}
+
+
+RESULTS = tuple(f.name for f in dataclasses.fields(SlotResults) if f.name != "delivered") + ("delivered_bits",)
+"""A :class:`SlotResults`' results by name (``delivered_bits`` read when asked for)."""
 
 
 def no_slots(n_ue: int, n_slots: int, n_cell: int) -> SlotResults:
@@ -55,7 +67,7 @@ def tallied(torch: Any, groups: list[tuple], queues: list[CallQueue], n_slots: i
     link at once, then the call's one way out."""
     if not groups:
         return [no_slots(n_ue, n_slots, n_cell) for _ in queues]
-    dev, (n_links, _, cap) = groups[0][1].device, groups[0][1].shape
+    dev, n_links = groups[0][1].device, groups[0][1].shape[0]
     fields = list(zip(*groups, strict=True))[1:]  # (each [L, slots run, cap]; cells: [L, slots run, C])
     prbs, harq, tbler, mcs, sinr_eff, cells, bits = (torch.cat(x, dim=1) for x in fields)
     every = sum(g[1].shape[1] for g in groups) == n_slots  # (every slot ran: in order)
@@ -64,16 +76,6 @@ def tallied(torch: Any, groups: list[tuple], queues: list[CallQueue], n_slots: i
     if not every:
         active = torch.zeros((n_links, n_slots, n_cell), dtype=torch.bool, device=dev)
         active[:, slots] = cells
-    delivered = []
-    for q, link_bits in zip(queues, bits, strict=True):
-        if q.finite:
-            delivered.append(q.delivered)
-        elif every:  # (a full buffer delivers all it decodes)
-            delivered.append(link_bits.to(torch.float64))
-        else:
-            placed = torch.zeros((n_slots, cap), dtype=torch.float64, device=dev)
-            placed[slots] = link_bits.to(torch.float64)
-            delivered.append(placed)
     sched = prbs > 0  # [L, slots run, cap]
     # the last scheduled slot's MCS and effective SINR
     last = sched.shape[1] - 1 - torch.argmax(torch.flip(sched, (1,)).to(torch.uint8), dim=1)[:, None]  # [L,1,cap]
@@ -82,19 +84,40 @@ def tallied(torch: Any, groups: list[tuple], queues: list[CallQueue], n_slots: i
     eff_db = 10 * torch.log10(torch.clamp(sinr_eff.to(torch.float64).gather(1, last)[:, 0], min=1e-30))
     sinr_eff_last = torch.where(anyone, eff_db, float("nan"))
     tbler_sum = torch.where(sched, tbler.to(torch.float64), 0.0).sum(dim=1)
-    # (the call's one way out: every tally, as float64 (the counts exact in it), in one read)
+    # (a full buffer delivers all it decodes; a queue what it took of it)
+    decoded = bits.to(torch.float64).sum(dim=1)  # [L, cap]
+    if any(q.finite for q in queues):
+        decoded = torch.stack([torch.sum(q.delivered, dim=0) if q.finite else d
+                               for q, d in zip(queues, decoded, strict=True)])
+    # (the call's one way out: every tally, as float64 (the counts exact in it), in one read; the
+    # bits of each slot stay where they are until asked for)
     per_ue = torch.stack([sched.sum(dim=1), prbs.sum(dim=1), (harq == 1).sum(dim=1), (harq == 0).sum(dim=1),
-                          tbler_sum, mcs_last, sinr_eff_last], dim=1).to(torch.float64)  # [L, 7, cap]
-    out = to_numpy(torch.cat([per_ue.flatten(), active.flatten(), torch.stack(delivered).flatten()]))
-    tallies = out[:n_links * 7 * cap].reshape(n_links, 7, cap)[:, :, :n_ue]
-    active_n = out[n_links * 7 * cap:n_links * 7 * cap + active.numel()].reshape(active.shape) != 0
-    delivered_n = out[n_links * 7 * cap + active.numel():].reshape(n_links, n_slots, cap)[:, :, :n_ue]
+                          tbler_sum, mcs_last, sinr_eff_last, decoded], dim=1).to(torch.float64)  # [L, 8, cap]
+    out = to_numpy(torch.cat([per_ue.flatten(), active.flatten()]))
+    tallies = out[:per_ue.numel()].reshape(per_ue.shape)[:, :, :n_ue]
+    active_n = out[per_ue.numel():].reshape(active.shape) != 0
     results = []
-    for per, act, got in zip(tallies, active_n, delivered_n, strict=True):
+    for per, act, q, link_bits in zip(tallies, active_n, queues, bits, strict=True):
         sched_n, prbs_n, acks_n, nacks_n = per[:4].astype(np.int64)
-        tbler_n, mcs_n, eff_n = per[4:]
+        tbler_n, mcs_n, eff_n, decoded_n = per[4:]
         with np.errstate(invalid="ignore", divide="ignore"):
             tbler_mean = np.where(sched_n > 0, tbler_n / sched_n, np.nan)
-        results.append(SlotResults(got.sum(axis=0), sched_n, prbs_n, acks_n, nacks_n, mcs_n.astype(np.int64),
-                                   tbler_mean, eff_n, act, got))
+        reader = _reader(torch, q.delivered, None, n_slots, n_ue) if q.finite else \
+            _reader(torch, link_bits, slots, n_slots, n_ue)
+        results.append(SlotResults(decoded_n, sched_n, prbs_n, acks_n, nacks_n, mcs_n.astype(np.int64),
+                                   tbler_mean, eff_n, act, reader))
     return results
+
+
+def _reader(torch: Any, bits: Any, slots: Any, n_slots: int, n_ue: int) -> Any:
+    """What reads one link's bits of each slot to the host when asked, [n_slots, n_ue] float64:
+    ``bits`` [slots run, cap] on the device (``slots``: the slots they are, None: every slot in
+    order; a slot that did not run delivered nothing)."""
+    def read() -> np.ndarray:
+        b = bits.to(torch.float64)
+        if slots is not None:
+            placed = torch.zeros((n_slots, b.shape[1]), dtype=torch.float64, device=b.device)
+            placed[slots] = b
+            b = placed
+        return to_numpy(b)[:, :n_ue]
+    return read
