@@ -419,8 +419,8 @@ class LinkLevel:
         return tallied(self._torch, groups, queues, n_slots, n_ue, self.n_cell)
 
     def _groups_at(self, k: int, plan: _CallPlan) -> list[tuple]:
-        """The slots a call at slot ``k`` runs, ``(first slot, PRBs, HARQ, TBLER, MCS, effective
-        SINR, cells active, decoded bits)``, each [L, slots, ...]: a chunk of ``plan.many`` groups
+        """The slots a call at slot ``k`` runs, ``(first slot, slots, PRBs, HARQ, TBLER, MCS,
+        effective SINR, cells active, decoded bits)``, each [L, slots, ...]: a chunk of ``plan.many`` groups
         at its first group (none at its others), else the group at ``k`` (none where no link has
         bits)."""
         torch, g = self._torch, k // plan.d
@@ -430,7 +430,7 @@ class LinkLevel:
             c = g // plan.many
             *fields, self.harq, self.rate_last = self._groups(plan.chunks[c], plan.member, plan.chunk_firsts[c],
                                                               self.harq, self.rate_last, plan.went)
-            return [(k, *fields)]  # (each field [L, many · D, ...]: the chunk's slots in order)
+            return [(k, plan.many * plan.d, *fields)]  # (each field [L, many · D, ...]: the chunk's slots in order)
         member_t, went, ran = plan.member, plan.went, None
         if plan.finite:  # (only UEs with bits queued at the group's first slot)
             member_t = plan.member & torch.stack([q.eligible(k) for q in plan.queues])[:, None, :]
@@ -443,7 +443,7 @@ class LinkLevel:
         for q, link_bits, link_ran in zip(plan.queues, bits, ran or (), strict=False):
             if q.finite and link_ran:
                 q.take_group(k, link_bits.to(torch.float64))
-        return [(k, prbs, harq, tbler, mcs, sinr_eff, cells, bits)]
+        return [(k, plan.d, prbs, harq, tbler, mcs, sinr_eff, cells, bits)]
 
     def _guards(self) -> Any:
         """A context (for the call's groups only): how dynamo checks the compiled group's calls:

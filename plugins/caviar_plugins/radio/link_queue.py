@@ -30,7 +30,7 @@ class CallQueue:
         loop's; the columns past the call's UEs have nothing queued)."""
         n_slots, n_ue = self.delivered.shape
         pad = ((0, cap - n_ue),)
-        self.left = to_torch(np.pad(self.left, pad), device, torch.float64)
+        self.left = to_torch(np.pad(self.left, pad), device, torch.float64)  # (a full buffer: eligible throughout)
         if self.arrivals is not None:
             self.arrivals = to_torch(np.pad(self.arrivals, ((0, 0), *pad)), device, torch.float64)
         if self.finite:  # (a full buffer delivers what it decodes: no copy kept)

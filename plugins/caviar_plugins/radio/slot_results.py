@@ -61,17 +61,17 @@ def no_slots(n_ue: int, n_slots: int, n_cell: int) -> SlotResults:
 
 def tallied(torch: Any, groups: list[tuple], queues: list[CallQueue], n_slots: int, n_ue: int,
             n_cell: int) -> list[SlotResults]:
-    """Each link's results from a link level's call, its runs of slots (``(first slot, PRBs,
+    """Each link's results from a link level's call, its runs of slots (``(first slot, slots, PRBs,
     HARQ, TBLER, MCS, effective SINR, cells active, decoded bits)``, each [L, slots, ...]: see
     :meth:`~caviar_plugins.radio.link_level.LinkLevel._groups_at`): tallied on the device, every
     link at once, then the call's one way out."""
     if not groups:
         return [no_slots(n_ue, n_slots, n_cell) for _ in queues]
-    dev, n_links = groups[0][1].device, groups[0][1].shape[0]
-    fields = list(zip(*groups, strict=True))[1:]  # (each [L, slots run, cap]; cells: [L, slots run, C])
+    dev, n_links = groups[0][2].device, groups[0][2].shape[0]
+    fields = list(zip(*groups, strict=True))[2:]  # (each [L, slots run, cap]; cells: [L, slots run, C])
     prbs, harq, tbler, mcs, sinr_eff, cells, bits = (torch.cat(x, dim=1) for x in fields)
-    every = sum(g[1].shape[1] for g in groups) == n_slots  # (every slot ran: in order)
-    slots = None if every else torch.cat([torch.arange(g[0], g[0] + g[1].shape[1], device=dev) for g in groups])
+    every = sum(g[1] for g in groups) == n_slots  # (every slot ran: in order)
+    slots = None if every else torch.cat([torch.arange(g[0], g[0] + g[1], device=dev) for g in groups])
     active = cells
     if not every:
         active = torch.zeros((n_links, n_slots, n_cell), dtype=torch.bool, device=dev)
