@@ -84,6 +84,20 @@ def cuda_devices() -> int:
     return torch.cuda.device_count() if torch.cuda.is_available() else 0
 
 
+class _CrossingHere:
+    """While entered, this thread is inside :func:`to_torch` or :func:`to_numpy` (a class, not a
+    generator's context manager: a step makes dozens of crossings)."""
+
+    def __enter__(self) -> None:
+        _crossing.depth = getattr(_crossing, "depth", 0) + 1
+
+    def __exit__(self, *exc: object) -> None:
+        _crossing.depth -= 1
+
+
+_crossing_here = _CrossingHere()
+
+
 def crossing() -> bool:
     """Whether the current thread is inside :func:`to_torch` or :func:`to_numpy`."""
     return getattr(_crossing, "depth", 0) > 0
@@ -93,24 +107,16 @@ def to_torch(values: Any, device: Any, dtype: Any = None) -> Any:
     """A tensor of ``values`` (numpy, Python numbers, or a tensor, moved) on ``device``."""
     import torch
 
-    depth = getattr(_crossing, "depth", 0)  # (no context manager's generator: a step makes dozens)
-    _crossing.depth = depth + 1
-    try:
+    with _crossing_here:
         if isinstance(values, torch.Tensor):
             return values.to(device=device, dtype=dtype)
         return torch.as_tensor(np.asarray(values), dtype=dtype, device=device)
-    finally:
-        _crossing.depth = depth
 
 
 def to_numpy(tensor: Any) -> np.ndarray:
     """A tensor's values as numpy (copied to the host from a GPU)."""
-    depth = getattr(_crossing, "depth", 0)
-    _crossing.depth = depth + 1
-    try:
+    with _crossing_here:
         return tensor.detach().cpu().numpy()
-    finally:
-        _crossing.depth = depth
 
 
 class DeviceGuard:

@@ -215,9 +215,8 @@ def throughput_reports(ids: list[str], types: list[str], mbps: np.ndarray | list
 
 
 def throughput_messages(ids: list[str], types: list[str], mbps: np.ndarray) -> list[tuple[str, dict[str, Any]]]:
-    """:func:`throughput_reports` as the step's messages, (topic, payload) each (made in one pass)."""
-    return [(THROUGHPUT, {"UE_type": t, "UE_Id": u, "throughput": m})
-            for t, u, m in zip(types, ids, rounded(mbps, 6), strict=True)]
+    """:func:`throughput_reports` as the step's messages, (topic, payload) each."""
+    return [(THROUGHPUT, x) for x in throughput_reports(ids, types, mbps)]
 
 
 def ue_reports(names: list[str], ids: list[str], types: list[str], serving: np.ndarray, sinr: np.ndarray,

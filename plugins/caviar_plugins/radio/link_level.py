@@ -420,9 +420,9 @@ class LinkLevel:
 
     def _groups_at(self, k: int, plan: _CallPlan) -> list[tuple]:
         """The slots a call at slot ``k`` runs, ``(first slot, slots, PRBs, HARQ, TBLER, MCS,
-        effective SINR, cells active, decoded bits)``, each [L, slots, ...]: a chunk of ``plan.many`` groups
-        at its first group (none at its others), else the group at ``k`` (none where no link has
-        bits)."""
+        effective SINR, cells active, decoded bits)``, each [L, slots, ...]: a chunk of
+        ``plan.many`` groups at its first group (none at its others), else the group at ``k``
+        (none where no link has bits)."""
         torch, g = self._torch, k // plan.d
         if g < plan.in_many:
             if g % plan.many:
