@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from caviar_plugins.network.traffic import Backlog
+from caviar_plugins.radio import slot_results
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
 from caviar_plugins.radio.slot_results import RESULTS
 
@@ -94,10 +95,11 @@ def test_links_that_differ_beyond_direction_and_table_are_refused():
         together.restore(LinkLevel(dl, N_CELL).state())
 
 
-def test_several_groups_a_compiled_call_decide_as_one_a_call():
+def test_several_groups_a_compiled_call_decide_as_one_a_call(monkeypatch):
     """``groups_per_call``: with full buffers, chunks of groups of slots run as one compiled call
     (those left over one a call), and every result and loop state is one-a-call's, bit for bit
-    (the random stream included); with queues, one a call."""
+    (the random stream included; chunks of every slot tallied in their compiled programs, carried
+    from chunk to chunk); with queues, one a call."""
     rng = np.random.default_rng(14)
     dl = LinkSettings(num_prb=24, harq_processes=D, subbands=4, compile=True, device="cpu")
     links = [dl, dataclasses.replace(dl, direction="uplink")]
@@ -106,18 +108,22 @@ def test_several_groups_a_compiled_call_decide_as_one_a_call():
     chunks: list = []
     inner = many._groups
     many._groups = lambda *a: chunks.append(len(a[0])) or inner(*a)
-    for groups in (4, 5):  # (5: two chunks of 2, then one group alone)
+    tallies: list = []  # (the calls tallied after their groups, on the host's side)
+    eager = slot_results.per_ue
+    monkeypatch.setattr(slot_results, "per_ue", lambda *a: tallies.append(a[1].shape[1]) or eager(*a))
+    for groups in (2, 4, 5):  # (2, 4: chunks of every slot, tallied in them; 5: two chunks of 2, then one group alone)
         sinrs = [14.0 + rng.normal(0.0, 6.0, (groups * D, N_UE, 4)) for _ in links]
         for got, want in zip(many.run_links(sinrs, serving, groups * D), one.run_links(sinrs, serving, groups * D),
                              strict=True):
             for name in RESULTS:
                 np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
-    assert chunks == [2, 2, 2, 2]
+    assert chunks == [2, 2, 2, 2, 2]
+    assert tallies == [2 * D, 4 * D, 5 * D, 5 * D]  # (one-a-call's each time; many's where a group ran alone)
     for block in ("olla", "pf"):
         for name, value in one.state()[block].items():
             np.testing.assert_array_equal(many.state()[block][name], value, err_msg=f"{block} {name}")
     backlog = Backlog(np.full(N_UE, 1e4), np.zeros((6 * D, N_UE)))
     many.run_links([np.full((6 * D, N_UE, 4), 14.0)] * 2, serving, 6 * D, [backlog, None])
-    assert chunks == [2, 2, 2, 2]  # (queues: one group a call)
+    assert chunks == [2, 2, 2, 2, 2]  # (queues: one group a call)
     with pytest.raises(ValueError, match="groups_per_call: runs groups of slots as one compiled call"):
         LinkSettings(num_prb=24, groups_per_call=2)

@@ -47,7 +47,7 @@ import numpy as np
 
 from caviar_plugins.radio.link_queue import CallQueue as _Queue
 from caviar_plugins.radio.link_settings import DATA_SYMBOLS_PER_SLOT, LinkSettings, cuda_graphs_on
-from caviar_plugins.radio.slot_results import SlotResults, tallied
+from caviar_plugins.radio.slot_results import SlotResults, carried, no_tallies, per_ue, tallied
 from caviar_plugins.rt import sionna_adapter as adapter
 from caviar_plugins.torch_device import resolve, to_numpy, to_torch
 
@@ -74,6 +74,7 @@ class _CallPlan:
     in_many: int  # groups run in chunks (the first ones)
     chunks: tuple  # each chunk's SINRs, [many, L, D, S, cap]
     chunk_firsts: tuple  # each chunk's groups' first slots, [many]
+    tallies: Any  # [L, 8, cap]: each UE's tallies of the chunks run so far (slot_results.per_ue, carried)
 
 
 def joint_links(settings: LinkSettings | Sequence[LinkSettings]) -> tuple[LinkSettings, ...]:
@@ -107,6 +108,7 @@ class LinkLevel:
         self.pf: Any = None
         self.harq: Any = None
         self.rate_last: Any = None
+        self._no_tallies: Any = None
         if settings.link_model == "sys":
             import sionna.phy
             import sionna.sys
@@ -175,6 +177,7 @@ class LinkLevel:
             adapter.grow_scheduler(pf, self.pf, old)
             harq[..., :old], rate_last[..., :old] = self.harq, self.rate_last
         self.olla, self.pf, self.harq, self.rate_last = olla, pf, harq, rate_last
+        self._no_tallies = no_tallies(torch, n, capacity, self.device)  # (where a call's chunks start)
         # Each link's MCS table and category (PDSCH or PUSCH): a number where the links share it,
         # else a tensor [L, D, cap] (Sionna's blocks take one per UE).
         self._mcs_table, self._mcs_category = (self._per_link([s.mcs_table for s in self.links], capacity),
@@ -401,7 +404,8 @@ class LinkLevel:
         plan = _CallPlan(d, queues, finite, member_all, self._all_links, lin_all.unbind(),
                          torch.arange(0, n_slots, d, device=dev).unbind(), many, in_many,
                          lin_all[:in_many].view(-1, many, *lin_all.shape[1:]).unbind() if in_many else (),
-                         torch.arange(0, in_many * d, d, device=dev).view(-1, many).unbind() if in_many else ())
+                         torch.arange(0, in_many * d, d, device=dev).view(-1, many).unbind() if in_many else (),
+                         self._no_tallies)
         start = 0
         while start < n_slots:
             try:
@@ -420,17 +424,19 @@ class LinkLevel:
 
     def _groups_at(self, k: int, plan: _CallPlan) -> list[tuple]:
         """The slots a call at slot ``k`` runs, ``(first slot, slots, PRBs, HARQ, TBLER, MCS,
-        effective SINR, cells active, decoded bits)``, each [L, slots, ...]: a chunk of
-        ``plan.many`` groups at its first group (none at its others), else the group at ``k``
-        (none where no link has bits)."""
+        effective SINR, cells active, decoded bits, tallies)``, each [L, slots, ...] (the tallies
+        :func:`~caviar_plugins.radio.slot_results.per_ue` of a chunk's slots, None for one group): a
+        chunk of ``plan.many`` groups at its first group (none at its others), else the group at
+        ``k`` (none where no link has bits)."""
         torch, g = self._torch, k // plan.d
         if g < plan.in_many:
             if g % plan.many:
                 return []  # (run with its chunk)
             c = g // plan.many
-            *fields, self.harq, self.rate_last = self._groups(plan.chunks[c], plan.member, plan.chunk_firsts[c],
-                                                              self.harq, self.rate_last, plan.went)
-            return [(k, plan.many * plan.d, *fields)]  # (each field [L, many · D, ...]: the chunk's slots in order)
+            *fields, plan.tallies, self.harq, self.rate_last = self._groups(
+                plan.chunks[c], plan.member, plan.chunk_firsts[c], self.harq, self.rate_last, plan.went, plan.tallies)
+            # (each field [L, many · D, ...]: the chunk's slots in order; then the tallies so far)
+            return [(k, plan.many * plan.d, *fields, plan.tallies)]
         member_t, went, ran = plan.member, plan.went, None
         if plan.finite:  # (only UEs with bits queued at the group's first slot)
             member_t = plan.member & torch.stack([q.eligible(k) for q in plan.queues])[:, None, :]
@@ -443,7 +449,7 @@ class LinkLevel:
         for q, link_bits, link_ran in zip(plan.queues, bits, ran or (), strict=False):
             if q.finite and link_ran:
                 q.take_group(k, link_bits.to(torch.float64))
-        return [(k, plan.d, prbs, harq, tbler, mcs, sinr_eff, cells, bits)]
+        return [(k, plan.d, prbs, harq, tbler, mcs, sinr_eff, cells, bits, None)]
 
     def _guards(self) -> Any:
         """A context (for the call's groups only): how dynamo checks the compiled group's calls:
@@ -499,15 +505,20 @@ class LinkLevel:
         """:meth:`_groups_eager`, compiled (as a CUDA graph where the group is one)."""
         return self._group_graphed(*args, compiled=self._many) if self.cuda_graphs else self._many(*args)
 
-    def _groups_eager(self, lin_g, member_t, firsts_g, harq_last, rate_last, went):
+    def _groups_eager(self, lin_g, member_t, firsts_g, harq_last, rate_last, went, tallies):
         """G groups of slots in a row (``lin_g`` [G, L, D, S, cap], ``firsts_g`` [G]; the rest as
         :meth:`_group_eager` takes them): their outputs as one group of G·D slots would give them,
-        [L, G·D, ...], then the state the last one left."""
+        [L, G·D, ...], and each UE's ``tallies`` [L, 8, cap] of the slots before them carried over
+        them (:func:`~caviar_plugins.radio.slot_results.carried`: where chunks run every slot of a
+        call, the last one's tallies are the call's, no torch operation after it), then the state
+        the last one left."""
         outs = []
         for g in range(lin_g.shape[0]):
             *out, harq_last, rate_last = self._group_eager(lin_g[g], member_t, firsts_g[g], harq_last, rate_last, went)
             outs.append(out)
-        return (*(self._torch.cat(x, dim=1) for x in zip(*outs, strict=True)), harq_last, rate_last)
+        prbs, harq, tbler, mcs, sinr_eff, cells, bits = (self._torch.cat(x, dim=1) for x in zip(*outs, strict=True))
+        tallies = carried(self._torch, tallies, per_ue(self._torch, prbs, harq, tbler, mcs, sinr_eff, bits))
+        return prbs, harq, tbler, mcs, sinr_eff, cells, bits, tallies, harq_last, rate_last
 
     def _group_eager(self, lin_t, member_t, first_slot, harq_last, rate_last, went):
         """One group of D slots of every link, all on the device: scheduling, CSI, link
