@@ -214,3 +214,23 @@ def test_the_plugins_imports_have_no_circle():
     for node in sorted(graph):
         visit(node, [])
     assert "caviar_plugins.rt.shoot_cache" in graph["caviar_plugins.rt.solver"]
+
+
+def test_the_link_levels_phy_abstraction_finds_grid_indices_as_sionnas_own():
+    """The link level's PHY abstraction takes the interpolation grids' lengths from their
+    (min, max, delta) rather than ``len`` of the numpy grids (which a compiled group made tensor
+    inputs, converted and guarded at every call): the lengths numpy's grids have, and the indices
+    Sionna's own ``get_idx_from_grid`` gives, exactly, on and off the grids and past their ends."""
+    import sionna.sys
+    import torch
+
+    phy = internals.phy_abstraction("cpu", internals.own_generator(torch.device("cpu"), 0))
+    rng = np.random.default_rng(5)
+    for which, grid, (lo, hi, delta) in (("snr", phy._snr_dbs_interp, phy._snr_db_interp_min_max_delta),
+                                         ("cbs", phy._cbs_interp, phy._cbs_interp_min_max_delta)):
+        values = torch.tensor(np.concatenate([grid, grid + delta / 2, rng.uniform(lo - 5 * delta, hi + 5 * delta, 500),
+                                              [lo - 1e6, hi + 1e6]]))
+        got = phy.get_idx_from_grid(values, which)
+        want = sionna.sys.PHYAbstraction.get_idx_from_grid(phy, values, which)
+        assert torch.equal(got, want), which
+        assert int(got.max()) == len(grid) - 1 and int(got.min()) == 0

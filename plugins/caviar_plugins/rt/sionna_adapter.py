@@ -572,10 +572,25 @@ def _own_stream_class() -> Any:
     """The ``PHYAbstraction`` whose ``torch_rng`` is the block's own generator (made once, at
     first use: Sionna is imported late)."""
     import sionna.sys
+    import torch
 
     class OwnStream(sionna.sys.PHYAbstraction):
         @property
         def torch_rng(self):
             return self._own_generator  # (read eager only: compiled code draws from the device's default)
+
+        def get_idx_from_grid(self, val: Any, which: str) -> Any:
+            """Sionna's, the same numbers, with the grid's length from its (min, max, delta) as
+            numpy's ``arange`` makes it (``ceil((max - min) / delta)``) instead of ``len`` of the
+            numpy grid itself: in a compiled group of slots that made both grids tensor inputs,
+            converted and guarded at every call (dynamo's lookup 165 -> 91 µs a call at 21 cells ×
+            1,000 UEs, 2-core AMD EPYC)."""
+            if which not in ("snr", "cbs"):
+                raise ValueError("which must be 'snr' or 'cbs'")
+            lo, hi, delta = self._snr_db_interp_min_max_delta if which == "snr" else self._cbs_interp_min_max_delta
+            len_grid = max(math.ceil((hi - lo) / delta), 0)
+            val = torch.as_tensor(val, dtype=self.dtype, device=self.device)
+            idx = torch.round((val - lo) / delta).to(torch.int32)
+            return torch.clamp(idx, 0, len_grid - 1)
 
     return OwnStream
