@@ -280,11 +280,10 @@ def ue_table(names: list[str], ids: list[str], types: list[str], serving: np.nda
     import polars as pl
 
     blank = serving < 0  # (no cell)
-    cell = pl.Series("serving_cell", np.where(blank, 0, serving), dtype=pl.UInt32)
+    serving_names = np.array([*names, None], dtype=object)[serving]  # (-1: None, no cell)
     # (the columns in the order of a network.ue report's fields)
     columns: dict[str, Any] = {
-        "UE_type": types, "UE_Id": ids,
-        "serving_cell": pl.Series(names, dtype=pl.String).gather(cell).scatter(np.flatnonzero(blank), None),
+        "UE_type": types, "UE_Id": ids, "serving_cell": pl.Series("serving_cell", serving_names, dtype=pl.String),
         "sinr_db": _nulls(sinr, 3, blank), "sir_db": _nulls(sir, 3, blank),
         "coupling_loss_db": _nulls(loss, 3, blank)}
     values = rounded_array(rsrp, 2)
@@ -292,7 +291,10 @@ def ue_table(names: list[str], ids: list[str], types: list[str], serving: np.nda
         values = np.full_like(values, np.nan)
         rows = np.arange(len(values))[:, None]
         values[rows, listed] = rounded_array(rsrp[rows, listed], 2)
-    columns["rsrp_dbm"] = pl.DataFrame(dict(zip(names, values.T, strict=True)), nan_to_null=True).to_struct("rsrp_dbm")
+    rsrp_table = pl.from_numpy(np.asfortranarray(values), schema=names, orient="row")  # (a column a cell, no copy)
+    if np.isnan(values).any():  # (the cells not listed, or no number: null)
+        rsrp_table = rsrp_table.fill_nan(None)
+    columns["rsrp_dbm"] = rsrp_table.to_struct("rsrp_dbm")
     columns["throughput_mbps"] = rounded_array(mbps, 6)
     if "dropped" in types:  # (a list: polars sets no null in an array column)
         where = [p if t == "dropped" else None for p, t in zip(rounded(position, 2), types, strict=True)]
