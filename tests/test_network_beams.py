@@ -236,3 +236,27 @@ def test_the_plugin_computes_the_beam_responses_once_per_trace(tmp_path, monkeyp
                       name="traced.toml")
     assert len(ue_reports(log)) == 6 * 2  # every step measured both UEs
     assert calls == {"responses": 2, "traces": 2}
+
+
+def test_the_slots_schedule_is_each_cells_ues_in_turn_and_a_repeated_call_gets_its_own_copy():
+    """``scheduled_ues``: each cell's UEs in UE order, one a slot, round again (-1 for a cell that
+    serves nobody), by a loop here; the same arguments again (a step's downlink and uplink) give
+    the same numbers in an array of their own (writing one leaves the next call's alone), other
+    arguments their own."""
+    from caviar_plugins.network.beams import scheduled_ues
+
+    rng = np.random.default_rng(8)
+    serving = rng.integers(-1, 4, 30)  # (cell 4 of 5: nobody)
+    want = np.full((11, 5), -1)
+    for c in range(5):
+        mine = [u for u in range(30) if serving[u] == c]
+        for slot in range(11):
+            if mine:
+                want[slot, c] = mine[slot % len(mine)]
+    first = scheduled_ues(serving, 5, 11)
+    np.testing.assert_array_equal(first, want)
+    first[:] = 99
+    np.testing.assert_array_equal(scheduled_ues(serving.copy(), 5, 11), want)
+    other = np.where(serving == 0, -1, serving)
+    assert (scheduled_ues(other, 5, 11)[:, 0] == -1).all()
+    np.testing.assert_array_equal(scheduled_ues(serving, 5, 12)[:11], want)

@@ -205,11 +205,23 @@ def gains_of_responses(amplitude: Any, responses: Any, rows: np.ndarray | None =
     return gains if keep else to_numpy(gains)
 
 
+_LAST_SCHEDULED: list = [None, None]  # (the last call's serving cells, cells and slots; its result)
+
+
 def scheduled_ues(serving: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
     """[slot, cell]: the UE (index) each cell schedules in each slot, its UEs in turn (UE
     order), one per slot; -1 for a cell that serves nobody. Array work: the UEs sorted by
-    cell (stably, so in UE order within one), each cell's turn an offset into its run."""
+    cell (stably, so in UE order within one), each cell's turn an offset into its run.
+    The same arguments as the last call's (a step's downlink and uplink with full buffers ask
+    for the same): a copy of its result."""
     serving = np.asarray(serving)
+    key = (serving.dtype.str, serving.tobytes(), n_cells, slots)
+    if _LAST_SCHEDULED[0] != key:
+        _LAST_SCHEDULED[:] = key, _scheduled_ues(serving, n_cells, slots)
+    return _LAST_SCHEDULED[1].copy()
+
+
+def _scheduled_ues(serving: np.ndarray, n_cells: int, slots: int) -> np.ndarray:
     on = np.flatnonzero(serving >= 0)
     order = on[np.argsort(serving[on], kind="stable")]  # the served UEs, cell by cell, in UE order
     counts = np.bincount(serving[on], minlength=n_cells)[:n_cells]
