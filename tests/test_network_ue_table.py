@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from caviar_plugins.network.report import summarize, ue_rows
-from caviar_plugins.network.ues import table_rows
+from caviar_plugins.network.ues import table_rows, ue_reports, ue_table
 from configs import episode, output
 from network_configs import BAND, SITE_A, SITE_B, STAGES, line_movers, mover, radio_network, run_network
 
@@ -105,3 +106,23 @@ def test_a_wrong_ue_reports_is_named():
     with pytest.raises(ConfigError, match=r"expected one of \['per-ue', 'table'\], got 'rows'") as e:
         check_params(RadioNetwork, {"ue_reports": "rows", "sites": [SITE_A]})
     assert e.value.key == "params.ue_reports"
+
+
+def test_the_table_of_ues_without_a_cell_first_and_cells_not_listed_holds_the_reports_nulls():
+    """``ue_table`` built directly: UEs without a cell first and between (their serving cell, SINRs
+    and loss null), an RSRP with no number and the cells a UE does not list (``report_cells``) null
+    in its struct, the rest as ``ue_reports`` gives them, row for row."""
+    names, ids, types = ["c0", "c1", "c2"], ["u0", "u1", "u2", "u3"], ["car"] * 4
+    serving = np.array([-1, 0, -1, 2])
+    sinr, sir, loss = np.array([np.nan, 3.14159, np.nan, -1.5]), np.array([np.nan, 4.0, np.nan, 2.0]), np.full(4, 90.0)
+    rsrp = np.array([[-140.0, -150.0, -160.0], [-80.123, -90.0, -100.0], [-np.inf, -145.0, -150.0],
+                     [-95.0, -99.0, -70.0]])
+    listed = np.array([[0, 1], [0, 1], [1, 2], [0, 2]])
+    mbps, position = np.array([0.0, 12.3456789, 0.0, 1.0]), np.zeros((4, 3))
+    table = ue_table(names, ids, types, serving, sinr, sir, loss, rsrp, listed, mbps, None, None, None, [], position)
+    assert table["serving_cell"].to_list() == [None, "c0", None, "c2"]
+    assert table["rsrp_dbm"].to_list()[2] == {"c0": None, "c1": -145.0, "c2": -150.0}
+    want = [r for topic, r in ue_reports(names, ids, types, serving, sinr, sir, loss, rsrp, listed, mbps, None,
+                                         [{}] * 4, position) if topic == "network.ue"]
+    assert table_rows(table) == want
+

@@ -280,7 +280,7 @@ def ue_table(names: list[str], ids: list[str], types: list[str], serving: np.nda
     import polars as pl
 
     blank = serving < 0  # (no cell)
-    serving_names = np.array([*names, None], dtype=object)[serving]  # (-1: None, no cell)
+    serving_names = np.array([*names, None], dtype=object)[serving].tolist()  # (-1: None, no cell)
     # (the columns in the order of a network.ue report's fields)
     columns: dict[str, Any] = {
         "UE_type": types, "UE_Id": ids, "serving_cell": pl.Series("serving_cell", serving_names, dtype=pl.String),
