@@ -167,9 +167,10 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
 
 
 def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], pos0, vel,
-               traffic: dict | None, compiled: bool = True, ue_reports: str = "per-ue") -> dict:
+               traffic: dict | None, compiled: bool = True, ue_reports: str = "per-ue",
+               groups_per_call: int = 1) -> dict:
     """The ``radio-network`` plugin stepped on the UEs' positions (its messages collected; its UE
-    reports ``ue_reports``):
+    reports ``ue_reports``; ``groups_per_call`` groups of slots a compiled call):
     T_p/T_v of its steps after the first (the first traces and compiles), and, with a load,
     its completed files' delays."""
     import tempfile
@@ -189,6 +190,8 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
         params["ue_reports"] = ue_reports
     if traffic is not None:
         params["traffic"] = traffic
+    if groups_per_call > 1:  # (likewise)
+        params["groups_per_call"] = groups_per_call
     hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, params))
     with tempfile.TemporaryDirectory() as run_dir:
         hosted.setup(seed=1, ts=TS, steps=None, every=1, offset=0, run_dir=run_dir, config_dir=str(ROOT))
@@ -244,13 +247,15 @@ def main() -> None:
     ap.add_argument("--eager", action="store_true", help="with --plugin-only: without torch.compile")
     ap.add_argument("--ue-reports", default="per-ue", choices=["per-ue", "table"],
                     help="with --plugin-only: the network's UE reports (a message a UE, or a table a step)")
+    ap.add_argument("--groups-per-call", type=int, default=1,
+                    help="with --plugin-only: groups of slots a compiled call (groups_per_call; not with --eager)")
     args = ap.parse_args()
     if args.plugin_only:
         kinds, pos0, vel = ues(np.random.default_rng(7), args.plugin_only)
         result = plugin_run(args.seconds, args.refresh, args.samples, kinds, pos0, vel, None, compiled=not args.eager,
-                            ue_reports=args.ue_reports)
+                            ue_reports=args.ue_reports, groups_per_call=args.groups_per_call)
         print(json.dumps({"cells": 21, "ues": args.plugin_only, "compiled": not args.eager,
-                          "ue_reports_as": args.ue_reports, **result,
+                          "ue_reports_as": args.ue_reports, "groups_per_call": args.groups_per_call, **result,
                           "machine": machine()}))
         return
     cells = parse_sites(sites(), {"tx_power_dbm": 43.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6,

@@ -26,7 +26,8 @@ other packages are missing is reported as skipped, with the reason. Timing items
 - the radio network at scale: the ``radio-network`` plugin with 21 cells (7 sites × 3
   sectors) and 100, then 1,000 UEs, 0.5 ms slots, 0.1 s steps, ray tracing every 1 s, beams
   and the uplink, full buffers, the UEs' reports as one table a step (``ue_reports = "table"``,
-  the setting for a thousand UEs; until 2026-11-29 a message a UE) (``benches/bench_network.py
+  the setting for a thousand UEs; until 2026-11-29 a message a UE), :data:`NETWORK_GROUPS_PER_CALL`
+  groups of slots a compiled call (since 2026-11-29 evening; one before) (``benches/bench_network.py
   --plugin-only``): T_p/T_v of the steps after the first (the first traces and compiles; its
   time is reported too).
 
@@ -369,13 +370,20 @@ def seed_spread(seeds: list[int]) -> int:
     return 0
 
 
+NETWORK_GROUPS_PER_CALL = 5
+"""The network items' groups of slots a compiled call (``groups_per_call``): a 0.1 s step's 25
+groups in 5 calls, each call's fixed host cost (dynamo's lookup, the region's inputs) paid 5 times
+a step, not 25 (``benches/bench_host_overhead.py``)."""
+
+
 def network(n_ue: int, seconds: float, timeout_s: float) -> dict:
     """The radio network plugin at 21 cells × ``n_ue`` UEs for ``seconds`` of virtual time,
-    its link levels through ``torch.compile`` as the blueprints have them; where that run
-    fails (no Triton for the GPU, say), again without, with the compiled run's error kept."""
+    its link levels through ``torch.compile`` as the blueprints have them, with
+    :data:`NETWORK_GROUPS_PER_CALL` groups of slots a call; where that run fails (no Triton for
+    the GPU, say), again without (one group a call: eager), with the compiled run's error kept."""
     cmd = [sys.executable, str(ROOT / "benches/bench_network.py"), "--plugin-only", str(n_ue),
            "--seconds", str(seconds), "--ue-reports", "table"]
-    stdout, compile_error = command(cmd, timeout_s)
+    stdout, compile_error = command([*cmd, "--groups-per-call", str(NETWORK_GROUPS_PER_CALL)], timeout_s)
     if compile_error is None:
         return {**json.loads(stdout.strip().splitlines()[-1]), "compile_error": None}
     if compile_error.startswith("timed out"):  # (slow, not broken: no second try)
