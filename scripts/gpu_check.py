@@ -27,7 +27,7 @@ other packages are missing is reported as skipped, with the reason. Timing items
   sectors) and 100, then 1,000 UEs, 0.5 ms slots, 0.1 s steps, ray tracing every 1 s, beams
   and the uplink, full buffers, the UEs' reports as one table a step (``ue_reports = "table"``,
   the setting for a thousand UEs; until 2026-11-29 a message a UE), :data:`NETWORK_GROUPS_PER_CALL`
-  groups of slots a compiled call (since 2026-11-29 evening; one before) (``benches/bench_network.py
+  groups of slots a compiled call (since 2026-11-29 afternoon; one before) (``benches/bench_network.py
   --plugin-only``): T_p/T_v of the steps after the first (the first traces and compiles; its
   time is reported too).
 

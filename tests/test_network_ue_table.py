@@ -125,4 +125,3 @@ def test_the_table_of_ues_without_a_cell_first_and_cells_not_listed_holds_the_re
     want = [r for topic, r in ue_reports(names, ids, types, serving, sinr, sir, loss, rsrp, listed, mbps, None,
                                          [{}] * 4, position) if topic == "network.ue"]
     assert table_rows(table) == want
-

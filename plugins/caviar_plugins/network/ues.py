@@ -291,7 +291,8 @@ def ue_table(names: list[str], ids: list[str], types: list[str], serving: np.nda
         values = np.full_like(values, np.nan)
         rows = np.arange(len(values))[:, None]
         values[rows, listed] = rounded_array(rsrp[rows, listed], 2)
-    rsrp_table = pl.from_numpy(np.asfortranarray(values), schema=names, orient="row")  # (a column a cell, no copy)
+    # (column-major: polars takes each cell's column as it lies)
+    rsrp_table = pl.from_numpy(np.asfortranarray(values), schema=names, orient="row")
     if np.isnan(values).any():  # (the cells not listed, or no number: null)
         rsrp_table = rsrp_table.fill_nan(None)
     columns["rsrp_dbm"] = rsrp_table.to_struct("rsrp_dbm")

@@ -425,7 +425,8 @@ class LinkLevel:
     def _groups_at(self, k: int, plan: _CallPlan) -> list[tuple]:
         """The slots a call at slot ``k`` runs, ``(first slot, slots, PRBs, HARQ, TBLER, MCS,
         effective SINR, cells active, decoded bits, tallies)``, each [L, slots, ...] (the tallies
-        :func:`~caviar_plugins.radio.slot_results.per_ue` of a chunk's slots, None for one group): a
+        :func:`~caviar_plugins.radio.slot_results.per_ue` of the call's slots up to the chunk's last,
+        carried from chunk to chunk; None for one group): a
         chunk of ``plan.many`` groups at its first group (none at its others), else the group at
         ``k`` (none where no link has bits)."""
         torch, g = self._torch, k // plan.d
