@@ -14,7 +14,8 @@ now and then many times slower, its OpenMP threads waiting for busy cores):
 
 - ``step_ms``: the step's wall time; ``rt_ms``: inside ``SiteTracer.trace`` (none between
   refreshes); ``sys_kernels_ms``: inside the link levels' compiled groups of slots (Sionna
-  SYS's scheduler, link adaptation, EESM and PHY abstraction); ``host_ms``: the rest, the
+  SYS's scheduler, link adaptation, EESM and PHY abstraction) and, since 2026-11-29 (evening),
+  the uplink's compiled powers and SINR (:func:`_compiled_calls`); ``host_ms``: the rest, the
   network's own work (measurements, mobility, beams, the uplink's SINR, the link levels'
   inputs and tallies, the reports);
 - the wall ms of the step's phases: ``_measure`` (the channel, beams, RSRP, mobility),
@@ -135,16 +136,22 @@ ENTRY_EVENTS = ("TorchDynamo Cache Lookup", "AOTDispatcher Runtime Wrapper Prolo
 and the runtime wrapper's prologue; with each region's own time (its inputs gathered, its side
 effects applied), the host's work a compiled group of slots costs beyond its kernels."""
 RUNS = ("run", "run_linear", "run_links")
+"""A link level's calls (numpy dB SINRs, or linear ones as a tensor): the link levels' phases."""
 COMPILED = ("_group", "_groups")
 """A link level's calls of its compiled programs: one group of slots, several (``groups_per_call``)."""
 
 
 def _compiled_calls(net) -> list[tuple[Any, str]]:
-    """(link level, :data:`COMPILED` name) of the plugin's link levels (a baseline's has no ``_groups``)."""
+    """(object, name) of the step's compiled programs: the plugin's link levels' :data:`COMPILED`
+    calls (a baseline's has no ``_groups``) and, once made (since 2026-11-29, evening), the uplink's
+    powers and SINR (``caviar_plugins.network.uplink.power_and_ratio_compiled``)."""
     from bench_network import link_levels
 
-    return [(link, name) for link in link_levels(net) for name in COMPILED if hasattr(link, name)]
-"""A link level's calls (numpy dB SINRs, or linear ones as a tensor): the link levels' phases."""
+    calls = [(link, name) for link in link_levels(net) for name in COMPILED if hasattr(link, name)]
+    uplink = sys.modules.get("caviar_plugins.network.uplink")
+    if getattr(uplink, "power_and_ratio_compiled", None) is not None:
+        calls.append((uplink, "power_and_ratio_compiled"))
+    return calls
 
 
 def _timed(obj, name: str, into: dict, key: str) -> None:

@@ -161,3 +161,13 @@ def assert_decides_as(got, eager) -> None:
     np.testing.assert_array_equal(got.prbs, eager.prbs)
     np.testing.assert_allclose(got.sinr_eff_db, eager.sinr_eff_db, atol=1e-4)
     np.testing.assert_allclose(got.tbler, eager.tbler, atol=1e-5)
+
+
+def top_level_torch_ops(call) -> int:
+    """The torch operations ``call`` runs that no other torch operation called."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        call()
+    return sum(1 for e in prof.events() if e.name.startswith("aten::")
+               and (e.cpu_parent is None or not e.cpu_parent.name.startswith("aten::")))

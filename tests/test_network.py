@@ -44,6 +44,7 @@ from network_configs import (
     run_network,
     site,
     site_cells,
+    top_level_torch_ops,
     ue_reports,
 )
 
@@ -168,16 +169,6 @@ def test_outer_loop_link_adaptation_reaches_its_bler_target(processes):
         res = ll.run(sinr, np.array([0]))
         assert res.acks[0] + res.nacks[0] == slots
         assert res.bler(0) == pytest.approx(target, abs=0.02), (target, processes, res.bler(0))
-
-
-def top_level_torch_ops(call) -> int:
-    """The torch operations ``call`` runs that no other torch operation called."""
-    from torch.profiler import ProfilerActivity, profile
-
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
-        call()
-    return sum(1 for e in prof.events() if e.name.startswith("aten::")
-               and (e.cpu_parent is None or not e.cpu_parent.name.startswith("aten::")))
 
 
 def test_the_compiled_link_level_decides_as_eager_and_reaches_the_bler_target():

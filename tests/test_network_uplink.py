@@ -10,7 +10,16 @@ import pytest
 
 import caviar
 from caviar_plugins.network.uplink import UplinkSettings, noise_per_prb_mw, tx_power_dbm
-from network_configs import OTHER, VICTIM, last_reports, reported, run_network, two_sites, ue_reports
+from network_configs import (
+    OTHER,
+    VICTIM,
+    last_reports,
+    reported,
+    run_network,
+    top_level_torch_ops,
+    two_sites,
+    ue_reports,
+)
 
 LAMBDA = 299_792_458.0 / 3.5e9
 
@@ -86,3 +95,39 @@ def test_with_ssb_beams_the_ue_estimates_its_pathloss_from_the_best_beams_rsrp(t
         pathloss = 46.0 - rx
         assert last["ul_tx_power_dbm"] == pytest.approx(-90 + pathloss + 10 * math.log10(51), abs=0.02)
         assert math.isfinite(last["ul_sinr_db"]) and last["ul_throughput_mbps"] > 0
+
+
+def test_the_compiled_uplink_gives_the_eager_powers_and_sinrs_in_fewer_torch_operations():
+    """``compile``: the uplink's powers and per-slot SINRs as one ``torch.compile`` program give
+    the eager numbers (to float32's rounding: Sionna's power control computes in it), at a
+    first UE count and at others (a dynamic size after the first change: no compile a count),
+    with less than half of eager's torch operations (each a kernel launch on a GPU) outside it."""
+    import torch
+
+    from caviar_plugins.network.cells import Cell
+    from caviar_plugins.network.uplink import uplink
+
+    cells = [Cell(name=f"c{k}", site=f"s{k}", index=k, position=(100.0 * k, 0.0, 25.0), azimuth_deg=60.0 * k,
+                  downtilt_deg=4.0, tx_power_dbm=43.0, carrier_hz=3.5e9 if k < 3 else 2.1e9, bandwidth_hz=20e6,
+                  array=(2, 4)) for k in range(4)]
+    s = UplinkSettings(p0_dbm=-90.0, alpha=0.8, ue_max_power_dbm=23.0)
+    rng = np.random.default_rng(3)
+    for n_ue in (7, 11, 9):
+        gains = torch.as_tensor(rng.exponential(1e-10, (n_ue, 4, 2, 3)) * 10 ** rng.uniform(-4, 0, (n_ue, 1, 1, 1)))
+        serving = rng.integers(-1, 4, n_ue)
+        serving[:4] = [0, 1, -1, 3]  # (one UE without a cell)
+        args = (cells, s, serving, np.zeros((n_ue, 4, 2)), gains, rng.integers(0, 3, (n_ue, 4)), 51, 30e3, 16, "cpu",
+                rng.random(n_ue) < 0.8)
+        out = {}
+        for compiled in (False, True):
+            with torch.compiler.set_stance("fail_on_recompile" if n_ue == 9 else "default"):
+                uplink(*args, compiled=compiled)  # (7 UEs compile, 11 once more with a dynamic count; 9 nothing)
+            ops = top_level_torch_ops(lambda c=compiled, a=args, o=out: o.__setitem__(c, uplink(*a, compiled=c)))
+            out[compiled] = (*out[compiled], ops)
+        (tx, sinr, eager_ops), (tx_c, sinr_c, compiled_ops) = out[False], out[True]
+        assert np.isfinite(tx).all() and (tx <= 23.0 + 1e-6).all() and (tx < 23.0).any()
+        np.testing.assert_allclose(tx_c, tx, rtol=1e-6)  # (Sionna's power control: float32)
+        assert np.array_equal(np.isnan(sinr_c), np.isnan(sinr)) and np.isnan(sinr[:, 2]).all()
+        np.testing.assert_allclose(sinr_c, sinr, rtol=1e-6)
+        # (outside the program: the inputs made tensors, the pathloss, the dB)
+        assert compiled_ops <= 45 < 90 <= eager_ops, (compiled_ops, eager_ops)

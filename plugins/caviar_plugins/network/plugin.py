@@ -316,7 +316,8 @@ class RadioNetwork(caviar.Plugin):
         backlog, talking = self._backlog(t, ids, types, "uplink")
         beam_gains, best = self.beams if self.beams is not None else (None, None)
         tx, per_slot = uplink(self.cells, self.p.uplink, serving, rx, beam_gains, best, self.p.num_prb,
-                              self.p.subcarrier_spacing_hz, self.slots, self.device, talking, linear=True)
+                              self.p.subcarrier_spacing_hz, self.slots, self.device, talking, linear=True,
+                              compiled=self.p.compile)
         return backlog, tx, per_slot
 
     def _uplink_out(self, t: float, ids: list[str], res, tx: Any, per_slot: Any, cols: np.ndarray):
