@@ -15,7 +15,8 @@ now and then many times slower, its OpenMP threads waiting for busy cores):
 - ``step_ms``: the step's wall time; ``rt_ms``: inside ``SiteTracer.trace`` (none between
   refreshes); ``sys_kernels_ms``: inside the link levels' compiled groups of slots (Sionna
   SYS's scheduler, link adaptation, EESM and PHY abstraction) and, since 2026-11-29 (evening),
-  the uplink's compiled powers and SINR (:func:`_compiled_calls`); ``host_ms``: the rest, the
+  the uplink's compiled powers and SINR and the downlink's SINRs (:func:`_compiled_calls`);
+  ``host_ms``: the rest, the
   network's own work (measurements, mobility, beams, the uplink's SINR, the link levels'
   inputs and tallies, the reports);
 - the wall ms of the step's phases: ``_measure`` (the channel, beams, RSRP, mobility),
@@ -144,13 +145,15 @@ COMPILED = ("_group", "_groups")
 def _compiled_calls(net) -> list[tuple[Any, str]]:
     """(object, name) of the step's compiled programs: the plugin's link levels' :data:`COMPILED`
     calls (a baseline's has no ``_groups``) and, once made (since 2026-11-29, evening), the uplink's
-    powers and SINR (``caviar_plugins.network.uplink.power_and_ratio_compiled``)."""
+    powers and SINR and the downlink's SINRs (``caviar_plugins.network.uplink.power_and_ratio_compiled``,
+    ``caviar_plugins.network.beams.sinr_and_wideband_compiled``)."""
     from bench_network import link_levels
 
     calls = [(link, name) for link in link_levels(net) for name in COMPILED if hasattr(link, name)]
-    uplink = sys.modules.get("caviar_plugins.network.uplink")
-    if getattr(uplink, "power_and_ratio_compiled", None) is not None:
-        calls.append((uplink, "power_and_ratio_compiled"))
+    for module, name in (("uplink", "power_and_ratio_compiled"), ("beams", "sinr_and_wideband_compiled")):
+        owner = sys.modules.get(f"caviar_plugins.network.{module}")
+        if getattr(owner, name, None) is not None:
+            calls.append((owner, name))
     return calls
 
 

@@ -19,6 +19,7 @@ from network_configs import (
     reported,
     run_network,
     sector,
+    top_level_torch_ops,
     two_sites,
     ue_reports,
 )
@@ -260,3 +261,40 @@ def test_the_slots_schedule_is_each_cells_ues_in_turn_and_a_repeated_call_gets_i
     other = np.where(serving == 0, -1, serving)
     assert (scheduled_ues(other, 5, 11)[:, 0] == -1).all()
     np.testing.assert_array_equal(scheduled_ues(serving, 5, 12)[:11], want)
+
+
+@pytest.mark.parametrize("silent_idle", [True, False])
+def test_the_compiled_downlink_gives_the_eager_sinrs_in_fewer_torch_operations(silent_idle):
+    """``compile``: the downlink's per-slot SINRs and its wideband SINR and SIR as one
+    ``torch.compile`` program give the eager numbers to float64's rounding (cells serving nobody
+    silent or sending over their codebook), at a first UE count and at others (a dynamic size
+    after the first change: no compile a count), with fewer torch operations outside it."""
+    import torch
+
+    from caviar_plugins.network.beams import slot_beams, slot_sinr_and_wideband
+    from caviar_plugins.network.cells import Cell
+
+    cells = [Cell(name=f"c{k}", site=f"s{k}", index=k, position=(100.0 * k, 0.0, 25.0), azimuth_deg=60.0 * k,
+                  downtilt_deg=4.0, tx_power_dbm=40.0 + k, carrier_hz=3.5e9 if k < 3 else 2.1e9, bandwidth_hz=20e6,
+                  array=(2, 4)) for k in range(4)]
+    rng = np.random.default_rng(4)
+    for n_ue in (7, 11, 9):
+        gains = torch.as_tensor(rng.exponential(1e-10, (n_ue, 4, 2, 3)))
+        serving = rng.integers(-1, 2, n_ue)  # (cells 2 and 3 serve nobody)
+        serving[:2] = [0, -1]
+        best = rng.integers(0, 3, n_ue)
+        args = (cells, gains, serving, best, slot_beams(serving, best, 4, 16), rng.uniform(1e-13, 1e-12, n_ue),
+                silent_idle, np.array([2.0, 1.0]), "cpu")
+        out = {}
+        for compiled in (False, True):
+            with torch.compiler.set_stance("fail_on_recompile" if n_ue == 9 else "default"):
+                slot_sinr_and_wideband(*args, compiled=compiled)  # (7 UEs compile, 11 once more; 9 nothing)
+            ops = top_level_torch_ops(
+                lambda c=compiled, a=args, o=out: o.__setitem__(c, slot_sinr_and_wideband(*a, compiled=c)))
+            out[compiled] = (*out[compiled], ops)
+        (per_slot, sinr, sir, eager_ops), (per_slot_c, sinr_c, sir_c, compiled_ops) = out[False], out[True]
+        assert np.isnan(per_slot[:, 1]).all() and np.isnan(sinr[1]) and np.isfinite(sinr[0])
+        np.testing.assert_allclose(per_slot_c, per_slot, rtol=1e-12)  # (NaN where NaN)
+        np.testing.assert_allclose(sinr_c, sinr, rtol=1e-12)
+        np.testing.assert_allclose(sir_c, sir, rtol=1e-12)
+        assert compiled_ops < eager_ops - 10, (compiled_ops, eager_ops)

@@ -255,49 +255,81 @@ def slot_sinr_db(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_be
     import torch
 
     dev = resolve(device)
-    terms = _slot_terms(cells, gains, serving, best_beam, beams, silent_idle, dev)
-    return _per_slot(terms, to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64), linear)
+    terms = _terms(*_terms_inputs(cells, gains, serving, best_beam, beams, silent_idle, dev))
+    out = _per_slot(terms, to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64), linear)
+    return out if linear else to_numpy(out)
 
 
 def slot_sinr_and_wideband(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,
                            beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool, weights: np.ndarray,
-                           device: Any = HOST, linear: bool = False) -> tuple[Any, np.ndarray, np.ndarray]:
+                           device: Any = HOST, linear: bool = False,
+                           compiled: bool = False) -> tuple[Any, np.ndarray, np.ndarray]:
     """:func:`slot_sinr_db` [slot, ue, freq], and the SINR and the SIR [ue] (dB, numpy: NaN for a
     UE without a cell) of the frequencies' mean channel (weighted by ``weights`` [freq]) averaged
     over the slots, from one interference sum: the signal and the interference are linear in the
     gains, so the mean channel's are the means of the frequencies' (equal to summing again over
-    the mean channel's gains, to float64's rounding)."""
+    the mean channel's gains, to float64's rounding). ``compiled``: the tensor work as one
+    ``torch.compile`` program (the network's ``compile``; the same numbers to float64's rounding)."""
     import torch
 
     dev = resolve(device)
-    signal, interference, unserved = terms = _slot_terms(cells, gains, serving, best_beam, beams, silent_idle, dev)
+    inputs = _terms_inputs(cells, gains, serving, best_beam, beams, silent_idle, dev)
     noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
     w = to_torch(np.asarray(weights, dtype=float), dev, torch.float64)
+    work = _compiled_sinr_and_wideband() if compiled else _sinr_and_wideband
+    per_slot, wide = work(inputs, noise, w, linear)
+    wide = to_numpy(wide)  # (the host's one read)
+    return per_slot if linear else to_numpy(per_slot), wide[0], wide[1]
+
+
+def _sinr_and_wideband(inputs: tuple, noise: Any, w: Any, linear: bool) -> tuple[Any, Any]:
+    """:func:`slot_sinr_and_wideband`'s tensor work on :func:`_terms_inputs`' ``inputs``: the
+    per-slot SINR (:func:`_per_slot`) and the wideband SINR and SIR in dB [2, ue] (NaN: no cell)."""
+    import torch
+
+    signal, interference, unserved = terms = _terms(*inputs)
     mean_signal = (signal * w).sum(dim=-1) / w.sum()  # [ue]
     mean_interference = (interference * w).sum(dim=-1) / w.sum()  # [slot, ue]
     ratios = torch.stack([(mean_signal / (noise + mean_interference)).mean(dim=0),
                           (mean_signal / mean_interference).mean(dim=0)])
-    wide = to_numpy(torch.where(unserved[0, :, 0], float("nan"), 10 * torch.log10(ratios)))  # (the host's one read)
-    return _per_slot(terms, noise, linear), wide[0], wide[1]
+    return _per_slot(terms, noise, linear), torch.where(unserved[0, :, 0], float("nan"), 10 * torch.log10(ratios))
+
+
+sinr_and_wideband_compiled: Any = None
+""":func:`_sinr_and_wideband` compiled (``torch.compile``, once a process, by
+:func:`_compiled_sinr_and_wideband`; the UE count a dynamic size after its first change): on a GPU
+a few kernels instead of about 30 launches. (A module attribute: what a bench wraps to time it
+apart, as it does the link levels' compiled groups.)"""
+
+
+def _compiled_sinr_and_wideband() -> Any:
+    """:data:`sinr_and_wideband_compiled`, made at the first call."""
+    global sinr_and_wideband_compiled
+    if sinr_and_wideband_compiled is None:
+        import torch
+
+        sinr_and_wideband_compiled = torch.compile(_sinr_and_wideband)
+    return sinr_and_wideband_compiled
 
 
 def _per_slot(terms: tuple[Any, Any, Any], noise: Any, linear: bool) -> Any:
-    """[slot, ue, freq]: the SINR of :func:`_slot_terms`' ``terms`` with ``noise`` [ue] (a tensor
-    on their device; 0: the SIR), NaN for a UE without a cell: the ratio itself, a tensor, with
-    ``linear``, else its dB in numpy (no signal: -inf; the SIR alone: NaN)."""
+    """[slot, ue, freq]: the SINR of :func:`_terms`' ``terms`` with ``noise`` [ue] (a tensor
+    on their device; 0: the SIR), NaN for a UE without a cell: the ratio itself with ``linear``,
+    else its dB (no signal: -inf; the SIR alone: NaN); a tensor."""
     import torch
 
     signal, interference, unserved = terms
     ratio = signal[None] / (noise[None, :, None] + interference)
     # (a mask, not an indexing: no wait on a GPU)
-    out = torch.where(unserved, float("nan"), ratio if linear else 10 * torch.log10(ratio))
-    return out if linear else to_numpy(out)
+    return torch.where(unserved, float("nan"), ratio if linear else 10 * torch.log10(ratio))
 
 
-def _slot_terms(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,
-                beams: np.ndarray, silent_idle: bool, dev: Any) -> tuple[Any, Any, Any]:
-    """The terms of :func:`slot_sinr_db`'s ratio as float64 tensors on ``dev``: the signal
-    [ue, freq], the interference [slot, ue, freq], and which UEs have no cell [1, ue, 1]."""
+def _terms_inputs(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,
+                  beams: np.ndarray, silent_idle: bool, dev: Any) -> tuple:
+    """:func:`_terms`' inputs, tensors on ``dev``: the gains [ue, cell, freq, beam], the power
+    each UE hears of each other cell on its carrier [ue, cell, 1, 1], the cells' beams per slot as
+    one-hot rows [slot, cell·beam], the idle cells [slot, cell] (None: silent), each UE, its cell
+    and its best beam there [ue], the serving cell's power [ue, 1], the UEs without a cell [1, ue, 1]."""
     import torch
 
     n_ue, n_cell, n_f, n_beam = gains.shape
@@ -308,21 +340,31 @@ def _slot_terms(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_bea
     s = np.maximum(serving, 0)
     # Who interferes with whom: the other cells on the victim's carrier, weighted by power.
     heard = (carrier[None, :] == carrier[s][:, None]) & (np.arange(n_cell)[None, :] != s[:, None])  # [ue, cell]
-    g = to_torch(gains, dev, torch.float64)
-    weighted = g * to_torch((power[None, :] * heard)[:, :, None, None], dev, torch.float64)  # [ue, cell, freq, beam]
     # A cell's beam in a slot as a one-hot row: the interference is one matrix product over
     # (cell, beam), not a gather of [slot, ue, cell, freq].
     beams = np.asarray(beams)
     pointing = (beams[:, :, None] == np.arange(n_beam)[None, None, :]).reshape(n_slot, n_cell * n_beam)
-    by_beam = weighted.permute(1, 3, 0, 2).reshape(n_cell * n_beam, n_ue * n_f)
-    interference = (to_torch(pointing, dev, torch.float64) @ by_beam).reshape(n_slot, n_ue, n_f)
-    if not silent_idle:  # a cell serving nobody sends over its codebook evenly
-        idle = to_torch(beams < 0, dev, torch.float64)  # [slot, cell]
-        mean = weighted.mean(dim=-1).permute(1, 0, 2).reshape(n_cell, n_ue * n_f)
-        interference = interference + (idle @ mean).reshape(n_slot, n_ue, n_f)
+    idle = None if silent_idle else to_torch(beams < 0, dev, torch.float64)  # [slot, cell]
     ue, s_t, best_t = (to_torch(x, dev) for x in (np.arange(n_ue), s, np.asarray(best_beam)))
-    signal = to_torch(power[s][:, None], dev, torch.float64) * g[ue, s_t, :, best_t]  # [ue, freq]
-    return signal, interference, to_torch(serving < 0, dev)[None, :, None]
+    heard_power = (power[None, :] * heard)[:, :, None, None]
+    return (to_torch(gains, dev, torch.float64), to_torch(heard_power, dev, torch.float64),
+            to_torch(pointing, dev, torch.float64), idle, ue, s_t, best_t,
+            to_torch(power[s][:, None], dev, torch.float64), to_torch(serving < 0, dev)[None, :, None])
+
+
+def _terms(g: Any, heard_power: Any, pointing: Any, idle: Any, ue: Any, s: Any, best: Any, power_s: Any,
+           unserved: Any) -> tuple[Any, Any, Any]:
+    """The terms of :func:`slot_sinr_db`'s ratio as float64 tensors of :func:`_terms_inputs`: the
+    signal [ue, freq], the interference [slot, ue, freq], and which UEs have no cell [1, ue, 1]."""
+    n_ue, n_cell, n_f, n_beam = g.shape
+    weighted = g * heard_power  # [ue, cell, freq, beam]
+    by_beam = weighted.permute(1, 3, 0, 2).reshape(n_cell * n_beam, n_ue * n_f)
+    interference = (pointing @ by_beam).reshape(pointing.shape[0], n_ue, n_f)
+    if idle is not None:  # a cell serving nobody sends over its codebook evenly
+        mean = weighted.mean(dim=-1).permute(1, 0, 2).reshape(n_cell, n_ue * n_f)
+        interference = interference + (idle @ mean).reshape(pointing.shape[0], n_ue, n_f)
+    signal = power_s * g[ue, s, :, best]  # [ue, freq]
+    return signal, interference, unserved
 
 
 def scene_direction(cell: Cell, u: np.ndarray, v: np.ndarray) -> np.ndarray:

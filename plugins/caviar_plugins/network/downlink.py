@@ -51,7 +51,8 @@ def received(cells: Sequence[Cell], gains_db: Any, subband_prbs: np.ndarray, num
 def downlink_sinr(cells: Sequence[Cell], rx: np.ndarray, wideband: np.ndarray, serving: np.ndarray,
                   talking: np.ndarray | None, *, noise_figure_db: float, scheduled: bool,
                   beams: tuple[Any, np.ndarray] | None = None, slots: int = 1,
-                  subband_prbs: np.ndarray | None = None, device: Any = "auto", linear: bool = False):
+                  subband_prbs: np.ndarray | None = None, device: Any = "auto", linear: bool = False,
+                  compiled: bool = False):
     """Per slot and subband [slot or 1, ue, subband], and wideband [ue], SINR and SIR (dB).
     ``linear``: with beams, the per-slot SINR as a ratio, a float64 tensor left on the torch
     ``device`` where it is computed (:func:`~caviar_plugins.network.ues.run_links` gives it to the
@@ -59,10 +60,11 @@ def downlink_sinr(cells: Sequence[Cell], rx: np.ndarray, wideband: np.ndarray, s
     ``rx``: received power [ue, cell, subband] and ``wideband`` [ue, cell] (dBm);
     ``serving`` [ue] (-1: none). With ``scheduled`` (``interference = "scheduled"``) only
     cells with data for someone (``talking`` [ue]; None: all) send. ``beams``: the beam gains
-    [ue, cell, subband, beam] and each UE's best beam per cell [ue, cell]."""
+    [ue, cell, subband, beam] and each UE's best beam per cell [ue, cell]; ``compiled``: with
+    them, the tensor work as one ``torch.compile`` program (the network's ``compile``)."""
     if beams is not None:
         return _beamformed(cells, beams, serving, talking, noise_figure_db, scheduled, slots, subband_prbs, device,
-                           linear)
+                           linear, compiled)
     load = None
     if scheduled:
         on = serving if talking is None else serving[talking]
@@ -74,7 +76,7 @@ def downlink_sinr(cells: Sequence[Cell], rx: np.ndarray, wideband: np.ndarray, s
 
 def _beamformed(cells: Sequence[Cell], beams: tuple[Any, np.ndarray], serving: np.ndarray,
                 talking: np.ndarray | None, noise_figure_db: float, scheduled: bool, slots: int,
-                subband_prbs: np.ndarray | None, device: Any, linear: bool = False):
+                subband_prbs: np.ndarray | None, device: Any, linear: bool = False, compiled: bool = False):
     """With beams: per slot and subband, and wideband (the slots' mean); the other cells
     point at the UEs they schedule among ``talking`` (None: all)."""
     import torch
@@ -91,4 +93,5 @@ def _beamformed(cells: Sequence[Cell], beams: tuple[Any, np.ndarray], serving: n
     weights = subband_prbs if n_f > 1 and subband_prbs is not None else np.ones(n_f)
     # (per slot and subband; and the SINR and the SIR of the subbands' weighted mean channel, their
     # ratios averaged over the slots: one interference sum for all, read to the host once)
-    return slot_sinr_and_wideband(cells, gains, serving, best, chosen, noise, scheduled, weights, dev, linear)
+    return slot_sinr_and_wideband(cells, gains, serving, best, chosen, noise, scheduled, weights, dev, linear,
+                                  compiled)

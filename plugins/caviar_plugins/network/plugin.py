@@ -251,7 +251,7 @@ class RadioNetwork(caviar.Plugin):
         per_slot, sinr, sir = downlink_sinr(
             self.cells, rx, wideband, serving, talking, noise_figure_db=self.p.noise_figure_db,
             scheduled=self.p.interference == "scheduled", beams=self.beams, slots=self.slots,
-            subband_prbs=self.subband_prbs, device=self.device, linear=True)
+            subband_prbs=self.subband_prbs, device=self.device, linear=True, compiled=self.p.compile)
         per_slots, backlogs, ul_in = [per_slot], [in_columns(backlog, cols)], None
         if self.p.uplink is not None:
             ul_in = self._uplink_in(t, ids, types, rx, serving)  # (its backlog, powers and per-slot SINR)
