@@ -16,8 +16,7 @@ now and then many times slower, its OpenMP threads waiting for busy cores):
   refreshes); ``sys_kernels_ms``: inside the link levels' compiled groups of slots (Sionna
   SYS's scheduler, link adaptation, EESM and PHY abstraction) and, since 2026-11-29 (evening),
   the uplink's compiled powers and SINR and the downlink's SINRs (:func:`_compiled_calls`);
-  ``host_ms``: the rest, the
-  network's own work (measurements, mobility, beams, the uplink's SINR, the link levels'
+  ``host_ms``: the rest, the network's own work (measurements, mobility, beams, the link levels'
   inputs and tallies, the reports);
 - the wall ms of the step's phases: ``_measure`` (the channel, beams, RSRP, mobility),
   ``_downlink_sinr``, the uplink's powers and SINR (``uplink``), the link level's call
@@ -150,11 +149,10 @@ def _compiled_calls(net) -> list[tuple[Any, str]]:
     from bench_network import link_levels
 
     calls = [(link, name) for link in link_levels(net) for name in COMPILED if hasattr(link, name)]
-    for module, name in (("uplink", "power_and_ratio_compiled"), ("beams", "sinr_and_wideband_compiled")):
-        owner = sys.modules.get(f"caviar_plugins.network.{module}")
-        if getattr(owner, name, None) is not None:
-            calls.append((owner, name))
-    return calls
+    owners = (sys.modules.get(f"caviar_plugins.network.{m}") for m in ("uplink", "beams"))
+    return calls + [(owner, name) for owner, name in zip(owners, ("power_and_ratio_compiled",
+                                                                   "sinr_and_wideband_compiled"), strict=True)
+                    if getattr(owner, name, None) is not None]
 
 
 def _timed(obj, name: str, into: dict, key: str) -> None:
