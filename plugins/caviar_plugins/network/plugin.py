@@ -287,9 +287,8 @@ class RadioNetwork(caviar.Plugin):
                                   extras, self.ues.position[cols])
         used = res.cells_active.mean(axis=0)
         counts = np.bincount(serving[covered], minlength=len(self.cells)).tolist()
-        yield NETWORK_CELLS, {"cells": [
-            {"cell": n, "ues": counts[k], "active_share": round(float(used[k]), 4)}
-            for k, n in enumerate(self.names)]}
+        yield NETWORK_CELLS, {"cells": [{"cell": n, "ues": counts[k], "active_share": round(float(used[k]), 4)}
+                                        for k, n in enumerate(self.names)]}
 
     def _backlog(self, t: float, ids: list[str], types: list[str], direction: str):
         """The step's queued and arriving bits of ``ids`` in ``direction`` (None: full buffer)
