@@ -103,6 +103,20 @@ def crossing() -> bool:
     return getattr(_crossing, "depth", 0) > 0
 
 
+def compiled_once(module_name: str, name: str, function: Any) -> Any:
+    """``torch.compile(function)``, made at the first call and kept as the attribute ``name`` of
+    the module ``module_name`` (None until then): once a process, and what a bench wraps to time
+    the compiled program apart (``benches/bench_host_overhead.py``)."""
+    import sys
+
+    module = sys.modules[module_name]
+    if getattr(module, name) is None:
+        import torch
+
+        setattr(module, name, torch.compile(function))
+    return getattr(module, name)
+
+
 def to_torch(values: Any, device: Any, dtype: Any = None) -> Any:
     """A tensor of ``values`` (numpy, Python numbers, or a tensor, moved) on ``device``."""
     import torch

@@ -49,7 +49,7 @@ import numpy as np
 
 from caviar_plugins.constants import SPEED_OF_LIGHT
 from caviar_plugins.network.cells import Cell, pattern_gain_db
-from caviar_plugins.torch_device import HOST, one_blas_thread, resolve, to_numpy, to_torch
+from caviar_plugins.torch_device import HOST, compiled_once, one_blas_thread, resolve, to_numpy, to_torch
 
 
 @dataclasses.dataclass(frozen=True)
@@ -276,7 +276,8 @@ def slot_sinr_and_wideband(cells: Sequence[Cell], gains: Any, serving: np.ndarra
     inputs = _terms_inputs(cells, gains, serving, best_beam, beams, silent_idle, dev)
     noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
     w = to_torch(np.asarray(weights, dtype=float), dev, torch.float64)
-    work = _compiled_sinr_and_wideband() if compiled else _sinr_and_wideband
+    work = compiled_once(__name__, "sinr_and_wideband_compiled", _sinr_and_wideband) if compiled \
+        else _sinr_and_wideband
     per_slot, wide = work(inputs, noise, w, linear)
     wide = to_numpy(wide)  # (the host's one read)
     return per_slot if linear else to_numpy(per_slot), wide[0], wide[1]
@@ -297,19 +298,8 @@ def _sinr_and_wideband(inputs: tuple, noise: Any, w: Any, linear: bool) -> tuple
 
 sinr_and_wideband_compiled: Any = None
 """:func:`_sinr_and_wideband` compiled (``torch.compile``, once a process, by
-:func:`_compiled_sinr_and_wideband`; the UE count a dynamic size after its first change): on a GPU
-a few kernels instead of about 30 launches. (A module attribute: what a bench wraps to time it
-apart, as it does the link levels' compiled groups.)"""
-
-
-def _compiled_sinr_and_wideband() -> Any:
-    """:data:`sinr_and_wideband_compiled`, made at the first call."""
-    global sinr_and_wideband_compiled
-    if sinr_and_wideband_compiled is None:
-        import torch
-
-        sinr_and_wideband_compiled = torch.compile(_sinr_and_wideband)
-    return sinr_and_wideband_compiled
+:func:`~caviar_plugins.torch_device.compiled_once`; the UE count a dynamic size after its first
+change): on a GPU a few kernels instead of about 30 launches."""
 
 
 def _per_slot(terms: tuple[Any, Any, Any], noise: Any, linear: bool) -> Any:

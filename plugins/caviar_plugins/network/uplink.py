@@ -23,7 +23,7 @@ import numpy as np
 
 from caviar_plugins.network.beams import scheduled_ues
 from caviar_plugins.network.cells import Cell
-from caviar_plugins.torch_device import HOST
+from caviar_plugins.torch_device import HOST, compiled_once
 
 ALPHAS = (0.0, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 """TS 38.213's pathloss compensation factors (``msg3-Alpha``/``alpha``)."""
@@ -169,19 +169,8 @@ def _power_and_ratio(pathloss_db: Any, desired: Any, g: Any, s: Any, rx: Any, he
 
 power_and_ratio_compiled: Any = None
 """:func:`_power_and_ratio` compiled (``torch.compile``, once a process, by
-:func:`_compiled_power_and_ratio`; the UE count a dynamic size after its first change): on a GPU
-a few kernels instead of about 80 launches. (A module attribute: what a bench wraps to time it
-apart, as it does the link levels' compiled groups.)"""
-
-
-def _compiled_power_and_ratio() -> Any:
-    """:data:`power_and_ratio_compiled`, made at the first call."""
-    global power_and_ratio_compiled
-    if power_and_ratio_compiled is None:
-        import torch
-
-        power_and_ratio_compiled = torch.compile(_power_and_ratio)
-    return power_and_ratio_compiled
+:func:`~caviar_plugins.torch_device.compiled_once`; the UE count a dynamic size after its first
+change): on a GPU a few kernels instead of about 80 launches."""
 
 
 def noise_per_prb_mw(subcarrier_spacing_hz: float, noise_figure_db: float) -> float:
@@ -233,7 +222,8 @@ def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm
         gains, receive = channel[..., None], np.zeros(n, dtype=np.int64)  # element pattern only (the array serves u)
     scheduled = scheduled_ues(serving if talking is None else np.where(talking, serving, -1), len(cells), slots)
     carriers = np.array([c.carrier_hz for c in cells])
-    work = _compiled_power_and_ratio() if compiled else _power_and_ratio
+    work = compiled_once(__name__, "power_and_ratio_compiled", _power_and_ratio) if compiled \
+        else _power_and_ratio
     tx, ratio, _ = work(to_torch(pl, dev, torch.float64), to_torch(desired, dev, torch.float64),
                      *_interference_inputs(gains, receive, serving, carriers, scheduled, dev),
                      noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db), s.alpha, s.p0_dbm,
