@@ -171,3 +171,18 @@ def top_level_torch_ops(call) -> int:
         call()
     return sum(1 for e in prof.events() if e.name.startswith("aten::")
                and (e.cpu_parent is None or not e.cpu_parent.name.startswith("aten::")))
+
+
+def eager_and_compiled(function, args: tuple, compiles: bool) -> dict:
+    """``function(*args, compiled=c)`` eager (False) and compiled (True): each a first call (which
+    may compile; under torch's ``fail_on_recompile`` where not ``compiles``), then a second, whose
+    results and :func:`top_level_torch_ops` are returned, ``{c: (*results, ops)}``."""
+    import torch
+
+    out: dict = {}
+    for compiled in (False, True):
+        with torch.compiler.set_stance("default" if compiles else "fail_on_recompile"):
+            function(*args, compiled=compiled)
+        ops = top_level_torch_ops(lambda c=compiled: out.__setitem__(c, function(*args, compiled=c)))
+        out[compiled] = (*out[compiled], ops)
+    return out

@@ -14,12 +14,12 @@ from network_configs import (
     OTHER,
     SITE_B,
     VICTIM,
+    eager_and_compiled,
     last_reports,
     ray_traced,
     reported,
     run_network,
     sector,
-    top_level_torch_ops,
     two_sites,
     ue_reports,
 )
@@ -285,13 +285,7 @@ def test_the_compiled_downlink_gives_the_eager_sinrs_in_fewer_torch_operations(s
         best = rng.integers(0, 3, n_ue)
         args = (cells, gains, serving, best, slot_beams(serving, best, 4, 16), rng.uniform(1e-13, 1e-12, n_ue),
                 silent_idle, np.array([2.0, 1.0]), "cpu")
-        out = {}
-        for compiled in (False, True):
-            with torch.compiler.set_stance("fail_on_recompile" if n_ue == 9 else "default"):
-                slot_sinr_and_wideband(*args, compiled=compiled)  # (7 UEs compile, 11 once more; 9 nothing)
-            ops = top_level_torch_ops(
-                lambda c=compiled, a=args, o=out: o.__setitem__(c, slot_sinr_and_wideband(*a, compiled=c)))
-            out[compiled] = (*out[compiled], ops)
+        out = eager_and_compiled(slot_sinr_and_wideband, args, compiles=n_ue != 9)  # (7 UEs compile, 11 once more)
         (per_slot, sinr, sir, eager_ops), (per_slot_c, sinr_c, sir_c, compiled_ops) = out[False], out[True]
         assert np.isnan(per_slot[:, 1]).all() and np.isnan(sinr[1]) and np.isfinite(sinr[0])
         np.testing.assert_allclose(per_slot_c, per_slot, rtol=1e-12)  # (NaN where NaN)

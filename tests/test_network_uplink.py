@@ -13,10 +13,10 @@ from caviar_plugins.network.uplink import UplinkSettings, noise_per_prb_mw, tx_p
 from network_configs import (
     OTHER,
     VICTIM,
+    eager_and_compiled,
     last_reports,
     reported,
     run_network,
-    top_level_torch_ops,
     two_sites,
     ue_reports,
 )
@@ -118,12 +118,7 @@ def test_the_compiled_uplink_gives_the_eager_powers_and_sinrs_in_fewer_torch_ope
         serving[:4] = [0, 1, -1, 3]  # (one UE without a cell)
         args = (cells, s, serving, np.zeros((n_ue, 4, 2)), gains, rng.integers(0, 3, (n_ue, 4)), 51, 30e3, 16, "cpu",
                 rng.random(n_ue) < 0.8)
-        out = {}
-        for compiled in (False, True):
-            with torch.compiler.set_stance("fail_on_recompile" if n_ue == 9 else "default"):
-                uplink(*args, compiled=compiled)  # (7 UEs compile, 11 once more with a dynamic count; 9 nothing)
-            ops = top_level_torch_ops(lambda c=compiled, a=args, o=out: o.__setitem__(c, uplink(*a, compiled=c)))
-            out[compiled] = (*out[compiled], ops)
+        out = eager_and_compiled(uplink, args, compiles=n_ue != 9)  # (7 UEs compile, 11 once more: dynamic)
         (tx, sinr, eager_ops), (tx_c, sinr_c, compiled_ops) = out[False], out[True]
         assert np.isfinite(tx).all() and (tx <= 23.0 + 1e-6).all() and (tx < 23.0).any()
         np.testing.assert_allclose(tx_c, tx, rtol=1e-6)  # (Sionna's power control: float32)
