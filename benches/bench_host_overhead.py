@@ -15,7 +15,7 @@ now and then many times slower, its OpenMP threads waiting for busy cores):
 - ``step_ms``: the step's wall time; ``rt_ms``: inside ``SiteTracer.trace`` (none between
   refreshes); ``sys_kernels_ms``: inside the link levels' compiled groups of slots (Sionna
   SYS's scheduler, link adaptation, EESM and PHY abstraction) and, since 2026-11-29 (evening),
-  the uplink's compiled powers and SINR and the downlink's SINRs (:func:`_compiled_calls`);
+  the uplink's compiled powers and SINR and the downlink's SINRs (``bench_host_phases.compiled_calls``);
   ``host_ms``: the rest, the network's own work (measurements, mobility, beams, the link levels'
   inputs and tallies, the reports);
 - the wall ms of the step's phases: ``_measure`` (the channel, beams, RSRP, mobility),
@@ -84,8 +84,8 @@ on this CPU warm, with what it would cost on an H200 from the solve figures meas
 size's runs of the two interleaved, in processes of their own, for the before/after ratios.
 Writes ``docs/results/host-overhead.json``.
 
-On a machine other work keeps busy, run it with ``OMP_NUM_THREADS=1``: torch's second thread,
-waiting for a busy core, stalls steps by up to 10× at random, old and new code alike.
+On a busy machine run it with ``OMP_NUM_THREADS=1``: torch's second thread, waiting for a busy
+core, stalls steps by up to 10× at random.
 
     .venv/bin/python benches/bench_host_overhead.py [--steps 5] [--baseline /tmp/base] [--no-refresh]
 
@@ -108,6 +108,8 @@ from typing import Any
 
 import numpy as np
 
+from bench_host_phases import RUNS, compiled_calls, phases_timed
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "results" / "host-overhead.json"
 TARGETS = {"host_ms_per_step_1000_ues": 10.0, "torch_launches_per_group": 30}
@@ -123,53 +125,17 @@ MAKERS = {"as_tensor", "tensor", "from_numpy"}
 WRITES = {"__setitem__", *(f"__i{op}__" for op in ("add", "sub", "mul", "truediv", "floordiv", "mod", "pow", "and",
                                                   "or", "xor", "lshift", "rshift", "matmul"))}
 """Calls that write into a tensor (their result is it): a kernel each."""
-METHOD = ("host_proxy_ms: Python and numpy time of a step (its wall less the ray tracer, Sionna SYS's compiled "
-          "groups and every torch call made from Python, timed by a TorchFunctionMode, less the mode's own "
-          "calibrated cost) plus the torch calls times torch's measured dispatch cost a call on small tensors; "
+METHOD = ("host_proxy_ms: Python and numpy time of a step (its wall less the ray tracer, Sionna SYS's compiled groups"
+          " and every torch call made from Python, timed by a TorchFunctionMode, less the mode's own calibrated cost)"
+          " plus the torch calls times torch's measured dispatch cost a call on small tensors; "
           "host_proxy_with_launches_ms adds an assumed CUDA_LAUNCH_US a call that launches a kernel (not a view, a "
           "metadata read or a device read) and DEVICE_READ_US a device read, and the compiled groups' entries "
-          "(dynamo's guards, the regions' own time, the runtime wrapper's prologue: torch.profiler's) and a "
-          "launch a compiled call; "
-          "host_ms: the raw CPU wall less the ray tracer and the compiled groups (the torch arithmetic included)")
+          "(dynamo's guards, the regions' own time, the runtime wrapper's prologue: torch.profiler's) and a launch a "
+          "compiled call; host_ms: the raw CPU wall less the ray tracer and the compiled groups (the torch arithmetic"
+          " included)")
 ENTRY_EVENTS = ("TorchDynamo Cache Lookup", "AOTDispatcher Runtime Wrapper Prologue")
-"""torch.profiler's events of a compiled call's entry: dynamo's guards (choosing the compiled entry)
-and the runtime wrapper's prologue; with each region's own time (its inputs gathered, its side
-effects applied), the host's work a compiled group of slots costs beyond its kernels."""
-RUNS = ("run", "run_linear", "run_links")
-"""A link level's calls (numpy dB SINRs, or linear ones as a tensor): the link levels' phases."""
-COMPILED = ("_group", "_groups")
-"""A link level's calls of its compiled programs: one group of slots, several (``groups_per_call``)."""
-
-
-def _compiled_calls(net) -> list[tuple[Any, str]]:
-    """(object, name) of the step's compiled programs: the plugin's link levels' :data:`COMPILED`
-    calls (a baseline's has no ``_groups``) and, once made (since 2026-11-29, evening), the uplink's
-    powers and SINR and the downlink's SINRs (``caviar_plugins.network.uplink.power_and_ratio_compiled``,
-    ``caviar_plugins.network.beams.sinr_and_wideband_compiled``)."""
-    from bench_network import link_levels
-
-    calls = [(link, name) for link in link_levels(net) for name in COMPILED if hasattr(link, name)]
-    owners = (sys.modules.get(f"caviar_plugins.network.{m}") for m in ("uplink", "beams"))
-    return calls + [(owner, name) for owner, name in zip(owners, ("power_and_ratio_compiled",
-                                                                   "sinr_and_wideband_compiled"), strict=True)
-                    if getattr(owner, name, None) is not None]
-
-
-def _timed(obj, name: str, into: dict, key: str) -> None:
-    """Wraps ``obj.name`` to add its wall time to ``into[key]`` (and count its calls)."""
-    inner = getattr(obj, name)
-
-    def wrapper(*args, **kwargs):
-        a = time.perf_counter()
-        try:
-            return inner(*args, **kwargs)
-        finally:
-            into[key] = into.get(key, 0.0) + time.perf_counter() - a
-            into[key + "_calls"] = into.get(key + "_calls", 0) + 1
-
-    setattr(obj, name, wrapper)
-
-
+"""torch.profiler's events of a compiled call's entry: dynamo's guards and the runtime wrapper's prologue;
+with each region's own time (its inputs, its side effects), a compiled call's host work beyond its kernels."""
 def _launches(net, step) -> tuple[int, int, int, float, float, float]:
     """The torch operations of one ``step()`` that no other torch operation called, those of them
     inside the link levels' runs, the compiled regions entered (torch.profiler), the ms the
@@ -329,7 +295,7 @@ def _proxy(net, steps: list) -> dict:
             collected["runs"] += 1
 
     saved = [(net.channel.tracer, "trace", net.channel.tracer.trace)]
-    saved += [(link, name, getattr(link, name)) for link, name in _compiled_calls(net)]
+    saved += [(link, name, getattr(link, name)) for link, name in compiled_calls(net)]
     for obj, name, inner in saved:
         setattr(obj, name, untimed(inner))
     cal = _calibrate()
@@ -433,17 +399,7 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
         step(0)  # (traces and compiles)
         if settle:  # (as the host does after a plugin's first step: its objects out of the collector's way)
             hosted.settle()
-        _timed(net.channel.tracer, "trace", timing, "rt")
-        for link, name in _compiled_calls(net):
-            _timed(link, name, timing, "sys")
-        _timed(net, "_measure", timing, "measure")
-        _timed(sys.modules[RadioNetwork.__module__], "downlink_sinr", timing, "downlink_sinr")
-        _timed(sys.modules[RadioNetwork.__module__], "uplink", timing, "uplink_sinr")  # (powers and SINR)
-        keys = ("dl_link_run", "ul_link_run") if len(link_levels(net)) > 1 else ("dl_ul_link_run",)
-        for link, key in zip(link_levels(net), keys, strict=True):
-            for name in RUNS:
-                if hasattr(link, name):
-                    _timed(link, name, timing, key)
+        phases_timed(net, timing)
         messages, per_step = 0, []
         for k in range(1, steps + 1):
             box = inbox(k)  # (the core's work: before the clock starts)
@@ -467,7 +423,7 @@ def one(n_ue: int, steps: int, samples: int, ue_reports: str = "table", settle: 
         groups = 2 * (net.slots // net.p.harq_processes)
     step_ms = 1e3 * wall
     rt_ms, sys_ms = 1e3 * timing.get("rt", 0.0), 1e3 * timing.get("sys", 0.0)
-    phases = {k: round(1e3 * timing[k], 2) for k in ("measure", "downlink_sinr", "dl_link_run", "uplink_sinr",
+    phases = {k: round(1e3 * timing[k], 2) for k in ("measure", "downlink_sinr", "sinrs", "dl_link_run", "uplink_sinr",
                                                        "ul_link_run", "dl_ul_link_run") if k in timing}
     return {"cells": len(net.cells), "ues": n_ue, "ue_reports": ue_reports, "steps": steps, "of_the_median_step": True,
             "encode_ms": encode_ms,

@@ -126,3 +126,63 @@ def test_the_compiled_uplink_gives_the_eager_powers_and_sinrs_in_fewer_torch_ope
         np.testing.assert_allclose(sinr_c, sinr, rtol=1e-6)
         # (outside the program: the inputs made tensors, the pathloss, the dB)
         assert compiled_ops <= 45 < 90 <= eager_ops, (compiled_ops, eager_ops)
+
+
+
+def _sinrs_apart(cells, serving, talking, dl: dict, ul: tuple, compiled: bool) -> tuple:
+    """The downlink's and the uplink's SINRs, each by its own function (two programs compiled)."""
+    from caviar_plugins.network.downlink import downlink_sinr
+    from caviar_plugins.network.uplink import mean_sinr_db, uplink
+
+    dl_slot, sinr, sir = downlink_sinr(cells, None, None, serving, talking, **dl, compiled=compiled)
+    tx, ul_slot = uplink(*ul, linear=True, compiled=compiled)
+    return dl_slot, sinr, sir, tx, ul_slot, mean_sinr_db(ul_slot)
+
+
+def _sinrs_joint(cells, serving, talking, dl: dict, ul: tuple, compiled: bool) -> tuple:
+    """The same as one program (``sinrs.both_directions``)."""
+    from caviar_plugins.network.downlink import beamformed_args
+    from caviar_plugins.network.sinrs import both_directions
+    from caviar_plugins.network.uplink import uplink_args
+
+    return both_directions(beamformed_args(cells, serving, talking, **dl), uplink_args(*ul), compiled)
+
+
+def test_both_directions_as_one_program_give_the_two_programs_numbers_in_one_compiled_call():
+    """With beams and the uplink the step's SINRs of both directions are one program
+    (``sinrs.both_directions``): eager, the very numbers of the downlink's and the uplink's own
+    functions; compiled, the same to float32's rounding (the power control's) in one compiled
+    call where the two apart make two, at UE counts that change (a dynamic size)."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    from caviar_plugins.network.cells import Cell
+
+    cells = [Cell(name=f"c{k}", site=f"s{k}", index=k, position=(100.0 * k, 0.0, 25.0), azimuth_deg=60.0 * k,
+                  downtilt_deg=4.0, tx_power_dbm=43.0, carrier_hz=3.5e9 if k < 3 else 2.1e9, bandwidth_hz=20e6,
+                  array=(2, 4)) for k in range(4)]
+    s = UplinkSettings(p0_dbm=-90.0, alpha=0.8, ue_max_power_dbm=23.0)
+    rng = np.random.default_rng(5)
+
+    def regions(function, args) -> int:
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            function(*args, compiled=True)
+        return sum(1 for e in prof.events() if e.name.startswith("Torch-Compiled Region"))
+
+    for n_ue in (6, 10):
+        gains = torch.as_tensor(rng.exponential(1e-10, (n_ue, 4, 2, 3)) * 10 ** rng.uniform(-4, 0, (n_ue, 1, 1, 1)))
+        serving, best = rng.integers(-1, 4, n_ue), rng.integers(0, 3, (n_ue, 4))
+        serving[:3] = [0, -1, 3]  # (a UE without a cell)
+        talking, ul_talking = rng.random(n_ue) < 0.8, rng.random(n_ue) < 0.7
+        dl = dict(noise_figure_db=7.0, scheduled=True, beams=(gains, best), slots=16, subband_prbs=np.array([26, 25]),
+                  device="cpu", linear=True)
+        args = (cells, serving, talking, dl, (cells, s, serving, np.zeros((n_ue, 4, 2)), gains, best, 51, 30e3, 16,
+                                              "cpu", ul_talking))
+        two = _sinrs_apart(*args, compiled=False)
+        assert np.isnan(two[1][1]) and np.isfinite(two[3]).all() and np.isfinite(two[5][serving >= 0]).all()
+        for got, want in zip(_sinrs_joint(*args, compiled=False), two, strict=True):  # (eager: the same numbers)
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        _sinrs_apart(*args, compiled=True), _sinrs_joint(*args, compiled=True)  # (compiles; a new count: dynamic)
+        assert regions(_sinrs_apart, args) == 2 and regions(_sinrs_joint, args) == 1
+        for got, want in zip(_sinrs_joint(*args, compiled=True), two, strict=True):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6)

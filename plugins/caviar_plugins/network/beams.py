@@ -270,17 +270,26 @@ def slot_sinr_and_wideband(cells: Sequence[Cell], gains: Any, serving: np.ndarra
     gains, so the mean channel's are the means of the frequencies' (equal to summing again over
     the mean channel's gains, to float64's rounding). ``compiled``: the tensor work as one
     ``torch.compile`` program (the network's ``compile``; the same numbers to float64's rounding)."""
+    work = compiled_once(__name__, "sinr_and_wideband_compiled", _sinr_and_wideband) if compiled \
+        else _sinr_and_wideband
+    per_slot, wide = work(*sinr_and_wideband_args(cells, gains, serving, best_beam, beams, noise_mw, silent_idle,
+                                                  weights, device, linear))
+    wide = to_numpy(wide)  # (the host's one read)
+    return per_slot if linear else to_numpy(per_slot), wide[0], wide[1]
+
+
+def sinr_and_wideband_args(cells: Sequence[Cell], gains: Any, serving: np.ndarray, best_beam: np.ndarray,
+                           beams: np.ndarray, noise_mw: np.ndarray, silent_idle: bool, weights: np.ndarray,
+                           device: Any = HOST, linear: bool = False) -> tuple:
+    """:func:`_sinr_and_wideband`'s arguments for :func:`slot_sinr_and_wideband`'s, tensors on
+    the torch ``device`` (and ``linear``): what a program that computes more at once takes
+    (:func:`~caviar_plugins.network.sinrs.both_directions`)."""
     import torch
 
     dev = resolve(device)
-    inputs = _terms_inputs(cells, gains, serving, best_beam, beams, silent_idle, dev)
-    noise = to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64)
-    w = to_torch(np.asarray(weights, dtype=float), dev, torch.float64)
-    work = compiled_once(__name__, "sinr_and_wideband_compiled", _sinr_and_wideband) if compiled \
-        else _sinr_and_wideband
-    per_slot, wide = work(inputs, noise, w, linear)
-    wide = to_numpy(wide)  # (the host's one read)
-    return per_slot if linear else to_numpy(per_slot), wide[0], wide[1]
+    return (_terms_inputs(cells, gains, serving, best_beam, beams, silent_idle, dev),
+            to_torch(np.asarray(noise_mw, dtype=float), dev, torch.float64),
+            to_torch(np.asarray(weights, dtype=float), dev, torch.float64), linear)
 
 
 def _sinr_and_wideband(inputs: tuple, noise: Any, w: Any, linear: bool) -> tuple[Any, Any]:

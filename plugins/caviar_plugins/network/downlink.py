@@ -12,7 +12,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from caviar_plugins.network.beams import slot_beams, slot_sinr_and_wideband
+from caviar_plugins.network.beams import sinr_and_wideband_args, slot_beams, slot_sinr_and_wideband
 from caviar_plugins.network.cells import Cell, noise_dbm, rsrp_dbm, rx_power_dbm, sinr_db
 from caviar_plugins.torch_device import HOST, resolve, to_numpy, to_torch
 
@@ -79,6 +79,29 @@ def _beamformed(cells: Sequence[Cell], beams: tuple[Any, np.ndarray], serving: n
                 subband_prbs: np.ndarray | None, device: Any, linear: bool = False, compiled: bool = False):
     """With beams: per slot and subband, and wideband (the slots' mean); the other cells
     point at the UEs they schedule among ``talking`` (None: all)."""
+    # (per slot and subband; and the SINR and the SIR of the subbands' weighted mean channel, their
+    # ratios averaged over the slots: one interference sum for all, read to the host once)
+    return slot_sinr_and_wideband(*_beamformed_inputs(cells, beams, serving, talking, noise_figure_db, scheduled,
+                                                      slots, subband_prbs, device), linear, compiled)
+
+
+def beamformed_args(cells: Sequence[Cell], serving: np.ndarray, talking: np.ndarray | None, *,
+                    noise_figure_db: float, scheduled: bool, beams: tuple[Any, np.ndarray], slots: int = 1,
+                    subband_prbs: np.ndarray | None = None, device: Any = "auto", linear: bool = False) -> tuple:
+    """:func:`downlink_sinr`'s tensor work with ``beams`` (its arguments by the same names) as
+    the arguments of its program (:func:`~caviar_plugins.network.beams.sinr_and_wideband_args`):
+    for a program that computes more at once (:func:`~caviar_plugins.network.sinrs.both_directions`)."""
+    return sinr_and_wideband_args(*_beamformed_inputs(cells, beams, serving, talking, noise_figure_db, scheduled,
+                                                      slots, subband_prbs, device), linear)
+
+
+def _beamformed_inputs(cells: Sequence[Cell], beams: tuple[Any, np.ndarray], serving: np.ndarray,
+                       talking: np.ndarray | None, noise_figure_db: float, scheduled: bool, slots: int,
+                       subband_prbs: np.ndarray | None,
+                       device: Any) -> tuple[Sequence[Cell], Any, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool,
+                                             np.ndarray, Any]:
+    """:func:`~caviar_plugins.network.beams.slot_sinr_and_wideband`'s inputs with beams, up to
+    its device: the beams each cell points at in each slot, the noise and the subbands' weights."""
     import torch
 
     gains, best_beams = beams
@@ -91,7 +114,4 @@ def _beamformed(cells: Sequence[Cell], beams: tuple[Any, np.ndarray], serving: n
     noise = 10 ** (noise_dbm(bandwidth, noise_figure_db) / 10)
     n_f = gains.shape[2]
     weights = subband_prbs if n_f > 1 and subband_prbs is not None else np.ones(n_f)
-    # (per slot and subband; and the SINR and the SIR of the subbands' weighted mean channel, their
-    # ratios averaged over the slots: one interference sum for all, read to the host once)
-    return slot_sinr_and_wideband(cells, gains, serving, best, chosen, noise, scheduled, weights, dev, linear,
-                                  compiled)
+    return cells, gains, serving, best, chosen, noise, scheduled, weights, dev

@@ -35,11 +35,12 @@ import caviar
 from caviar.topics import matches
 from caviar_plugins.network.beams import beam_report
 from caviar_plugins.network.channel import UePlaces
-from caviar_plugins.network.downlink import downlink_sinr, received
+from caviar_plugins.network.downlink import received
 from caviar_plugins.network.handover import MobilityManager
 from caviar_plugins.network.layout import drop_outdoors
 from caviar_plugins.network.radio_map import best_server_map, layer_message, save
 from caviar_plugins.network.settings import NetworkParams, make_channel, plan
+from caviar_plugins.network.sinrs import step_sinrs
 from caviar_plugins.network.tr38901 import CHANNELS as STOCHASTIC
 from caviar_plugins.network.traffic import Queues, in_columns, transfer_record
 from caviar_plugins.network.ues import (
@@ -56,7 +57,6 @@ from caviar_plugins.network.ues import (
     uplink_columns,
     uplink_fields,
 )
-from caviar_plugins.network.uplink import mean_sinr_db, uplink
 from caviar_plugins.radio.link_level import LinkLevel
 from caviar_plugins.schema import (
     ARRIVED,
@@ -248,22 +248,20 @@ class RadioNetwork(caviar.Plugin):
         ids, cols, types = self.ues.view()
         rx, wideband, rsrp, serving, events = self._measure(t, ids, cols)
         backlog, talking = self._backlog(t, ids, types, "downlink")
-        per_slot, sinr, sir = downlink_sinr(
-            self.cells, rx, wideband, serving, talking, noise_figure_db=self.p.noise_figure_db,
-            scheduled=self.p.interference == "scheduled", beams=self.beams, slots=self.slots,
-            subband_prbs=self.subband_prbs, device=self.device, linear=True, compiled=self.p.compile)
-        per_slots, backlogs, ul_in = [per_slot], [in_columns(backlog, cols)], None
-        if self.p.uplink is not None:
-            ul_in = self._uplink_in(t, ids, types, rx, serving)  # (its backlog, powers and per-slot SINR)
-            per_slots.append(ul_in[2])
-            backlogs.append(in_columns(ul_in[0], cols))
+        ul_backlog, ul_talking = (None, None) if self.p.uplink is None else self._backlog(t, ids, types, "uplink")
+        per_slot, sinr, sir, ul_in = step_sinrs(self.p, self.cells, rx, wideband, serving, talking, ul_talking,
+                                                self.beams, self.slots, self.subband_prbs, self.device)
+        per_slots, backlogs = [per_slot], [in_columns(backlog, cols)]
+        if ul_in is not None:  # (the uplink's powers, per-slot SINR and mean SINR)
+            per_slots.append(ul_in[1])
+            backlogs.append(in_columns(ul_backlog, cols))
         res, *ul_res = run_links(self.link, per_slots, serving, cols, self.slots, backlogs)  # (both directions at once)
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
         yield from ((NETWORK_EVENTS, e) for e in events)
         yield from self._delivered(t, ids, "downlink", res, cols)
         ul = None
         if ul_in is not None:
-            ul = yield from self._uplink_out(t, ids, ul_res[0], ul_in[1], ul_in[2], cols)
+            ul = yield from self._uplink_out(t, ids, ul_res[0], ul_in[0], ul_in[2], cols)
         covered = serving >= 0
         self.ues.last_sinr[cols] = np.where(covered, sinr, np.nan)
         sv = np.maximum(serving, 0)
@@ -309,18 +307,8 @@ class RadioNetwork(caviar.Plugin):
             if done is not None and x.deliver_to is not None:
                 yield f"{x.deliver_to}.{x.ue}", x.payload
 
-    def _uplink_in(self, t: float, ids: list[str], types: list[str], rx: np.ndarray, serving: np.ndarray):
-        """The step's PUSCH before the link level: its backlog, the UEs' powers and the per-slot SINR."""
-        assert self.p.uplink is not None
-        backlog, talking = self._backlog(t, ids, types, "uplink")
-        beam_gains, best = self.beams if self.beams is not None else (None, None)
-        tx, per_slot = uplink(self.cells, self.p.uplink, serving, rx, beam_gains, best, self.p.num_prb,
-                              self.p.subcarrier_spacing_hz, self.slots, self.device, talking, linear=True,
-                              compiled=self.p.compile)
-        return backlog, tx, per_slot
-
-    def _uplink_out(self, t: float, ids: list[str], res, tx: Any, per_slot: Any, cols: np.ndarray):
+    def _uplink_out(self, t: float, ids: list[str], res, tx: Any, sinr: np.ndarray, cols: np.ndarray):
         """The step's PUSCH after the link level (``res``): its completed transfers; every UE's ``ul_*`` fields."""
         yield from self._delivered(t, ids, "uplink", res, cols)
         mbps = res.throughput_bps(self.slots, self.slot_s) / 1e6
-        return uplink_arrays(tx, mean_sinr_db(per_slot), mbps[cols], link_fields(res, cols))
+        return uplink_arrays(tx, sinr, mbps[cols], link_fields(res, cols))

@@ -198,7 +198,25 @@ def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm
     kernels, not about 80."""
     import torch
 
-    from caviar_plugins.torch_device import resolve, to_numpy, to_torch
+    from caviar_plugins.torch_device import to_numpy
+
+    work = compiled_once(__name__, "power_and_ratio_compiled", _power_and_ratio) if compiled \
+        else _power_and_ratio
+    tx, ratio, _ = work(*uplink_args(cells, s, serving, rx_dbm, beam_gains, best_beams, num_prb,
+                                     subcarrier_spacing_hz, slots, device, talking))
+    return to_numpy(tx), ratio if linear else to_numpy(10 * torch.log10(ratio))
+
+
+def uplink_args(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm: Any,
+                beam_gains: Any, best_beams: np.ndarray | None, num_prb: int,
+                subcarrier_spacing_hz: float, slots: int, device: str = "auto",
+                talking: np.ndarray | None = None) -> tuple:
+    """:func:`_power_and_ratio`'s arguments for :func:`uplink`'s (tensors on the torch device,
+    then numbers): what a program that computes more at once takes
+    (:func:`~caviar_plugins.network.sinrs.both_directions`)."""
+    import torch
+
+    from caviar_plugins.torch_device import resolve, to_torch
 
     n = len(serving)
     ue, sv = np.arange(n), np.maximum(np.asarray(serving), 0)
@@ -222,21 +240,22 @@ def uplink(cells: Sequence[Cell], s: UplinkSettings, serving: np.ndarray, rx_dbm
         gains, receive = channel[..., None], np.zeros(n, dtype=np.int64)  # element pattern only (the array serves u)
     scheduled = scheduled_ues(serving if talking is None else np.where(talking, serving, -1), len(cells), slots)
     carriers = np.array([c.carrier_hz for c in cells])
-    work = compiled_once(__name__, "power_and_ratio_compiled", _power_and_ratio) if compiled \
-        else _power_and_ratio
-    tx, ratio, _ = work(to_torch(pl, dev, torch.float64), to_torch(desired, dev, torch.float64),
-                     *_interference_inputs(gains, receive, serving, carriers, scheduled, dev),
-                     noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db), s.alpha, s.p0_dbm,
-                     s.ue_max_power_dbm, num_prb)
-    return to_numpy(tx), ratio if linear else to_numpy(10 * torch.log10(ratio))
+    return (to_torch(pl, dev, torch.float64), to_torch(desired, dev, torch.float64),
+            *_interference_inputs(gains, receive, serving, carriers, scheduled, dev),
+            noise_per_prb_mw(subcarrier_spacing_hz, s.noise_figure_db), s.alpha, s.p0_dbm, s.ue_max_power_dbm, num_prb)
 
 
 def mean_sinr_db(per_slot: Any) -> np.ndarray:
     """[ue]: the SINR over a step's slots and subbands (their linear mean, in dB) of the
     per-slot linear SINRs [slot, ue, freq] (a tensor, :func:`uplink`'s ``linear``; NaN for a
     UE without a cell, -inf for one without a path), averaged where they are."""
-    import torch
-
     from caviar_plugins.torch_device import to_numpy
 
-    return to_numpy(10 * torch.log10(per_slot.mean(dim=(0, 2))))
+    return to_numpy(_mean_db(per_slot))
+
+
+def _mean_db(per_slot: Any) -> Any:
+    """:func:`mean_sinr_db`'s tensor work: [ue] of the per-slot linear SINRs [slot, ue, freq]."""
+    import torch
+
+    return 10 * torch.log10(per_slot.mean(dim=(0, 2)))
