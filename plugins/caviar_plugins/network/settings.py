@@ -60,9 +60,9 @@ class NetworkParams:
     """``torch.compile`` the link level (Sionna SYS): about 4x faster a step, after
     about 20 s of compilation at the first step (see
     :class:`~caviar_plugins.radio.link_settings.LinkSettings`); the uplink's powers and SINRs,
-    and with beams the downlink's per-slot SINRs, each as one compiled program too (the same
-    numbers to float64's rounding, the powers to float32's; on a GPU a few kernels a step
-    instead of about 100 launches)."""
+    and with beams the downlink's per-slot SINRs, each as one compiled program too, both as one
+    with beams and the uplink (the same numbers to float64's rounding, the powers to float32's;
+    on a GPU a few kernels a step instead of about 100 launches)."""
     groups_per_call: int = 1
     """With ``compile`` and full buffers, groups of slots run as one compiled call: 5 cut the
     host's fixed cost a call (about 0.3 ms) of a 0.1 s step's 25 calls to 5, for a longer compile
