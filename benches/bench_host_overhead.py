@@ -18,8 +18,9 @@ now and then many times slower, its OpenMP threads waiting for busy cores):
   the uplink's compiled powers and SINR and the downlink's SINRs (``bench_host_phases.compiled_calls``);
   ``host_ms``: the rest, the network's own work (measurements, mobility, beams, the link levels'
   inputs and tallies, the reports);
-- the wall ms of the step's phases: ``_measure`` (the channel, beams, RSRP, mobility),
-  ``_downlink_sinr``, the uplink's powers and SINR (``uplink``), the link level's call
+- the wall ms of the step's phases: ``_measure`` (the channel, beams, RSRP, mobility), the SINRs
+  (``sinrs``: ``step_sinrs``, both directions; a baseline's ``downlink_sinr`` and the uplink's powers
+  and SINR, ``uplink_sinr``), the link level's call
   (``dl_ul_link_run``: both links; a baseline's two link levels' ``dl_link_run`` and
   ``ul_link_run``; their compiled groups included); the rest is the reports and the queues;
 - ``host_torch_ms``: of ``host_ms``, the top-level torch operations outside the link levels'
@@ -136,6 +137,8 @@ METHOD = ("host_proxy_ms: Python and numpy time of a step (its wall less the ray
 ENTRY_EVENTS = ("TorchDynamo Cache Lookup", "AOTDispatcher Runtime Wrapper Prologue")
 """torch.profiler's events of a compiled call's entry: dynamo's guards and the runtime wrapper's prologue;
 with each region's own time (its inputs, its side effects), a compiled call's host work beyond its kernels."""
+
+
 def _launches(net, step) -> tuple[int, int, int, float, float, float]:
     """The torch operations of one ``step()`` that no other torch operation called, those of them
     inside the link levels' runs, the compiled regions entered (torch.profiler), the ms the

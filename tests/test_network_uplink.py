@@ -128,7 +128,6 @@ def test_the_compiled_uplink_gives_the_eager_powers_and_sinrs_in_fewer_torch_ope
         assert compiled_ops <= 45 < 90 <= eager_ops, (compiled_ops, eager_ops)
 
 
-
 def _sinrs_apart(cells, serving, talking, dl: dict, ul: tuple, compiled: bool) -> tuple:
     """The downlink's and the uplink's SINRs, each by its own function (two programs compiled)."""
     from caviar_plugins.network.downlink import downlink_sinr
@@ -150,13 +149,17 @@ def _sinrs_joint(cells, serving, talking, dl: dict, ul: tuple, compiled: bool) -
 
 def test_both_directions_as_one_program_give_the_two_programs_numbers_in_one_compiled_call():
     """With beams and the uplink the step's SINRs of both directions are one program
-    (``sinrs.both_directions``): eager, the very numbers of the downlink's and the uplink's own
-    functions; compiled, the same to float32's rounding (the power control's) in one compiled
-    call where the two apart make two, at UE counts that change (a dynamic size)."""
+    (``sinrs.both_directions``, which ``sinrs.step_sinrs`` chooses for the plugin): eager, the
+    very numbers of the downlink's and the uplink's own functions; compiled, the same to float32's
+    rounding (the power control's) in one compiled call where the two apart make two, at UE
+    counts that change (a dynamic size)."""
+    import types
+
     import torch
     from torch.profiler import ProfilerActivity, profile
 
     from caviar_plugins.network.cells import Cell
+    from caviar_plugins.network.sinrs import step_sinrs
 
     cells = [Cell(name=f"c{k}", site=f"s{k}", index=k, position=(100.0 * k, 0.0, 25.0), azimuth_deg=60.0 * k,
                   downtilt_deg=4.0, tx_power_dbm=43.0, carrier_hz=3.5e9 if k < 3 else 2.1e9, bandwidth_hz=20e6,
@@ -182,7 +185,19 @@ def test_both_directions_as_one_program_give_the_two_programs_numbers_in_one_com
         assert np.isnan(two[1][1]) and np.isfinite(two[3]).all() and np.isfinite(two[5][serving >= 0]).all()
         for got, want in zip(_sinrs_joint(*args, compiled=False), two, strict=True):  # (eager: the same numbers)
             np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
-        _sinrs_apart(*args, compiled=True), _sinrs_joint(*args, compiled=True)  # (compiles; a new count: dynamic)
+        # (the plugin's choice, step_sinrs: each direction's UEs with data where they belong; no uplink: None)
+        p = types.SimpleNamespace(noise_figure_db=7.0, interference="scheduled", uplink=s, num_prb=51,
+                                  subcarrier_spacing_hz=30e3, compile=False)
+        *down, up = step_sinrs(p, cells, None, None, serving, talking, ul_talking, (gains, best), 16,
+                               np.array([26, 25]), "cpu")
+        for got, want in zip([*down, *up], two, strict=True):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        alone = step_sinrs(types.SimpleNamespace(**{**vars(p), "uplink": None}), cells, None, None, serving, talking,
+                           None, (gains, best), 16, np.array([26, 25]), "cpu")
+        assert alone[3] is None and all(np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True)
+                                        for a, b in zip(alone[:3], two[:3], strict=True))
+        _sinrs_apart(*args, compiled=True)  # (compiles, or at a new count recompiles: a dynamic size)
+        _sinrs_joint(*args, compiled=True)
         assert regions(_sinrs_apart, args) == 2 and regions(_sinrs_joint, args) == 1
         for got, want in zip(_sinrs_joint(*args, compiled=True), two, strict=True):
             np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6)
