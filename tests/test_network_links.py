@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from caviar_plugins.network.traffic import Backlog
-from caviar_plugins.radio import slot_results
+from caviar_plugins.radio import link_chunks, sionna_sys_adapter, slot_results
 from caviar_plugins.radio.link_level import LinkLevel, LinkSettings
 from caviar_plugins.radio.slot_results import RESULTS
 
@@ -97,9 +97,9 @@ def test_links_that_differ_beyond_direction_and_table_are_refused():
 
 def test_several_groups_a_compiled_call_decide_as_one_a_call(monkeypatch):
     """``groups_per_call``: with full buffers, chunks of groups of slots run as one compiled call
-    (those left over one a call), and every result and loop state is one-a-call's, bit for bit
-    (the random stream included; chunks of every slot tallied in their compiled programs, carried
-    from chunk to chunk); with queues, one a call."""
+    (those left over one a call), a loop compiled once (``scan``), and every result and loop state
+    is one-a-call's, bit for bit (the random stream included; chunks of every slot tallied in their
+    compiled programs, carried from chunk to chunk); with queues, one a call."""
     rng = np.random.default_rng(14)
     dl = LinkSettings(num_prb=24, harq_processes=D, subbands=4, compile=True, device="cpu")
     links = [dl, dataclasses.replace(dl, direction="uplink")]
@@ -108,6 +108,9 @@ def test_several_groups_a_compiled_call_decide_as_one_a_call(monkeypatch):
     chunks: list = []
     inner = many._groups
     many._groups = lambda *a: chunks.append(len(a[0])) or inner(*a)
+    loops: list = []
+    scan = sionna_sys_adapter.torch_scan
+    monkeypatch.setattr(sionna_sys_adapter, "torch_scan", lambda: loops.append(1) or scan())
     tallies: list = []  # (the calls tallied after their groups, on the host's side)
     eager = slot_results.per_ue
     monkeypatch.setattr(slot_results, "per_ue", lambda *a: tallies.append(a[1].shape[1]) or eager(*a))
@@ -117,7 +120,7 @@ def test_several_groups_a_compiled_call_decide_as_one_a_call(monkeypatch):
                              strict=True):
             for name in RESULTS:
                 np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
-    assert chunks == [2, 2, 2, 2, 2]
+    assert chunks == [2, 2, 2, 2, 2] and len(loops) == len(chunks)  # (each chunk a loop)
     assert tallies == [2 * D, 4 * D, 5 * D, 5 * D]  # (one-a-call's each time; many's where a group ran alone)
     for block in ("olla", "pf"):
         for name, value in one.state()[block].items():
@@ -127,3 +130,42 @@ def test_several_groups_a_compiled_call_decide_as_one_a_call(monkeypatch):
     assert chunks == [2, 2, 2, 2, 2]  # (queues: one group a call)
     with pytest.raises(ValueError, match="groups_per_call: runs groups of slots as one compiled call"):
         LinkSettings(num_prb=24, groups_per_call=2)
+
+
+def test_a_chunk_as_a_loop_and_written_out_give_the_same_slots_and_state():
+    """The two ways of a chunk of groups (:mod:`caviar_plugins.radio.link_chunks`): the loop (on
+    the CPU, and on a GPU without CUDA graphs) and the groups written out (a CUDA graph's), traced
+    by dynamo (its random draws from torch's default generator, put back between them): the same
+    slots, tallies and loop state, bit for bit, over three groups."""
+    import torch
+
+    rng = np.random.default_rng(3)
+    dl = LinkSettings(num_prb=24, harq_processes=D, subbands=4)
+    links = [dl, dataclasses.replace(dl, direction="uplink")]
+    serving = rng.integers(-1, N_CELL, N_UE)
+    level = LinkLevel(links, N_CELL, seed=5)
+    level.run_links([14.0 + rng.normal(0.0, 6.0, (D, N_UE, 4)) for _ in links], serving, D)  # (blocks built)
+    lin = torch.stack([level._linear_in(14.0 + rng.normal(0.0, 6.0, (3 * D, N_UE, 4)), serving, 3 * D)
+                       .view(3, D, 4, -1) for _ in links], dim=1)  # [G, L, D, S, cap]
+    member = torch.zeros((2, N_CELL, level.capacity), dtype=torch.bool)
+    member[:, serving[serving >= 0], np.flatnonzero(serving >= 0)] = True
+    args = (lin, member, torch.arange(0, 3 * D, D), level.harq, level.rate_last, torch.ones(2, dtype=torch.bool),
+            level._no_tallies)
+    before = {k: sionna_sys_adapter.block_state(b) for k, b in (("olla", level.olla), ("pf", level.pf))}
+    start = torch.default_generator.get_state()
+    outs, states = [], []
+    for way in (lambda *a: link_chunks.unrolled(level._group_eager, *a),
+                lambda *a: link_chunks.scanned(level._group_eager, (level.olla, level.pf), *a)):
+        torch.default_generator.set_state(start)
+        for name, block in (("olla", level.olla), ("pf", level.pf)):
+            sionna_sys_adapter.set_block_state(block, before[name])
+        outs.append(torch.compile(way, backend="eager", fullgraph=True, dynamic=False)(*args))
+        states.append({k: sionna_sys_adapter.block_state(b) for k, b in (("olla", level.olla), ("pf", level.pf))})
+    assert len(outs[0]) == len(outs[1]) == 10
+    for k, (a, b) in enumerate(zip(*outs, strict=True)):
+        assert a.shape == b.shape and torch.equal(a.nan_to_num(-7.0), b.nan_to_num(-7.0)), k
+    assert outs[0][1].shape == (2, 3 * D, level.capacity) and (outs[0][6] > 0).any()  # (slots in order, bits decoded)
+    for name in ("olla", "pf"):
+        for key, value in states[0][name].items():
+            assert torch.equal(value, states[1][name][key]), (name, key)
+            assert not torch.equal(value, before[name][key]), (name, key)  # (the groups ran)

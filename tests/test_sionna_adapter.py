@@ -1,5 +1,5 @@
-"""One adapter to Sionna RT's and Sionna SYS's internals (issue #24 part 3, #40 part 1): it
-checks the installed version and every name it uses, it is the only module that touches
+"""Two adapters to Sionna RT's and Sionna SYS's internals (issue #24 part 3, #40 part 1): one
+checks the installed version and every name it uses, they are the only modules that touch
 them (an allowlist guard), and without it the radio scene falls back to Sionna's own loop,
 with a warning, and finds the same links. The plugins' imports have no circle."""
 
@@ -12,7 +12,7 @@ import pytest
 
 from caviar_plugins import DATA
 from caviar_plugins.mobility import Path, read_waypoints
-from caviar_plugins.radio import RadioConfig, RadioScene
+from caviar_plugins.radio import RadioConfig, RadioScene, sionna_sys_adapter
 from caviar_plugins.rt import sionna_adapter as internals
 from caviar_plugins.rt.settings import with_raytracing
 
@@ -103,7 +103,7 @@ def test_forced_solve_traces_again_and_keeps_its_paths():
 
 
 SOURCES = [PLUGINS, PLUGINS.parents[1] / "python" / "caviar"]
-ADAPTER = PLUGINS / "rt" / "sionna_adapter.py"
+ADAPTERS = (PLUGINS / "rt" / "sionna_adapter.py", PLUGINS / "radio" / "sionna_sys_adapter.py")
 OWN_PRIVATE = {
     "_assign": "plugins/caviar_plugins/rt/scatterers.py",  # ScattererPool's, for update_pools
     "_stage": "plugins/caviar_plugins/rt/scatterers.py",
@@ -113,16 +113,16 @@ OWN_PRIVATE = {
     "_libsumo_in_use": "plugins/caviar_plugins/traffic/sumo.py",  # Sumo's
 }
 """The only private names (``obj._name``, obj not ``self`` or ``cls``) used outside the
-adapter: this project's own, each defined in the file named (checked)."""
+adapters: this project's own, each defined in the file named (checked)."""
 # (sionna.phy.channel.tr38901 is where Sionna documents its 38.901 models: UMa, UMaScenario, LSPGenerator.)
 PUBLIC_SIONNA = {"sionna", "sionna.rt", "sionna.sys", "sionna.phy", "sionna.phy.channel.tr38901"}
-"""The Sionna modules imported outside the adapter: the documented packages' top level."""
+"""The Sionna modules imported outside the adapters: the documented packages' top level."""
 
 
 def python_files():
     for root in SOURCES:
         for path in sorted(root.rglob("*.py")):
-            if path != ADAPTER:
+            if path not in ADAPTERS:
                 yield path
 
 
@@ -150,8 +150,8 @@ def private_uses(path: pathlib.Path) -> list[tuple[int, str, str]]:
 
 
 def test_only_the_adapter_uses_private_names_of_sionna():
-    """An allowlist: outside ``rt/sionna_adapter.py``, no file reaches into another object's
-    private names but this project's own listed in :data:`OWN_PRIVATE`, and Sionna is
+    """An allowlist: outside ``rt/sionna_adapter.py`` and ``radio/sionna_sys_adapter.py``, no file
+    reaches into another object's private names but this project's own listed in :data:`OWN_PRIVATE`, and Sionna is
     imported from its documented packages only (Sionna RT's and Sionna SYS's internals
     alike: ``olla._offset`` or ``sionna.rt.path_solvers`` anywhere else fails)."""
     offenders = [f"{path.relative_to(PLUGINS.parents[1])}:{line}: {code}"
@@ -224,7 +224,7 @@ def test_the_link_levels_phy_abstraction_finds_grid_indices_as_sionnas_own():
     import sionna.sys
     import torch
 
-    phy = internals.phy_abstraction("cpu", internals.own_generator(torch.device("cpu"), 0))
+    phy = sionna_sys_adapter.phy_abstraction("cpu", sionna_sys_adapter.own_generator(torch.device("cpu"), 0))
     rng = np.random.default_rng(5)
     for which, grid, (lo, hi, delta) in (("snr", phy._snr_dbs_interp, phy._snr_db_interp_min_max_delta),
                                          ("cbs", phy._cbs_interp, phy._cbs_interp_min_max_delta)):

@@ -85,7 +85,7 @@ def test_the_link_levels_checkpoint_holds_the_schedulers_rate_history(monkeypatc
     link level, the state gives the next slots exactly as the original goes on."""
     import pickle
 
-    from caviar_plugins.rt import sionna_adapter
+    from caviar_plugins.radio import sionna_sys_adapter
 
     settings = LinkSettings(num_prb=24, subcarrier_spacing_hz=30e3, harq_processes=2, subbands=2, device="cpu")
     sinr = np.random.default_rng(3).uniform(0.0, 20.0, (8, 3, 2))
@@ -103,7 +103,7 @@ def test_the_link_levels_checkpoint_holds_the_schedulers_rate_history(monkeypatc
     np.testing.assert_array_equal(back.decoded_bits, going_on.decoded_bits)
     np.testing.assert_array_equal(back.prbs, going_on.prbs)
     # Without the buffers (attributes only, as before) the resumed slots differ.
-    monkeypatch.setattr(sionna_adapter, "block_state", lambda block: {
+    monkeypatch.setattr(sionna_sys_adapter, "block_state", lambda block: {
         k: v.clone() for k, v in vars(block).items() if isinstance(v, torch.Tensor)})
     going_on, back = resumed(LinkLevel.state)
     assert not np.array_equal(back.prbs, going_on.prbs)

@@ -205,3 +205,13 @@ def is_cuda(device: Any) -> bool:
     import torch
 
     return torch.device(device).type == "cuda"
+
+
+def default_generator(device: Any) -> Any:
+    """torch's default generator of ``device`` (what compiled code draws its random numbers from)."""
+    import torch
+
+    if is_cuda(device):
+        index = torch.device(device).index
+        return torch.cuda.default_generators[index if index is not None else torch.cuda.current_device()]
+    return torch.default_generator

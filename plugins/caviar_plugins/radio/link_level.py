@@ -45,11 +45,12 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
+from caviar_plugins.radio import link_chunks
+from caviar_plugins.radio import sionna_sys_adapter as adapter
 from caviar_plugins.radio.link_queue import CallQueue as _Queue
 from caviar_plugins.radio.link_settings import DATA_SYMBOLS_PER_SLOT, LinkSettings, cuda_graphs_on
-from caviar_plugins.radio.slot_results import SlotResults, carried, no_tallies, per_ue, tallied
-from caviar_plugins.rt import sionna_adapter as adapter
-from caviar_plugins.torch_device import resolve, to_numpy, to_torch
+from caviar_plugins.radio.slot_results import SlotResults, no_tallies, tallied
+from caviar_plugins.torch_device import default_generator, resolve, to_numpy, to_torch
 
 COMPILED_CAPACITY = 128
 """UE columns a compiled link level starts with (growing past them compiles again)."""
@@ -141,11 +142,11 @@ class LinkLevel:
             self._compiled = self._torch.compile(self._group_eager, dynamic=False,
                                                  mode="reduce-overhead" if self.cuda_graphs else None)
             self._group = self._group_graphed if self.cuda_graphs else self._compiled
-            if settings.groups_per_call > 1:
-                self._many = self._torch.compile(self._groups_eager, dynamic=False,
+            if settings.groups_per_call > 1:  # (one graph: a loop's index is read on the host in it)
+                self._many = self._torch.compile(self._groups_eager, dynamic=False, fullgraph=True,
                                                  mode="reduce-overhead" if self.cuda_graphs else None)
             if self.cuda_graphs:  # (a captured graph replays the device generator it captured: seeded here)
-                adapter.default_generator(self.device).set_state(self._compiled_rng)
+                default_generator(self.device).set_state(self._compiled_rng)
             # Each UE capacity and each direction compiles its own entries (two each: before and
             # after Sionna's blocks are built); past torch's limit (8) it would fall back to eager.
             adapter.allow_recompiles(self._torch, 64)
@@ -177,6 +178,8 @@ class LinkLevel:
             adapter.grow_scheduler(pf, self.pf, old)
             harq[..., :old], rate_last[..., :old] = self.harq, self.rate_last
         self.olla, self.pf, self.harq, self.rate_last = olla, pf, harq, rate_last
+        if self._many is not None:  # (built before a loop's body calls them: chunks of groups)
+            adapter.built(self.phy, self.eesm, olla, pf)
         self._no_tallies = no_tallies(torch, n, capacity, self.device)  # (where a call's chunks start)
         # Each link's MCS table and category (PDSCH or PUSCH): a number where the links share it,
         # else a tensor [L, D, cap] (Sionna's blocks take one per UE).
@@ -487,7 +490,7 @@ class LinkLevel:
         if self._compiled is None or self.cuda_graphs:
             yield
             return
-        generator = adapter.default_generator(self.device)
+        generator = default_generator(self.device)
         caller = generator.get_state()
         generator.set_state(self._compiled_rng)
         try:
@@ -506,34 +509,29 @@ class LinkLevel:
         """:meth:`_groups_eager`, compiled (as a CUDA graph where the group is one)."""
         return self._group_graphed(*args, compiled=self._many) if self.cuda_graphs else self._many(*args)
 
-    def _groups_eager(self, lin_g, member_t, firsts_g, harq_last, rate_last, went, tallies):
-        """G groups of slots in a row (``lin_g`` [G, L, D, S, cap], ``firsts_g`` [G]; the rest as
-        :meth:`_group_eager` takes them): their outputs as one group of G·D slots would give them,
-        [L, G·D, ...], and each UE's ``tallies`` [L, 8, cap] of the slots before them carried over
-        them (:func:`~caviar_plugins.radio.slot_results.carried`: where chunks run every slot of a
-        call, the last one's tallies are the call's, no torch operation after it), then the state
-        the last one left."""
-        outs = []
-        for g in range(lin_g.shape[0]):
-            *out, harq_last, rate_last = self._group_eager(lin_g[g], member_t, firsts_g[g], harq_last, rate_last, went)
-            outs.append(out)
-        prbs, harq, tbler, mcs, sinr_eff, cells, bits = (self._torch.cat(x, dim=1) for x in zip(*outs, strict=True))
-        tallies = carried(self._torch, tallies, per_ue(self._torch, prbs, harq, tbler, mcs, sinr_eff, bits))
-        return prbs, harq, tbler, mcs, sinr_eff, cells, bits, tallies, harq_last, rate_last
+    def _groups_eager(self, *args):
+        """:func:`~caviar_plugins.radio.link_chunks.scanned`'s chunk of groups (one loop, compiled once
+        whatever ``groups_per_call``), or, replayed as a CUDA graph (which holds no loop run by the host),
+        :func:`~caviar_plugins.radio.link_chunks.unrolled`'s."""
+        if self.cuda_graphs:
+            return link_chunks.unrolled(self._group_eager, *args)
+        return link_chunks.scanned(self._group_eager, (self.olla, self.pf), *args)
 
-    def _group_eager(self, lin_t, member_t, first_slot, harq_last, rate_last, went):
+    def _group_eager(self, lin_t, member_t, first_slot, harq_last, rate_last, went, loops=None):
         """One group of D slots of every link, all on the device: scheduling, CSI, link
         adaptation and PHY abstraction. ``lin_t`` [L, D, S, cap]: linear SINRs; ``member_t``
         [L, C, cap]: whom each link's cell may schedule; ``first_slot``: the group's first slot
         (a 0-d tensor); ``harq_last`` [L, D, cap] and ``rate_last`` [L, D, C, cap]: the state the
         group starts from; ``went`` [L]: the links that take part (the others keep their state).
+        ``loops``: the OLLA and PF blocks to run (None: the link level's own).
         Returns (PRBs, HARQ, TBLER, MCS, effective SINR, each [L, D, cap]; the cells that
         transmitted [L, D, C]; decoded bits [L, D, cap]; the new ``harq_last`` and ``rate_last``)."""
         torch = self._torch
-        kept = adapter.loop_state(self.olla, self.pf)  # (for the links that sit the group out)
+        olla, pf = loops or (self.olla, self.pf)
+        kept = adapter.loop_state(olla, pf)  # (for the links that sit the group out)
         # Achievable rate per PRB of each UE in its own cell (bit/s/Hz); 0 elsewhere.
         rate = torch.log2(1 + lin_t)[:, :, None] * member_t[:, None, :, None, :]  # [L, D, C, S, cap]
-        granted = self._schedule(rate, member_t, first_slot, rate_last)  # [L, D, C, S, cap] bool
+        granted = self._schedule(rate, member_t, first_slot, rate_last, pf)  # [L, D, C, S, cap] bool
         alloc = granted.any(dim=2)  # [L, D, S, cap]: a UE is in one cell
         prbs = (alloc * self._prb_weights[:, None]).sum(dim=2).to(torch.int32)  # [L, D, cap]
         n_re = prbs * (12 * DATA_SYMBOLS_PER_SLOT)
@@ -541,23 +539,23 @@ class LinkLevel:
             csi, sinr_in = lin_t[:, :, 0], lin_t[:, :, 0]
         else:
             csi, sinr_in = self._subband_sinr(lin_t, alloc)
-        mcs, bits, harq, sinr_eff, tbler = self._adapt_and_decode(n_re, harq_last, csi, sinr_in)
+        mcs, bits, harq, sinr_eff, tbler = self._adapt_and_decode(n_re, harq_last, csi, sinr_in, olla)
         # The rate each cell achieved for each UE, for the PF history.
         rate_new = bits.to(torch.float32)[:, :, None, :] / self.s.slot_s * member_t[:, None]
-        adapter.keep_loop_state(self.olla, self.pf, kept, went)
+        adapter.keep_loop_state(olla, pf, kept, went)
         harq_next = torch.where(went[:, None, None], harq, harq_last)
         rate_next = torch.where(went[:, None, None, None], rate_new, rate_last)
         cells = granted.any(dim=4).any(dim=3)  # [L, D, C]
         return prbs, harq, tbler, mcs, sinr_eff, cells, bits, harq_next, rate_next
 
-    def _adapt_and_decode(self, n_re, harq_last, csi, sinr_in):
+    def _adapt_and_decode(self, n_re, harq_last, csi, sinr_in, olla):
         """Link adaptation and PHY abstraction: (MCS, decoded bits, HARQ, effective SINR,
         TBLER), each [L, D, cap]. ``sinr_in``: the wideband SINR [L, D, cap], or the allocated
         PRBs' [L, D, 1, P, cap, 1] for the EESM."""
         # CSI feedback: the slot's SINR as the UE reports it (ideal), corrected by the
         # loop's offset, which follows the HARQ outcome of the process's last transmission.
         table, category = self._mcs_table, self._mcs_category  # (each link's: numbers, or [L, D, cap])
-        mcs = self.olla(n_re, harq_last, csi, mcs_table_index=table, mcs_category=category)
+        mcs = olla(n_re, harq_last, csi, mcs_table_index=table, mcs_category=category)
         if sinr_in.dim() > 3:  # EESM over the allocated PRBs, with the MCS's own beta
             sinr_in = self.eesm(sinr_in, mcs_index=mcs, mcs_table_index=table, mcs_category=category,
                                 per_stream=False)
@@ -576,16 +574,16 @@ class LinkLevel:
         per_prb = (lin_t * alloc)[:, :, self._prb_subband]  # [L, D, P, cap]
         return csi, per_prb[:, :, None, :, :, None]
 
-    def _schedule(self, rate, member, first_slot, rate_last):
+    def _schedule(self, rate, member, first_slot, rate_last, pf):
         """[L, D, C, S, cap]: which UE gets each subband of each link's cell in each slot of the
         group. ``member`` [L, C, cap]: the UEs each cell may schedule (a tensor on the device);
         ``first_slot``: the group's first slot (a 0-d tensor); ``rate_last``: the rate each
-        cell achieved for each UE at the process's last slot, [L, D, C, cap]."""
+        cell achieved for each UE at the process's last slot, [L, D, C, cap]; ``pf``: the PF scheduler."""
         torch = self._torch
         d, n_sub = self.s.harq_processes, self.s.subbands
         cells = member[:, None, :, None, :]  # [L, 1, C, 1, cap]
         if self.s.scheduler == "proportional-fair":
-            granted = self.pf(rate_last, rate[:, :, :, None])[:, :, :, 0, :, :, 0]  # [L, D, C, S, cap]
+            granted = pf(rate_last, rate[:, :, :, None])[:, :, :, 0, :, :, 0]  # [L, D, C, S, cap]
             # A cell without UEs: the argmax picked column 0, which is not its UE.
             return granted & cells
         if self.s.scheduler == "max-rate":  # per subband, the member with the best rate (the first of equals)

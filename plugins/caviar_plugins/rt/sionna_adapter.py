@@ -1,4 +1,4 @@
-"""Every use of Sionna RT's and Sionna SYS's private internals, in one place.
+"""Every use of Sionna RT's private internals, in one place (Sionna SYS's: its sibling).
 
 **Sionna RT.** The shoot cache (:mod:`caviar_plugins.rt.shoot_cache`) splits Sionna's
 candidate generator (``SBCandidateGenerator``) in two phases and the path-buffer watch of
@@ -8,20 +8,16 @@ generator's ``_los``, ``_sampler``, ``_sample_radio_material`` and hashers, the 
 buffer and the sample-data fields, and the positional order of some arguments; adding
 the moving boxes' Doppler shifts writes ``Paths._doppler``.
 
-**Sionna SYS.** The radio network's link level grows its outer-loop link adaptation and
-proportional-fair scheduler to more UEs and resets a UE's column: their state tensors
-(``_offset``, ``_sinr_eff_db_last``, ``_rate_achieved_past``) have no public setter.
-
-**PyTorch.** The compiled link level raises dynamo's recompile limit
-(:func:`allow_recompiles`), which has no public setter.
+**Sionna SYS.** Its internals, and PyTorch's that the link level uses, are
+:mod:`caviar_plugins.radio.sionna_sys_adapter`'s.
 
 **Sionna's random state.** A draw that takes no generator (a 38.901 drop, large-scale
 parameters) runs under :func:`seeded`, which puts ``sionna.phy.config``'s generators back
 afterwards: no global seed stays set.
 
-Nothing else in this project touches a private name of Sionna (``tests/test_sionna_adapter.py``
-checks it with an allowlist). :func:`problem` checks, on first use, that the installed
-sionna-rt is the minor version this code was written and tested for
+Nothing else in this project but that module touches a private name of Sionna
+(``tests/test_sionna_adapter.py`` checks it with an allowlist). :func:`problem` checks, on first
+use, that the installed sionna-rt is the minor version this code was written and tested for
 (:data:`TESTED_VERSION`) and that every name it uses exists with the arguments it passes:
 ``None`` when all is well, otherwise a sentence saying what is missing; :func:`require`
 raises :class:`SionnaInternalsError` with it. The path tracer then warns and runs Sionna's
@@ -31,7 +27,6 @@ own loop (no shoot cache, no path-buffer overflow report): slower, never wrong.
 from __future__ import annotations
 
 import contextlib
-import functools
 import inspect
 import math
 from collections.abc import Callable, Iterator
@@ -433,77 +428,7 @@ def ray_utilities() -> tuple[Any, Any, Any, Any, Any]:
     return InteractionType, WedgeGeometry, fibonacci_lattice, hash_fnv1a, spawn_ray_from_sources
 
 
-# --- Sionna SYS: the link level's state -------------------------------------------------------
-
-def grow_link_adaptation(new: Any, old: Any, count: int) -> None:
-    """Copies the state of the first ``count`` UEs of an ``OuterLoopLinkAdaptation``
-    (``old``) into a larger one (``new``): its offsets and last effective SINRs."""
-    new._offset[..., :count] = old._offset
-    new._sinr_eff_db_last[..., :count] = old._sinr_eff_db_last
-
-
-def grow_scheduler(new: Any, old: Any, count: int) -> None:
-    """Copies the achieved-rate history of the first ``count`` UEs of a
-    ``PFSchedulerSUMIMO`` (``old``) into a larger one (``new``)."""
-    new._rate_achieved_past[..., :count] = old._rate_achieved_past
-
-
-def reset_scheduler_history(pf: Any, ue: int, cell: int | None = None) -> None:
-    """A fresh proportional-fair history for UE column ``ue`` (in ``cell``; None: every cell)."""
-    if cell is None:
-        pf._rate_achieved_past[..., ue] = 1.0
-    else:
-        pf._rate_achieved_past[..., cell, ue] = 1.0
-
-
-def reset_link_adaptation(olla: Any, ue: int) -> None:
-    """UE column ``ue`` of an ``OuterLoopLinkAdaptation`` starts again with no offset."""
-    olla._offset[..., ue] = 0.0
-
-
-def loop_state(olla: Any, pf: Any) -> tuple:
-    """Copies of what the link loops keep between slots (an ``OuterLoopLinkAdaptation``'s
-    offsets and last effective SINRs, a ``PFSchedulerSUMIMO``'s achieved-rate history), for
-    :func:`keep_loop_state` (compiled, no copy is made: the values before the group's calls)."""
-    return olla._offset.clone(), olla._sinr_eff_db_last.clone(), pf._rate_achieved_past.clone()
-
-
-def keep_loop_state(olla: Any, pf: Any, kept: tuple, went: Any) -> None:
-    """Puts :func:`loop_state`'s ``kept`` back for the links that sat a group of slots out
-    (``went`` [L] False, the blocks' first batch axis): their loops as if it had not run."""
-    import torch
-
-    offset, sinr_last, past = kept
-    olla._offset = torch.where(went[:, None, None], olla._offset, offset)
-    olla._sinr_eff_db_last = torch.where(went[:, None, None], olla._sinr_eff_db_last, sinr_last)
-    pf._rate_achieved_past.copy_(torch.where(went[:, None, None, None], pf._rate_achieved_past, past))
-
-
-def block_state(block: Any) -> dict[str, Any]:
-    """Copies of every tensor a Sionna SYS block keeps between calls, whatever it names them:
-    its tensor attributes and its buffers (a ``torch.nn.Module``'s, where the proportional-fair
-    scheduler keeps its rate history: ``vars()`` does not show them)."""
-    import torch
-
-    tensors = {k: v for k, v in vars(block).items() if isinstance(v, torch.Tensor)}
-    if isinstance(block, torch.nn.Module):
-        tensors.update(dict(block.named_buffers(recurse=False)))
-    return {k: v.clone() for k, v in tensors.items()}
-
-
-def set_block_state(block: Any, state: dict[str, Any]) -> None:
-    """Puts back :func:`block_state` into a block built with the same settings (a buffer is
-    set through the module, as an attribute)."""
-    for name, value in state.items():
-        setattr(block, name, value.clone())
-
-
-def allow_recompiles(torch: Any, at_least: int) -> None:
-    """Lets ``torch.compile`` keep ``at_least`` compiled entries per function (torch's
-    ``_dynamo.config.recompile_limit``, 8 by default; past it a function runs eager)."""
-    config = torch._dynamo.config
-    config.recompile_limit = max(config.recompile_limit, at_least)
-
+# --- Sionna's random state ------------------------------------------------------------------
 
 @contextlib.contextmanager
 def seeded(seed: int) -> Iterator[None]:
@@ -527,70 +452,3 @@ def seeded(seed: int) -> Iterator[None]:
         torch.default_generator.set_state(cpu)
         for g, state in zip(torch.cuda.default_generators, gpus, strict=True):
             g.set_state(state)
-
-
-def own_generator(device: Any, seed: int) -> Any:
-    """A torch generator on ``device`` seeded as ``sionna.phy.config.seed = seed`` would seed
-    Sionna's generator for that device (``seed`` plus the device's index among Sionna's
-    devices), without setting Sionna's seed: a block's own random stream."""
-    import torch
-    from sionna.phy import config
-
-    name = str(device)
-    index = config.available_devices.index(name) if name in config.available_devices else 0
-    generator = torch.Generator(device=name)
-    generator.manual_seed((int(seed) + index) % 2**64)
-    return generator
-
-
-def default_generator(device: Any) -> Any:
-    """torch's default generator of ``device`` (what compiled code draws its random numbers from)."""
-    import torch
-
-    from caviar_plugins.torch_device import is_cuda
-
-    if is_cuda(device):
-        index = torch.device(device).index
-        return torch.cuda.default_generators[index if index is not None else torch.cuda.current_device()]
-    return torch.default_generator
-
-
-def phy_abstraction(device: Any, generator: Any) -> Any:
-    """Sionna SYS's ``PHYAbstraction`` on ``device`` drawing its HARQ outcomes from ``generator``
-    (its ``torch_rng``, which is Sionna's shared generator for the device otherwise). One class
-    for every link level (:func:`_own_stream_class`): a class made per call (as until 2026-11-29)
-    failed dynamo's type guard of every other link level's compiled entries, so each new link
-    level compiled its group of slots again (about 20 s, and after 32 of them torch's limit of
-    entries ran the rest eager)."""
-    block = _own_stream_class()(device=str(device))
-    block._own_generator = generator
-    return block
-
-
-@functools.cache
-def _own_stream_class() -> Any:
-    """The ``PHYAbstraction`` whose ``torch_rng`` is the block's own generator (made once, at
-    first use: Sionna is imported late)."""
-    import sionna.sys
-    import torch
-
-    class OwnStream(sionna.sys.PHYAbstraction):
-        @property
-        def torch_rng(self):
-            return self._own_generator  # (read eager only: compiled code draws from the device's default)
-
-        def get_idx_from_grid(self, val: Any, which: str) -> Any:
-            """Sionna's, the same numbers, with the grid's length from its (min, max, delta) as
-            numpy's ``arange`` makes it (``ceil((max - min) / delta)``) instead of ``len`` of the
-            numpy grid itself: in a compiled group of slots that made both grids tensor inputs,
-            converted and guarded at every call (dynamo's lookup 165 -> 91 µs a call at 21 cells ×
-            1,000 UEs, 2-core AMD EPYC)."""
-            if which not in ("snr", "cbs"):
-                raise ValueError("which must be 'snr' or 'cbs'")
-            lo, hi, delta = self._snr_db_interp_min_max_delta if which == "snr" else self._cbs_interp_min_max_delta
-            len_grid = max(math.ceil((hi - lo) / delta), 0)
-            val = torch.as_tensor(val, dtype=self.dtype, device=self.device)
-            idx = torch.round((val - lo) / delta).to(torch.int32)
-            return torch.clamp(idx, 0, len_grid - 1)
-
-    return OwnStream
