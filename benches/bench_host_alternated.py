@@ -33,19 +33,22 @@ def main() -> None:
     ap.add_argument("--ues", type=int, default=1000)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--groups-per-call", type=int, default=5)
+    ap.add_argument("--baseline-groups-per-call", type=int, default=None,
+                    help="the baseline's (default: --groups-per-call), where its best setting differs")
     ap.add_argument("--out", type=pathlib.Path, default=OUT)
     args = ap.parse_args()
     if not 1 <= args.rounds <= 9:
         ap.error(f"--rounds: expected 1 to 9, got {args.rounds}")
     plugins = {"before": str(pathlib.Path(args.baseline) / "plugins"), "after": None}
+    groups = {"before": args.baseline_groups_per_call or args.groups_per_call, "after": args.groups_per_call}
     runs: dict[str, list[dict]] = {"before": [], "after": []}
     for k in range(args.rounds):
         for name, path in plugins.items():
-            r = _subprocess(["--one", str(args.ues), "--groups-per-call", str(args.groups_per_call)], path)
+            r = _subprocess(["--one", str(args.ues), "--groups-per-call", str(groups[name])], path)
             runs[name].append({f: r[f] for f in FIGURES})
             print(f"round {k + 1}/{args.rounds} {name}", json.dumps(runs[name][-1]), flush=True)
     medians = {name: {f: statistics.median(r[f] for r in rs) for f in FIGURES} for name, rs in runs.items()}
-    result = {"machine": machine(), "ues": args.ues, "cells": 21, "groups_per_call": args.groups_per_call,
+    result = {"machine": machine(), "ues": args.ues, "cells": 21, "groups_per_call": groups,
               "rounds": args.rounds, "baseline": str(args.baseline),
               "method": "bench_host_overhead.py --one, the baseline's plugins and this checkout's in turn, "
                         "each run in a process of its own; medians over the rounds",

@@ -63,13 +63,15 @@ class LinkSettings:
     groups_per_call: int = 1
     """With ``compile``, groups of slots (``harq_processes`` slots each) that run as one compiled
     call where every link has a full buffer (with queues, whether a group runs depends on the
-    queues the group before left: one a call). Each compiled call costs the host a fixed price
-    (dynamo picking its entry, the program's inputs and side effects, inductor's wrapper: about
-    0.3 ms at 21 cells × 1,000 UEs on a 2-core CPU, 25 calls a 0.1 s step), and 5 make a step 5
-    calls; compile time grows with them (there, 56 s for 5 against about 20 s for 1, once per
-    process and UE capacity, then from torch's cache on disk; 237 s for 25, a 0.1 s step's every
-    group, at 1,000 UEs on a 2-core AMD EPYC). A call's slots are tallied in its own program. The
-    same results as 1, bit for bit."""
+    queues the group before left: one a call; groups past the last whole chunk: one a call too).
+    Each compiled call costs the host a fixed price (dynamo picking its entry, the program's
+    inputs and side effects, inductor's wrapper: about 0.4 ms at 21 cells × 1,000 UEs on a 2-core
+    CPU, 25 calls a 0.1 s step of 8-slot groups). A chunk is one loop over its groups that torch
+    compiles once whatever its length (:mod:`~caviar_plugins.radio.link_chunks`; written out
+    group after group where CUDA graphs replay it, whose compile grows with them: 237 s for 25 at
+    1,000 UEs on a 2-core AMD EPYC), so 25 make such a step one call, compiled in about the time
+    of one group. A call's slots are tallied in its own program. The same results as 1, bit for
+    bit."""
     cuda_graphs: bool | None = None
     """With ``compile``, capture the compiled group of slots as a CUDA graph
     (``torch.compile(mode="reduce-overhead")``): one graph launch a group instead of its
