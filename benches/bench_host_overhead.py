@@ -7,8 +7,9 @@ The plugin runs as ``benches/bench_network.py --plugin-only`` runs it: the osm-c
 ray traced (every site in one solve), SSB beams, the uplink, ``interference = "scheduled"``,
 full buffers, 8 HARQ processes of 0.5 ms slots per call on 8 subbands, a ``torch.compile``d link
 level, 0.1 s steps (200 slots: 25 groups a link a step; since 2026-11-29 (evening) one compiled
-call a group for both links, two before, and ``--groups-per-call`` (5) groups a call in the runs
-after, ``groups_per_call``; ``runs_one_group_a_call``: the same with one). Of the median step by host time (the
+call a group for both links, two before, and ``--groups-per-call`` (25, a step's every group, one
+loop; 5 before the night of 2026-11-29) groups a call in the runs after, ``groups_per_call``;
+``runs_one_group_a_call``: the same with one). Of the median step by host time (the
 first, which traces and compiles, left out; on a 2-core machine shared with other work a step is
 now and then many times slower, its OpenMP threads waiting for busy cores):
 
@@ -482,7 +483,7 @@ def main() -> None:
     ap.add_argument("--refresh-only", type=int, metavar="N_UE", help="(internal) the RT refresh, JSON on stdout")
     ap.add_argument("--ue-reports", default="table", choices=["table", "per-ue"], help="(internal) with --one")
     ap.add_argument("--no-settle", action="store_true", help="(internal) with --one: no freeze after the first step")
-    ap.add_argument("--groups-per-call", type=int, default=5, help="the link level's groups of slots a compiled call")
+    ap.add_argument("--groups-per-call", type=int, default=25, help="the link level's groups of slots a compiled call")
     args = ap.parse_args()
     if args.one:
         print(json.dumps(one(args.one, args.steps, args.samples, args.ue_reports, not args.no_settle,

@@ -370,10 +370,10 @@ def seed_spread(seeds: list[int]) -> int:
     return 0
 
 
-NETWORK_GROUPS_PER_CALL = 5
+NETWORK_GROUPS_PER_CALL = 25
 """The network items' groups of slots a compiled call (``groups_per_call``): a 0.1 s step's 25
-groups in 5 calls, each call's fixed host cost (dynamo's lookup, the region's inputs) paid 5 times
-a step, not 25 (``benches/bench_host_overhead.py``)."""
+groups in one call (a loop compiled once), each call's fixed host cost (dynamo's lookup, the
+region's inputs) paid once a step, not 25 times (``benches/bench_host_overhead.py``)."""
 
 
 def network(n_ue: int, seconds: float, timeout_s: float) -> dict:
