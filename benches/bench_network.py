@@ -168,9 +168,10 @@ def run(seconds: float, refresh: float | None, tracer: SiteTracer, cells, pos0, 
 
 def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], pos0, vel,
                traffic: dict | None, compiled: bool = True, ue_reports: str = "per-ue",
-               groups_per_call: int = 1) -> dict:
+               groups_per_call: int = 1, cuda_graphs: bool = False) -> dict:
     """The ``radio-network`` plugin stepped on the UEs' positions (its messages collected; its UE
-    reports ``ue_reports``; ``groups_per_call`` groups of slots a compiled call):
+    reports ``ue_reports``; ``groups_per_call`` groups of slots a compiled call; ``cuda_graphs``:
+    each compiled group replayed as a CUDA graph):
     T_p/T_v of its steps after the first (the first traces and compiles), and, with a load,
     its completed files' delays."""
     import tempfile
@@ -192,6 +193,8 @@ def plugin_run(seconds: float, refresh: float, samples: int, kinds: list[str], p
         params["traffic"] = traffic
     if groups_per_call > 1:  # (likewise)
         params["groups_per_call"] = groups_per_call
+    if cuda_graphs:
+        params["cuda_graphs"] = True
     hosted = Hosted("net", RadioNetwork(), check_params(RadioNetwork, params))
     with tempfile.TemporaryDirectory() as run_dir:
         hosted.setup(seed=1, ts=TS, steps=None, every=1, offset=0, run_dir=run_dir, config_dir=str(ROOT))
@@ -249,13 +252,17 @@ def main() -> None:
                     help="with --plugin-only: the network's UE reports (a message a UE, or a table a step)")
     ap.add_argument("--groups-per-call", type=int, default=1,
                     help="with --plugin-only: groups of slots a compiled call (groups_per_call; not with --eager)")
+    ap.add_argument("--cuda-graphs", action="store_true",
+                    help="with --plugin-only: each compiled group a CUDA graph (cuda_graphs; not with --eager)")
     args = ap.parse_args()
     if args.plugin_only:
         kinds, pos0, vel = ues(np.random.default_rng(7), args.plugin_only)
         result = plugin_run(args.seconds, args.refresh, args.samples, kinds, pos0, vel, None, compiled=not args.eager,
-                            ue_reports=args.ue_reports, groups_per_call=args.groups_per_call)
+                            ue_reports=args.ue_reports, groups_per_call=args.groups_per_call,
+                            cuda_graphs=args.cuda_graphs)
         print(json.dumps({"cells": 21, "ues": args.plugin_only, "compiled": not args.eager,
-                          "ue_reports_as": args.ue_reports, "groups_per_call": args.groups_per_call, **result,
+                          "ue_reports_as": args.ue_reports, "groups_per_call": args.groups_per_call,
+                          "cuda_graphs": args.cuda_graphs, **result,
                           "machine": machine()}))
         return
     cells = parse_sites(sites(), {"tx_power_dbm": 43.0, "carrier_hz": 3.5e9, "bandwidth_hz": 20e6,

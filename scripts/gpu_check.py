@@ -376,6 +376,17 @@ groups in one call (a loop compiled once), each call's fixed host cost (dynamo's
 region's inputs) paid once a step, not 25 times (``benches/bench_host_overhead.py``)."""
 
 
+def network_graphed(n_ue: int, seconds: float, timeout_s: float) -> dict:
+    """The same plugin with each compiled group of slots replayed as a CUDA graph (``cuda_graphs``,
+    one group a call), off by default since the H200 (2026-11-28) found Sionna's OLLA reading a
+    replay's overwritten output, copied out since 2026-11-29: whether it runs now, and its T_p/T_v
+    against :func:`network`'s (the measurement that decides the default on CUDA)."""
+    cmd = [sys.executable, str(ROOT / "benches/bench_network.py"), "--plugin-only", str(n_ue),
+           "--seconds", str(seconds), "--ue-reports", "table", "--cuda-graphs"]
+    stdout, error = command(cmd, timeout_s)
+    return {"error": error} if error is not None else json.loads(stdout.strip().splitlines()[-1])
+
+
 def network(n_ue: int, seconds: float, timeout_s: float) -> dict:
     """The radio network plugin at 21 cells × ``n_ue`` UEs for ``seconds`` of virtual time,
     its link levels through ``torch.compile`` as the blueprints have them, with
@@ -466,6 +477,9 @@ def timings(result: dict, item_timeout_s: float, network_seconds: float, main_jo
         result[f"network_21x{n}_tp_tv"] = net.get("tp_tv")
         print(f"network 21x{n}: T_p/T_v {net.get('tp_tv')} (first step {net.get('first_step_s')} s) "
               f"{net.get('error') or ''}", flush=True)
+    graphed = network_graphed(100, network_seconds, item_timeout_s)
+    result["network_21x100_cuda_graphs"] = graphed
+    print(f"network 21x100, CUDA graphs: T_p/T_v {graphed.get('tp_tv')} {graphed.get('error') or ''}", flush=True)
 
 
 def main() -> int:

@@ -223,7 +223,10 @@ def test_cuda_graphs_are_on_by_default_only_for_a_compiled_link_level_on_cuda():
 def test_the_cuda_graph_mode_on_the_cpu_decides_as_eager():
     """``cuda_graphs = true`` on the CPU: compiled in ``reduce-overhead`` mode (torch captures
     no graph there), its outputs copied out; the first call's MCS, PRBs, effective SINR and TBLER
-    are eager's, and a second call's tallies stand apart from the first's."""
+    are eager's, a second call's tallies stand apart from the first's, and the OLLA's state is
+    copied out of each replay."""
+    import torch
+
     rng = np.random.default_rng(6)
     d, sub = 4, 2
     sinr = 14.0 + rng.normal(0.0, 3.0, size=(d, 3, sub))
@@ -232,12 +235,25 @@ def test_the_cuda_graph_mode_on_the_cpu_decides_as_eager():
     eager = LinkLevel(settings, n_cell=1, seed=11).run(sinr, serving)
     graphed = LinkLevel(dataclasses.replace(settings, compile=True, cuda_graphs=True), n_cell=1, seed=11)
     assert graphed.cuda_graphs and graphed._group == graphed._group_graphed
+    compiled, left = graphed._compiled, []
+
+    def replay(*args):  # (the OLLA's state as each replay leaves it: on a GPU, the graph's memory)
+        out = compiled(*args)
+        left.append((graphed.olla, graphed.olla._offset, graphed.olla._sinr_eff_db_last))
+        return out
+
+    graphed._compiled = replay
     first = graphed.run(sinr, serving)
     assert_decides_as(first, eager)
     kept = first.decoded_bits.copy()
     second = graphed.run(np.concatenate([sinr, sinr]), serving)
     np.testing.assert_array_equal(first.decoded_bits, kept)
     assert (second.acks + second.nacks).sum() == 2 * d  # one UE of the cell's a slot, both groups
+    # Copied out after each replay (the next replay overwrites the graph's memory: the H200's failure).
+    olla, offset, sinr_last = left[-1]
+    assert len(left) == 3 and olla is graphed.olla and (offset != 0).any()
+    for state, replayed in ((olla._offset, offset), (olla._sinr_eff_db_last, sinr_last)):
+        assert torch.equal(state, replayed) and state.data_ptr() != replayed.data_ptr()
 
 
 def test_a_position_that_is_not_three_numbers_is_named():

@@ -500,19 +500,20 @@ class LinkLevel:
             generator.set_state(caller)
 
     def _group_graphed(self, *args, compiled: Any = None):
-        """The compiled group replayed as a CUDA graph: a new step of the graph's memory,
-        and its outputs copied out (the next replay writes over the graph's own)."""
+        """The compiled group replayed as a CUDA graph: a new step of the graph's memory, its outputs
+        and the OLLA's state copied out (the next replay writes over the graph's own: the H200's failure)."""
         self._torch.compiler.cudagraph_mark_step_begin()
-        return tuple(o.clone() for o in (compiled or self._compiled)(*args))
+        outputs = tuple(o.clone() for o in (compiled or self._compiled)(*args))
+        adapter.copy_out_link_adaptation(self.olla)
+        return outputs
 
     def _groups(self, *args):
         """:meth:`_groups_eager`, compiled (as a CUDA graph where the group is one)."""
         return self._group_graphed(*args, compiled=self._many) if self.cuda_graphs else self._many(*args)
 
     def _groups_eager(self, *args):
-        """:func:`~caviar_plugins.radio.link_chunks.scanned`'s chunk of groups (one loop, compiled once
-        whatever ``groups_per_call``), or, replayed as a CUDA graph (which holds no loop run by the host),
-        :func:`~caviar_plugins.radio.link_chunks.unrolled`'s."""
+        """A chunk of groups: :func:`~caviar_plugins.radio.link_chunks.scanned` (one loop), or, replayed
+        as a CUDA graph (no loop run by the host), :func:`~caviar_plugins.radio.link_chunks.unrolled`."""
         if self.cuda_graphs:
             return link_chunks.unrolled(self._group_eager, *args)
         return link_chunks.scanned(self._group_eager, (self.olla, self.pf), *args)

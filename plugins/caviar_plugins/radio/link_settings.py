@@ -81,7 +81,9 @@ class LinkSettings:
     (2026-11-28) the captured group failed at its second replay: Sionna's link adaptation
     (OLLA) keeps its offset, an output of the last replay, and reads it in the next
     (``torch.clamp(new_offset, ...)``: "accessing tensor output of CUDAGraphs that has been
-    overwritten")."""
+    overwritten"). Since the night of 2026-11-29 that state is copied out after each replay
+    (tested on the CPU); ``scripts/gpu_check.py`` runs the network with graphs on, which decides
+    the default on CUDA at the next GPU run."""
     device: str = "auto"
     """The torch device of the Sionna SYS blocks and every tensor they are given: ``auto``
     (Sionna's choice, a GPU where there is one), ``cpu``, ``cuda`` or ``cuda:N``. numpy

@@ -53,6 +53,13 @@ def loop_state(olla: Any, pf: Any) -> tuple:
     return olla._offset.clone(), olla._sinr_eff_db_last.clone(), pf._rate_achieved_past.clone()
 
 
+def copy_out_link_adaptation(olla: Any) -> None:
+    """An ``OuterLoopLinkAdaptation``'s offsets and last effective SINRs as copies of their own:
+    a call sets them to new tensors (a replayed CUDA graph's output memory, which its next replay
+    overwrites); its achieved-rate history, the scheduler keeps in place."""
+    olla._offset, olla._sinr_eff_db_last = olla._offset.clone(), olla._sinr_eff_db_last.clone()
+
+
 def keep_loop_state(olla: Any, pf: Any, kept: tuple, went: Any) -> None:
     """Puts :func:`loop_state`'s ``kept`` back for the links that sat a group of slots out
     (``went`` [L] False, the blocks' first batch axis): their loops as if it had not run."""
