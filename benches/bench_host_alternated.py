@@ -5,7 +5,8 @@ call from one run to the next), one run of each says little; this runs
 ``--rounds`` times, each in a process of its own, and reports every run's figures and their medians.
 
     git archive REV plugins benches | tar -x -C /tmp/base
-    .venv/bin/python benches/bench_host_alternated.py --baseline /tmp/base [--ues 1000] [--rounds 3]
+    .venv/bin/python benches/bench_host_alternated.py --baseline /tmp/base [--ues 1000] [--rounds 3] \
+        [--groups-per-call 25 --baseline-groups-per-call 5]   # (the committed file's)
 
 Writes ``docs/results/host-overhead-alternated.json``. Run with ``OMP_NUM_THREADS=1`` (see
 ``bench_host_overhead.py``).

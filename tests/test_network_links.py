@@ -130,32 +130,48 @@ def test_several_groups_a_compiled_call_decide_as_one_a_call(monkeypatch):
     assert chunks == [2, 2, 2, 2, 2]  # (queues: one group a call)
     with pytest.raises(ValueError, match="groups_per_call: runs groups of slots as one compiled call"):
         LinkSettings(num_prb=24, groups_per_call=2)
+    # Past torch's limit of compiled entries (the chunk one graph: no eager fallback of its own), a new
+    # link level's chunks run their groups one a call: they go on, as one a call would.
+    import torch
+
+    late = LinkLevel([dataclasses.replace(s, groups_per_call=2) for s in links], N_CELL, seed=3)
+    sinrs = [14.0 + rng.normal(0.0, 6.0, (2 * D, N_UE, 4)) for _ in links]
+    fresh = LinkLevel([dataclasses.replace(s, groups_per_call=1) for s in links], N_CELL, seed=3)
+    with torch._dynamo.config.patch(recompile_limit=1):
+        runs = late.run_links(sinrs, serving, 2 * D), fresh.run_links(sinrs, serving, 2 * D)
+    for got, want in zip(*runs, strict=True):
+        for name in RESULTS:
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=f"past the limit: {name}")
+    assert chunks[-1] == 2 and late.state()["harq"].shape == fresh.state()["harq"].shape
 
 
-def test_a_chunk_as_a_loop_and_written_out_give_the_same_slots_and_state():
+@pytest.mark.parametrize(("subbands", "scheduler"), [(4, "proportional-fair"), (1, "round-robin")])
+def test_a_chunk_as_a_loop_and_written_out_give_the_same_slots_and_state(subbands, scheduler):
     """The two ways of a chunk of groups (:mod:`caviar_plugins.radio.link_chunks`): the loop (on
     the CPU, and on a GPU without CUDA graphs) and the groups written out (a CUDA graph's), traced
     by dynamo (its random draws from torch's default generator, put back between them): the same
-    slots, tallies and loop state, bit for bit, over three groups."""
+    slots, tallies and loop state, bit for bit, over three groups; subbands or one (whose SINR
+    leaves the PHY abstraction as it came), the PF scheduler or round robin (the PF block idle)."""
     import torch
 
     rng = np.random.default_rng(3)
-    dl = LinkSettings(num_prb=24, harq_processes=D, subbands=4)
+    dl = LinkSettings(num_prb=24, harq_processes=D, subbands=subbands, scheduler=scheduler)
     links = [dl, dataclasses.replace(dl, direction="uplink")]
     serving = rng.integers(-1, N_CELL, N_UE)
     level = LinkLevel(links, N_CELL, seed=5)
-    level.run_links([14.0 + rng.normal(0.0, 6.0, (D, N_UE, 4)) for _ in links], serving, D)  # (blocks built)
-    lin = torch.stack([level._linear_in(14.0 + rng.normal(0.0, 6.0, (3 * D, N_UE, 4)), serving, 3 * D)
-                       .view(3, D, 4, -1) for _ in links], dim=1)  # [G, L, D, S, cap]
+    level.run_links([14.0 + rng.normal(0.0, 6.0, (D, N_UE, subbands)) for _ in links], serving, D)  # (blocks built)
+    lin = torch.stack([level._linear_in(14.0 + rng.normal(0.0, 6.0, (3 * D, N_UE, subbands)), serving, 3 * D)
+                       .view(3, D, subbands, -1) for _ in links], dim=1)  # [G, L, D, S, cap]
     member = torch.zeros((2, N_CELL, level.capacity), dtype=torch.bool)
     member[:, serving[serving >= 0], np.flatnonzero(serving >= 0)] = True
     args = (lin, member, torch.arange(0, 3 * D, D), level.harq, level.rate_last, torch.ones(2, dtype=torch.bool),
             level._no_tallies)
     before = {k: sionna_sys_adapter.block_state(b) for k, b in (("olla", level.olla), ("pf", level.pf))}
+    pf_schedules = scheduler == "proportional-fair"
     start = torch.default_generator.get_state()
     outs, states = [], []
     for way in (lambda *a: link_chunks.unrolled(level._group_eager, *a),
-                lambda *a: link_chunks.scanned(level._group_eager, (level.olla, level.pf), *a)):
+                lambda *a: link_chunks.scanned(level._group_eager, (level.olla, level.pf, pf_schedules), *a)):
         torch.default_generator.set_state(start)
         for name, block in (("olla", level.olla), ("pf", level.pf)):
             sionna_sys_adapter.set_block_state(block, before[name])
@@ -168,4 +184,5 @@ def test_a_chunk_as_a_loop_and_written_out_give_the_same_slots_and_state():
     for name in ("olla", "pf"):
         for key, value in states[0][name].items():
             assert torch.equal(value, states[1][name][key]), (name, key)
-            assert not torch.equal(value, before[name][key]), (name, key)  # (the groups ran)
+            # (the groups ran: the loops moved; the PF block's only where it schedules)
+            assert torch.equal(value, before[name][key]) is (name == "pf" and not pf_schedules), (name, key)

@@ -66,7 +66,7 @@ class NetworkParams:
     groups_per_call: int = 1
     """With ``compile`` and full buffers, groups of slots run as one compiled call, a loop compiled
     once whatever its length: 25 make a 0.1 s step of 8-slot groups one call instead of 25, each
-    costing the host about 0.4 ms (see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
+    costing the host about 0.2-0.4 ms (see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
     cuda_graphs: bool | None = None
     """With ``compile``, replay each compiled group of slots as a CUDA graph (None: off, on a
     GPU too for now; see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""

@@ -10,8 +10,8 @@
   graph (the loop's index lives on the host, which a captured graph does not run).
 
 Both give what :meth:`~caviar_plugins.radio.link_level.LinkLevel._group_eager` gives group after
-group, bit for bit, the random numbers included (the loop draws each group's seed as the groups
-written out draw theirs: tests/test_network_links.py).
+group, bit for bit, the random numbers included (the loop draws each group's seed in its turn,
+the groups written out a chunk's seeds at once: the same numbers; tests/test_network_links.py).
 """
 
 from __future__ import annotations
@@ -24,17 +24,22 @@ from caviar_plugins.radio.slot_results import carried, per_ue
 
 def scanned(group: Any, loops: tuple, lin_g, member_t, firsts_g, harq_last, rate_last, went, tallies):
     """G groups of slots in a row as one loop of ``group`` (a link level's ``_group_eager``) with the
-    link level's OLLA and PF blocks ``loops`` (``lin_g`` [G, L, D, S, cap], ``firsts_g`` [G]; the rest
-    as ``group`` takes them): their outputs as one group of G·D slots would give them, [L, G·D, ...],
-    each UE's ``tallies`` [L, 8, cap] of the slots before them carried over them
-    (:func:`~caviar_plugins.radio.slot_results.carried`), then the state the last one left."""
-    olla, pf = loops
+    link level's OLLA and PF blocks and whether the PF block schedules, ``loops`` (``lin_g`` [G, L, D,
+    S, cap], ``firsts_g`` [G]; the rest as ``group`` takes them): their outputs as one group of G·D
+    slots would give them, [L, G·D, ...], each UE's ``tallies`` [L, 8, cap] of the slots before them
+    carried over them (:func:`~caviar_plugins.radio.slot_results.carried`), then the state the last
+    one left."""
+    olla, pf, pf_schedules = loops
 
     def step(carry, x):
         harq, rate, *tensors = carry
-        on_state = adapter.loops_on(olla, pf, tuple(tensors))
-        *out, harq, rate = group(x[0], member_t, x[1], harq, rate, went, on_state)
-        return (harq, rate, *adapter.loop_tensors(*on_state)), tuple(out)
+        on_state = adapter.loops_on(olla, pf, tuple(tensors), pf_schedules)
+        prbs, harq_g, tbler, mcs, sinr_eff, cells, bits, harq, rate = group(x[0], member_t, x[1], harq, rate, went,
+                                                                            on_state)
+        # (a wideband SINR leaves the PHY abstraction as it came: a view of the loop's input, which
+        # a loop's output may not be)
+        out = (prbs, harq_g, tbler, mcs, sinr_eff.clone(), cells, bits)
+        return (harq, rate, *adapter.loop_tensors(*on_state)), out
 
     carry, ys = adapter.torch_scan()(step, (harq_last, rate_last, *adapter.loop_tensors(olla, pf)), (lin_g, firsts_g))
     adapter.set_loop_tensors(olla, pf, tuple(carry[2:]))

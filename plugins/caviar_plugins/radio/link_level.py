@@ -147,8 +147,8 @@ class LinkLevel:
                                                  mode="reduce-overhead" if self.cuda_graphs else None)
             if self.cuda_graphs:  # (a captured graph replays the device generator it captured: seeded here)
                 default_generator(self.device).set_state(self._compiled_rng)
-            # Each UE capacity and each direction compiles its own entries (two each: before and
-            # after Sionna's blocks are built); past torch's limit (8) it would fall back to eager.
+            # Each link level, UE capacity and direction compiles its own entries (without chunks, two
+            # each: before and after Sionna builds its blocks); past torch's limit (8) they run eager.
             adapter.allow_recompiles(self._torch, 64)
             capacity = max(capacity, COMPILED_CAPACITY)  # each growth compiles again
             print(f"link level: torch.compile for {capacity} UEs at the first slots (about 20 s, once)",
@@ -193,9 +193,9 @@ class LinkLevel:
         return torch.tensor(values, dtype=torch.int32, device=self.device)[:, None, None].expand(shape).contiguous()
 
     def state(self) -> dict[str, Any]:
-        """What changes from slot to slot, for a checkpoint: the capacity, every tensor
-        the OLLA loops and the PF scheduler keep, the HARQ outcomes, the achieved rates and
-        the position of Sionna's random stream (the PHY abstraction's ACK draws)."""
+        """What changes from slot to slot, for a checkpoint: the capacity, every tensor the OLLA loops and the PF
+        scheduler keep, the HARQ outcomes, the achieved rates and the position of Sionna's random stream (the PHY
+        abstraction's ACK draws)."""
         if self._sys is None:
             return {"capacity": self.capacity, "links": len(self.links)}
         return {"capacity": self.capacity, "links": len(self.links),
@@ -244,13 +244,12 @@ class LinkLevel:
             self.harq[..., u] = -1
 
     def run(self, sinr_db: np.ndarray, serving: np.ndarray, backlog: Any = None) -> SlotResults:
-        """Runs ``sinr_db.shape[0]`` slots. ``sinr_db``: SINR of each UE on its serving
-        cell, [n_slots, n_ue] (wideband) or [n_slots, n_ue, subbands]; ``serving``: [n_ue]
-        cell index (-1: no service). ``backlog``: the bits each UE has to receive
-        (:class:`~caviar_plugins.network.traffic.Backlog`: queued at the first slot, and
-        arriving per slot); None: full buffer. With a backlog a UE is scheduled only in slots
-        (groups of ``harq_processes`` slots) that begin with bits queued, and what it decodes
-        beyond its queue is padding: ``delivered_bits`` counts only the queue's bits."""
+        """Runs ``sinr_db.shape[0]`` slots. ``sinr_db``: SINR of each UE on its serving cell, [n_slots, n_ue] (wideband)
+        or [n_slots, n_ue, subbands]; ``serving``: [n_ue] cell index (-1: no service). ``backlog``: the bits each UE
+        has to receive (:class:`~caviar_plugins.network.traffic.Backlog`: queued at the first slot, and arriving per
+        slot); None: full buffer. With a backlog a UE is scheduled only in slots (groups of ``harq_processes`` slots)
+        that begin with bits queued, and what it decodes beyond its queue is padding: ``delivered_bits`` counts only
+        the queue's bits."""
         sinr_db = self._checked_db(sinr_db)
         return self._one_link().run_links([sinr_db], serving, sinr_db.shape[0], [backlog])[0]
 
@@ -263,11 +262,10 @@ class LinkLevel:
 
     def run_links(self, sinrs: Sequence[Any], serving: np.ndarray, slots: int,
                   backlogs: Sequence[Any] | None = None) -> list[SlotResults]:
-        """Runs ``slots`` slots of every link at once (the links' order: the settings'),
-        each link's results in that order. Each link's SINRs as :meth:`run` takes them (numpy,
-        dB, [slots, n_ue] or [slots, n_ue, subbands]) or as :meth:`run_linear` does (a torch
-        tensor of ratios); ``serving`` [n_ue]: every link's; ``backlogs``: each link's (None: full
-        buffers). A link with nobody queued in a group of slots sits it out (no transmission, no
+        """Runs ``slots`` slots of every link at once (the links' order: the settings'), each link's results in that
+        order. Each link's SINRs as :meth:`run` takes them (numpy, dB, [slots, n_ue] or [slots, n_ue, subbands]) or as
+        :meth:`run_linear` does (a torch tensor of ratios); ``serving`` [n_ue]: every link's; ``backlogs``: each
+        link's (None: full buffers). A link with nobody queued in a group of slots sits it out (no transmission, no
         loop updates), whatever the others do."""
         if len(sinrs) != len(self.links):
             raise ValueError(f"sinrs: expected the SINRs of {len(self.links)} link(s) "
@@ -321,9 +319,9 @@ class LinkLevel:
         return np.broadcast_to(db, (slots, *db.shape[1:]))
 
     def _linear_in(self, x: Any, serving: np.ndarray, slots: int) -> Any:
-        """The link level's float32 linear SINRs [slots, subbands, capacity] on its device, from
-        one link's checked SINRs: dB in numpy (NaN: none; 0 for a UE without a cell), or ratios
-        as a torch tensor (moved where the link level is, never through numpy)."""
+        """The link level's float32 linear SINRs [slots, subbands, capacity] on its device, from one link's checked
+        SINRs: dB in numpy (NaN: none; 0 for a UE without a cell), or ratios as a torch tensor (moved where the link
+        level is, never through numpy)."""
         torch, dev = self._torch, self.device
         served = np.asarray(serving) >= 0
         if not isinstance(x, np.ndarray):
@@ -375,11 +373,10 @@ class LinkLevel:
         return counts, np.where(eligible, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
 
     def _sys_slots(self, lins: list, serving: np.ndarray, queues: list[_Queue]) -> list[SlotResults]:
-        """The slots through Sionna SYS, on each link's linear SINRs ``lins`` [n_slots, subbands,
-        capacity] (float32, on the device: :meth:`_linear_in`). Everything stays on the link
-        level's device from the first slot to the last: the call's SINRs enter torch once, the
-        scheduler, the loops, the queues and the tallies work there, and the results leave once,
-        at the end (on a GPU, no copy and no wait per slot; with queues, one read per group of
+        """The slots through Sionna SYS, on each link's linear SINRs ``lins`` [n_slots, subbands, capacity] (float32, on
+        the device: :meth:`_linear_in`). Everything stays on the link level's device from the first slot to the last:
+        the call's SINRs enter torch once, the scheduler, the loops, the queues and the tallies work there, and the
+        results leave once, at the end (on a GPU, no copy and no wait per slot; with queues, one read per group of
         slots says which links have bits)."""
         torch = self._torch
         n_links = len(lins)
@@ -426,12 +423,11 @@ class LinkLevel:
         return tallied(self._torch, groups, queues, n_slots, n_ue, self.n_cell)
 
     def _groups_at(self, k: int, plan: _CallPlan) -> list[tuple]:
-        """The slots a call at slot ``k`` runs, ``(first slot, slots, PRBs, HARQ, TBLER, MCS,
-        effective SINR, cells active, decoded bits, tallies)``, each [L, slots, ...] (the tallies
-        :func:`~caviar_plugins.radio.slot_results.per_ue` of the call's slots up to the chunk's last,
-        carried from chunk to chunk; None for one group): a
-        chunk of ``plan.many`` groups at its first group (none at its others), else the group at
-        ``k`` (none where no link has bits)."""
+        """The slots a call at slot ``k`` runs, ``(first slot, slots, PRBs, HARQ, TBLER, MCS, effective SINR, cells
+        active, decoded bits, tallies)``, each [L, slots, ...] (the tallies
+        :func:`~caviar_plugins.radio.slot_results.per_ue` of the call's slots up to the chunk's last, carried from
+        chunk to chunk; None for one group): a chunk of ``plan.many`` groups at its first group (none at its others),
+        else the group at ``k`` (none where no link has bits)."""
         torch, g = self._torch, k // plan.d
         if g < plan.in_many:
             if g % plan.many:
@@ -456,20 +452,18 @@ class LinkLevel:
         return [(k, plan.d, prbs, harq, tbler, mcs, sinr_eff, cells, bits, None)]
 
     def _guards(self) -> Any:
-        """A context (for the call's groups only): how dynamo checks the compiled group's calls:
-        every guard of its entries (over 400: the Sionna blocks' attributes, the settings, the
-        tensors' shapes) for the first :data:`CHECKED_CALLS` calls at a UE capacity, which compile
-        what they need (two entries: before and after Sionna builds its blocks); then only the
-        guards that tell the entries apart (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``).
-        At 21 cells × 1,000 UEs (then 50 calls a step: a link level a direction) on a 2-core Intel
-        Xeon the guards took 13.5 ms of host time a step checked in full and 6.4 ms so
-        (``benches/bench_host_overhead.py``: host work on a GPU too), with the same results bit for
-        bit (tests/test_network.py); fewer calls (both links in one, ``groups_per_call``) cut them
-        further. What could change a guard's outcome between this link level's calls at one
-        capacity, its blocks and tensors made anew, resets the count (:meth:`_grow`,
-        :meth:`restore`); and where torch would have to compile (it refuses to in this stance),
-        the group runs again under every guard, and the count starts again. The stance is the
-        process's while the call's groups run (the host calls one plugin at a time)."""
+        """A context (for the call's groups only): how dynamo checks the compiled group's calls: every guard of its
+        entries (over 400: the Sionna blocks' attributes, the settings, the tensors' shapes) for the first
+        :data:`CHECKED_CALLS` calls at a UE capacity, which compile what they need (two entries: before and after
+        Sionna builds its blocks); then only the guards that tell the entries apart
+        (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``). At 21 cells × 1,000 UEs (then 50 calls a step: a
+        link level a direction) on a 2-core Intel Xeon the guards took 13.5 ms of host time a step checked in full and
+        6.4 ms so (``benches/bench_host_overhead.py``: host work on a GPU too), with the same results bit for bit
+        (tests/test_network.py); fewer calls (both links in one, ``groups_per_call``) cut them further. What could
+        change a guard's outcome between this link level's calls at one capacity, its blocks and tensors made anew,
+        resets the count (:meth:`_grow`, :meth:`restore`); and where torch would have to compile (it refuses to in
+        this stance), the group runs again under every guard, and the count starts again. The stance is the process's
+        while the call's groups run (the host calls one plugin at a time)."""
         if not self._settled():
             return contextlib.nullcontext()
         # (set_stance sets the stance when called, and puts the last one back when its block ends)
@@ -482,11 +476,10 @@ class LinkLevel:
 
     @contextlib.contextmanager
     def _own_stream(self) -> Iterator[None]:
-        """The compiled groups of a call drawing from the link level's own stream: their random
-        numbers come from the device's default generator (what compiled code draws from), with
-        this link level's state swapped in for the call's groups (nothing else draws between them)
-        and the caller's put back. (Eager groups draw from the link level's generator, and a
-        captured CUDA graph replays the generator it captured: nothing to swap.)"""
+        """The compiled groups of a call drawing from the link level's own stream: their random numbers come from the
+        device's default generator (what compiled code draws from), with this link level's state swapped in for the
+        call's groups (nothing else draws between them) and the caller's put back. (Eager groups draw from the link
+        level's generator, and a captured CUDA graph replays the generator it captured: nothing to swap.)"""
         if self._compiled is None or self.cuda_graphs:
             yield
             return
@@ -508,25 +501,33 @@ class LinkLevel:
         return outputs
 
     def _groups(self, *args):
-        """:meth:`_groups_eager`, compiled (as a CUDA graph where the group is one)."""
-        return self._group_graphed(*args, compiled=self._many) if self.cuda_graphs else self._many(*args)
+        """:meth:`_groups_eager`, compiled (as a CUDA graph where the group is one); past torch's limit
+        of compiled entries (one graph: no eager fallback) the chunk's groups one a call, the same results."""
+        if self.cuda_graphs:
+            return self._group_graphed(*args, compiled=self._many)
+        try:
+            return self._many(*args)
+        except Exception as e:
+            if not adapter.past_recompile_limit(e):
+                raise
+            return link_chunks.unrolled(self._group, *args)
 
     def _groups_eager(self, *args):
         """A chunk of groups: :func:`~caviar_plugins.radio.link_chunks.scanned` (one loop), or, replayed
         as a CUDA graph (no loop run by the host), :func:`~caviar_plugins.radio.link_chunks.unrolled`."""
         if self.cuda_graphs:
             return link_chunks.unrolled(self._group_eager, *args)
-        return link_chunks.scanned(self._group_eager, (self.olla, self.pf), *args)
+        pf_schedules = self.s.scheduler == "proportional-fair"
+        return link_chunks.scanned(self._group_eager, (self.olla, self.pf, pf_schedules), *args)
 
     def _group_eager(self, lin_t, member_t, first_slot, harq_last, rate_last, went, loops=None):
-        """One group of D slots of every link, all on the device: scheduling, CSI, link
-        adaptation and PHY abstraction. ``lin_t`` [L, D, S, cap]: linear SINRs; ``member_t``
-        [L, C, cap]: whom each link's cell may schedule; ``first_slot``: the group's first slot
-        (a 0-d tensor); ``harq_last`` [L, D, cap] and ``rate_last`` [L, D, C, cap]: the state the
-        group starts from; ``went`` [L]: the links that take part (the others keep their state).
-        ``loops``: the OLLA and PF blocks to run (None: the link level's own).
-        Returns (PRBs, HARQ, TBLER, MCS, effective SINR, each [L, D, cap]; the cells that
-        transmitted [L, D, C]; decoded bits [L, D, cap]; the new ``harq_last`` and ``rate_last``)."""
+        """One group of D slots of every link, all on the device: scheduling, CSI, link adaptation and PHY abstraction.
+        ``lin_t`` [L, D, S, cap]: linear SINRs; ``member_t`` [L, C, cap]: whom each link's cell may schedule;
+        ``first_slot``: the group's first slot (a 0-d tensor); ``harq_last`` [L, D, cap] and ``rate_last`` [L, D, C,
+        cap]: the state the group starts from; ``went`` [L]: the links that take part (the others keep their state).
+        ``loops``: the OLLA and PF blocks to run (None: the link level's own). Returns (PRBs, HARQ, TBLER, MCS,
+        effective SINR, each [L, D, cap]; the cells that transmitted [L, D, C]; decoded bits [L, D, cap]; the new
+        ``harq_last`` and ``rate_last``)."""
         torch = self._torch
         olla, pf = loops or (self.olla, self.pf)
         kept = adapter.loop_state(olla, pf)  # (for the links that sit the group out)
@@ -550,9 +551,8 @@ class LinkLevel:
         return prbs, harq, tbler, mcs, sinr_eff, cells, bits, harq_next, rate_next
 
     def _adapt_and_decode(self, n_re, harq_last, csi, sinr_in, olla):
-        """Link adaptation and PHY abstraction: (MCS, decoded bits, HARQ, effective SINR,
-        TBLER), each [L, D, cap]. ``sinr_in``: the wideband SINR [L, D, cap], or the allocated
-        PRBs' [L, D, 1, P, cap, 1] for the EESM."""
+        """Link adaptation and PHY abstraction: (MCS, decoded bits, HARQ, effective SINR, TBLER), each [L, D, cap].
+        ``sinr_in``: the wideband SINR [L, D, cap], or the allocated PRBs' [L, D, 1, P, cap, 1] for the EESM."""
         # CSI feedback: the slot's SINR as the UE reports it (ideal), corrected by the
         # loop's offset, which follows the HARQ outcome of the process's last transmission.
         table, category = self._mcs_table, self._mcs_category  # (each link's: numbers, or [L, D, cap])

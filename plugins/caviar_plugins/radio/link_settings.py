@@ -65,7 +65,7 @@ class LinkSettings:
     call where every link has a full buffer (with queues, whether a group runs depends on the
     queues the group before left: one a call; groups past the last whole chunk: one a call too).
     Each compiled call costs the host a fixed price (dynamo picking its entry, the program's
-    inputs and side effects, inductor's wrapper: about 0.4 ms at 21 cells × 1,000 UEs on a 2-core
+    inputs and side effects, inductor's wrapper: about 0.2-0.4 ms at 21 cells × 1,000 UEs on a 2-core
     CPU, 25 calls a 0.1 s step of 8-slot groups). A chunk is one loop over its groups that torch
     compiles once whatever its length (:mod:`~caviar_plugins.radio.link_chunks`; written out
     group after group where CUDA graphs replay it, whose compile grows with them: 237 s for 25 at

@@ -85,18 +85,19 @@ def set_loop_tensors(olla: Any, pf: Any, tensors: tuple) -> None:
     pf._pf_metric.copy_(metric)
 
 
-def loops_on(olla: Any, pf: Any, tensors: tuple) -> tuple:
+def loops_on(olla: Any, pf: Any, tensors: tuple, pf_schedules: bool = True) -> tuple:
     """Stand-ins for ``olla`` and ``pf`` that run the blocks' own ``call`` on ``tensors``
-    (:func:`loop_tensors`'s, not changed: the scheduler's history copied, its metrics new) and keep
-    what it leaves to themselves: what the body of a loop torch compiles once (:func:`torch_scan`,
-    whose body may change no object from outside it) can call. Every other attribute is the
-    block's; its inputs already in the block's dtypes, no conversion. Sub-blocks must be built
-    (:func:`built`)."""
+    (:func:`loop_tensors`'s, not changed: the scheduler's history copied, its metrics new where it
+    schedules, else copied) and keep what it leaves to themselves: what the body of a loop torch
+    compiles once (:func:`torch_scan`, whose body may change no object from outside it) can call.
+    Every other attribute is the block's; its inputs already in the block's dtypes, no conversion.
+    Sub-blocks must be built (:func:`built`)."""
     import torch
 
     offset, sinr_last, past, metric = tensors
+    metric = torch.empty_like(metric) if pf_schedules else metric.clone()  # (written in full where it schedules)
     return (_OnState(_block=olla, _offset=offset, _sinr_eff_db_last=sinr_last),
-            _OnState(_block=pf, _rate_achieved_past=past.clone(), _pf_metric=torch.empty_like(metric)))
+            _OnState(_block=pf, _rate_achieved_past=past.clone(), _pf_metric=metric))
 
 
 class _OnState(types.SimpleNamespace):
@@ -117,6 +118,14 @@ def built(*blocks: Any) -> None:
             if type(module).build is not Block.build:
                 raise TypeError(f"{type(module).__name__} builds on its first call: call it once first")
             module._built = True
+
+
+def past_recompile_limit(error: Exception) -> bool:
+    """Whether ``error`` is dynamo's refusal to compile a ``fullgraph`` function past its limit of
+    compiled entries (:func:`allow_recompiles`), where a function without it would run eager."""
+    import torch
+
+    return isinstance(error, torch._dynamo.exc.FailOnRecompileLimitHit)
 
 
 def torch_scan() -> Any:

@@ -10,8 +10,8 @@ tests/test_rt_front_door.py).
 * :mod:`~caviar_plugins.rt.solver`: :class:`~caviar_plugins.rt.solver.PathTracer`, Sionna's
   path solver with the shoot cache and the path-buffer watch, and the radio-map solver;
 * :mod:`~caviar_plugins.rt.drjit_setup`: Dr.Jit's libLLVM and thread count;
-* :mod:`~caviar_plugins.rt.sionna_adapter`: the only user of Sionna RT's and Sionna SYS's
-  private names;
+* :mod:`~caviar_plugins.rt.sionna_adapter`: the only user of Sionna RT's private names
+  (Sionna SYS's: :mod:`caviar_plugins.radio.sionna_sys_adapter`);
 * :mod:`~caviar_plugins.rt.scatterers`: pools of boxes for vehicles and persons;
 * :mod:`~caviar_plugins.rt.shoot_cache`: the shoot cache, one module per phase.
 
