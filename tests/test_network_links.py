@@ -147,8 +147,8 @@ def test_several_groups_a_compiled_call_decide_as_one_a_call(monkeypatch):
 
 @pytest.mark.parametrize(("subbands", "scheduler"), [(4, "proportional-fair"), (1, "round-robin")])
 def test_a_chunk_as_a_loop_and_written_out_give_the_same_slots_and_state(subbands, scheduler):
-    """The two ways of a chunk of groups (:mod:`caviar_plugins.radio.link_chunks`): the loop (on
-    the CPU, and on a GPU without CUDA graphs) and the groups written out (a CUDA graph's), traced
+    """The two ways of a chunk of groups (:mod:`caviar_plugins.radio.link_chunks`): the loop and the
+    groups one after the other (where torch's limit of compiled entries refuses the loop), traced
     by dynamo (its random draws from torch's default generator, put back between them): the same
     slots, tallies and loop state, bit for bit, over three groups; subbands or one (whose SINR
     leaves the PHY abstraction as it came), the PF scheduler or round robin (the PF block idle)."""

@@ -256,6 +256,26 @@ def test_the_cuda_graph_mode_on_the_cpu_decides_as_eager():
         assert torch.equal(state, replayed) and state.data_ptr() != replayed.data_ptr()
 
 
+def test_with_cuda_graphs_a_chunk_of_groups_is_a_loop_that_decides_as_the_groups_one_a_call():
+    """``cuda_graphs`` and ``groups_per_call`` together (on the CPU: graph mode without graphs): a
+    chunk is the loop, compiled without a graph (one cannot hold the loop's host-side index), the
+    single groups the graph mode's calls; both draw from the device's generator as seeded, so two
+    groups in a chunk decide as two graphed calls, bit for bit."""
+    rng = np.random.default_rng(8)
+    d, sub = 4, 2
+    sinr = 14.0 + rng.normal(0.0, 3.0, size=(2 * d, 5, sub))
+    serving = np.array([0, 0, 1, 1, -1])
+    settings = LinkSettings(num_prb=24, harq_processes=d, subbands=sub, compile=True, cuda_graphs=True)
+    runs = []
+    for groups in (1, 2):  # (each made just before its run: the generator seeded as the link level's)
+        level = LinkLevel(dataclasses.replace(settings, groups_per_call=groups), n_cell=2, seed=12)
+        runs.append(level.run(sinr, serving))
+        assert level.cuda_graphs and (level._many is None) == (groups == 1)
+    for field in ("decoded_bits", "prbs", "acks", "nacks", "mcs", "cells_active", "delivered_bits"):
+        np.testing.assert_array_equal(getattr(runs[1], field), getattr(runs[0], field), err_msg=field)
+    assert runs[0].prbs.sum() > 0
+
+
 def test_a_position_that_is_not_three_numbers_is_named():
     table = UeTable()
     table.place([{"UE_Id": "car1", "UE_type": "car", "position": {"x": 1.0, "y": 2.0, "z": 0.0}}], 1.5)

@@ -6,12 +6,15 @@
   25 groups a call compiled in about 240 s on a 2-core machine). Sionna's OLLA and PF blocks run
   in the body on state the loop carries (:func:`~caviar_plugins.radio.sionna_sys_adapter.loops_on`:
   the body may change no object from outside it), set on the blocks after the loop.
-- :func:`unrolled`: the groups written out one after the other, for a call replayed as a CUDA
-  graph (the loop's index lives on the host, which a captured graph does not run).
+- :func:`unrolled`: the groups one after the other, each a call of ``group`` (a link level's
+  compiled group: where torch's limit of compiled entries refuses the loop), and the loop's
+  reference in the tests. (A chunk is no CUDA graph: the loop's index lives on the host, which a
+  captured graph does not run; with ``cuda_graphs`` the one-group calls are graphs.)
 
 Both give what :meth:`~caviar_plugins.radio.link_level.LinkLevel._group_eager` gives group after
-group, bit for bit, the random numbers included (the loop draws each group's seed in its turn,
-the groups written out a chunk's seeds at once: the same numbers; tests/test_network_links.py).
+group, bit for bit, the random numbers included (the loop draws each group's seed in its turn, as
+the groups do one a call, or written out in one program, a chunk's seeds at once: the same
+numbers; tests/test_network_links.py).
 """
 
 from __future__ import annotations
@@ -49,8 +52,7 @@ def scanned(group: Any, loops: tuple, lin_g, member_t, firsts_g, harq_last, rate
 
 
 def unrolled(group: Any, lin_g, member_t, firsts_g, harq_last, rate_last, went, tallies):
-    """:func:`scanned`'s results, the groups written out one after the other (with the link
-    level's own blocks)."""
+    """:func:`scanned`'s results, the groups one after the other (with the link level's own blocks)."""
     import torch
 
     outs = []

@@ -142,9 +142,9 @@ class LinkLevel:
             self._compiled = self._torch.compile(self._group_eager, dynamic=False,
                                                  mode="reduce-overhead" if self.cuda_graphs else None)
             self._group = self._group_graphed if self.cuda_graphs else self._compiled
-            if settings.groups_per_call > 1:  # (one graph: a loop's index is read on the host in it)
-                self._many = self._torch.compile(self._groups_eager, dynamic=False, fullgraph=True,
-                                                 mode="reduce-overhead" if self.cuda_graphs else None)
+            if settings.groups_per_call > 1:  # (one graph: a loop's index is read on the host in it; no
+                # CUDA graph, which cannot hold a host loop: with cuda_graphs, the one-group calls are)
+                self._many = self._torch.compile(self._groups_eager, dynamic=False, fullgraph=True)
             if self.cuda_graphs:  # (a captured graph replays the device generator it captured: seeded here)
                 default_generator(self.device).set_state(self._compiled_rng)
             # Each link level, UE capacity and direction compiles its own entries (without chunks, two
@@ -501,10 +501,8 @@ class LinkLevel:
         return outputs
 
     def _groups(self, *args):
-        """:meth:`_groups_eager`, compiled (as a CUDA graph where the group is one); past torch's limit
-        of compiled entries (one graph: no eager fallback) the chunk's groups one a call, the same results."""
-        if self.cuda_graphs:
-            return self._group_graphed(*args, compiled=self._many)
+        """:meth:`_groups_eager`, compiled; past torch's limit of compiled entries (one graph: no eager
+        fallback) the chunk's groups one a call, the same results."""
         try:
             return self._many(*args)
         except Exception as e:
@@ -513,10 +511,7 @@ class LinkLevel:
             return link_chunks.unrolled(self._group, *args)
 
     def _groups_eager(self, *args):
-        """A chunk of groups: :func:`~caviar_plugins.radio.link_chunks.scanned` (one loop), or, replayed
-        as a CUDA graph (no loop run by the host), :func:`~caviar_plugins.radio.link_chunks.unrolled`."""
-        if self.cuda_graphs:
-            return link_chunks.unrolled(self._group_eager, *args)
+        """A chunk of groups as one loop (:func:`~caviar_plugins.radio.link_chunks.scanned`)."""
         pf_schedules = self.s.scheduler == "proportional-fair"
         return link_chunks.scanned(self._group_eager, (self.olla, self.pf, pf_schedules), *args)
 

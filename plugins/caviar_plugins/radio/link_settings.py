@@ -68,10 +68,10 @@ class LinkSettings:
     inputs and side effects, inductor's wrapper: about 0.2-0.4 ms at 21 cells × 1,000 UEs on a 2-core
     CPU, 25 calls a 0.1 s step of 8-slot groups). A chunk is one loop over its groups that torch
     compiles once whatever its length (:mod:`~caviar_plugins.radio.link_chunks`; written out
-    group after group where CUDA graphs replay it, whose compile grows with them: 237 s for 25 at
-    1,000 UEs on a 2-core AMD EPYC), so 25 make such a step one call, compiled in about the time
-    of one group. A call's slots are tallied in its own program. The same results as 1, bit for
-    bit."""
+    group after group, until 2026-11-29 the compile grew with them: 237 s for 25 at 1,000 UEs on a
+    2-core AMD EPYC), so 25 make such a step one call, compiled in about the time of one group. A
+    call's slots are tallied in its own program. The same results as 1, bit for bit (with
+    ``cuda_graphs``, a chunk is no graph: its loop runs on the host)."""
     cuda_graphs: bool | None = None
     """With ``compile``, capture the compiled group of slots as a CUDA graph
     (``torch.compile(mode="reduce-overhead")``): one graph launch a group instead of its
