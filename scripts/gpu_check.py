@@ -378,9 +378,10 @@ region's inputs) paid once a step, not 25 times (``benches/bench_host_overhead.p
 
 def network_graphed(n_ue: int, seconds: float, timeout_s: float) -> dict:
     """The same plugin with each compiled group of slots replayed as a CUDA graph (``cuda_graphs``,
-    one group a call), off by default since the H200 (2026-11-28) found Sionna's OLLA reading a
-    replay's overwritten output, copied out since 2026-11-29: whether it runs now, and its T_p/T_v
-    against :func:`network`'s (the measurement that decides the default on CUDA)."""
+    the default on CUDA since 2026-11-29, one group a call: :func:`network`'s chunks are loops, no
+    graphs): the H200 (2026-11-28) found Sionna's OLLA reading a replay's overwritten output, now
+    copied out: whether the graphs run without falling back (the run's stderr says where they do),
+    and their T_p/T_v against :func:`network`'s."""
     cmd = [sys.executable, str(ROOT / "benches/bench_network.py"), "--plugin-only", str(n_ue),
            "--seconds", str(seconds), "--ue-reports", "table", "--cuda-graphs"]
     stdout, error = command(cmd, timeout_s)

@@ -207,8 +207,9 @@ def test_cuda_graphs_are_on_by_default_only_for_a_compiled_link_level_on_cuda():
     import torch
 
     base = LinkSettings(num_prb=24, compile=True)
-    # (off by default, CUDA too: the captured group failed on the H200 at Sionna's OLLA state)
-    assert not cuda_graphs_on(base, torch.device("cuda")) and not cuda_graphs_on(base, torch.device("cpu"))
+    # (on by default on CUDA: the OLLA's state that failed on the H200 now copied out of each replay)
+    assert cuda_graphs_on(base, torch.device("cuda")) and cuda_graphs_on(base, torch.device("cuda", 1))
+    assert not cuda_graphs_on(base, torch.device("cpu")) and not cuda_graphs_on(base, "cpu")
     assert cuda_graphs_on(dataclasses.replace(base, cuda_graphs=True), torch.device("cuda"))
     assert not cuda_graphs_on(dataclasses.replace(base, compile=False), torch.device("cuda"))
     assert not cuda_graphs_on(dataclasses.replace(base, cuda_graphs=False), torch.device("cuda"))
@@ -254,6 +255,31 @@ def test_the_cuda_graph_mode_on_the_cpu_decides_as_eager():
     assert len(left) == 3 and olla is graphed.olla and (offset != 0).any()
     for state, replayed in ((olla._offset, offset), (olla._sinr_eff_db_last, sinr_last)):
         assert torch.equal(state, replayed) and state.data_ptr() != replayed.data_ptr()
+
+
+def test_a_replay_torch_refuses_goes_on_compiled_without_graphs(capsys):
+    """Where torch refuses a CUDA graph's replay (as it did on the H200: "accessing tensor output of
+    CUDAGraphs that has been overwritten", raised before the graph runs), the link level says so
+    and goes on compiled without graphs: the same decisions as eager; another error is not hidden."""
+    rng = np.random.default_rng(9)
+    d, sub = 4, 2
+    sinr = 14.0 + rng.normal(0.0, 3.0, size=(d, 3, sub))
+    serving = np.zeros(3, dtype=int)
+    settings = LinkSettings(num_prb=24, harq_processes=d, subbands=sub)
+    eager = LinkLevel(settings, n_cell=1, seed=11).run(sinr, serving)
+    graphed = LinkLevel(dataclasses.replace(settings, compile=True, cuda_graphs=True), n_cell=1, seed=11)
+
+    def refused(*args):
+        raise RuntimeError("Error: accessing tensor output of CUDAGraphs that has been overwritten by a subsequent run")
+
+    graphed._compiled = refused
+    assert_decides_as(graphed.run(sinr, serving), eager)
+    assert not graphed.cuda_graphs and graphed._group is graphed._compiled
+    assert "a CUDA graph's replay failed (Error: accessing tensor output of CUDAGraphs" in capsys.readouterr().err
+    other = LinkLevel(dataclasses.replace(settings, compile=True, cuda_graphs=True), n_cell=1, seed=11)
+    other._compiled = lambda *args: (_ for _ in ()).throw(RuntimeError("shape mismatch"))
+    with pytest.raises(RuntimeError, match="shape mismatch"):
+        other.run(sinr, serving)
 
 
 def test_with_cuda_graphs_a_chunk_of_groups_is_a_loop_that_decides_as_the_groups_one_a_call():

@@ -68,8 +68,8 @@ class NetworkParams:
     once whatever its length: 25 make a 0.1 s step of 8-slot groups one call instead of 25, each
     costing the host about 0.2-0.4 ms (see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
     cuda_graphs: bool | None = None
-    """With ``compile``, replay each compiled group of slots as a CUDA graph (None: off, on a
-    GPU too for now; see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
+    """With ``compile``, replay each compiled group of slots as a CUDA graph (None: on a CUDA
+    device, off elsewhere; see :class:`~caviar_plugins.radio.link_settings.LinkSettings`)."""
     device: str = "auto"
     """The torch device of the link level (Sionna SYS): ``auto`` (Sionna's choice, a GPU
     where there is one), ``cpu``, ``cuda`` or ``cuda:N``."""

@@ -49,6 +49,7 @@ from caviar_plugins.radio import link_chunks
 from caviar_plugins.radio import sionna_sys_adapter as adapter
 from caviar_plugins.radio.link_queue import CallQueue as _Queue
 from caviar_plugins.radio.link_settings import DATA_SYMBOLS_PER_SLOT, LinkSettings, cuda_graphs_on
+from caviar_plugins.radio.shannon_slots import shannon_slots
 from caviar_plugins.radio.slot_results import SlotResults, no_tallies, tallied
 from caviar_plugins.torch_device import default_generator, resolve, to_numpy, to_torch
 
@@ -280,7 +281,8 @@ class LinkLevel:
         self.ensure(n_ue)
         queues = [_Queue(slots, n_ue, b) for b in backlogs]
         if self._sys is None:
-            return [self._shannon(self._db(x, slots), serving, q) for x, q in zip(ins, queues, strict=True)]
+            return [shannon_slots(self.s, self.n_cell, self._db(x, slots), serving, q)
+                    for x, q in zip(ins, queues, strict=True)]
         return self._sys_slots([self._linear_in(x, serving, slots) for x in ins], serving, queues)
 
     def _one_link(self) -> LinkLevel:
@@ -339,38 +341,6 @@ class LinkLevel:
         lin[:, :, :n_ue] = np.where(served[None, None, :], 10 ** (block / 10), 0.0)
         lin_all = to_torch(lin, dev, torch.float32)  # (the call's one way in)
         return lin_all.expand(n_slots, n_sub, self.capacity).contiguous() if same else lin_all
-
-    def _shannon(self, sinr_db: np.ndarray, serving: np.ndarray, queue: _Queue) -> SlotResults:
-        n_slots, n_ue, _ = sinr_db.shape
-        band = self.s.subband_prbs * self.s.prb_bandwidth_hz  # [subbands]
-        se = np.log2(1 + 10 ** (np.nan_to_num(sinr_db, nan=-np.inf) / 10))
-        rate = (se * band).sum(axis=2) * self.s.slot_s  # [slot, ue] bits with the whole cell
-        active = np.zeros((n_slots, self.n_cell), dtype=bool)
-        sched = np.zeros(n_ue)
-        if not queue.finite:  # a full buffer: every slot alike, one share for all (no slot loop)
-            counts, share = self._time_shares(serving >= 0, serving)
-            queue.delivered[:] = rate * share
-            active[:, counts > 0] = True
-            sched += np.where(serving >= 0, n_slots, 0)
-        else:  # queues: slot by slot, among the UEs with bits
-            for k in range(n_slots):
-                eligible = (serving >= 0) & queue.eligible(k)
-                counts, share = self._time_shares(eligible, serving)
-                queue.take(k, rate[k] * share)
-                active[k, counts > 0] = True
-                sched += eligible
-        zeros = np.zeros(n_ue, dtype=int)
-        known = ~np.isnan(sinr_db)
-        count = known.sum(axis=(0, 2))  # (a UE without a cell has no SINR: NaN, without a warning)
-        mean = np.where(count > 0, np.where(known, sinr_db, 0.0).sum(axis=(0, 2)) / np.maximum(count, 1), np.nan)
-        return SlotResults(queue.delivered.sum(axis=0), sched.astype(int), zeros, zeros, zeros,
-                           np.full(n_ue, -1), np.full(n_ue, np.nan), mean, active, queue.delivered)
-
-    def _time_shares(self, eligible: np.ndarray, serving: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Shannon's equal time shares: the UEs each cell serves among ``eligible`` [n_cell],
-        and each UE's share of its cell's time [n_ue] (0: not eligible)."""
-        counts = np.bincount(serving[eligible], minlength=self.n_cell)
-        return counts, np.where(eligible, 1.0 / np.maximum(counts[np.maximum(serving, 0)], 1), 0.0)
 
     def _sys_slots(self, lins: list, serving: np.ndarray, queues: list[_Queue]) -> list[SlotResults]:
         """The slots through Sionna SYS, on each link's linear SINRs ``lins`` [n_slots, subbands, capacity] (float32, on
@@ -492,11 +462,22 @@ class LinkLevel:
             self._compiled_rng = generator.get_state()
             generator.set_state(caller)
 
-    def _group_graphed(self, *args, compiled: Any = None):
+    def _group_graphed(self, *args):
         """The compiled group replayed as a CUDA graph: a new step of the graph's memory, its outputs
-        and the OLLA's state copied out (the next replay writes over the graph's own: the H200's failure)."""
+        and the OLLA's state copied out (the next replay writes over the graph's own: the H200's failure).
+        Where torch refuses a replay (its CUDA graphs' error, raised before the graph runs), the link
+        level goes on compiled without graphs, and says so."""
         self._torch.compiler.cudagraph_mark_step_begin()
-        outputs = tuple(o.clone() for o in (compiled or self._compiled)(*args))
+        try:
+            outputs = tuple(o.clone() for o in self._compiled(*args))
+        except RuntimeError as e:
+            if "CUDAGraph" not in str(e):
+                raise
+            print(f"link level: a CUDA graph's replay failed ({e}); going on compiled without graphs",
+                  file=sys.stderr, flush=True)
+            self.cuda_graphs = False
+            self._compiled = self._group = self._torch.compile(self._group_eager, dynamic=False)
+            return self._group(*args)
         adapter.copy_out_link_adaptation(self.olla)
         return outputs
 

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from caviar_plugins.torch_device import check_setting
+from caviar_plugins.torch_device import check_setting, is_cuda
 
 NUMEROLOGIES = (15e3, 30e3, 60e3, 120e3)
 NR_RANGES_HZ = ((410e6, 7.125e9), (24.25e9, 71e9))
@@ -76,14 +76,16 @@ class LinkSettings:
     """With ``compile``, capture the compiled group of slots as a CUDA graph
     (``torch.compile(mode="reduce-overhead")``): one graph launch a group instead of its
     kernels, its outputs copied out before the next replay overwrites them. None (the
-    default): off (:func:`cuda_graphs_on`); True on a CPU compiles in that mode all the same
-    (torch skips the graphs there: the same numbers). Off by default because on the H200
-    (2026-11-28) the captured group failed at its second replay: Sionna's link adaptation
-    (OLLA) keeps its offset, an output of the last replay, and reads it in the next
-    (``torch.clamp(new_offset, ...)``: "accessing tensor output of CUDAGraphs that has been
-    overwritten"). Since the night of 2026-11-29 that state is copied out after each replay
-    (tested on the CPU); ``scripts/gpu_check.py`` runs the network with graphs on, which decides
-    the default on CUDA at the next GPU run."""
+    default): on a CUDA device, off elsewhere (:func:`cuda_graphs_on`); True on a CPU compiles in
+    that mode all the same (torch skips the graphs there: the same numbers). On the H200
+    (2026-11-28) the captured group failed at its second replay: Sionna's link adaptation (OLLA)
+    keeps its offset, an output of the last replay, and reads it in the next ("accessing tensor
+    output of CUDAGraphs that has been overwritten"), so it was off until the night of
+    2026-11-29; that state is now copied out after each replay (tested on the CPU), and where
+    torch still refuses a replay the link level goes on compiled without graphs, with a warning
+    (tested on the CPU with that error). ``scripts/gpu_check.py`` measures the graphs at the
+    next GPU run (``network_21x100_cuda_graphs``). A chunk of groups (``groups_per_call``) is no
+    graph: its loop runs on the host."""
     device: str = "auto"
     """The torch device of the Sionna SYS blocks and every tensor they are given: ``auto``
     (Sionna's choice, a GPU where there is one), ``cpu``, ``cuda`` or ``cuda:N``. numpy
@@ -158,8 +160,10 @@ class LinkSettings:
 
 def cuda_graphs_on(settings: LinkSettings, device: Any) -> bool:
     """Whether a link level of ``settings`` on the torch ``device`` captures its compiled
-    group of slots as a CUDA graph: as ``cuda_graphs`` says (None, the default: not yet; see
-    :attr:`LinkSettings.cuda_graphs`)."""
+    group of slots as a CUDA graph: as ``cuda_graphs`` says (None, the default: on a CUDA device,
+    compiled; see :attr:`LinkSettings.cuda_graphs`)."""
     if not settings.compile or settings.link_model != "sys":
         return False
+    if settings.cuda_graphs is None:
+        return is_cuda(device)
     return bool(settings.cuda_graphs)
