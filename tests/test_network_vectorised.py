@@ -221,6 +221,17 @@ def test_cuda_graphs_are_on_by_default_only_for_a_compiled_link_level_on_cuda():
     assert LinkLevel(LinkSettings(num_prb=24), n_cell=1).cuda_graphs is False
 
 
+def _graph_mode_case(seed: int, d: int) -> tuple:
+    """One cell of 3 UEs, one group of ``d`` slots on 2 subbands: the SINRs, the serving cells, the
+    settings, eager's results and a compiled link level in CUDA-graph mode (both seeded 11)."""
+    sinr = 14.0 + np.random.default_rng(seed).normal(0.0, 3.0, size=(d, 3, 2))
+    serving = np.zeros(3, dtype=int)
+    settings = LinkSettings(num_prb=24, harq_processes=d, subbands=2)
+    eager = LinkLevel(settings, n_cell=1, seed=11).run(sinr, serving)
+    return sinr, serving, settings, eager, LinkLevel(dataclasses.replace(settings, compile=True, cuda_graphs=True),
+                                                     n_cell=1, seed=11)
+
+
 def test_the_cuda_graph_mode_on_the_cpu_decides_as_eager():
     """``cuda_graphs = true`` on the CPU: compiled in ``reduce-overhead`` mode (torch captures
     no graph there), its outputs copied out; the first call's MCS, PRBs, effective SINR and TBLER
@@ -228,13 +239,8 @@ def test_the_cuda_graph_mode_on_the_cpu_decides_as_eager():
     copied out of each replay."""
     import torch
 
-    rng = np.random.default_rng(6)
-    d, sub = 4, 2
-    sinr = 14.0 + rng.normal(0.0, 3.0, size=(d, 3, sub))
-    serving = np.zeros(3, dtype=int)
-    settings = LinkSettings(num_prb=24, harq_processes=d, subbands=sub)
-    eager = LinkLevel(settings, n_cell=1, seed=11).run(sinr, serving)
-    graphed = LinkLevel(dataclasses.replace(settings, compile=True, cuda_graphs=True), n_cell=1, seed=11)
+    d = 4
+    sinr, serving, settings, eager, graphed = _graph_mode_case(6, d)
     assert graphed.cuda_graphs and graphed._group == graphed._group_graphed
     compiled, left = graphed._compiled, []
 
@@ -261,13 +267,7 @@ def test_a_replay_torch_refuses_goes_on_compiled_without_graphs(capsys):
     """Where torch refuses a CUDA graph's replay (as it did on the H200: "accessing tensor output of
     CUDAGraphs that has been overwritten", raised before the graph runs), the link level says so
     and goes on compiled without graphs: the same decisions as eager; another error is not hidden."""
-    rng = np.random.default_rng(9)
-    d, sub = 4, 2
-    sinr = 14.0 + rng.normal(0.0, 3.0, size=(d, 3, sub))
-    serving = np.zeros(3, dtype=int)
-    settings = LinkSettings(num_prb=24, harq_processes=d, subbands=sub)
-    eager = LinkLevel(settings, n_cell=1, seed=11).run(sinr, serving)
-    graphed = LinkLevel(dataclasses.replace(settings, compile=True, cuda_graphs=True), n_cell=1, seed=11)
+    sinr, serving, settings, eager, graphed = _graph_mode_case(9, 4)
 
     def refused(*args):
         raise RuntimeError("Error: accessing tensor output of CUDAGraphs that has been overwritten by a subsequent run")
