@@ -376,15 +376,20 @@ groups in one call (a loop compiled once), each call's fixed host cost (dynamo's
 region's inputs) paid once a step, not 25 times (``benches/bench_host_overhead.py``)."""
 
 
+def _network_command(n_ue: int, seconds: float) -> list[str]:
+    """``benches/bench_network.py`` running the plugin alone at 21 cells × ``n_ue`` UEs, its UE
+    reports one table a step."""
+    return [sys.executable, str(ROOT / "benches/bench_network.py"), "--plugin-only", str(n_ue),
+            "--seconds", str(seconds), "--ue-reports", "table"]
+
+
 def network_graphed(n_ue: int, seconds: float, timeout_s: float) -> dict:
     """The same plugin with each compiled group of slots replayed as a CUDA graph (``cuda_graphs``,
     the default on CUDA since 2026-11-29, one group a call: :func:`network`'s chunks are loops, no
     graphs): the H200 (2026-11-28) found Sionna's OLLA reading a replay's overwritten output, now
     copied out: whether the graphs run without falling back (the run's stderr says where they do),
     and their T_p/T_v against :func:`network`'s."""
-    cmd = [sys.executable, str(ROOT / "benches/bench_network.py"), "--plugin-only", str(n_ue),
-           "--seconds", str(seconds), "--ue-reports", "table", "--cuda-graphs"]
-    stdout, error = command(cmd, timeout_s)
+    stdout, error = command([*_network_command(n_ue, seconds), "--cuda-graphs"], timeout_s)
     return {"error": error} if error is not None else json.loads(stdout.strip().splitlines()[-1])
 
 
@@ -393,8 +398,7 @@ def network(n_ue: int, seconds: float, timeout_s: float) -> dict:
     its link levels through ``torch.compile`` as the blueprints have them, with
     :data:`NETWORK_GROUPS_PER_CALL` groups of slots a call; where that run fails (no Triton for
     the GPU, say), again without (one group a call: eager), with the compiled run's error kept."""
-    cmd = [sys.executable, str(ROOT / "benches/bench_network.py"), "--plugin-only", str(n_ue),
-           "--seconds", str(seconds), "--ue-reports", "table"]
+    cmd = _network_command(n_ue, seconds)
     stdout, compile_error = command([*cmd, "--groups-per-call", str(NETWORK_GROUPS_PER_CALL)], timeout_s)
     if compile_error is None:
         return {**json.loads(stdout.strip().splitlines()[-1]), "compile_error": None}

@@ -50,7 +50,7 @@ def loop_state(olla: Any, pf: Any) -> tuple:
     """Copies of what the link loops keep between slots (an ``OuterLoopLinkAdaptation``'s
     offsets and last effective SINRs, a ``PFSchedulerSUMIMO``'s achieved-rate history), for
     :func:`keep_loop_state` (compiled, no copy is made: the values before the group's calls)."""
-    return olla._offset.clone(), olla._sinr_eff_db_last.clone(), pf._rate_achieved_past.clone()
+    return tuple(t.clone() for t in loop_tensors(olla, pf)[:3])
 
 
 def copy_out_link_adaptation(olla: Any) -> None:
